@@ -1,0 +1,5 @@
+import sys
+
+from jsve.cli import main
+
+sys.exit(main())
