@@ -1,0 +1,269 @@
+"""LogBatch: many runs' tracking logs as one padded pytree [runs, frames, ...], plus host metadata.
+
+Runs of different lengths are padded at the end and marked by `valid`; `bucket_by_length` groups
+runs so padding stays small, and `iter_chunks` cuts a batch into fixed-size chunks of runs so that
+10,000 runs x 3,600 frames never has to sit on the device at once. Per-run metadata (sequence,
+disturbance, level, ...) lives host-side in a pandas DataFrame aligned with the runs axis; the pytree
+carries only arrays, so jit caches depend on shapes alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from jaxtyping import Array, Bool, Float, Int
+
+from . import schema
+from .schema import RunLog
+
+
+class LogBatch(eqx.Module):
+    """Padded arrays of R runs x F frames. Times are seconds since each run's first frame.
+
+    Attributes (shapes; units; frames):
+        t: [R, F] s since the run's first frame (relative, so float32 keeps 0.1 ms over hours).
+        valid: [R, F] frame exists (False on padding).
+        state: [R, F] int8, the front-end's own logged eTrackingState.
+        imu_init: [R, F] IMU initialised in the original run.
+        n_extracted, n_inliers, n_frustum: [R, F] counts (int32).
+        bins: [R, F, 64] keypoints per SVE bin (uint16).
+        vis_p, vis_q, vis_v: [R, F, 3|4|3] visual estimate: m, wxyz, m/s; world frame.
+        imu_dt, imu_dp, imu_dv, imu_dq: preintegration from the previous frame: s, m, m/s, wxyz.
+        gt_p, gt_q: [R, F, 3|4] ground truth (NaN-free; zeros/identity where gt_valid is False).
+        gt_valid: [R, F] ground truth available.
+        fps: [R] frames per second (sets the relocalisation window).
+        gravity: [R, 3] m/s^2, world frame.
+        imu_init_delay: [R] s from the first frame to the first imu_init frame (inf if never).
+        run_index: [R] row of the run in the host metadata table; -1 for padding runs.
+    """
+
+    t: Float[Array, "R F"]
+    valid: Bool[Array, "R F"]
+    state: Int[Array, "R F"]
+    imu_init: Bool[Array, "R F"]
+    n_extracted: Int[Array, "R F"]
+    n_inliers: Int[Array, "R F"]
+    n_frustum: Int[Array, "R F"]
+    bins: Int[Array, "R F 64"]
+    vis_p: Float[Array, "R F 3"]
+    vis_q: Float[Array, "R F 4"]
+    vis_v: Float[Array, "R F 3"]
+    imu_dt: Float[Array, "R F"]
+    imu_dp: Float[Array, "R F 3"]
+    imu_dv: Float[Array, "R F 3"]
+    imu_dq: Float[Array, "R F 4"]
+    gt_p: Float[Array, "R F 3"]
+    gt_q: Float[Array, "R F 4"]
+    gt_valid: Bool[Array, "R F"]
+    fps: Float[Array, " R"]
+    gravity: Float[Array, "R 3"]
+    imu_init_delay: Float[Array, " R"]
+    run_index: Int[Array, " R"]
+
+    @property
+    def n_runs(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def n_frames(self) -> int:
+        return self.t.shape[1]
+
+
+@dataclass(frozen=True)
+class Bucket:
+    """A LogBatch with its host-side metadata: `meta.iloc[i]` describes run `batch.run_index == i`."""
+
+    batch: LogBatch
+    meta: pd.DataFrame
+
+
+def _pad_length(n: int, multiple: int) -> int:
+    return max(multiple, int(math.ceil(n / multiple)) * multiple)
+
+
+def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
+    """One row per run: run_id, source, n_frames, t0_ns and every metadata key (missing -> NA)."""
+    rows = []
+    for run in runs:
+        row = {"run_id": run.run_id, "source": run.source, "n_frames": len(run.frames)}
+        row["t0_ns"] = int(run.frames["t_ns"].iloc[0]) if len(run.frames) else 0
+        for key, value in run.meta.items():
+            row[key] = json_cell(value)
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    for key in ("disturbance",):
+        if key in table:
+            table[key] = table[key].fillna("none")
+    return table
+
+
+def json_cell(value):
+    """Metadata values as table cells: lists become tuples (hashable, groupable)."""
+    return tuple(value) if isinstance(value, list) else value
+
+
+def from_runs(
+    runs: Sequence[RunLog], *, n_frames: int | None = None, dtype=jnp.float32, pad_multiple: int = 64
+) -> Bucket:
+    """Stack runs into one padded LogBatch.
+
+    Arguments:
+        runs: parsed logs (validated by jsve.logs).
+        n_frames: padded length; default: the longest run rounded up to `pad_multiple`.
+        dtype: float dtype of the arrays (float64 needs jax_enable_x64).
+    Returns:
+        Bucket(batch, meta) with meta from `run_meta_table`.
+    """
+    if not runs:
+        raise ValueError("from_runs: no runs given")
+    lengths = [len(r.frames) for r in runs]
+    if min(lengths) < 1:
+        empty = [r.source for r in runs if len(r.frames) == 0]
+        raise ValueError(f"from_runs: runs without frames: {empty[:5]}")
+    F = n_frames if n_frames is not None else _pad_length(max(lengths), pad_multiple)
+    if F < max(lengths):
+        raise ValueError(f"from_runs: n_frames={F} is shorter than the longest run ({max(lengths)} frames)")
+    R = len(runs)
+    fdt = np.dtype(jnp.dtype(dtype).name)
+
+    def alloc(shape, dt, fill=0):
+        return np.full((R, F) + shape, fill, dtype=dt)
+
+    t, valid = alloc((), fdt), alloc((), bool, False)
+    state, imu_init = alloc((), np.int8), alloc((), bool, False)
+    n_ext, n_inl, n_fru = alloc((), np.int32), alloc((), np.int32), alloc((), np.int32)
+    bins = alloc((schema.N_BINS,), np.uint16)
+    vis_p, vis_v, imu_dp, imu_dv, gt_p = (alloc((3,), fdt) for _ in range(5))
+    vis_q, imu_dq, gt_q = (alloc((4,), fdt) for _ in range(3))
+    for q in (vis_q, imu_dq, gt_q):
+        q[..., 0] = 1.0
+    imu_dt, gt_valid = alloc((), fdt), alloc((), bool, False)
+    fps = np.zeros(R, fdt)
+    gravity = np.zeros((R, 3), fdt)
+    delay = np.zeros(R, fdt)
+    for i, run in enumerate(runs):
+        f = run.frames
+        n = len(f)
+        stamps = f["t_ns"].to_numpy(np.int64)
+        t[i, :n] = (stamps - stamps[0]) / 1e9  # int64 difference first: exact, then to seconds
+        valid[i, :n] = True
+        state[i, :n] = f["state"].to_numpy()
+        init = f["imu_init"].to_numpy() != 0
+        imu_init[i, :n] = init
+        delay[i] = t[i, int(np.argmax(init))] if init.any() else np.inf
+        n_ext[i, :n] = f["n_extracted"].to_numpy()
+        n_inl[i, :n] = f["n_inliers"].to_numpy()
+        n_fru[i, :n] = f["n_frustum"].to_numpy()
+        bins[i, :n] = f[list(schema.BIN_COLUMNS)].to_numpy()
+        vis_p[i, :n] = f[list(schema.VIS_POSITION)].to_numpy()
+        vis_q[i, :n] = f[list(schema.VIS_QUATERNION)].to_numpy()
+        vis_v[i, :n] = f[list(schema.VIS_VELOCITY)].to_numpy()
+        imu_dt[i, :n] = f["imu_dt"].to_numpy()
+        imu_dp[i, :n] = f[list(schema.IMU_DP)].to_numpy()
+        imu_dv[i, :n] = f[list(schema.IMU_DV)].to_numpy()
+        imu_dq[i, :n] = f[list(schema.IMU_DQ)].to_numpy()
+        if run.has_ground_truth:
+            gp = f[list(schema.GT_POSITION)].to_numpy()
+            gq = f[list(schema.GT_QUATERNION)].to_numpy()
+            ok = np.isfinite(gp).all(1) & np.isfinite(gq).all(1)
+            gt_p[i, :n][ok] = gp[ok]
+            gt_q[i, :n][ok] = gq[ok]
+            gt_valid[i, :n] = ok
+        fps[i] = float(run.meta["fps"])
+        gravity[i] = run.meta.get("gravity", schema.DEFAULT_GRAVITY)
+    batch = LogBatch(
+        t=jnp.asarray(t), valid=jnp.asarray(valid), state=jnp.asarray(state), imu_init=jnp.asarray(imu_init),
+        n_extracted=jnp.asarray(n_ext), n_inliers=jnp.asarray(n_inl), n_frustum=jnp.asarray(n_fru),
+        bins=jnp.asarray(bins), vis_p=jnp.asarray(vis_p), vis_q=jnp.asarray(vis_q), vis_v=jnp.asarray(vis_v),
+        imu_dt=jnp.asarray(imu_dt), imu_dp=jnp.asarray(imu_dp), imu_dv=jnp.asarray(imu_dv),
+        imu_dq=jnp.asarray(imu_dq), gt_p=jnp.asarray(gt_p), gt_q=jnp.asarray(gt_q),
+        gt_valid=jnp.asarray(gt_valid), fps=jnp.asarray(fps), gravity=jnp.asarray(gravity),
+        imu_init_delay=jnp.asarray(delay), run_index=jnp.arange(R, dtype=jnp.int32),
+    )  # fmt: skip
+    return Bucket(batch=batch, meta=run_meta_table(runs).reset_index(drop=True))
+
+
+def bucket_by_length(lengths: Sequence[int], *, max_padding: float = 0.1, pad_multiple: int = 64) -> list[np.ndarray]:
+    """Group run indices so that each group's padding is at most `max_padding` of its frames.
+
+    Runs are sorted by length and a group is closed when adding the next (longer) run would make the
+    padded total exceed (1 + max_padding) x the real frame count. Padded lengths are multiples of
+    `pad_multiple` so that similar buckets share a compiled shape.
+
+    Returns:
+        Index arrays into `lengths`, each sorted ascending by length, covering every run exactly once.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    if lengths.size == 0:
+        return []
+    order = np.argsort(lengths, kind="stable")
+    groups: list[list[int]] = []
+    current: list[int] = []
+    real = 0
+    for idx in order:
+        n = int(lengths[idx])
+        padded = _pad_length(n, pad_multiple) * (len(current) + 1)
+        if current and padded > (1 + max_padding) * (real + n):
+            groups.append(current)
+            current, real = [], 0
+        current.append(int(idx))
+        real += n
+    groups.append(current)
+    return [np.asarray(g, dtype=np.int64) for g in groups]
+
+
+def buckets(runs: Sequence[RunLog], *, max_padding: float = 0.1, dtype=jnp.float32) -> list[Bucket]:
+    """Split runs into length buckets (see `bucket_by_length`) and stack each into a Bucket."""
+    groups = bucket_by_length([len(r.frames) for r in runs], max_padding=max_padding)
+    return [from_runs([runs[i] for i in g], dtype=dtype) for g in groups]
+
+
+def take_runs(batch: LogBatch, index: np.ndarray | Array) -> LogBatch:
+    """The sub-batch of the given run indices (a gather on the leading axis of every leaf)."""
+    index = jnp.asarray(index)
+    return jax.tree.map(lambda x: x[index], batch)
+
+
+def pad_runs(batch: LogBatch, n_runs: int) -> LogBatch:
+    """Append padding runs (valid False everywhere, run_index -1) up to `n_runs` runs."""
+    extra = n_runs - batch.n_runs
+    if extra < 0:
+        raise ValueError(f"pad_runs: batch has {batch.n_runs} runs, more than n_runs={n_runs}")
+    if extra == 0:
+        return batch
+
+    def pad(x):
+        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+
+    padded = jax.tree.map(pad, batch)
+    keep = jnp.arange(n_runs) < batch.n_runs
+    return eqx.tree_at(
+        lambda b: (b.valid, b.gt_valid, b.run_index),
+        padded,
+        (padded.valid & keep[:, None], padded.gt_valid & keep[:, None], jnp.where(keep, padded.run_index, -1)),
+    )
+
+
+def iter_chunks(batch: LogBatch, runs_per_chunk: int) -> Iterator[tuple[slice, LogBatch]]:
+    """Yield (run slice, chunk) pairs; every chunk has exactly `runs_per_chunk` runs (the last is
+    padded) so one compiled function serves them all. Results for padding runs must be dropped by
+    the caller using the slice (or run_index == -1)."""
+    if runs_per_chunk < 1:
+        raise ValueError(f"iter_chunks: runs_per_chunk must be >= 1, got {runs_per_chunk}")
+    for start in range(0, batch.n_runs, runs_per_chunk):
+        stop = min(start + runs_per_chunk, batch.n_runs)
+        chunk = jax.tree.map(lambda x, a=start, b=stop: x[a:b], batch)
+        yield slice(start, stop), pad_runs(chunk, runs_per_chunk)
+
+
+def runs_per_chunk_for(n_frames: int, *, bytes_budget: float = 4e9, bytes_per_frame: int = 600) -> int:
+    """How many runs of `n_frames` fit a device-memory budget, counting inputs, replay outputs and
+    temporaries at about `bytes_per_frame` (float32; measured by analysis/bench_replay.py)."""
+    return max(1, int(bytes_budget // (bytes_per_frame * max(n_frames, 1))))

@@ -1,0 +1,170 @@
+"""Replay: what trajectory a switching rule would have produced from a logged run (DESIGN section 5).
+
+For every frame the state machine (jsve.rules.machine_step) decides between the logged visual
+estimate and ORB-SLAM3's IMU prediction from the previous state (PredictStateIMU); after LOST a new
+map starts a new, unaligned segment. One `lax.scan` over frames, vmapped over runs.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from .batch import LogBatch
+from .geometry import quat_mul, quat_rotate
+from .rules import (
+    MODE_LOST,
+    MODE_OK,
+    MODE_RECENTLY_LOST,
+    TIME_RECENTLY_LOST_S,
+    HardLogic,
+    Rule,
+    initial_state,
+    machine_step,
+)
+from .sve import FrameFeatures, frame_features
+
+
+def imu_predict(p, v, q, dt, dp, dv, dq, gravity):
+    """One step of ORB-SLAM3's PredictStateIMU from the previous body state.
+
+    R2 = R1 dR;  v2 = v1 + g dt + R1 dV;  p2 = p1 + v1 dt + 0.5 g dt^2 + R1 dP.
+
+    Arguments:
+        p, v, q: previous position (m), velocity (m/s), orientation (wxyz); world frame.
+        dt, dp, dv, dq: preintegration over the interval (s, m, m/s, wxyz), previous body frame.
+        gravity: m/s^2, world frame.
+    Returns:
+        (p2, v2, q2) at the end of the interval.
+    """
+    dt = dt[..., None]
+    p2 = p + v * dt + 0.5 * gravity * dt * dt + quat_rotate(q, dp)
+    v2 = v + gravity * dt + quat_rotate(q, dv)
+    q2 = quat_mul(q, dq)
+    return p2, v2, q2
+
+
+class ReplayResult(eqx.Module):
+    """Per-frame outcome of a replay, shapes [runs, frames] (+ 3 or 4).
+
+    Attributes:
+        position, quaternion, velocity: the estimate (m, wxyz, m/s; world frame of its segment).
+            Meaningful where has_estimate; elsewhere they hold the last state.
+        accepted: the visual estimate was used. predicted: the IMU prediction was used.
+        has_estimate: accepted or predicted, and the frame exists.
+        mode: MODE_OK / MODE_RECENTLY_LOST / MODE_LOST after the frame (int8; -1 on padding).
+        segment: index of the map the frame belongs to (int32).
+        lost_any: [runs] the run reached LOST at least once (tracking failure).
+    In a relaxed replay (SoftLogic) the flags are probabilities and mode is the most likely one.
+    """
+
+    position: Float[Array, "R F 3"]
+    quaternion: Float[Array, "R F 4"]
+    velocity: Float[Array, "R F 3"]
+    accepted: Array
+    predicted: Array
+    has_estimate: Array
+    mode: Int[Array, "R F"]
+    segment: Array
+    lost_any: Array
+
+
+def replay_run(
+    score: Float[Array, " F"],
+    t: Float[Array, " F"],
+    valid: Bool[Array, " F"],
+    imu_init: Bool[Array, " F"],
+    vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq,
+    gravity: Float[Array, " 3"],
+    fps: Float[Array, ""],
+    imu_init_delay: Float[Array, ""],
+    thresholds,
+    logic=HardLogic(),
+    time_recently_lost: float = TIME_RECENTLY_LOST_S,
+):
+    """Replay one run (no leading runs axis); see `replay` for the batched entry point.
+
+    Returns a dict of per-frame arrays (float flags) consumed by `replay`.
+    """
+    dtype = t.dtype
+    k = jnp.arange(t.shape[0], dtype=dtype)
+    init = initial_state(dtype)
+    start = (init, vis_p[0], vis_v[0], vis_q[0])
+
+    def step(carry, x):
+        state, p, v, q = carry
+        sc, tt, kk, ii, vp, vq, vv, dt, dp, dv, dq = x
+        state, decision = machine_step(
+            logic, state, sc, tt, kk, ii.astype(dtype), thresholds, fps, imu_init_delay, time_recently_lost
+        )
+        pp, pv, pq = imu_predict(p, v, q, dt, dp, dv, dq, gravity)
+        a = decision.accepted
+        p2 = a * vp + (1 - a) * pp
+        v2 = a * vv + (1 - a) * pv
+        q2 = logic.normalize_quat(a * vq + (1 - a) * pq)
+        modes = jnp.stack([state.ok, state.recently_lost, state.lost])
+        out = (p2, q2, v2, decision.accepted, decision.predicted, modes, state.segment)
+        return (state, p2, v2, q2), out
+
+    xs = (score, t, k, imu_init, vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq)
+    _, (p, q, v, accepted, predicted, modes, segment) = jax.lax.scan(step, start, xs)
+    validf = valid.astype(dtype)
+    return dict(
+        position=p, quaternion=q, velocity=v, accepted=accepted * validf, predicted=predicted * validf,
+        has_estimate=(accepted + predicted) * validf, modes=modes, segment=segment, valid=valid,
+    )  # fmt: skip
+
+
+def replay(
+    batch: LogBatch,
+    rule: Rule,
+    features: FrameFeatures | None = None,
+    *,
+    logic=HardLogic(),
+    time_recently_lost: float = TIME_RECENTLY_LOST_S,
+) -> ReplayResult:
+    """Replay `rule` over every run of `batch` (vmapped scan; jit it at the call site or use
+    `jsve.evaluate`).
+
+    Arguments:
+        batch: the logs. features: per-frame features of the batch (computed if omitted; pass them
+            when replaying many rules over the same batch). logic: HardLogic() for the real machine,
+            SoftLogic(temperature) for the differentiable relaxation.
+        time_recently_lost: s before RECENTLY_LOST turns LOST (ORB-SLAM3: 5).
+    """
+    if features is None:
+        features = batch_features(batch)
+    score = rule.score(features).astype(batch.t.dtype)
+    run = jax.vmap(
+        lambda sc, t, va, ii, vp, vq, vv, dt, dp, dv, dq, g, f, d: replay_run(
+            sc, t, va, ii, vp, vq, vv, dt, dp, dv, dq, g, f, d, rule.thresholds, logic, time_recently_lost
+        )
+    )
+    out = run(score, batch.t, batch.valid, batch.imu_init, batch.vis_p, batch.vis_q, batch.vis_v, batch.imu_dt,
+              batch.imu_dp, batch.imu_dv, batch.imu_dq, batch.gravity, batch.fps, batch.imu_init_delay)  # fmt: skip
+    mode = jnp.argmax(out["modes"], axis=-1).astype(jnp.int8)
+    mode = jnp.where(batch.valid, mode, jnp.int8(-1))
+    lost_frames = out["modes"][..., MODE_LOST] * batch.valid
+    if isinstance(logic, HardLogic):
+        return ReplayResult(
+            position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
+            accepted=out["accepted"] > 0.5, predicted=out["predicted"] > 0.5,
+            has_estimate=out["has_estimate"] > 0.5, mode=mode,
+            segment=out["segment"].astype(jnp.int32), lost_any=jnp.any(lost_frames > 0.5, axis=-1),
+        )  # fmt: skip
+    return ReplayResult(
+        position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
+        accepted=out["accepted"], predicted=out["predicted"], has_estimate=out["has_estimate"], mode=mode,
+        segment=out["segment"], lost_any=1 - jnp.prod(1 - lost_frames, axis=-1),
+    )  # fmt: skip
+
+
+def batch_features(batch: LogBatch) -> FrameFeatures:
+    """FrameFeatures of every frame of the batch, computed once and shared by all rules."""
+    return frame_features(batch.n_extracted, batch.n_inliers, batch.n_frustum, batch.bins)
+
+
+__all__ = ["MODE_OK", "MODE_RECENTLY_LOST", "MODE_LOST", "ReplayResult", "imu_predict", "replay", "replay_run",
+           "batch_features"]  # fmt: skip

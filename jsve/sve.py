@@ -1,0 +1,185 @@
+"""Scene Visibility Estimation (SVE) metrics S_a, S_b, S_c and their combinations.
+
+Reference definitions from the authors' public code (see docs/sve.md):
+Haggart & Aitken 2021 (ORB-SLAM2/3) and Rugg-Gunn & Aitken 2022 (the seed paper, ORB-SLAM3).
+All functions are elementwise over leading axes, jit/vmap-safe and differentiable where noted.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+N_BINS = 64
+WORST_CASE_FRACTION = 1.0 / 8.0
+"""Fraction f of bins holding all points in the worst case; chi2_w = N (1 - f) / f = 7 N."""
+
+
+def _safe_ratio(num: Array, den: Array) -> Array:
+    """num / den with 0 where den == 0, gradient-safe (double where)."""
+    ok = den > 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+def s_a_original(n_extracted: ArrayLike, n_features: ArrayLike) -> Float[Array, "..."]:
+    """Feature quantity, Haggart's original: N_extracted / nFeatures (unclamped)."""
+    return _safe_ratio(jnp.asarray(n_extracted, float), jnp.asarray(n_features, float))
+
+
+def inlier_ratio(n_inliers: ArrayLike, n_extracted: ArrayLike) -> Float[Array, "..."]:
+    """N_inliers / N_extracted, 0 when nothing was extracted; S_a before the rho scaling."""
+    return _safe_ratio(jnp.asarray(n_inliers, float), jnp.asarray(n_extracted, float))
+
+
+def s_a(n_inliers: ArrayLike, n_extracted: ArrayLike, rho: ArrayLike = 0.25) -> Float[Array, "..."]:
+    """Feature quantity, ORB-SLAM3 variant (Rugg-Gunn): clamp(N_inliers / (rho N_extracted), 0, 1).
+
+    rho = 0.25 in the seed's final code (Option 2), 0.5 in Option 1. Zero when N_extracted = 0.
+    """
+    return s_a_from_ratio(inlier_ratio(n_inliers, n_extracted), rho)
+
+
+def s_a_from_ratio(ratio: ArrayLike, rho: ArrayLike) -> Float[Array, "..."]:
+    """S_a from a precomputed inlier ratio, so that rho can be swept without touching the counts."""
+    return jnp.clip(_safe_ratio(jnp.asarray(ratio, float), jnp.asarray(rho, float)), 0.0, 1.0)
+
+
+def s_b(bins: ArrayLike, n_extracted: ArrayLike, clamp: bool = True) -> Float[Array, "..."]:
+    """Feature homogeneity over the 8 x 8 SVE bins: 1 - chi2 / chi2_w.
+
+    E = N / 64 with N all extracted keypoints (also those outside the grid, as in the authors' code);
+    chi2 = sum_i (n_i - E)^2 / E; chi2_w = 7 N is the worst case of all points spread evenly over
+    1/8 of the bins. Clamped to [0, 1] by default (Haggart's original is unclamped).
+
+    Arguments:
+        bins: keypoints per bin, shape (..., 64).
+        n_extracted: N, shape (...).
+    Returns:
+        S_b, shape (...); 0 when N = 0 (no features: no evidence of spread).
+    """
+    bins = jnp.asarray(bins, float)
+    n = jnp.asarray(n_extracted, float)
+    expected = n[..., None] / N_BINS
+    sum_sq = jnp.sum((bins - expected) ** 2, axis=-1)
+    # chi2 / chi2_w = [sum (n_i - E)^2 / E] / (7 N) = 64 sum (n_i - E)^2 / (7 N^2)
+    worst = (1.0 - WORST_CASE_FRACTION) / WORST_CASE_FRACTION
+    ratio = _safe_ratio(N_BINS * sum_sq, worst * n * n)
+    value = jnp.where(n > 0, 1.0 - ratio, 0.0)
+    return jnp.clip(value, 0.0, 1.0) if clamp else value
+
+
+def s_c(n_inliers: ArrayLike, n_frustum: ArrayLike, clamp: bool = True) -> Float[Array, "..."]:
+    """Tracked vs expected: N_inliers / N_frustum (nToMatch), 0 when N_frustum = 0; clamped to [0, 1].
+
+    Unclamped (clamp=False) it is Haggart's version, which can exceed 1.
+    """
+    value = _safe_ratio(jnp.asarray(n_inliers, float), jnp.asarray(n_frustum, float))
+    return jnp.clip(value, 0.0, 1.0) if clamp else value
+
+
+def power_mean(x: Float[Array, "... k"], w: Float[Array, "k"], p: ArrayLike) -> Float[Array, "..."]:
+    """Weighted power mean (sum_i w_i x_i^p)^(1/p) of non-negative x, weights summing to 1.
+
+    p = 1 arithmetic, p -> 0 geometric (exp sum w log x), p = -1 harmonic. A zero entry with positive
+    weight gives 0 for p <= 0. Gradients stay finite at x = 0 and p = 0 (double where).
+    """
+    x = jnp.asarray(x, float)
+    w = jnp.asarray(w, x.dtype)
+    p = jnp.asarray(p, x.dtype)
+    positive = x > 0
+    x_safe = jnp.where(positive, x, 1.0)
+    has_zero = jnp.any(~positive & (w > 0), axis=-1)
+    near_zero_p = jnp.abs(p) < 1e-6
+    p_safe = jnp.where(near_zero_p, 1.0, p)
+    geometric = jnp.exp(jnp.sum(w * jnp.log(x_safe), axis=-1))
+    terms = jnp.where(positive, x_safe**p_safe, 0.0)
+    inner = jnp.sum(w * terms, axis=-1)
+    inner_ok = inner > 0
+    powered = jnp.where(inner_ok, jnp.where(inner_ok, inner, 1.0) ** (1.0 / p_safe), 0.0)
+    value = jnp.where(near_zero_p, geometric, powered)
+    # p <= 0 with a zero entry: the mean is 0 (limit of x^p -> inf in the sum).
+    return jnp.where(has_zero & (p <= 0), 0.0, value)
+
+
+class Combination(eqx.Module):
+    """The nested power-mean family of SVE combinations.
+
+        SVE = M_p( [S_a, M_q([S_b, S_c]; [u, 1-u])]; [w, 1-w] )
+
+    It contains the seed's three: Eq.1 (w=0.2, u=0.5, p=q=1, i.e. 0.2a + 0.4b + 0.4c), Option 1
+    (w=0.5, u=0.5, p=q=1, i.e. 0.5a + 0.25b + 0.25c) and Option 2 (w=0.5, u=0.5, p=0, q=1, i.e.
+    sqrt(a (0.5b + 0.5c))); with p = q it is the flat weighted power mean of (a, b, c). rho scales S_a.
+    All fields are array leaves so sweeps can vmap over them.
+    """
+
+    w_a: Float[Array, ""]
+    u_b: Float[Array, ""]
+    p: Float[Array, ""]
+    q: Float[Array, ""]
+    rho: Float[Array, ""]
+
+    def __init__(self, w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.25):
+        self.w_a = jnp.asarray(w_a, float)
+        self.u_b = jnp.asarray(u_b, float)
+        self.p = jnp.asarray(p, float)
+        self.q = jnp.asarray(q, float)
+        self.rho = jnp.asarray(rho, float)
+
+    def __call__(self, ratio: Array, sb: Array, sc: Array) -> Float[Array, "..."]:
+        """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes)."""
+        sa = s_a_from_ratio(ratio, self.rho)
+        inner = power_mean(jnp.stack([sb, sc], -1), jnp.stack([self.u_b, 1 - self.u_b]), self.q)
+        return power_mean(jnp.stack([sa, inner], -1), jnp.stack([self.w_a, 1 - self.w_a]), self.p)
+
+
+EQ1 = dict(w_a=0.2, u_b=0.5, p=1.0, q=1.0, rho=0.5)
+"""Eq.1: 0.2 a + 0.4 b + 0.4 c. The paper gives no rho for it; we take Option 1's 0.5 (same era of
+the code, same thresholds 0.3/0.1/0.1/0.3) and say so in docs/sve.md."""
+OPTION1 = dict(w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.5)
+"""Eq.2 "Option 1": 0.5 a + 0.25 b + 0.25 c with rho = 0.5."""
+OPTION2 = dict(w_a=0.5, u_b=0.5, p=0.0, q=1.0, rho=0.25)
+"""Eq.3 "Option 2": sqrt(a (0.5 b + 0.5 c)) with rho = 0.25 (the seed's final code)."""
+
+
+class FrameFeatures(eqx.Module):
+    """Per-frame quantities every rule needs, computed once per batch (shapes [..., frames]).
+
+    Attributes:
+        n_inliers: tracked inliers (count, float).
+        inlier_ratio: N_inliers / N_extracted (S_a before rho).
+        s_b: clamped homogeneity.
+        s_c: clamped tracked-vs-expected.
+    """
+
+    n_inliers: Float[Array, "*batch"]
+    inlier_ratio: Float[Array, "*batch"]
+    s_b: Float[Array, "*batch"]
+    s_c: Float[Array, "*batch"]
+
+
+def frame_features(n_extracted, n_inliers, n_frustum, bins) -> FrameFeatures:
+    """FrameFeatures from raw counts (any leading shape; bins has a trailing axis of 64)."""
+    return FrameFeatures(
+        n_inliers=jnp.asarray(n_inliers, float),
+        inlier_ratio=inlier_ratio(n_inliers, n_extracted),
+        s_b=s_b(bins, n_extracted),
+        s_c=s_c(n_inliers, n_frustum),
+    )
+
+
+def sve_table(n_extracted, n_inliers, n_frustum, bins, n_features=1000) -> dict[str, Array]:
+    """Every metric and preset combination for a set of frames, as named columns (for `jsve sve`)."""
+    f = frame_features(n_extracted, n_inliers, n_frustum, bins)
+    return {
+        "s_a_original": s_a_original(n_extracted, n_features),
+        "s_a_rho025": s_a_from_ratio(f.inlier_ratio, 0.25),
+        "s_a_rho050": s_a_from_ratio(f.inlier_ratio, 0.5),
+        "s_b": f.s_b,
+        "s_b_unclamped": s_b(bins, n_extracted, clamp=False),
+        "s_c": f.s_c,
+        "s_c_unclamped": s_c(n_inliers, n_frustum, clamp=False),
+        "sve_eq1": Combination(**EQ1)(f.inlier_ratio, f.s_b, f.s_c),
+        "sve_option1": Combination(**OPTION1)(f.inlier_ratio, f.s_b, f.s_c),
+        "sve_option2": Combination(**OPTION2)(f.inlier_ratio, f.s_b, f.s_c),
+    }
