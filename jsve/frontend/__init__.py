@@ -1,0 +1,28 @@
+"""The compiled front-end boundary: `jsve_log.hpp`, a header-only C++17 writer of log format v1.
+
+A front-end (ORB-SLAM3 with the hooks of docs/frontend.md, or any other) includes the header and
+writes one format-v1 log per run; jsve reads it with `jsve.logs.read_log`. Compile with
+
+    g++ -std=c++17 -I"$(jsve frontend-include)" ...        # or: python -m jsve.frontend --include
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+HEADER_NAME = "jsve_log.hpp"
+"""File name of the header inside `get_include()`."""
+
+
+def get_include() -> str:
+    """Directory holding `jsve_log.hpp`, for a compiler's `-I` (like `numpy.get_include()`).
+
+    Returns:
+        Absolute path of the directory, as a string.
+    """
+    return str(Path(__file__).resolve().parent)
+
+
+def header_path() -> str:
+    """Absolute path of `jsve_log.hpp` itself."""
+    return str(Path(get_include()) / HEADER_NAME)

@@ -1,0 +1,711 @@
+// jsve_log.hpp: header-only C++17 writer of jsve tracking log format v1.
+//
+// Part of jsve (GPL-3.0-or-later). The format itself is defined in jsve/schema.py and described
+// in docs/log-format.md; the hook guide for ORB-SLAM3 v1.0 is docs/frontend.md. This header has no
+// dependencies beyond the C++17 standard library, and its interface takes only plain structs and
+// arrays (no Eigen, OpenCV or Sophus types), so it drops into any front-end:
+//
+//     #include "jsve_log.hpp"          // g++ -std=c++17 -I"$(jsve frontend-include)" ...
+//
+//     jsve::Metadata meta;
+//     meta.set("sequence", "MH_04").set("run", 7).set("fps", 20)
+//         .set("image_size", {752, 480}).set("gravity", {0.0, 0.0, -9.81});
+//     jsve::LogWriter log("logs/MH_04_run7.csv", meta);   // writes logs/MH_04_run7.csv.partial
+//     for (...each frame...) {
+//         jsve::Frame f;                                     // zeros, identity quaternions
+//         f.t_ns = stamp_ns; f.state = 2; ...
+//         log.write(f);
+//     }
+//     log.close();                       // end marker, then rename to logs/MH_04_run7.csv
+//
+// Guarantees
+//   * A log never looks complete when it is not. Lines go to `<path>.partial`; the end marker
+//     (`# jsve-log end frames=N`) is written only by close(), which then renames the file to
+//     `<path>`. A crash, a kill, an exception that unwinds past the writer, or a rejected frame
+//     leaves only `<path>.partial`, which jsve's reader reports as incomplete.
+//   * Doubles are written in the shortest form that reads back to the same bits (at most 17
+//     significant digits; std::to_chars where the library has it, else snprintf "%.17g"),
+//     independent of the C and C++ locales; float columns always carry a '.' or an exponent
+//     ("1.0", "-0.0", "1e-300"). Integers are exact (int64 stamps).
+//   * Buffered output is flushed every Options::flush_every frames (default 100) and at close.
+//     flush means fflush (the data reaches the operating system, which survives a process crash;
+//     surviving a power cut would need fsync, which this header does not call).
+//
+// Error policy (Options::on_error)
+//   * OnError::kThrow (default): any call that would return a non-OK Status throws jsve::LogError
+//     (a std::runtime_error carrying the Status) instead.
+//   * OnError::kReturn: calls return the Status; last_error() holds the message.
+//   A frame that jsve's reader would reject (a non-finite double, a stamp not after the previous
+//   one, a state outside -1..5, a negative count, more binned keypoints or inliers than extracted
+//   keypoints, a quaternion whose norm is off 1 by more than 1e-6, a negative imu_dt) is never
+//   written, and it marks the writer as failed: every later write() and close() reports
+//   Status::kFailed, close() leaves `<path>.partial` in place, and the run shows up as incomplete
+//   rather than silently missing a frame. To repair a frame instead, call check(frame) first; it
+//   validates without writing and without changing the writer. abandon() (also run by the
+//   destructor of an open writer) closes the file and leaves it as `.partial`; it never throws.
+//
+// Not thread-safe: use one writer per run from one thread (ORB-SLAM3's tracking thread).
+
+#ifndef JSVE_LOG_HPP
+#define JSVE_LOG_HPP
+
+#include <cerrno>
+#include <charconv>
+#include <clocale>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <initializer_list>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <type_traits>
+#include <utility>
+#include <vector>
+
+#if !defined(JSVE_LOG_USE_SNPRINTF) && defined(__cpp_lib_to_chars) && __cpp_lib_to_chars >= 201611L
+#define JSVE_LOG_HAVE_FP_TO_CHARS 1
+#else
+#define JSVE_LOG_HAVE_FP_TO_CHARS 0
+#endif
+
+namespace jsve {
+
+inline constexpr int kFormatVersion = 1;
+inline constexpr int kBins = 64;          // SVE bins per frame, 8 x 8, row-major (k = 8 * by + bx)
+inline constexpr int kGridCols = 64;      // ORB-SLAM3 FRAME_GRID_COLS
+inline constexpr int kGridRows = 48;      // ORB-SLAM3 FRAME_GRID_ROWS
+inline constexpr const char* kMagic = "# jsve-log v1 ";
+inline constexpr const char* kEndMarker = "# jsve-log end frames=";
+inline constexpr const char* kPartialSuffix = ".partial";
+inline constexpr double kUnitQuaternionTolerance = 1e-6;  // schema.UNIT_QUATERNION_TOLERANCE
+
+enum class Status : int {
+    kOk = 0,
+    kNotOpen,              // write()/close() on a writer that is not open
+    kAlreadyOpen,          // open() on a writer that is open
+    kExists,               // `<path>` exists and Options::overwrite is false
+    kIoError,              // fopen/fwrite/fflush/fclose/rename failed (errno text in the message)
+    kBadMetadata,          // a metadata value or a required key is missing or of the wrong type
+    kNonFinite,            // a NaN or infinite double in a frame
+    kNonIncreasingStamp,   // t_ns not strictly after the previous frame's
+    kOutOfRange,           // state, counts, bins, quaternion norm or imu_dt out of range
+    kFailed,               // the writer failed earlier; nothing more is written
+};
+
+inline const char* to_string(Status s) noexcept {
+    switch (s) {
+        case Status::kOk: return "ok";
+        case Status::kNotOpen: return "not open";
+        case Status::kAlreadyOpen: return "already open";
+        case Status::kExists: return "file exists";
+        case Status::kIoError: return "I/O error";
+        case Status::kBadMetadata: return "bad metadata";
+        case Status::kNonFinite: return "non-finite value";
+        case Status::kNonIncreasingStamp: return "non-increasing stamp";
+        case Status::kOutOfRange: return "value out of range";
+        case Status::kFailed: return "writer failed earlier";
+    }
+    return "unknown";
+}
+
+class LogError : public std::runtime_error {
+public:
+    LogError(Status status, const std::string& message) : std::runtime_error(message), status_(status) {}
+    Status status() const noexcept { return status_; }
+
+private:
+    Status status_;
+};
+
+enum class OnError { kThrow, kReturn };
+
+struct Options {
+    bool ground_truth = false;   // add the seven gt_* columns (decided once per log)
+    int flush_every = 100;       // fflush after every N frames; 0 or less: only at close
+    bool overwrite = false;      // replace an existing `<path>` (removed at open, not at close)
+    OnError on_error = OnError::kThrow;
+};
+
+// One frame, in the units of docs/log-format.md. Defaults: zeros and identity quaternions.
+struct Frame {
+    std::int64_t t_ns = 0;          // sensor stamp, nanoseconds
+    int state = 0;                  // ORB-SLAM3 Tracking::eTrackingState, -1..5
+    bool imu_init = false;          // Atlas::isImuInitialized() for the active map
+    int n_extracted = 0;            // Frame::N
+    int n_inliers = 0;              // Tracking::mnMatchesInliers after TrackLocalMap
+    int n_frustum = 0;              // nToMatch in Tracking::SearchLocalPoints
+    int bins[kBins] = {};           // keypoints per SVE bin (see fill_bins_from_grid)
+    double vis_p[3] = {0.0, 0.0, 0.0};       // body position, world frame, m
+    double vis_q[4] = {1.0, 0.0, 0.0, 0.0};  // body-to-world rotation, wxyz
+    double vis_v[3] = {0.0, 0.0, 0.0};       // body velocity, world frame, m/s
+    double imu_dt = 0.0;                     // preintegration interval, s (0 on the first frame)
+    double imu_dp[3] = {0.0, 0.0, 0.0};      // preintegrated position delta, previous body frame, m
+    double imu_dv[3] = {0.0, 0.0, 0.0};      // preintegrated velocity delta, previous body frame, m/s
+    double imu_dq[4] = {1.0, 0.0, 0.0, 0.0}; // preintegrated rotation delta, wxyz
+    double gt_p[3] = {0.0, 0.0, 0.0};        // ground-truth body position (only with ground_truth)
+    double gt_q[4] = {1.0, 0.0, 0.0, 0.0};   // ground-truth body-to-world rotation, wxyz
+};
+
+// SVE bin of an ORB-SLAM3 grid cell: bin x = col / 8, bin y = row / 6, k = 8 * y + x.
+constexpr int bin_of_cell(int col, int row) noexcept { return 8 * (row / 6) + col / 8; }
+
+// Fills f.bins from ORB-SLAM3's 64 x 48 keypoint grid; count(col, row) returns the number of
+// keypoints in cell (col, row), e.g. [&](int c, int r) { return int(frame.mGrid[c][r].size()); }.
+template <class CountFn>
+void fill_bins_from_grid(Frame& f, CountFn&& count) {
+    for (int k = 0; k < kBins; ++k) f.bins[k] = 0;
+    for (int col = 0; col < kGridCols; ++col)
+        for (int row = 0; row < kGridRows; ++row) f.bins[bin_of_cell(col, row)] += static_cast<int>(count(col, row));
+}
+
+namespace detail {
+
+// Shortest round-trip text of a double; always contains '.', 'e' (or is "inf"/"nan", which the
+// writer never emits). Needs 26 chars at most.
+inline char* put_double(char* p, char* end, double v) {
+    char* q;
+#if JSVE_LOG_HAVE_FP_TO_CHARS
+    q = std::to_chars(p, end, v).ptr;
+#else
+    const int n = std::snprintf(p, static_cast<std::size_t>(end - p), "%.17g", v);
+    q = p + n;
+    // snprintf follows LC_NUMERIC; the file must not.
+    const char* dp = std::localeconv()->decimal_point;
+    const std::size_t dn = std::strlen(dp);
+    if (dn > 0 && !(dn == 1 && dp[0] == '.')) {
+        for (char* s = p; s + dn <= q; ++s) {
+            if (std::memcmp(s, dp, dn) == 0) {
+                *s = '.';
+                std::memmove(s + 1, s + dn, static_cast<std::size_t>(q - (s + dn)));
+                q -= dn - 1;
+                break;
+            }
+        }
+    }
+#endif
+    for (const char* s = p; s < q; ++s)
+        if (*s == '.' || *s == 'e' || *s == 'E' || *s == 'n' || *s == 'i') return q;
+    q[0] = '.';
+    q[1] = '0';
+    return q + 2;
+}
+
+inline char* put_int(char* p, char* end, std::int64_t v) { return std::to_chars(p, end, v).ptr; }
+
+inline std::string double_text(double v) {
+    char buf[32];
+    return std::string(buf, put_double(buf, buf + sizeof buf, v));
+}
+
+inline bool valid_utf8(const std::string& s) {
+    const auto* u = reinterpret_cast<const unsigned char*>(s.data());
+    const std::size_t n = s.size();
+    std::size_t i = 0;
+    while (i < n) {
+        const unsigned c = u[i];
+        std::size_t len;
+        std::uint32_t cp;
+        if (c < 0x80) { ++i; continue; }
+        if ((c & 0xE0) == 0xC0) { len = 2; cp = c & 0x1F; }
+        else if ((c & 0xF0) == 0xE0) { len = 3; cp = c & 0x0F; }
+        else if ((c & 0xF8) == 0xF0) { len = 4; cp = c & 0x07; }
+        else return false;
+        if (i + len > n) return false;
+        for (std::size_t k = 1; k < len; ++k) {
+            if ((u[i + k] & 0xC0) != 0x80) return false;
+            cp = (cp << 6) | (u[i + k] & 0x3F);
+        }
+        if ((len == 2 && cp < 0x80) || (len == 3 && cp < 0x800) || (len == 4 && cp < 0x10000)) return false;
+        if (cp > 0x10FFFF || (cp >= 0xD800 && cp <= 0xDFFF)) return false;
+        i += len;
+    }
+    return true;
+}
+
+inline void append_json_string(std::string& out, const std::string& s) {
+    static const char hex[] = "0123456789abcdef";
+    out += '"';
+    for (const char ch : s) {
+        const auto c = static_cast<unsigned char>(ch);
+        switch (c) {
+            case '"': out += "\\\""; break;
+            case '\\': out += "\\\\"; break;
+            case '\n': out += "\\n"; break;
+            case '\r': out += "\\r"; break;
+            case '\t': out += "\\t"; break;
+            case '\b': out += "\\b"; break;
+            case '\f': out += "\\f"; break;
+            default:
+                if (c < 0x20 || c == 0x7F) {
+                    out += "\\u00";
+                    out += hex[c >> 4];
+                    out += hex[c & 0xF];
+                } else {
+                    out += ch;
+                }
+        }
+    }
+    out += '"';
+}
+
+}  // namespace detail
+
+// Metadata for line 1, kept in insertion order; set() on an existing key replaces its value.
+// Values: strings (UTF-8), integers (int64), finite doubles, and arrays of integers or doubles.
+// An invalid value (non-finite double, invalid UTF-8, integer above INT64_MAX, empty key) is
+// remembered and reported by LogWriter::open() as Status::kBadMetadata.
+class Metadata {
+public:
+    enum class Kind { kString, kInt, kDouble, kIntArray, kDoubleArray };
+
+    Metadata& set(const std::string& key, const std::string& value) {
+        if (!detail::valid_utf8(value)) return invalid(key, "string is not valid UTF-8");
+        std::string json;
+        detail::append_json_string(json, value);
+        return put(key, Kind::kString, std::move(json));
+    }
+    Metadata& set(const std::string& key, const char* value) {
+        if (value == nullptr) return invalid(key, "null string");
+        return set(key, std::string(value));
+    }
+    template <class T, std::enable_if_t<std::is_integral_v<T>, int> = 0>
+    Metadata& set(const std::string& key, T value) {
+        static_assert(!std::is_same_v<T, bool>, "jsve metadata has no booleans: use 0/1");
+        std::int64_t v;
+        if (!to_int64(value, v)) return invalid(key, "integer does not fit in int64");
+        char buf[24];
+        return put(key, Kind::kInt, std::string(buf, detail::put_int(buf, buf + sizeof buf, v)));
+    }
+    template <class T, std::enable_if_t<std::is_floating_point_v<T>, int> = 0>
+    Metadata& set(const std::string& key, T value) {
+        const double v = static_cast<double>(value);
+        if (!std::isfinite(v)) return invalid(key, "double is not finite (JSON has no NaN or infinity)");
+        return put(key, Kind::kDouble, detail::double_text(v));
+    }
+    template <class T>
+    Metadata& set(const std::string& key, std::initializer_list<T> values) {
+        return set_array(key, values.begin(), values.size());
+    }
+    template <class T>
+    Metadata& set(const std::string& key, const std::vector<T>& values) {
+        return set_array(key, values.data(), values.size());
+    }
+    template <class T>
+    Metadata& set_array(const std::string& key, const T* data, std::size_t n) {
+        static_assert(std::is_arithmetic_v<T> && !std::is_same_v<T, bool>, "arrays of integers or doubles");
+        std::string json = "[";
+        for (std::size_t i = 0; i < n; ++i) {
+            if (i) json += ", ";
+            if constexpr (std::is_integral_v<T>) {
+                std::int64_t v;
+                if (!to_int64(data[i], v)) return invalid(key, "integer does not fit in int64");
+                char buf[24];
+                json.append(buf, detail::put_int(buf, buf + sizeof buf, v));
+            } else {
+                const double v = static_cast<double>(data[i]);
+                if (!std::isfinite(v)) return invalid(key, "double is not finite (JSON has no NaN or infinity)");
+                json += detail::double_text(v);
+            }
+        }
+        json += "]";
+        return put(key, std::is_integral_v<T> ? Kind::kIntArray : Kind::kDoubleArray, std::move(json));
+    }
+
+    bool has(const std::string& key) const { return find(key) != nullptr; }
+    // Kind of a key's value; false when the key is absent.
+    bool kind(const std::string& key, Kind& out) const {
+        const Entry* e = find(key);
+        if (e) out = e->kind;
+        return e != nullptr;
+    }
+    // First invalid value set, or an empty string.
+    const std::string& error() const { return error_; }
+
+    // The JSON object of line 1, e.g. {"sequence": "MH_04", "run": 7}.
+    std::string to_json() const {
+        std::string out = "{";
+        for (std::size_t i = 0; i < entries_.size(); ++i) {
+            if (i) out += ", ";
+            detail::append_json_string(out, entries_[i].key);
+            out += ": ";
+            out += entries_[i].json;
+        }
+        out += "}";
+        return out;
+    }
+
+private:
+    struct Entry {
+        std::string key;
+        Kind kind;
+        std::string json;
+    };
+
+    template <class T>
+    static bool to_int64(T value, std::int64_t& out) {
+        if constexpr (std::is_unsigned_v<T>) {
+            if (static_cast<std::uint64_t>(value) > static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max()))
+                return false;
+        }
+        out = static_cast<std::int64_t>(value);
+        return true;
+    }
+    const Entry* find(const std::string& key) const {
+        for (const Entry& e : entries_)
+            if (e.key == key) return &e;
+        return nullptr;
+    }
+    Metadata& invalid(const std::string& key, const char* why) {
+        if (error_.empty()) error_ = "metadata \"" + key + "\": " + why;
+        return *this;
+    }
+    Metadata& put(const std::string& key, Kind kind, std::string json) {
+        if (key.empty()) return invalid(key, "empty key");
+        if (!detail::valid_utf8(key)) return invalid(key, "key is not valid UTF-8");
+        for (Entry& e : entries_) {
+            if (e.key == key) {
+                e.kind = kind;
+                e.json = std::move(json);
+                return *this;
+            }
+        }
+        entries_.push_back(Entry{key, kind, std::move(json)});
+        return *this;
+    }
+
+    std::vector<Entry> entries_;
+    std::string error_;
+};
+
+class LogWriter {
+public:
+    LogWriter() = default;
+    // Opens at once; see open().
+    LogWriter(const std::string& path, const Metadata& meta, const Options& options = Options()) {
+        open(path, meta, options);
+    }
+    ~LogWriter() { abandon(); }
+
+    LogWriter(const LogWriter&) = delete;
+    LogWriter& operator=(const LogWriter&) = delete;
+    LogWriter(LogWriter&& other) noexcept { take(other); }
+    LogWriter& operator=(LogWriter&& other) noexcept {
+        if (this != &other) {
+            abandon();
+            take(other);
+        }
+        return *this;
+    }
+
+    // Validates the metadata, creates `<path>.partial` (truncating a stale one), writes line 1
+    // (magic + metadata JSON) and the header row, and flushes them. `<path>` itself must not
+    // exist unless options.overwrite, in which case it is removed now, so that a crash of this
+    // run can never leave an older complete log beside the new `.partial`.
+    Status open(const std::string& path, const Metadata& meta, const Options& options = Options()) {
+        if (file_ != nullptr)
+            return fail(Status::kAlreadyOpen, "open(\"" + path + "\"): already writing " + partial_, options.on_error);
+        options_ = options;
+        failed_ = Status::kOk;
+        error_.clear();
+        frames_ = 0;
+        have_last_ = false;
+        path_ = path;
+        partial_ = path + kPartialSuffix;
+        if (path.empty()) return fail(Status::kIoError, "open(): empty path");
+        std::string why;
+        if (!check_metadata(meta, why)) return fail(Status::kBadMetadata, path + ": " + why);
+        if (std::FILE* existing = std::fopen(path.c_str(), "rb")) {
+            std::fclose(existing);
+            if (!options_.overwrite)
+                return fail(Status::kExists, path + ": exists (set Options::overwrite to replace it)");
+            if (std::remove(path.c_str()) != 0) return fail(Status::kIoError, path + ": cannot remove: " + errno_text());
+        }
+        file_ = std::fopen(partial_.c_str(), "wb");
+        if (file_ == nullptr) return fail(Status::kIoError, partial_ + ": cannot create: " + errno_text());
+        std::setvbuf(file_, nullptr, _IOFBF, 1 << 16);
+        std::string head = kMagic;
+        head += meta.to_json();
+        head += '\n';
+        append_header_row(head, options_.ground_truth);
+        if (std::fwrite(head.data(), 1, head.size(), file_) != head.size() || std::fflush(file_) != 0)
+            return io_failure("cannot write the header");
+        return Status::kOk;
+    }
+
+    // Validates one frame without writing it and without changing the writer (never throws).
+    // Checks what jsve's reader rejects; `why`, when given, receives the reason.
+    Status check(const Frame& f, std::string* why = nullptr) const {
+        std::string msg;
+        const Status s = validate(f, msg);
+        if (why) *why = msg;
+        return s;
+    }
+
+    // Validates and appends one frame. A rejected frame is not written and fails the writer
+    // (see the error policy at the top of this file).
+    Status write(const Frame& f) {
+        if (file_ == nullptr) return fail(Status::kNotOpen, "write(): the writer is not open");
+        if (failed_ != Status::kOk) return fail(Status::kFailed, partial_ + ": writer failed earlier: " + error_);
+        std::string msg;
+        const Status s = validate(f, msg);
+        if (s != Status::kOk) {
+            failed_ = s;
+            return fail(s, partial_ + ": frame " + std::to_string(frames_) + " rejected: " + msg);
+        }
+        char line[kLineCapacity];
+        char* const end = line + sizeof line;
+        char* p = line;
+        p = detail::put_int(p, end, f.t_ns);
+        *p++ = ',';
+        p = detail::put_int(p, end, f.state);
+        *p++ = ',';
+        *p++ = f.imu_init ? '1' : '0';
+        *p++ = ',';
+        p = detail::put_int(p, end, f.n_extracted);
+        *p++ = ',';
+        p = detail::put_int(p, end, f.n_inliers);
+        *p++ = ',';
+        p = detail::put_int(p, end, f.n_frustum);
+        for (int k = 0; k < kBins; ++k) {
+            *p++ = ',';
+            p = detail::put_int(p, end, f.bins[k]);
+        }
+        p = put_doubles(p, end, f.vis_p, 3);
+        p = put_doubles(p, end, f.vis_q, 4);
+        p = put_doubles(p, end, f.vis_v, 3);
+        p = put_doubles(p, end, &f.imu_dt, 1);
+        p = put_doubles(p, end, f.imu_dp, 3);
+        p = put_doubles(p, end, f.imu_dv, 3);
+        p = put_doubles(p, end, f.imu_dq, 4);
+        if (options_.ground_truth) {
+            p = put_doubles(p, end, f.gt_p, 3);
+            p = put_doubles(p, end, f.gt_q, 4);
+        }
+        *p++ = '\n';
+        const auto n = static_cast<std::size_t>(p - line);
+        if (std::fwrite(line, 1, n, file_) != n) return io_failure("cannot write frame " + std::to_string(frames_));
+        ++frames_;
+        last_t_ns_ = f.t_ns;
+        have_last_ = true;
+        if (options_.flush_every > 0 && frames_ % options_.flush_every == 0 && std::fflush(file_) != 0)
+            return io_failure("cannot flush after frame " + std::to_string(frames_ - 1));
+        return Status::kOk;
+    }
+
+    // Writes the end marker, flushes, closes and renames `<path>.partial` to `<path>`. On a
+    // failed writer it closes the file, keeps `.partial` and reports Status::kFailed.
+    Status close() {
+        if (file_ == nullptr) return fail(Status::kNotOpen, "close(): the writer is not open");
+        if (failed_ != Status::kOk) {
+            abandon();
+            return fail(Status::kFailed, partial_ + ": not finalised, the writer failed earlier: " + error_);
+        }
+        std::string tail = kEndMarker;
+        tail += std::to_string(frames_);
+        tail += '\n';
+        if (std::fwrite(tail.data(), 1, tail.size(), file_) != tail.size() || std::fflush(file_) != 0)
+            return io_failure("cannot write the end marker");
+        std::FILE* f = file_;
+        file_ = nullptr;
+        if (std::fclose(f) != 0) {
+            failed_ = Status::kIoError;
+            return fail(Status::kIoError, partial_ + ": close failed: " + errno_text());
+        }
+#ifdef _WIN32
+        std::remove(path_.c_str());  // rename does not replace an existing file on Windows
+#endif
+        if (std::rename(partial_.c_str(), path_.c_str()) != 0) {
+            failed_ = Status::kIoError;
+            return fail(Status::kIoError, partial_ + ": cannot rename to " + path_ + ": " + errno_text());
+        }
+        return Status::kOk;
+    }
+
+    // Closes the file without finalising it: `<path>.partial` stays, reported as incomplete.
+    void abandon() noexcept {
+        if (file_ != nullptr) {
+            std::fflush(file_);
+            std::fclose(file_);
+            file_ = nullptr;
+        }
+    }
+
+    bool is_open() const noexcept { return file_ != nullptr; }
+    bool failed() const noexcept { return failed_ != Status::kOk; }
+    std::int64_t frames() const noexcept { return frames_; }
+    const std::string& last_error() const noexcept { return error_; }
+    const std::string& path() const noexcept { return path_; }
+    const std::string& partial_path() const noexcept { return partial_; }
+
+private:
+    // t_ns, state, imu_init, 3 counts, 64 bins at <= 21 chars each; 28 doubles at <= 27 chars.
+    static constexpr std::size_t kLineCapacity = 6 * 21 + kBins * 21 + 28 * 27 + 16;
+
+    static char* put_doubles(char* p, char* end, const double* v, int n) {
+        for (int i = 0; i < n; ++i) {
+            *p++ = ',';
+            p = detail::put_double(p, end, v[i]);
+        }
+        return p;
+    }
+
+    static void append_header_row(std::string& out, bool gt) {
+        out += "t_ns,state,imu_init,n_extracted,n_inliers,n_frustum";
+        for (int k = 0; k < kBins; ++k) {
+            out += ",bin_";
+            out += std::to_string(k);
+        }
+        out += ",vis_px,vis_py,vis_pz,vis_qw,vis_qx,vis_qy,vis_qz,vis_vx,vis_vy,vis_vz"
+               ",imu_dt,imu_dpx,imu_dpy,imu_dpz,imu_dvx,imu_dvy,imu_dvz,imu_dqw,imu_dqx,imu_dqy,imu_dqz";
+        if (gt) out += ",gt_px,gt_py,gt_pz,gt_qw,gt_qx,gt_qy,gt_qz";
+        out += '\n';
+    }
+
+    // Required keys and the types jsve's reader accepts for the keys it knows (schema.py).
+    static bool check_metadata(const Metadata& meta, std::string& why) {
+        using K = Metadata::Kind;
+        if (!meta.error().empty()) {
+            why = meta.error();
+            return false;
+        }
+        struct Rule {
+            const char* key;
+            bool required;
+            bool string, integer, number, array;
+        };
+        static const Rule rules[] = {
+            {"sequence", true, true, false, false, false},  {"run", true, false, true, false, false},
+            {"fps", true, false, true, true, false},        {"disturbance", false, true, false, false, false},
+            {"level", false, false, true, true, false},     {"sensor", false, true, false, false, false},
+            {"n_features", false, false, true, false, false}, {"image_size", false, false, false, false, true},
+            {"grid", false, false, false, false, true},     {"gravity", false, false, false, false, true},
+            {"frontend", false, true, false, false, false}, {"seed", false, false, true, false, false},
+        };
+        for (const Rule& r : rules) {
+            K k;
+            if (!meta.kind(r.key, k)) {
+                if (r.required) {
+                    why = std::string("metadata lacks the required key \"") + r.key + "\"";
+                    return false;
+                }
+                continue;
+            }
+            const bool ok = (r.string && k == K::kString) || (r.integer && k == K::kInt) ||
+                            (r.number && k == K::kDouble) || (r.array && (k == K::kIntArray || k == K::kDoubleArray));
+            if (!ok) {
+                why = std::string("metadata \"") + r.key + "\" has the wrong type (expected " +
+                      (r.string ? "a string" : r.array ? "an array" : r.number ? "a number" : "an integer") + ")";
+                return false;
+            }
+        }
+        return true;
+    }
+
+    Status validate(const Frame& f, std::string& msg) const {
+        if (have_last_ && f.t_ns <= last_t_ns_) {
+            msg = "t_ns " + std::to_string(f.t_ns) + " is not after the previous frame's " + std::to_string(last_t_ns_);
+            return Status::kNonIncreasingStamp;
+        }
+        if (f.state < -1 || f.state > 5) {
+            msg = "state " + std::to_string(f.state) + " is not an ORB-SLAM3 tracking state (-1..5)";
+            return Status::kOutOfRange;
+        }
+        if (f.n_extracted < 0 || f.n_inliers < 0 || f.n_frustum < 0) {
+            msg = "negative count (n_extracted " + std::to_string(f.n_extracted) + ", n_inliers " +
+                  std::to_string(f.n_inliers) + ", n_frustum " + std::to_string(f.n_frustum) + ")";
+            return Status::kOutOfRange;
+        }
+        if (f.n_inliers > f.n_extracted) {
+            msg = "n_inliers " + std::to_string(f.n_inliers) + " exceeds n_extracted " + std::to_string(f.n_extracted);
+            return Status::kOutOfRange;
+        }
+        std::int64_t binned = 0;
+        for (int k = 0; k < kBins; ++k) {
+            if (f.bins[k] < 0) {
+                msg = "bin_" + std::to_string(k) + " is negative (" + std::to_string(f.bins[k]) + ")";
+                return Status::kOutOfRange;
+            }
+            binned += f.bins[k];
+        }
+        if (binned > f.n_extracted) {
+            msg = "the bins hold " + std::to_string(binned) + " keypoints, more than n_extracted " +
+                  std::to_string(f.n_extracted);
+            return Status::kOutOfRange;
+        }
+        struct Group {
+            const char* name;
+            const double* v;
+            int n;
+        };
+        const Group groups[] = {{"vis_p", f.vis_p, 3}, {"vis_q", f.vis_q, 4},   {"vis_v", f.vis_v, 3},
+                                {"imu_dt", &f.imu_dt, 1}, {"imu_dp", f.imu_dp, 3}, {"imu_dv", f.imu_dv, 3},
+                                {"imu_dq", f.imu_dq, 4}, {"gt_p", f.gt_p, 3},     {"gt_q", f.gt_q, 4}};
+        const int n_groups = options_.ground_truth ? 9 : 7;
+        for (int g = 0; g < n_groups; ++g) {
+            for (int i = 0; i < groups[g].n; ++i) {
+                if (!std::isfinite(groups[g].v[i])) {
+                    msg = std::string(groups[g].name) + "[" + std::to_string(i) + "] is " + detail::double_text(groups[g].v[i]);
+                    return Status::kNonFinite;
+                }
+            }
+        }
+        if (f.imu_dt < 0.0) {
+            msg = "imu_dt " + detail::double_text(f.imu_dt) + " is negative";
+            return Status::kOutOfRange;
+        }
+        const Group quats[] = {{"vis_q", f.vis_q, 4}, {"imu_dq", f.imu_dq, 4}, {"gt_q", f.gt_q, 4}};
+        for (int g = 0; g < (options_.ground_truth ? 3 : 2); ++g) {
+            const double* q = quats[g].v;
+            const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+            if (!(std::fabs(norm - 1.0) <= kUnitQuaternionTolerance)) {
+                msg = std::string(quats[g].name) + " has norm " + detail::double_text(norm) + ", not 1 (wxyz unit quaternion)";
+                return Status::kOutOfRange;
+            }
+        }
+        return Status::kOk;
+    }
+
+    Status fail(Status s, const std::string& message) { return fail(s, message, options_.on_error); }
+    Status fail(Status s, const std::string& message, OnError policy) {
+        error_ = message;
+        if (policy == OnError::kThrow) throw LogError(s, message);
+        return s;
+    }
+
+    Status io_failure(const std::string& what) {
+        const std::string text = partial_ + ": " + what + ": " + errno_text();
+        failed_ = Status::kIoError;
+        abandon();
+        return fail(Status::kIoError, text);
+    }
+
+    static std::string errno_text() { return std::strerror(errno); }
+
+    void take(LogWriter& o) noexcept {
+        file_ = o.file_;
+        o.file_ = nullptr;
+        options_ = o.options_;
+        path_ = std::move(o.path_);
+        partial_ = std::move(o.partial_);
+        error_ = std::move(o.error_);
+        failed_ = o.failed_;
+        frames_ = o.frames_;
+        last_t_ns_ = o.last_t_ns_;
+        have_last_ = o.have_last_;
+    }
+
+    std::FILE* file_ = nullptr;
+    Options options_;
+    std::string path_, partial_, error_;
+    Status failed_ = Status::kOk;
+    std::int64_t frames_ = 0;
+    std::int64_t last_t_ns_ = 0;
+    bool have_last_ = false;
+};
+
+}  // namespace jsve
+
+#endif  // JSVE_LOG_HPP
