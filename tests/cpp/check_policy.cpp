@@ -1,0 +1,322 @@
+// Exercises the error policy of jsve_log.hpp: what is rejected, with which Status, and which files
+// are left on disk. Prints one "PASS name" or "FAIL name: detail" line per check and exits with
+// the number of failures; tests/test_frontend.py runs it and then reads the files it leaves.
+//
+// usage: check_policy DIR        (DIR must exist and be empty)
+
+#include "jsve_log.hpp"
+
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <string>
+
+namespace {
+
+int g_failures = 0;
+std::string g_dir;
+
+void report(const std::string& name, bool ok, const std::string& detail = "") {
+    if (ok) {
+        std::printf("PASS %s\n", name.c_str());
+    } else {
+        ++g_failures;
+        std::printf("FAIL %s: %s\n", name.c_str(), detail.c_str());
+    }
+}
+
+bool exists(const std::string& path) {
+    std::FILE* f = std::fopen(path.c_str(), "rb");
+    if (f != nullptr) std::fclose(f);
+    return f != nullptr;
+}
+
+int count_lines(const std::string& path) {
+    std::FILE* f = std::fopen(path.c_str(), "rb");
+    if (f == nullptr) return -1;
+    int n = 0;
+    for (int c; (c = std::fgetc(f)) != EOF;)
+        if (c == '\n') ++n;
+    std::fclose(f);
+    return n;
+}
+
+jsve::Metadata good_meta() {
+    jsve::Metadata m;
+    m.set("sequence", "V1_01").set("run", 3).set("fps", 20.0);
+    return m;
+}
+
+jsve::Options returning(bool gt = false) {
+    jsve::Options o;
+    o.on_error = jsve::OnError::kReturn;
+    o.ground_truth = gt;
+    return o;
+}
+
+jsve::Frame good_frame(std::int64_t t_ns) {
+    jsve::Frame f;
+    f.t_ns = t_ns;
+    f.state = 2;
+    f.imu_init = true;
+    f.n_extracted = 100;
+    f.n_inliers = 40;
+    f.n_frustum = 80;
+    f.bins[0] = 60;
+    f.bins[63] = 40;
+    f.imu_dt = 0.05;
+    return f;
+}
+
+std::string path(const std::string& name) { return g_dir + "/" + name; }
+
+// Writes two good frames, then `bad`; the bad one must be rejected with `expected` and fail the
+// writer, leaving `<name>.partial` on disk and no `<name>`.
+void rejected(const std::string& name, const jsve::Frame& bad, jsve::Status expected, bool gt = false) {
+    const std::string p = path(name + ".csv");
+    jsve::LogWriter w;
+    jsve::Status s = w.open(p, good_meta(), returning(gt));
+    s = (s == jsve::Status::kOk) ? w.write(good_frame(1000)) : s;
+    s = (s == jsve::Status::kOk) ? w.write(good_frame(2000)) : s;
+    if (s != jsve::Status::kOk) {
+        report(name, false, "good frames refused: " + w.last_error());
+        return;
+    }
+    std::string why;
+    const jsve::Status checked = w.check(bad, &why);
+    const jsve::Status got = w.write(bad);
+    const bool poisoned = w.failed() && w.write(good_frame(9000)) == jsve::Status::kFailed;
+    const jsve::Status closed = w.close();
+    const bool ok = got == expected && checked == expected && !why.empty() && poisoned &&
+                    closed == jsve::Status::kFailed && exists(p + ".partial") && !exists(p) && !w.is_open();
+    report(name, ok,
+           std::string("write=") + jsve::to_string(got) + " check=" + jsve::to_string(checked) +
+               " close=" + jsve::to_string(closed) + " msg=" + w.last_error());
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    if (argc != 2) {
+        std::fprintf(stderr, "usage: %s DIR\n", argv[0]);
+        return 2;
+    }
+    g_dir = argv[1];
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    const double inf = std::numeric_limits<double>::infinity();
+
+    {
+        jsve::Frame f = good_frame(3000);
+        f.vis_p[1] = nan;
+        rejected("nan_position", f, jsve::Status::kNonFinite);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.imu_dv[2] = -inf;
+        rejected("inf_velocity_delta", f, jsve::Status::kNonFinite);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.gt_q[0] = nan;
+        rejected("nan_ground_truth", f, jsve::Status::kNonFinite, /*gt=*/true);
+    }
+    rejected("repeated_stamp", good_frame(2000), jsve::Status::kNonIncreasingStamp);
+    rejected("earlier_stamp", good_frame(1500), jsve::Status::kNonIncreasingStamp);
+    {
+        jsve::Frame f = good_frame(3000);
+        f.state = 6;
+        rejected("state_out_of_range", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.n_frustum = -1;
+        rejected("negative_count", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.bins[5] = -2;
+        rejected("negative_bin", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.bins[7] = 1;  // 101 binned keypoints, 100 extracted
+        rejected("bins_exceed_extracted", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.n_inliers = 101;
+        rejected("inliers_exceed_extracted", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.vis_q[0] = 1.00001;
+        rejected("non_unit_quaternion", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.imu_dt = -1e-9;
+        rejected("negative_imu_dt", f, jsve::Status::kOutOfRange);
+    }
+
+    {  // Without ground truth the gt_* fields are not written, so they are not checked either.
+        const std::string p = path("gt_ignored.csv");
+        jsve::LogWriter w(p, good_meta(), returning(false));
+        jsve::Frame f = good_frame(1000);
+        f.gt_p[0] = nan;
+        const jsve::Status s = w.write(f);
+        report("gt_fields_ignored_without_gt", s == jsve::Status::kOk && w.close() == jsve::Status::kOk && exists(p),
+               w.last_error());
+    }
+    {  // A quaternion off by less than the tolerance is accepted.
+        const std::string p = path("near_unit.csv");
+        jsve::LogWriter w(p, good_meta(), returning());
+        jsve::Frame f = good_frame(1000);
+        f.imu_dq[0] = 1.0 + 5e-7;
+        report("near_unit_quaternion_accepted", w.write(f) == jsve::Status::kOk && w.close() == jsve::Status::kOk,
+               w.last_error());
+    }
+    {  // check() reports without failing the writer; the caller can repair the frame.
+        const std::string p = path("repaired.csv");
+        jsve::LogWriter w(p, good_meta(), returning());
+        jsve::Frame f = good_frame(1000);
+        f.vis_v[0] = nan;
+        const jsve::Status c = w.check(f);
+        f.vis_v[0] = 0.0;
+        const jsve::Status s = w.write(f);
+        const jsve::Status closed = w.close();
+        report("check_does_not_fail_the_writer",
+               c == jsve::Status::kNonFinite && s == jsve::Status::kOk && closed == jsve::Status::kOk && exists(p) &&
+                   !exists(p + ".partial"),
+               w.last_error());
+    }
+    {  // kThrow (the default) throws LogError carrying the Status and the column.
+        const std::string p = path("thrown.csv");
+        jsve::LogWriter w(p, good_meta());
+        jsve::Frame f = good_frame(1000);
+        f.vis_p[1] = nan;
+        bool thrown = false;
+        std::string what;
+        try {
+            w.write(f);
+        } catch (const jsve::LogError& e) {
+            thrown = e.status() == jsve::Status::kNonFinite;
+            what = e.what();
+        }
+        bool close_threw = false;
+        try {
+            w.close();
+        } catch (const jsve::LogError& e) {
+            close_threw = e.status() == jsve::Status::kFailed;
+        }
+        report("throw_policy", thrown && what.find("vis_p[1]") != std::string::npos && close_threw &&
+                                   exists(p + ".partial") && !exists(p),
+               what);
+    }
+    {  // Metadata problems are reported by open(), before any file is created.
+        struct Case {
+            const char* name;
+            jsve::Metadata meta;
+        };
+        jsve::Metadata no_run;
+        no_run.set("sequence", "V1_01").set("fps", 20);
+        jsve::Metadata fps_text;
+        fps_text.set("sequence", "V1_01").set("run", 1).set("fps", "twenty");
+        jsve::Metadata run_double;
+        run_double.set("sequence", "V1_01").set("run", 1.5).set("fps", 20);
+        jsve::Metadata nan_level = good_meta();
+        nan_level.set("level", nan);
+        jsve::Metadata bad_utf8 = good_meta();
+        bad_utf8.set("frontend", "caf\xC3");
+        jsve::Metadata size_scalar = good_meta();
+        size_scalar.set("image_size", 752);
+        const Case cases[] = {{"meta_missing_run", no_run},       {"meta_fps_string", fps_text},
+                              {"meta_run_double", run_double},    {"meta_nan_double", nan_level},
+                              {"meta_invalid_utf8", bad_utf8},    {"meta_image_size_scalar", size_scalar}};
+        for (const Case& c : cases) {
+            const std::string p = path(std::string(c.name) + ".csv");
+            jsve::LogWriter w;
+            const jsve::Status s = w.open(p, c.meta, returning());
+            report(c.name, s == jsve::Status::kBadMetadata && !w.is_open() && !exists(p + ".partial"), w.last_error());
+        }
+    }
+    {  // An existing log is never replaced silently; with overwrite it is removed at open.
+        const std::string p = path("existing.csv");
+        {
+            jsve::LogWriter w(p, good_meta(), returning());
+            w.write(good_frame(1000));
+            w.close();
+        }
+        jsve::LogWriter refused;
+        const jsve::Status s = refused.open(p, good_meta(), returning());
+        report("exists_refused", s == jsve::Status::kExists && exists(p) && !exists(p + ".partial"), refused.last_error());
+        jsve::Options o = returning();
+        o.overwrite = true;
+        jsve::LogWriter w(p, good_meta(), o);
+        const bool removed_at_open = !exists(p) && exists(p + ".partial");
+        w.write(good_frame(5000));
+        const jsve::Status closed = w.close();
+        report("overwrite_removes_old_log_at_open",
+               removed_at_open && closed == jsve::Status::kOk && exists(p) && count_lines(p) == 4, w.last_error());
+    }
+    {  // Calls on a writer that is not open.
+        jsve::LogWriter never_opened;  // default policy: throw
+        bool thrown = false;
+        try {
+            never_opened.write(good_frame(1));
+        } catch (const jsve::LogError& e) {
+            thrown = e.status() == jsve::Status::kNotOpen;
+        }
+        const std::string p = path("twice.csv");
+        jsve::LogWriter v(p, good_meta(), returning());
+        const jsve::Status again = v.open(p, good_meta(), returning());
+        const jsve::Status c1 = v.close();
+        const jsve::Status c2 = v.close();
+        const jsve::Status w2 = v.write(good_frame(1));
+        report("not_open_and_already_open",
+               thrown && again == jsve::Status::kAlreadyOpen && c1 == jsve::Status::kOk &&
+                   c2 == jsve::Status::kNotOpen && w2 == jsve::Status::kNotOpen && exists(p));
+    }
+    {  // The destructor of an open writer abandons the log: only `.partial` remains.
+        const std::string p = path("abandoned.csv");
+        {
+            jsve::LogWriter w(p, good_meta(), returning());
+            w.write(good_frame(1000));
+            w.write(good_frame(2000));
+        }
+        report("destructor_leaves_partial", exists(p + ".partial") && !exists(p) && count_lines(p + ".partial") == 4);
+    }
+    {  // A moved writer keeps writing the same log.
+        const std::string p = path("moved.csv");
+        jsve::LogWriter a(p, good_meta(), returning());
+        a.write(good_frame(1000));
+        jsve::LogWriter b(std::move(a));
+        const jsve::Status s = b.write(good_frame(2000));
+        const jsve::Status c = b.close();
+        report("move", s == jsve::Status::kOk && c == jsve::Status::kOk && !a.is_open() && b.frames() == 2 &&
+                           count_lines(p) == 5);
+    }
+    {  // flush_every: frames reach the file every N frames, not before (64 KiB stdio buffer).
+        const std::string p = path("flush.csv");
+        jsve::Options o = returning();
+        o.flush_every = 2;
+        jsve::LogWriter w(p, good_meta(), o);
+        w.write(good_frame(1000));
+        const int after1 = count_lines(p + ".partial");
+        w.write(good_frame(2000));
+        const int after2 = count_lines(p + ".partial");
+        w.write(good_frame(3000));
+        const int after3 = count_lines(p + ".partial");
+        w.close();
+        const int final_lines = count_lines(p);
+        report("flush_every", after1 == 2 && after2 == 4 && after3 == 4 && final_lines == 6,
+               std::to_string(after1) + " " + std::to_string(after2) + " " + std::to_string(after3) + " " +
+                   std::to_string(final_lines));
+    }
+    {  // An I/O failure (missing directory) is an error, not a crash.
+        jsve::LogWriter w;
+        const jsve::Status s = w.open(path("no/such/dir/x.csv"), good_meta(), returning());
+        report("io_error", s == jsve::Status::kIoError && !w.is_open(), w.last_error());
+    }
+    std::printf("failures %d\n", g_failures);
+    return g_failures;
+}
