@@ -156,9 +156,15 @@ constexpr int bin_of_cell(int col, int row) noexcept { return 8 * (row / 6) + co
 // keypoints in cell (col, row), e.g. [&](int c, int r) { return int(frame.mGrid[c][r].size()); }.
 template <class CountFn>
 void fill_bins_from_grid(Frame& f, CountFn&& count) {
+    static_assert(kGridCols == 8 * 8 && kGridRows == 8 * 6, "8 x 8 bins of 8 x 6 cells");
     for (int k = 0; k < kBins; ++k) f.bins[k] = 0;
-    for (int col = 0; col < kGridCols; ++col)
-        for (int row = 0; row < kGridRows; ++row) f.bins[bin_of_cell(col, row)] += static_cast<int>(count(col, row));
+    for (int col = 0; col < kGridCols; ++col) {
+        for (int by = 0; by < 8; ++by) {
+            int sum = 0;  // one store per 6 cells: a store per cell serialises on bins[k]
+            for (int row = 6 * by; row < 6 * by + 6; ++row) sum += static_cast<int>(count(col, row));
+            f.bins[bin_of_cell(col, 6 * by)] += sum;
+        }
+    }
 }
 
 namespace detail {
