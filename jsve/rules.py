@@ -205,14 +205,15 @@ def machine_step(
     Arguments:
         score: the rule's score of this frame. t: s since the first frame. k: frame index (float).
         imu_init_logged: 1 if the original run had the IMU initialised at this frame.
-        fps: frames per second; the relocalisation window is fps frames (ORB-SLAM3 mMaxFrames).
+        fps: frames per second; the relocalisation window is floor(fps) frames (ORB-SLAM3 mMaxFrames).
         imu_init_delay: s the run needed to initialise the IMU; a new map waits as long again.
         time_recently_lost: s in RECENTLY_LOST before LOST (5 in ORB-SLAM3 v1.0).
     """
     dtype = jnp.result_type(t, float)
     ge = lambda a, b: (a >= b).astype(dtype)  # noqa: E731 - data comparisons stay exact when relaxed
     imu_ok = imu_init_logged * ge(t - state.map_start_t, imu_init_delay)
-    in_reloc = (k < state.map_start_k + fps).astype(dtype)
+    # ORB-SLAM3's mMaxFrames is an int set from Camera.fps, so a fractional fps truncates.
+    in_reloc = (k < state.map_start_k + jnp.floor(fps)).astype(dtype)
     expired = (t - state.t_lost > time_recently_lost).astype(dtype)
 
     ok_pass = tracking_succeeds(logic, score, th, 0.0, imu_ok, in_reloc)
