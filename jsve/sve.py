@@ -92,14 +92,20 @@ def power_mean(x: Float[Array, "... k"], w: Float[Array, "k"], p: ArrayLike) -> 
     has_zero = jnp.any(~positive & (w > 0), axis=-1)
     near_zero_p = jnp.abs(p) < 1e-6
     p_safe = jnp.where(near_zero_p, 1.0, p)
-    geometric = jnp.exp(jnp.sum(w * jnp.log(x_safe), axis=-1))
+    # Near p = 0: M_p = G exp(p Var_w(log x) / 2) + O(p^2) (cumulant expansion of log sum w e^(p log x)),
+    # so that the value and d/dp at p = 0 are right; the plain geometric mean G has d/dp = 0.
+    logs = jnp.log(x_safe)
+    mean_log = jnp.sum(w * logs, axis=-1)
+    var_log = jnp.sum(w * (logs - mean_log[..., None]) ** 2, axis=-1)
+    geometric = jnp.exp(mean_log + 0.5 * p * var_log)
     terms = jnp.where(positive, x_safe**p_safe, 0.0)
     inner = jnp.sum(w * terms, axis=-1)
     inner_ok = inner > 0
     powered = jnp.where(inner_ok, jnp.where(inner_ok, inner, 1.0) ** (1.0 / p_safe), 0.0)
     value = jnp.where(near_zero_p, geometric, powered)
-    # p <= 0 with a zero entry: the mean is 0 (limit of x^p -> inf in the sum).
-    return jnp.where(has_zero & (p <= 0), 0.0, value)
+    # A zero entry with p <= 0 gives 0 (x^p -> inf in the sum); for 0 < p < 1e-6 the mean is
+    # (sum of the other weights)^(1/p) -> 0 as well, which the expansion above does not know.
+    return jnp.where(has_zero & (near_zero_p | (p <= 0)), 0.0, value)
 
 
 class Combination(eqx.Module):
