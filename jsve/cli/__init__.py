@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-SUBCOMMANDS: tuple[str, ...] = ("ingest", "sve", "evaluate", "ape", "frontend-include")
+SUBCOMMANDS: tuple[str, ...] = ("ingest", "sve", "evaluate", "ape", "frontend-include", "disturb", "measure")
 """Module names under jsve.cli, in the order `jsve --help` lists them."""
 
 

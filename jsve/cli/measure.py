@@ -1,0 +1,73 @@
+"""`jsve measure DATASET... -o OUT`: per-frame visibility counts and SVE metrics measured on real frames.
+
+A thin layer over jsve.measure.measure_datasets: every EuRoC dataset at or below each DATASET is
+measured (ORB-SLAM3-style ORB, frame-to-frame verified inliers, frustum stand-in, SVE bins) in
+parallel with a progress bar, and one table per dataset is written. Existing tables are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "measure",
+        help="measure per-frame visibility (ORB counts, inliers, SVE metrics) on EuRoC image folders",
+        description=(
+            "Measure every EuRoC dataset at or below each DATASET (e.g. the output of `jsve disturb`) and "
+            "write one table per dataset to OUT/<DATASET name>/<relative path>.<format>: t_ns, n_extracted, "
+            "n_inliers, n_frustum, bin_0..bin_63 and the SVE metrics of `jsve sve`. See docs/disturbances.md "
+            "for what each count stands in for."
+        ),
+    )
+    parser.add_argument(
+        "datasets", metavar="DATASET", nargs="+", help="dataset folder(s) or folders of datasets"
+    )
+    parser.add_argument("-o", "--out", metavar="OUT", required=True, help="output folder for the tables")
+    parser.add_argument(
+        "--format", choices=("csv", "parquet"), default="csv", help="table format (default csv)"
+    )
+    parser.add_argument("--camera", default="cam0", help="camera folder under mav0 (default cam0)")
+    parser.add_argument("--stride", type=int, default=1, help="measure every N-th frame (default 1)")
+    parser.add_argument(
+        "--extractor",
+        choices=("orbslam3", "opencv"),
+        default="orbslam3",
+        help="orbslam3: ORB-SLAM3's per-cell FAST 20/7 and quadtree; opencv: cv2.ORB_create plus a FAST-7 "
+        "pass in empty cells (default orbslam3)",
+    )
+    parser.add_argument("--no-fallback", action="store_true", help="no FAST-7 retry (minThFAST)")
+    parser.add_argument("--n-features", type=int, default=1000, help="ORB nFeatures (default 1000)")
+    parser.add_argument(
+        "--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: all cores)"
+    )
+    parser.add_argument("--overwrite", action="store_true", help="re-measure datasets that have a table")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from jsve.disturb import DatasetError
+    from jsve.measure import OrbSettings, measure_datasets
+
+    try:
+        orb = OrbSettings(extractor=args.extractor, fallback=not args.no_fallback, n_features=args.n_features)
+        tables = measure_datasets(
+            args.datasets,
+            args.out,
+            table_format=args.format,
+            camera=args.camera,
+            stride=args.stride,
+            orb=orb,
+            workers=args.workers,
+            overwrite=args.overwrite,
+            progress=not args.no_progress,
+        )
+    except (ValueError, DatasetError) as error:
+        print(f"jsve measure: {error}", file=sys.stderr)
+        return 2
+    print(f"{len(tables)} tables in {args.out}")
+    return 0
