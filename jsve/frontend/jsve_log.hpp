@@ -37,12 +37,16 @@
 //   * OnError::kReturn: calls return the Status; last_error() holds the message.
 //   A frame that jsve's reader would reject (a non-finite double, a stamp not after the previous
 //   one, a state outside -1..5, a negative count, more binned keypoints or inliers than extracted
-//   keypoints, a quaternion whose norm is off 1 by more than 1e-6, a negative imu_dt) is never
-//   written, and it marks the writer as failed: every later write() and close() reports
+//   keypoints, a quaternion whose norm is off 1 by more than 1e-6, a negative imu_dt, a first frame
+//   with a preintegration that is not zero / identity) is never written, and it marks the writer
+//   as failed: every later write() and close() reports
 //   Status::kFailed, close() leaves `<path>.partial` in place, and the run shows up as incomplete
 //   rather than silently missing a frame. To repair a frame instead, call check(frame) first; it
 //   validates without writing and without changing the writer. abandon() (also run by the
 //   destructor of an open writer) closes the file and leaves it as `.partial`; it never throws.
+//   open() checks the metadata the same way (required keys sequence/run/fps, the types and values
+//   jsve.logs accepts for the keys it knows) and creates no file when it is wrong; close() before
+//   any frame reports Status::kNoFrames, since a v1 log has at least one frame.
 //
 // Not thread-safe: use one writer per run from one thread (ORB-SLAM3's tracking thread).
 
@@ -59,6 +63,7 @@
 #include <cstring>
 #include <initializer_list>
 #include <limits>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <type_traits>
@@ -91,7 +96,8 @@ enum class Status : int {
     kBadMetadata,          // a metadata value or a required key is missing or of the wrong type
     kNonFinite,            // a NaN or infinite double in a frame
     kNonIncreasingStamp,   // t_ns not strictly after the previous frame's
-    kOutOfRange,           // state, counts, bins, quaternion norm or imu_dt out of range
+    kOutOfRange,           // state, counts, bins, quaternion norm, imu_* out of range
+    kNoFrames,             // close() before any frame: a v1 log has at least one
     kFailed,               // the writer failed earlier; nothing more is written
 };
 
@@ -106,6 +112,7 @@ inline const char* to_string(Status s) noexcept {
         case Status::kNonFinite: return "non-finite value";
         case Status::kNonIncreasingStamp: return "non-increasing stamp";
         case Status::kOutOfRange: return "value out of range";
+        case Status::kNoFrames: return "no frames";
         case Status::kFailed: return "writer failed earlier";
     }
     return "unknown";
@@ -145,6 +152,7 @@ struct Frame {
     double imu_dp[3] = {0.0, 0.0, 0.0};      // preintegrated position delta, previous body frame, m
     double imu_dv[3] = {0.0, 0.0, 0.0};      // preintegrated velocity delta, previous body frame, m/s
     double imu_dq[4] = {1.0, 0.0, 0.0, 0.0}; // preintegrated rotation delta, wxyz
+    bool has_gt = true;                      // false: this frame's gt_* fields are left empty
     double gt_p[3] = {0.0, 0.0, 0.0};        // ground-truth body position (only with ground_truth)
     double gt_q[4] = {1.0, 0.0, 0.0, 0.0};   // ground-truth body-to-world rotation, wxyz
 };
@@ -283,13 +291,13 @@ public:
         std::int64_t v;
         if (!to_int64(value, v)) return invalid(key, "integer does not fit in int64");
         char buf[24];
-        return put(key, Kind::kInt, std::string(buf, detail::put_int(buf, buf + sizeof buf, v)));
+        return put(key, Kind::kInt, std::string(buf, detail::put_int(buf, buf + sizeof buf, v)), {static_cast<double>(v)});
     }
     template <class T, std::enable_if_t<std::is_floating_point_v<T>, int> = 0>
     Metadata& set(const std::string& key, T value) {
         const double v = static_cast<double>(value);
         if (!std::isfinite(v)) return invalid(key, "double is not finite (JSON has no NaN or infinity)");
-        return put(key, Kind::kDouble, detail::double_text(v));
+        return put(key, Kind::kDouble, detail::double_text(v), {v});
     }
     template <class T>
     Metadata& set(const std::string& key, std::initializer_list<T> values) {
@@ -303,6 +311,8 @@ public:
     Metadata& set_array(const std::string& key, const T* data, std::size_t n) {
         static_assert(std::is_arithmetic_v<T> && !std::is_same_v<T, bool>, "arrays of integers or doubles");
         std::string json = "[";
+        std::vector<double> nums;
+        nums.reserve(n);
         for (std::size_t i = 0; i < n; ++i) {
             if (i) json += ", ";
             if constexpr (std::is_integral_v<T>) {
@@ -310,14 +320,16 @@ public:
                 if (!to_int64(data[i], v)) return invalid(key, "integer does not fit in int64");
                 char buf[24];
                 json.append(buf, detail::put_int(buf, buf + sizeof buf, v));
+                nums.push_back(static_cast<double>(v));
             } else {
                 const double v = static_cast<double>(data[i]);
                 if (!std::isfinite(v)) return invalid(key, "double is not finite (JSON has no NaN or infinity)");
                 json += detail::double_text(v);
+                nums.push_back(v);
             }
         }
         json += "]";
-        return put(key, std::is_integral_v<T> ? Kind::kIntArray : Kind::kDoubleArray, std::move(json));
+        return put(key, std::is_integral_v<T> ? Kind::kIntArray : Kind::kDoubleArray, std::move(json), std::move(nums));
     }
 
     bool has(const std::string& key) const { return find(key) != nullptr; }
@@ -326,6 +338,13 @@ public:
         const Entry* e = find(key);
         if (e) out = e->kind;
         return e != nullptr;
+    }
+    // The numbers of a numeric value or array (integers as doubles); false when absent or a string.
+    bool numbers(const std::string& key, std::vector<double>& out) const {
+        const Entry* e = find(key);
+        if (e == nullptr || e->kind == Kind::kString) return false;
+        out = e->nums;
+        return true;
     }
     // First invalid value set, or an empty string.
     const std::string& error() const { return error_; }
@@ -348,6 +367,7 @@ private:
         std::string key;
         Kind kind;
         std::string json;
+        std::vector<double> nums;
     };
 
     template <class T>
@@ -368,17 +388,18 @@ private:
         if (error_.empty()) error_ = "metadata \"" + key + "\": " + why;
         return *this;
     }
-    Metadata& put(const std::string& key, Kind kind, std::string json) {
+    Metadata& put(const std::string& key, Kind kind, std::string json, std::vector<double> nums = {}) {
         if (key.empty()) return invalid(key, "empty key");
         if (!detail::valid_utf8(key)) return invalid(key, "key is not valid UTF-8");
         for (Entry& e : entries_) {
             if (e.key == key) {
                 e.kind = kind;
                 e.json = std::move(json);
+                e.nums = std::move(nums);
                 return *this;
             }
         }
-        entries_.push_back(Entry{key, kind, std::move(json)});
+        entries_.push_back(Entry{key, kind, std::move(json), std::move(nums)});
         return *this;
     }
 
@@ -431,7 +452,9 @@ public:
         }
         file_ = std::fopen(partial_.c_str(), "wb");
         if (file_ == nullptr) return fail(Status::kIoError, partial_ + ": cannot create: " + errno_text());
-        std::setvbuf(file_, nullptr, _IOFBF, 1 << 16);
+        // Our own buffer: glibc ignores the size of setvbuf when it allocates the buffer itself.
+        if (!buffer_) buffer_.reset(new char[kBufferSize]);
+        std::setvbuf(file_, buffer_.get(), _IOFBF, kBufferSize);
         std::string head = kMagic;
         head += meta.to_json();
         head += '\n';
@@ -487,8 +510,12 @@ public:
         p = put_doubles(p, end, f.imu_dv, 3);
         p = put_doubles(p, end, f.imu_dq, 4);
         if (options_.ground_truth) {
-            p = put_doubles(p, end, f.gt_p, 3);
-            p = put_doubles(p, end, f.gt_q, 4);
+            if (f.has_gt) {
+                p = put_doubles(p, end, f.gt_p, 3);
+                p = put_doubles(p, end, f.gt_q, 4);
+            } else {
+                for (int i = 0; i < 7; ++i) *p++ = ',';
+            }
         }
         *p++ = '\n';
         const auto n = static_cast<std::size_t>(p - line);
@@ -508,6 +535,11 @@ public:
         if (failed_ != Status::kOk) {
             abandon();
             return fail(Status::kFailed, partial_ + ": not finalised, the writer failed earlier: " + error_);
+        }
+        if (frames_ == 0) {
+            failed_ = Status::kNoFrames;
+            abandon();
+            return fail(Status::kNoFrames, partial_ + ": not finalised: no frames were written (a v1 log has at least one)");
         }
         std::string tail = kEndMarker;
         tail += std::to_string(frames_);
@@ -547,6 +579,7 @@ public:
     const std::string& partial_path() const noexcept { return partial_; }
 
 private:
+    static constexpr std::size_t kBufferSize = std::size_t{1} << 16;  // stdio buffer, 64 KiB
     // t_ns, state, imu_init, 3 counts, 64 bins at <= 21 chars each; 28 doubles at <= 27 chars.
     static constexpr std::size_t kLineCapacity = 6 * 21 + kBins * 21 + 28 * 27 + 16;
 
@@ -589,6 +622,7 @@ private:
             {"n_features", false, false, true, false, false}, {"image_size", false, false, false, false, true},
             {"grid", false, false, false, false, true},     {"gravity", false, false, false, false, true},
             {"frontend", false, true, false, false, false}, {"seed", false, false, true, false, false},
+            {"gt_missing_frames", false, false, true, false, false}, {"gt_source", false, true, false, false, false},
         };
         for (const Rule& r : rules) {
             K k;
@@ -606,6 +640,31 @@ private:
                       (r.string ? "a string" : r.array ? "an array" : r.number ? "a number" : "an integer") + ")";
                 return false;
             }
+        }
+        // Value rules of jsve.logs (beyond types).
+        std::vector<double> v;
+        K k;
+        meta.numbers("fps", v);
+        if (!(v.size() == 1 && v[0] > 0.0)) {
+            why = "metadata \"fps\" must be a positive number of frames per second";
+            return false;
+        }
+        if (meta.numbers("gravity", v) && v.size() != 3) {
+            why = "metadata \"gravity\" must be a list of 3 numbers (world gravity, m/s^2)";
+            return false;
+        }
+        if (meta.numbers("image_size", v) && (!meta.kind("image_size", k) || k != K::kIntArray || v.size() != 2 ||
+                                              !(v[0] > 0.0 && v[1] > 0.0))) {
+            why = "metadata \"image_size\" must be [width, height]: two positive integers (pixels)";
+            return false;
+        }
+        if (meta.numbers("grid", v) && !(v.size() == 2 && v[0] == 8.0 && v[1] == 8.0)) {
+            why = "metadata \"grid\" must be [8, 8] in format v1 (SVE bins, cols x rows)";
+            return false;
+        }
+        if (meta.numbers("gt_missing_frames", v) && v[0] < 0.0) {
+            why = "metadata \"gt_missing_frames\" must be >= 0";
+            return false;
         }
         return true;
     }
@@ -649,7 +708,8 @@ private:
         const Group groups[] = {{"vis_p", f.vis_p, 3}, {"vis_q", f.vis_q, 4},   {"vis_v", f.vis_v, 3},
                                 {"imu_dt", &f.imu_dt, 1}, {"imu_dp", f.imu_dp, 3}, {"imu_dv", f.imu_dv, 3},
                                 {"imu_dq", f.imu_dq, 4}, {"gt_p", f.gt_p, 3},     {"gt_q", f.gt_q, 4}};
-        const int n_groups = options_.ground_truth ? 9 : 7;
+        const bool gt = options_.ground_truth && f.has_gt;
+        const int n_groups = gt ? 9 : 7;
         for (int g = 0; g < n_groups; ++g) {
             for (int i = 0; i < groups[g].n; ++i) {
                 if (!std::isfinite(groups[g].v[i])) {
@@ -662,8 +722,18 @@ private:
             msg = "imu_dt " + detail::double_text(f.imu_dt) + " is negative";
             return Status::kOutOfRange;
         }
+        if (frames_ == 0) {  // nothing to preintegrate from before the first frame
+            bool zero = f.imu_dt == 0.0 && f.imu_dq[0] == 1.0 && f.imu_dq[1] == 0.0 && f.imu_dq[2] == 0.0 &&
+                        f.imu_dq[3] == 0.0;
+            for (int i = 0; i < 3; ++i) zero = zero && f.imu_dp[i] == 0.0 && f.imu_dv[i] == 0.0;
+            if (!zero) {
+                msg = "the first frame must have imu_dt, imu_dp and imu_dv 0 and imu_dq the identity (1, 0, 0, 0): "
+                      "there is no previous frame to preintegrate from";
+                return Status::kOutOfRange;
+            }
+        }
         const Group quats[] = {{"vis_q", f.vis_q, 4}, {"imu_dq", f.imu_dq, 4}, {"gt_q", f.gt_q, 4}};
-        for (int g = 0; g < (options_.ground_truth ? 3 : 2); ++g) {
+        for (int g = 0; g < (gt ? 3 : 2); ++g) {
             const double* q = quats[g].v;
             const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
             if (!(std::fabs(norm - 1.0) <= kUnitQuaternionTolerance)) {
@@ -693,6 +763,7 @@ private:
     void take(LogWriter& o) noexcept {
         file_ = o.file_;
         o.file_ = nullptr;
+        buffer_ = std::move(o.buffer_);  // the FILE keeps using the same heap buffer
         options_ = o.options_;
         path_ = std::move(o.path_);
         partial_ = std::move(o.partial_);
@@ -704,6 +775,7 @@ private:
     }
 
     std::FILE* file_ = nullptr;
+    std::unique_ptr<char[]> buffer_;  // outlives file_: ~LogWriter() closes the file before members die
     Options options_;
     std::string path_, partial_, error_;
     Status failed_ = Status::kOk;

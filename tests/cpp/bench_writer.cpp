@@ -49,10 +49,12 @@ jsve::Frame realistic(std::int64_t i) {
     for (double& v : f.vis_p) v = 10.0 * (uniform() - 0.5);
     unit_quaternion(f.vis_q);
     for (double& v : f.vis_v) v = uniform() - 0.5;
-    f.imu_dt = 0.05;
-    for (double& v : f.imu_dp) v = 0.05 * (uniform() - 0.5);
-    for (double& v : f.imu_dv) v = 0.5 * (uniform() - 0.5);
-    unit_quaternion(f.imu_dq);
+    if (i > 0) {  // the first frame has no preintegration
+        f.imu_dt = 0.05;
+        for (double& v : f.imu_dp) v = 0.05 * (uniform() - 0.5);
+        for (double& v : f.imu_dv) v = 0.5 * (uniform() - 0.5);
+        unit_quaternion(f.imu_dq);
+    }
     return f;
 }
 

@@ -54,7 +54,8 @@ jsve::Options returning(bool gt = false) {
     return o;
 }
 
-jsve::Frame good_frame(std::int64_t t_ns) {
+// A valid frame; the first frame of a log has no preintegration (imu_dt 0, identity deltas).
+jsve::Frame good_frame(std::int64_t t_ns, bool first = false) {
     jsve::Frame f;
     f.t_ns = t_ns;
     f.state = 2;
@@ -64,7 +65,7 @@ jsve::Frame good_frame(std::int64_t t_ns) {
     f.n_frustum = 80;
     f.bins[0] = 60;
     f.bins[63] = 40;
-    f.imu_dt = 0.05;
+    f.imu_dt = first ? 0.0 : 0.05;
     return f;
 }
 
@@ -76,7 +77,7 @@ void rejected(const std::string& name, const jsve::Frame& bad, jsve::Status expe
     const std::string p = path(name + ".csv");
     jsve::LogWriter w;
     jsve::Status s = w.open(p, good_meta(), returning(gt));
-    s = (s == jsve::Status::kOk) ? w.write(good_frame(1000)) : s;
+    s = (s == jsve::Status::kOk) ? w.write(good_frame(1000, true)) : s;
     s = (s == jsve::Status::kOk) ? w.write(good_frame(2000)) : s;
     if (s != jsve::Status::kOk) {
         report(name, false, "good frames refused: " + w.last_error());
@@ -158,10 +159,40 @@ int main(int argc, char** argv) {
         rejected("negative_imu_dt", f, jsve::Status::kOutOfRange);
     }
 
+    {
+        jsve::Frame f = good_frame(3000);
+        f.imu_dt = 0.0;  // repeated below for the first frame, where it is required
+        f.imu_dp[2] = 1e-12;
+        const std::string p = path("first_frame_delta.csv");
+        jsve::LogWriter w(p, good_meta(), returning());
+        const jsve::Status s = w.write(f);
+        report("first_frame_needs_no_preintegration",
+               s == jsve::Status::kOutOfRange && w.close() == jsve::Status::kFailed && exists(p + ".partial"),
+               w.last_error());
+    }
+    {  // has_gt = false leaves that frame's seven gt_* fields empty, and they are not checked.
+        const std::string p = path("gt_gap.csv");
+        jsve::LogWriter w(p, good_meta(), returning(/*gt=*/true));
+        jsve::Frame f = good_frame(1000, true);
+        const jsve::Status s1 = w.write(f);
+        f = good_frame(2000);
+        f.has_gt = false;
+        f.gt_q[0] = nan;
+        const jsve::Status s2 = w.write(f);
+        const jsve::Status c = w.close();
+        report("frame_without_ground_truth",
+               s1 == jsve::Status::kOk && s2 == jsve::Status::kOk && c == jsve::Status::kOk && exists(p), w.last_error());
+    }
+    {  // A log with no frames is not a v1 log: close() refuses to finalise it.
+        const std::string p = path("no_frames.csv");
+        jsve::LogWriter w(p, good_meta(), returning());
+        const jsve::Status c = w.close();
+        report("no_frames", c == jsve::Status::kNoFrames && exists(p + ".partial") && !exists(p), w.last_error());
+    }
     {  // Without ground truth the gt_* fields are not written, so they are not checked either.
         const std::string p = path("gt_ignored.csv");
         jsve::LogWriter w(p, good_meta(), returning(false));
-        jsve::Frame f = good_frame(1000);
+        jsve::Frame f = good_frame(1000, true);
         f.gt_p[0] = nan;
         const jsve::Status s = w.write(f);
         report("gt_fields_ignored_without_gt", s == jsve::Status::kOk && w.close() == jsve::Status::kOk && exists(p),
@@ -170,15 +201,15 @@ int main(int argc, char** argv) {
     {  // A quaternion off by less than the tolerance is accepted.
         const std::string p = path("near_unit.csv");
         jsve::LogWriter w(p, good_meta(), returning());
-        jsve::Frame f = good_frame(1000);
-        f.imu_dq[0] = 1.0 + 5e-7;
+        jsve::Frame f = good_frame(1000, true);
+        f.vis_q[0] = 1.0 + 5e-7;
         report("near_unit_quaternion_accepted", w.write(f) == jsve::Status::kOk && w.close() == jsve::Status::kOk,
                w.last_error());
     }
     {  // check() reports without failing the writer; the caller can repair the frame.
         const std::string p = path("repaired.csv");
         jsve::LogWriter w(p, good_meta(), returning());
-        jsve::Frame f = good_frame(1000);
+        jsve::Frame f = good_frame(1000, true);
         f.vis_v[0] = nan;
         const jsve::Status c = w.check(f);
         f.vis_v[0] = 0.0;
@@ -192,7 +223,7 @@ int main(int argc, char** argv) {
     {  // kThrow (the default) throws LogError carrying the Status and the column.
         const std::string p = path("thrown.csv");
         jsve::LogWriter w(p, good_meta());
-        jsve::Frame f = good_frame(1000);
+        jsve::Frame f = good_frame(1000, true);
         f.vis_p[1] = nan;
         bool thrown = false;
         std::string what;
@@ -229,9 +260,27 @@ int main(int argc, char** argv) {
         bad_utf8.set("frontend", "caf\xC3");
         jsve::Metadata size_scalar = good_meta();
         size_scalar.set("image_size", 752);
+        jsve::Metadata size_doubles = good_meta();
+        size_doubles.set("image_size", {752.0, 480.0});
+        jsve::Metadata size_three = good_meta();
+        size_three.set("image_size", {752, 480, 1});
+        jsve::Metadata fps_zero = good_meta();
+        fps_zero.set("fps", 0);
+        jsve::Metadata gravity_two = good_meta();
+        gravity_two.set("gravity", {0.0, -9.81});
+        jsve::Metadata grid_other = good_meta();
+        grid_other.set("grid", {8, 6});
+        jsve::Metadata gt_source_int = good_meta();
+        gt_source_int.set("gt_source", 3);
+        jsve::Metadata big_unsigned = good_meta();
+        big_unsigned.set("seed", std::numeric_limits<std::uint64_t>::max());
         const Case cases[] = {{"meta_missing_run", no_run},       {"meta_fps_string", fps_text},
                               {"meta_run_double", run_double},    {"meta_nan_double", nan_level},
-                              {"meta_invalid_utf8", bad_utf8},    {"meta_image_size_scalar", size_scalar}};
+                              {"meta_invalid_utf8", bad_utf8},    {"meta_image_size_scalar", size_scalar},
+                              {"meta_image_size_doubles", size_doubles}, {"meta_image_size_three", size_three},
+                              {"meta_fps_zero", fps_zero},        {"meta_gravity_two", gravity_two},
+                              {"meta_grid_not_8x8", grid_other},  {"meta_gt_source_int", gt_source_int},
+                              {"meta_unsigned_overflow", big_unsigned}};
         for (const Case& c : cases) {
             const std::string p = path(std::string(c.name) + ".csv");
             jsve::LogWriter w;
@@ -243,7 +292,7 @@ int main(int argc, char** argv) {
         const std::string p = path("existing.csv");
         {
             jsve::LogWriter w(p, good_meta(), returning());
-            w.write(good_frame(1000));
+            w.write(good_frame(1000, true));
             w.close();
         }
         jsve::LogWriter refused;
@@ -253,7 +302,7 @@ int main(int argc, char** argv) {
         o.overwrite = true;
         jsve::LogWriter w(p, good_meta(), o);
         const bool removed_at_open = !exists(p) && exists(p + ".partial");
-        w.write(good_frame(5000));
+        w.write(good_frame(5000, true));
         const jsve::Status closed = w.close();
         report("overwrite_removes_old_log_at_open",
                removed_at_open && closed == jsve::Status::kOk && exists(p) && count_lines(p) == 4, w.last_error());
@@ -269,6 +318,7 @@ int main(int argc, char** argv) {
         const std::string p = path("twice.csv");
         jsve::LogWriter v(p, good_meta(), returning());
         const jsve::Status again = v.open(p, good_meta(), returning());
+        v.write(good_frame(1000, true));
         const jsve::Status c1 = v.close();
         const jsve::Status c2 = v.close();
         const jsve::Status w2 = v.write(good_frame(1));
@@ -280,7 +330,7 @@ int main(int argc, char** argv) {
         const std::string p = path("abandoned.csv");
         {
             jsve::LogWriter w(p, good_meta(), returning());
-            w.write(good_frame(1000));
+            w.write(good_frame(1000, true));
             w.write(good_frame(2000));
         }
         report("destructor_leaves_partial", exists(p + ".partial") && !exists(p) && count_lines(p + ".partial") == 4);
@@ -288,7 +338,7 @@ int main(int argc, char** argv) {
     {  // A moved writer keeps writing the same log.
         const std::string p = path("moved.csv");
         jsve::LogWriter a(p, good_meta(), returning());
-        a.write(good_frame(1000));
+        a.write(good_frame(1000, true));
         jsve::LogWriter b(std::move(a));
         const jsve::Status s = b.write(good_frame(2000));
         const jsve::Status c = b.close();
@@ -300,7 +350,7 @@ int main(int argc, char** argv) {
         jsve::Options o = returning();
         o.flush_every = 2;
         jsve::LogWriter w(p, good_meta(), o);
-        w.write(good_frame(1000));
+        w.write(good_frame(1000, true));
         const int after1 = count_lines(p + ".partial");
         w.write(good_frame(2000));
         const int after2 = count_lines(p + ".partial");

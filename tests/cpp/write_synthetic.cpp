@@ -118,6 +118,7 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "locale %s not available\n", locale_name.c_str());
         return 3;
     }
+    std::fprintf(stderr, "decimal_point=%s\n", std::localeconv()->decimal_point);  // the test checks it took effect
 
     jsve::Metadata meta;
     meta.set("sequence", "placeholder")
@@ -176,12 +177,15 @@ int main(int argc, char** argv) {
         random_unit_quaternion(f.vis_q);
         for (double& v : f.vis_v) v = random_finite();
         f.imu_dt = (i == 0) ? 0.0 : (i % 4 == 1 ? std::fabs(random_finite()) : 0.05 + 1e-3 * unit_interval());
-        for (double& v : f.imu_dp) v = random_finite();
-        f.imu_dv[0] = kSpecial[(i * 3 + 1) % kNumSpecial];
-        f.imu_dv[1] = random_finite();
-        f.imu_dv[2] = unit_interval();
-        random_unit_quaternion(f.imu_dq);
+        if (i > 0) {  // the first frame has nothing to preintegrate from: zeros and identity
+            for (double& v : f.imu_dp) v = random_finite();
+            f.imu_dv[0] = kSpecial[(i * 3 + 1) % kNumSpecial];
+            f.imu_dv[1] = random_finite();
+            f.imu_dv[2] = unit_interval();
+            random_unit_quaternion(f.imu_dq);
+        }
         if (gt) {
+            f.has_gt = (i % 5 != 3);  // some frames without ground truth: empty gt_* fields
             for (double& v : f.gt_p) v = random_finite();
             random_unit_quaternion(f.gt_q);
         }
@@ -199,9 +203,11 @@ int main(int argc, char** argv) {
             put_hex(expected, f.imu_dp, 3);
             put_hex(expected, f.imu_dv, 3);
             put_hex(expected, f.imu_dq, 4);
-            if (gt) {
+            if (gt && f.has_gt) {
                 put_hex(expected, f.gt_p, 3);
                 put_hex(expected, f.gt_q, 4);
+            } else if (gt) {
+                std::fprintf(expected, " - - - - - - -");  // no ground truth: NaN when read
             }
             std::fprintf(expected, "\n");
             if (i < 3) {  // the raw grid, so the test can bin it independently

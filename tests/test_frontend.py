@@ -1,0 +1,434 @@
+"""jsve.frontend: the C++ writer jsve_log.hpp, compiled and read back by jsve.logs.
+
+The C++ programs live in tests/cpp/. They are compiled with the system compiler; without one the
+compiled tests skip, saying so. Every log is read with jsve.logs.read_log, the strict reader.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jsve.frontend
+from jsve import schema
+from jsve.cli import SUBCOMMANDS
+from jsve.cli import frontend_include as cli_frontend_include
+from jsve.logs import LogFormatError, LogIncompleteError, read_log, read_logs
+
+CPP = Path(__file__).resolve().parent / "cpp"
+CXX = shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")
+needs_cxx = pytest.mark.skipif(
+    CXX is None, reason="no C++ compiler (g++, c++ or clang++) on PATH; the compiled tests need one"
+)
+STRICT = ["-Wall", "-Wextra", "-pedantic", "-Werror"]
+VARIANTS = {"to_chars": [], "snprintf": ["-DJSVE_LOG_USE_SNPRINTF"]}
+"""The two float formatters of the header: std::to_chars, and the snprintf("%.17g") fallback."""
+
+N_FRAMES = 60
+TWO53 = 2**53
+
+
+# --------------------------------------------------------------------------------------------------
+# Locating the header (no compiler needed)
+
+
+def test_get_include_is_the_directory_of_the_header():
+    include = Path(jsve.frontend.get_include())
+    assert include.is_absolute()
+    assert (include / "jsve_log.hpp").is_file()
+    assert Path(jsve.frontend.header_path()) == include / "jsve_log.hpp"
+    assert "#ifndef JSVE_LOG_HPP" in (include / "jsve_log.hpp").read_text()
+
+
+def test_python_m_jsve_frontend_prints_the_include_directory():
+    done = subprocess.run(
+        [sys.executable, "-m", "jsve.frontend", "--include"], capture_output=True, text=True, check=True
+    )
+    assert done.stdout == jsve.frontend.get_include() + "\n"
+    done = subprocess.run(
+        [sys.executable, "-m", "jsve.frontend", "--header"], capture_output=True, text=True, check=True
+    )
+    assert done.stdout == jsve.frontend.header_path() + "\n"
+    done = subprocess.run([sys.executable, "-m", "jsve.frontend"], capture_output=True, text=True)
+    assert done.returncode == 2  # one of --include / --header is required
+
+
+def test_cli_subcommand_prints_the_include_directory(capsys):
+    assert "frontend-include" in SUBCOMMANDS
+    parser = argparse.ArgumentParser(prog="jsve")
+    cli_frontend_include.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["frontend-include"])
+    assert args.func(args) == 0
+    assert capsys.readouterr().out == jsve.frontend.get_include() + "\n"
+
+
+def test_jsve_main_dispatches_frontend_include(capsys):
+    missing = [n for n in SUBCOMMANDS if importlib.util.find_spec(f"jsve.cli.{n.replace('-', '_')}") is None]
+    if missing:
+        pytest.skip(f"subcommand modules not written yet: {missing}")
+    from jsve.cli import main
+
+    assert main(["frontend-include"]) == 0
+    assert capsys.readouterr().out == jsve.frontend.get_include() + "\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# Building the C++ programs
+
+
+@pytest.fixture(scope="session")
+def build(tmp_path_factory):
+    """build(source, variant) -> executable, compiled once per session with the strict flags."""
+    if CXX is None:
+        pytest.skip("no C++ compiler (g++, c++ or clang++) on PATH")
+    out_dir = tmp_path_factory.mktemp("cpp")
+    built: dict[tuple[str, str], Path] = {}
+
+    def _build(source: str, variant: str = "to_chars") -> Path:
+        key = (source, variant)
+        if key not in built:
+            exe = out_dir / f"{Path(source).stem}_{variant}"
+            cmd = [CXX, "-std=c++17", *STRICT, "-O1", *VARIANTS[variant]]
+            cmd += [f"-I{jsve.frontend.get_include()}", str(CPP / source), "-o", str(exe)]
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            assert done.returncode == 0, f"{' '.join(cmd)}\n{done.stderr}"
+            built[key] = exe
+        return built[key]
+
+    return _build
+
+
+@needs_cxx
+@pytest.mark.parametrize("standard", ["c++17", "c++20"])
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_header_compiles_warning_free(tmp_path, variant, standard):
+    """-Wall -Wextra -pedantic -Werror at -std=c++17 (and c++20), plus stricter flags users may have."""
+    extra = ["-Wshadow", "-Wconversion", "-Wsign-conversion", "-Wold-style-cast", "-Wdouble-promotion"]
+    cmd = [CXX, f"-std={standard}", *STRICT, *extra, "-O2", *VARIANTS[variant]]
+    cmd += [f"-I{jsve.frontend.get_include()}", "-c", str(CPP / "header_only.cpp"), "-o", str(tmp_path / "h.o")]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
+
+
+# --------------------------------------------------------------------------------------------------
+# Round trip of a synthetic run
+
+
+EXPECTED_META = {
+    "sequence": 'MH_04 "quoted" \\ back\nline\ttab ü 漢字 \x01\x7f/end',
+    "run": 7,
+    "fps": 20,
+    "disturbance": "blur",
+    "level": 2.5,
+    "sensor": "imu_monocular",
+    "n_features": 1000,
+    "image_size": [752, 480],
+    "grid": [8, 8],
+    "gravity": [0.0, 0.0, -9.81],
+    "frontend": "jsve write_synthetic (test)",
+    "seed": 2**40 + 3,
+    "neg_zero": -0.0,
+    "tiny": 5e-324,
+    "big": 2**63 - 1,
+    "most_negative": -(2**63),
+    "awkward": [0.1, 1e-300, -0.0, 1.7976931348623157e308],
+}
+"""The metadata write_synthetic.cpp sets ('sequence' and 'run' are set twice: values replaced in place)."""
+
+SPECIAL = [0.1, 1e-300, -0.0, 0.0, 5e-324, -2.5e-310, 1.7976931348623157e308, -1.7976931348623157e308,
+           2.2250738585072014e-308, 9007199254740992.0, 1 / 3, 1e22, 1e23, 0.30000000000000004,
+           123456789.123456789, -1.0, 1.0]  # fmt: skip
+"""kSpecial of write_synthetic.cpp, as Python parses the same literals."""
+
+
+def _parse_expected(path: Path, gt: bool):
+    """The sidecar of write_synthetic: ints and the bits of every double it wrote, and raw grids."""
+    floats = list(schema.FLOAT_COLUMNS) + (list(schema.GT_COLUMNS) if gt else [])
+    ints, bits, grids = [], [], {}
+    for line in path.read_text().splitlines():
+        kind, *fields = line.split()
+        if kind == "G":
+            grids[int(fields[0])] = np.array(fields[1:], dtype=np.int64).reshape(64, 48)
+            continue
+        n_int = len(schema.INT_COLUMNS)
+        ints.append([int(x) for x in fields[:n_int]])
+        # '-' marks a frame without ground truth: the reader gives NaN there.
+        bits.append([None if x == "-" else int(x, 16) for x in fields[n_int:]])
+        assert len(bits[-1]) == len(floats)
+    return np.array(ints, dtype=np.int64), bits, floats, grids
+
+
+def _run_synthetic(build, tmp_path, variant, *args, env=None, name="run.csv"):
+    exe = build("write_synthetic.cpp", variant)
+    log, expected = tmp_path / name, tmp_path / (name + ".expected")
+    done = subprocess.run(
+        [str(exe), str(log), str(N_FRAMES), "--expected", str(expected), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    return log, expected, done.stderr
+
+
+def _assert_bitwise(run, expected: Path, gt: bool):
+    ints, bits, float_names, grids = _parse_expected(expected, gt)
+    frames = run.frames
+    assert len(frames) == N_FRAMES == len(ints)
+    assert list(frames.columns) == list(schema.COLUMNS if gt else schema.REQUIRED_COLUMNS)
+    for k, c in enumerate(schema.INT_COLUMNS):
+        assert frames[c].dtype == np.int64
+        np.testing.assert_array_equal(frames[c].to_numpy(), ints[:, k], err_msg=c)
+    got = frames[float_names].to_numpy(dtype=np.float64)
+    for i, row in enumerate(bits):
+        for k, b in enumerate(row):
+            if b is None:
+                assert np.isnan(got[i, k]), (i, float_names[k])
+            else:
+                # Bitwise: -0.0 vs 0.0 and every last-digit difference count.
+                assert got[i, k : k + 1].view(np.uint64)[0] == b, (i, float_names[k], got[i, k], hex(b))
+    # fill_bins_from_grid agrees with an independent binning of the raw grid (bin x = col // 8,
+    # bin y = row // 6, k = 8 * y + x).
+    assert grids, "the sidecar holds raw grids for the first frames"
+    bins = frames[list(schema.BIN_COLUMNS)].to_numpy()
+    for i, grid in grids.items():
+        by_bin = grid.reshape(8, 8, 8, 6).sum(axis=(1, 3))  # [bin x, bin y]
+        np.testing.assert_array_equal(bins[i], by_bin.T.reshape(64))
+        assert grid.sum() > 0
+
+
+def _assert_meta(meta):
+    assert meta == EXPECTED_META
+    assert list(meta) == list(EXPECTED_META)  # insertion order, replaced keys keep their place
+    assert type(meta["run"]) is int and type(meta["fps"]) is int and type(meta["level"]) is float
+    assert np.signbit(meta["neg_zero"]) and np.signbit(meta["awkward"][2])
+    assert meta["tiny"] == 5e-324 and meta["tiny"] > 0.0
+
+
+def _assert_independent_values(frames):
+    """Values fixed by write_synthetic's formulas, checked without the sidecar."""
+    t = frames["t_ns"].to_numpy()
+    assert t[0] == TWO53 + 1 and t[1] == TWO53 + 2  # not representable as doubles
+    expected_t = 1403636579763555584 + (np.arange(2, N_FRAMES) - 2) * 50_000_000 + np.arange(2, N_FRAMES) % 7
+    np.testing.assert_array_equal(t[2:], expected_t)
+    vis_px = frames["vis_px"].to_numpy()
+    special = np.array([SPECIAL[i % len(SPECIAL)] for i in range(N_FRAMES)])
+    assert vis_px.view(np.uint64).tolist() == special.view(np.uint64).tolist()
+    assert np.signbit(vis_px[2]) and vis_px[2] == 0.0 and not np.signbit(vis_px[3])
+    np.testing.assert_array_equal(frames["state"].to_numpy(), np.arange(N_FRAMES) % 7 - 1)
+    np.testing.assert_array_equal(frames["imu_init"].to_numpy(), (np.arange(N_FRAMES) % 3 == 0).astype(np.int64))
+
+
+@needs_cxx
+@pytest.mark.parametrize("gt", [False, True], ids=["no_gt", "gt"])
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_round_trip_is_exact(build, tmp_path, variant, gt):
+    log, expected, _ = _run_synthetic(build, tmp_path, variant, *(["--gt"] if gt else []))
+    assert not Path(str(log) + ".partial").exists()
+    run = read_log(log)
+    assert run.source == str(log)
+    assert run.has_ground_truth == gt
+    _assert_meta(run.meta)
+    _assert_bitwise(run, expected, gt)
+    _assert_independent_values(run.frames)
+    if gt:  # every fifth frame (i % 5 == 3) was written without ground truth
+        missing = np.isnan(run.frames[list(schema.GT_COLUMNS)].to_numpy())
+        np.testing.assert_array_equal(missing.all(axis=1), np.arange(N_FRAMES) % 5 == 3)
+        assert missing.any(axis=1).sum() == missing.all(axis=1).sum()
+    lines = log.read_bytes().split(b"\n")
+    assert lines[-1] == b"" and lines[-2] == f"{schema.END_MARKER}{N_FRAMES}".encode()
+
+
+@needs_cxx
+def test_both_formatters_write_numbers_that_read_back_the_same(build, tmp_path):
+    """to_chars (shortest) and snprintf (%.17g) write different text for the same doubles."""
+    a, _, _ = _run_synthetic(build, tmp_path, "to_chars", name="a.csv")
+    b, _, _ = _run_synthetic(build, tmp_path, "snprintf", name="b.csv")
+    assert a.read_bytes() != b.read_bytes()
+    fa, fb = read_log(a).frames, read_log(b).frames
+    assert fa.to_numpy().view(np.uint64).tolist() == fb.to_numpy().view(np.uint64).tolist()
+
+
+@pytest.fixture(scope="session")
+def comma_locale(tmp_path_factory):
+    """(env, name) of a locale whose decimal separator is a comma, built with localedef."""
+    localedef = shutil.which("localedef")
+    if localedef is None:
+        pytest.skip("localedef not available: cannot build a locale with a decimal comma")
+    root = tmp_path_factory.mktemp("locales")
+    subprocess.run([localedef, "-i", "de_DE", "-f", "UTF-8", str(root / "de_DE.UTF-8")], capture_output=True)
+    if not (root / "de_DE.UTF-8").exists():
+        pytest.skip("localedef could not build de_DE.UTF-8 (locale sources missing)")
+    return {**os.environ, "LOCPATH": str(root)}, "de_DE.UTF-8"
+
+
+@needs_cxx
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_round_trip_is_exact_under_a_decimal_comma_locale(build, tmp_path, variant, comma_locale):
+    env, name = comma_locale
+    log, expected, stderr = _run_synthetic(build, tmp_path, variant, "--gt", "--locale", name, env=env)
+    assert "decimal_point=," in stderr  # the program really ran with a decimal comma
+    run = read_log(log)
+    _assert_meta(run.meta)
+    _assert_bitwise(run, expected, gt=True)
+
+
+# --------------------------------------------------------------------------------------------------
+# Runs that do not finish
+
+
+def _start_and_wait_ready(cmd, timeout=30.0):
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + timeout
+    line = b""
+    while time.monotonic() < deadline and not line.endswith(b"\n"):
+        ready, _, _ = select.select([proc.stdout], [], [], 0.5)
+        if ready:
+            chunk = os.read(proc.stdout.fileno(), 64)
+            if not chunk:
+                break
+            line += chunk
+    if line != b"READY\n":
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"writer did not signal READY: {line!r} {proc.stderr.read()!r}")
+    return proc
+
+
+@needs_cxx
+@pytest.mark.parametrize("flush", [1, 100], ids=["flush_every_frame", "flush_every_100"])
+def test_killed_run_leaves_no_log_that_reads_as_complete(build, tmp_path, flush):
+    exe = build("write_synthetic.cpp")
+    log = tmp_path / "killed.csv"
+    partial = Path(str(log) + ".partial")
+    proc = _start_and_wait_ready([str(exe), str(log), "1000", "--kill-after", "7", "--flush", str(flush)])
+    os.kill(proc.pid, signal.SIGKILL)
+    assert proc.wait(timeout=30) == -signal.SIGKILL
+    proc.stdout.close()
+    proc.stderr.close()
+
+    assert not log.exists()
+    assert partial.exists()
+    lines = partial.read_bytes().split(b"\n")
+    # Flushed every frame: line 1, the header and 7 frames reached the file; every 100: only 2 lines.
+    assert len(lines) - 1 == (2 + 7 if flush == 1 else 2)
+    assert lines[0].startswith(schema.MAGIC.encode())
+
+    with pytest.raises(LogIncompleteError, match="incomplete"):
+        read_log(partial)
+    # Renamed by hand, the content itself still reads as incomplete (no end marker).
+    renamed = tmp_path / "renamed.csv"
+    shutil.copyfile(partial, renamed)
+    with pytest.raises(LogIncompleteError, match="incomplete") as info:
+        read_log(renamed)
+    assert str(renamed) in str(info.value)
+    # A directory read never takes it for a run.
+    result = read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
+    assert result.runs == []
+    assert len(result.quarantined) == 2
+    assert all(q.incomplete for q in result.quarantined)
+
+
+@needs_cxx
+def test_writer_destroyed_without_close_leaves_a_partial_log(build, tmp_path):
+    exe = build("write_synthetic.cpp")
+    log = tmp_path / "unclosed.csv"
+    subprocess.run([str(exe), str(log), "5", "--no-close"], check=True, capture_output=True, timeout=60)
+    assert not log.exists()
+    partial = Path(str(log) + ".partial")
+    assert len(partial.read_bytes().split(b"\n")) - 1 == 2 + 5  # the destructor flushed every frame
+    with pytest.raises(LogIncompleteError, match="incomplete"):
+        read_log(partial)
+
+
+# --------------------------------------------------------------------------------------------------
+# Error policy
+
+
+@needs_cxx
+def test_error_policy(build, tmp_path):
+    exe = build("check_policy.cpp")
+    done = subprocess.run([str(exe), str(tmp_path)], capture_output=True, text=True, timeout=60)
+    lines = done.stdout.splitlines()
+    failures = [line for line in lines if line.startswith("FAIL")]
+    assert done.returncode == 0 and not failures, "\n".join(failures) + done.stderr
+    passed = {line.split()[1] for line in lines if line.startswith("PASS")}
+    assert len(passed) == 39, sorted(passed)
+    assert {"nan_position", "repeated_stamp", "throw_policy", "no_frames", "flush_every"} <= passed
+
+    # What the writer left on disk is what the reader says it is.
+    partials = sorted(tmp_path.glob("*.partial"))
+    finished = sorted(tmp_path.glob("*.csv"))
+    assert len(partials) == 16 and len(finished) == 8
+    for p in partials:
+        with pytest.raises(LogIncompleteError, match="incomplete"):
+            read_log(p)
+    for p in finished:
+        run = read_log(p)
+        assert run.meta == {"sequence": "V1_01", "run": 3, "fps": 20.0}
+    gap = read_log(tmp_path / "gt_gap.csv").frames
+    assert not np.isnan(gap.loc[0, list(schema.GT_COLUMNS)].to_numpy(dtype=float)).any()
+    assert np.isnan(gap.loc[1, list(schema.GT_COLUMNS)].to_numpy(dtype=float)).all()
+    # The partial of a rejected frame holds the frames before it, never the rejected one.
+    rejected = (tmp_path / "nan_position.csv.partial").read_text().splitlines()
+    assert len(rejected) == 2 + 2 and rejected[-1].startswith("2000,")
+
+
+@needs_cxx
+def test_a_frame_the_writer_rejects_is_one_the_reader_rejects(build, tmp_path):
+    """The writer's rules mirror the reader's: a log patched to contain the rejected value fails to read."""
+    log, _, _ = _run_synthetic(build, tmp_path, "to_chars")
+    text = log.read_text(encoding="utf-8").splitlines(keepends=True)
+    columns = text[1].rstrip("\n").split(",")
+
+    def patched(column, value, line=5):
+        fields = text[line - 1].rstrip("\n").split(",")
+        fields[columns.index(column)] = value
+        out = tmp_path / f"patched_{column}.csv"
+        out.write_text("".join(text[: line - 1] + [",".join(fields) + "\n"] + text[line:]), encoding="utf-8")
+        return out
+
+    for column, value in [("vis_px", "nan"), ("imu_dt", "-1e-9"), ("state", "6"), ("n_frustum", "-1")]:
+        with pytest.raises(LogFormatError, match=f"{column}") as info:
+            read_log(patched(column, value))
+        assert ":5:" in str(info.value)
+        assert not isinstance(info.value, LogIncompleteError)
+
+
+# --------------------------------------------------------------------------------------------------
+# Benchmark script
+
+
+@needs_cxx
+@pytest.mark.slow
+def test_benchmark_script_reports_microseconds_per_frame(tmp_path):
+    script = Path(__file__).resolve().parents[1] / "analysis" / "bench_frontend_writer.py"
+    out = tmp_path / "bench.json"
+    subprocess.run(
+        [sys.executable, str(script), "--frames", "2000", "--repeats", "2", "--json", str(out)],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    results = json.loads(out.read_text())
+    assert set(results["variants"]) == {"to_chars", "snprintf"}
+    for r in results["variants"].values():
+        assert r["frames"] == 2000 and len(r["us_per_frame"]) == 2
+        assert 0 < r["min_us_per_frame"] <= r["median_us_per_frame"]
+        assert 400 < r["bytes_per_frame"] < 900  # ~98 fields of EuRoC-like magnitudes
+    assert results["variants"]["to_chars"]["fp_to_chars"] is True
+    assert results["variants"]["snprintf"]["fp_to_chars"] is False
