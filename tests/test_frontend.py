@@ -117,7 +117,13 @@ def test_header_compiles_warning_free(tmp_path, variant, standard):
     """-Wall -Wextra -pedantic -Werror at -std=c++17 (and c++20), plus stricter flags users may have."""
     extra = ["-Wshadow", "-Wconversion", "-Wsign-conversion", "-Wold-style-cast", "-Wdouble-promotion"]
     cmd = [CXX, f"-std={standard}", *STRICT, *extra, "-O2", *VARIANTS[variant]]
-    cmd += [f"-I{jsve.frontend.get_include()}", "-c", str(CPP / "header_only.cpp"), "-o", str(tmp_path / "h.o")]
+    cmd += [
+        f"-I{jsve.frontend.get_include()}",
+        "-c",
+        str(CPP / "header_only.cpp"),
+        "-o",
+        str(tmp_path / "h.o"),
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stderr == ""
@@ -230,7 +236,9 @@ def _assert_independent_values(frames):
     assert vis_px.view(np.uint64).tolist() == special.view(np.uint64).tolist()
     assert np.signbit(vis_px[2]) and vis_px[2] == 0.0 and not np.signbit(vis_px[3])
     np.testing.assert_array_equal(frames["state"].to_numpy(), np.arange(N_FRAMES) % 7 - 1)
-    np.testing.assert_array_equal(frames["imu_init"].to_numpy(), (np.arange(N_FRAMES) % 3 == 0).astype(np.int64))
+    np.testing.assert_array_equal(
+        frames["imu_init"].to_numpy(), (np.arange(N_FRAMES) % 3 == 0).astype(np.int64)
+    )
 
 
 @needs_cxx
