@@ -26,6 +26,8 @@ from .rules import (
 )
 from .sve import FrameFeatures, frame_features
 
+UNROLL = 1
+
 
 def imu_predict(p, v, q, dt, dp, dv, dq, gravity):
     """One step of ORB-SLAM3's PredictStateIMU from the previous body state.
@@ -109,7 +111,7 @@ def replay_run(
         return (state, p2, v2, q2), out
 
     xs = (score, t, k, imu_init, vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq)
-    _, (p, q, v, accepted, predicted, modes, segment) = jax.lax.scan(step, start, xs)
+    _, (p, q, v, accepted, predicted, modes, segment) = jax.lax.scan(step, start, xs, unroll=UNROLL)
     validf = valid.astype(dtype)
     return dict(
         position=p, quaternion=q, velocity=v, accepted=accepted * validf, predicted=predicted * validf,

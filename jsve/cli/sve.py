@@ -1,0 +1,55 @@
+"""`jsve sve LOG`: per-frame S_a, S_b, S_c and the seed's combinations of one log, as CSV.
+
+    jsve sve logs/MH_04-blur-15-7.csv -o sve.csv
+
+Columns: t_ns, then jsve.sve.sve_table's columns (docs/sve.md defines each one).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from .. import logs
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sve", help="per-frame SVE metrics and combinations of one log (CSV)",
+        description="Compute S_a (original and ORB-SLAM3 variants), S_b and S_c (clamped and unclamped) and the "
+        "Eq.1 / Option 1 / Option 2 combinations for every frame of a format-v1 log.",
+    )  # fmt: skip
+    p.add_argument("log", metavar="LOG", help="a format-v1 tracking log")
+    p.add_argument("-o", "--output", metavar="OUT.csv", help="write here (default: standard output)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import numpy as np
+    import pandas as pd
+
+    from ..schema import BIN_COLUMNS
+    from ..sve import sve_table
+
+    try:
+        log = logs.read_log(args.log)
+    except (logs.LogFormatError, OSError) as err:
+        print(f"jsve sve: {err}", file=sys.stderr)
+        return 2
+    f = log.frames
+    columns = sve_table(
+        f["n_extracted"].to_numpy(), f["n_inliers"].to_numpy(), f["n_frustum"].to_numpy(),
+        f[list(BIN_COLUMNS)].to_numpy(), n_features=log.meta.get("n_features", 1000),
+    )  # fmt: skip
+    table = pd.DataFrame({"t_ns": f["t_ns"].to_numpy()} | {k: np.asarray(v) for k, v in columns.items()})
+    if args.output:
+        tmp = args.output + ".partial"
+        table.to_csv(tmp, index=False, float_format="%.9g")
+        import os
+
+        os.replace(tmp, args.output)
+    else:
+        try:
+            table.to_csv(sys.stdout, index=False, float_format="%.9g")
+        except BrokenPipeError:  # `jsve sve LOG | head` closes the pipe early: not an error
+            sys.stderr.close()
+    return 0
