@@ -1174,7 +1174,7 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
                 for p in path.rglob("*")
                 if p.is_file()
                 and (p.name.endswith(".csv") or p.name.endswith(".csv" + PARTIAL_SUFFIX))
-                and not p.name.endswith(".quarantine.csv")
+                and not p.name.endswith((".quarantine.csv", ".quarantine.csv" + PARTIAL_SUFFIX))
             ]
         elif path.exists():
             files = [text]

@@ -630,6 +630,27 @@ def test_duplicate_run_ids_name_both_files(tmp_path):
     assert [q.path for q in result.quarantined] == [str(b)]
 
 
+def test_unreadable_paths_are_quarantined_not_lost(tmp_path):
+    good = logs.write_log(make_run(N, 1), tmp_path / "a.csv")
+    gone = tmp_path / "gone.csv"
+    result = logs.read_logs([good, gone], on_error="quarantine", workers=1, progress=False)
+    assert [r.source for r in result.runs] == [str(good)]
+    (q,) = result.quarantined
+    assert q.path == str(gone) and "cannot read the file" in q.message
+    empty = logs.ReadResult(runs=result.runs).report()
+    assert list(empty.columns) == list(logs.QUARANTINE_COLUMNS) and len(empty) == 0
+
+
+def test_progress_bar_goes_to_stderr(tmp_path, capsys):
+    for i in range(3):
+        logs.write_log(make_run(N, i), tmp_path / f"r{i}.csv")
+    logs.read_logs(tmp_path, workers=1, progress=True)
+    captured = capsys.readouterr()
+    assert captured.out == "" and "3/3" in captured.err
+    logs.read_logs(tmp_path, workers=1, progress=False)
+    assert capsys.readouterr().err == ""
+
+
 def test_on_error_is_checked(logdir):
     with pytest.raises(ValueError, match="on_error"):
         logs.read_logs(logdir[0], on_error="skip", progress=False)
