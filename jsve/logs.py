@@ -183,6 +183,9 @@ def _type_name(types) -> str:
     return " or ".join(names.get(t, t.__name__) for t in types)
 
 
+_MISSING = object()  # a metadata key that is absent
+
+
 def _check_meta(meta, source: str, line: int | None) -> None:
     """Validate a metadata object against schema.REQUIRED_METADATA / OPTIONAL_METADATA / GT_METADATA."""
 
@@ -215,9 +218,6 @@ def _check_meta(meta, source: str, line: int | None) -> None:
     missing = meta.get("gt_missing_frames")
     if missing is not None and missing < 0:
         fail("gt_missing_frames", "must be >= 0", missing)
-
-
-_MISSING = object()
 
 
 def _parse_meta_line(raw: bytes, source: str) -> dict:
