@@ -98,10 +98,10 @@ def power_mean(x: Float[Array, "... k"], w: Float[Array, "k"], p: ArrayLike) -> 
     mean_log = jnp.sum(w * logs, axis=-1)
     var_log = jnp.sum(w * (logs - mean_log[..., None]) ** 2, axis=-1)
     geometric = jnp.exp(mean_log + 0.5 * p * var_log)
-    terms = jnp.where(positive, x_safe**p_safe, 0.0)
+    terms = jnp.where(positive, jnp.exp(p_safe * logs), 0.0)
     inner = jnp.sum(w * terms, axis=-1)
     inner_ok = inner > 0
-    powered = jnp.where(inner_ok, jnp.where(inner_ok, inner, 1.0) ** (1.0 / p_safe), 0.0)
+    powered = jnp.where(inner_ok, jnp.exp(jnp.log(jnp.where(inner_ok, inner, 1.0)) / p_safe), 0.0)
     value = jnp.where(near_zero_p, geometric, powered)
     # A zero entry with p <= 0 gives 0 (x^p -> inf in the sum); for 0 < p < 1e-6 the mean is
     # (sum of the other weights)^(1/p) -> 0 as well, which the expansion above does not know.
