@@ -81,7 +81,7 @@ class Condition:
 
     @property
     def label(self) -> str:
-        return ",".join(f"{k}={v}" for k, v in self.parameters)
+        return ",".join(f"{k}={v}" for k, v in self.parameters) or "default"
 
 
 # ---- worker side -------------------------------------------------------------------------------------
@@ -143,6 +143,10 @@ def _groups(n_frames: int, pair_step: int) -> tuple[tuple[int, ...], ...]:
 def _is_identity(condition: Condition) -> bool:
     frames = sorted({i for group in condition.groups for i in group})
     return all(np.array_equal(_disturbed(condition, i), _FRAMES["images"][i]) for i in frames)
+
+
+def _tag(condition: Condition, step: int) -> str:
+    return f"{condition.name}-{format_level(condition.level)}_{condition.label}_step{step}"
 
 
 def _frame_table(results, t_ns: np.ndarray) -> pd.DataFrame:
@@ -219,8 +223,10 @@ def _figure(name: str, summary: pd.DataFrame, path: Path) -> None:
     for ax in axes:
         ax.set_xlabel(f"{summary['disturbance'].iloc[0]} level [{unit}]")
     label = summary["parameters"].iloc[0]
+    frames = f"{summary['frames'].iloc[0]} frames"
     fig.suptitle(
-        f"{name}{' (' + label + ')' if label else ''}: mean +- std over frames, EuRoC V1_01 (first 95)"
+        f"{name}{' (' + label + ')' if label != 'default' else ''}: mean +- std over {frames}, "
+        "EuRoC V1_01 (first 95)"
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
@@ -240,7 +246,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out-csv", type=Path, default=REPO / "docs" / "data" / "real_response.csv")
     parser.add_argument("--fig-dir", type=Path, default=REPO / "docs" / "figures")
-    parser.add_argument("--frames-out", type=Path, help="also write every condition's per-frame table here")
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        help="folder of per-frame tables, one per measured condition: read when present, written when "
+        "measured (outside the repository, e.g. /tmp/jsve_real_response)",
+    )
     parser.add_argument("--only", help="comma-separated disturbances to run (default: all)")
     args = parser.parse_args(argv)
 
@@ -262,44 +273,51 @@ def main(argv: list[str] | None = None) -> int:
     references = {
         step: Condition("none", 0, (), _groups(n_frames, step)) for step in {c[2] for c in conditions}
     }
-    todo = {id(c): c for _, c, _ in conditions if not _is_identity(c)}
-    jobs = list(todo.values()) + list(references.values())
-    context = multiprocessing.get_context("spawn")
-    results = {}
-    from tqdm.auto import tqdm
+    step_of = {id(c): step for _, c, step in conditions}
+    step_of.update({id(r): step for step, r in references.items()})
+    # Levels that leave every frame unchanged reuse the undisturbed measurement of the same frames.
+    source = {id(c): c if not _is_identity(c) else references[step] for _, c, step in conditions}
+    source.update({id(r): r for r in references.values()})
+    unique = {id(c): c for c in source.values()}
+    tables: dict[int, pd.DataFrame] = {}
+    if args.cache:
+        args.cache.mkdir(parents=True, exist_ok=True)
+        for key, condition in unique.items():
+            path = args.cache / f"{_tag(condition, step_of[key])}.csv"
+            if path.is_file():
+                tables[key] = pd.read_csv(path)
+    jobs = [c for key, c in unique.items() if key not in tables]
+    if jobs:
+        from tqdm.auto import tqdm
 
-    with concurrent.futures.ProcessPoolExecutor(
-        args.workers, mp_context=context, initializer=_load, initargs=(str(args.dataset),)
-    ) as pool:
-        futures = {pool.submit(_measure_or_reference, job): job for job in jobs}
-        for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures), desc="conditions"):
-            results[id(futures[future])] = future.result()
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(
+            args.workers, mp_context=context, initializer=_load, initargs=(str(args.dataset),)
+        ) as pool:
+            futures = {pool.submit(_measure_or_reference, job): job for job in jobs}
+            for future in tqdm(
+                concurrent.futures.as_completed(futures), total=len(futures), desc="conditions"
+            ):
+                job = futures[future]
+                tables[id(job)] = _frame_table(future.result(), _FRAMES["t_ns"])
+                if args.cache:
+                    tables[id(job)].to_csv(args.cache / f"{_tag(job, step_of[id(job)])}.csv", index=False)
 
-    rows, frame_tables = [], {}
-    for step, reference in references.items():
-        frames = _frame_table(results[id(reference)], _FRAMES["t_ns"])
-        rows.append(_summary_row(reference, frames, step))
-        frame_tables[("none", "", 0, step)] = frames
-    for _, condition, step in conditions:
-        source = condition if id(condition) in todo else references[step]
-        frames = _frame_table(results[id(source)], _FRAMES["t_ns"])
-        rows.append(_summary_row(condition, frames, step))
-        frame_tables[(condition.name, condition.label, condition.level, step)] = frames
+    rows = [_summary_row(r, tables[id(r)], step) for step, r in references.items()]
+    rows += [_summary_row(c, tables[id(source[id(c)])], step) for _, c, step in conditions]
     summary = pd.DataFrame(rows)
+    for count in ("n_extracted", "n_inliers", "n_frustum"):
+        reference = summary[summary["disturbance"] == "none"].set_index("pair_step")[f"mean_{count}"]
+        summary[f"rel_{count}"] = summary[f"mean_{count}"] / summary["pair_step"].map(reference)
     args.out_csv.parent.mkdir(parents=True, exist_ok=True)
     summary.to_csv(args.out_csv, index=False, float_format="%.6g")
     first = _first_frame_blur(_FRAMES["images"][0])
     first.to_csv(args.out_csv.with_name(args.out_csv.stem + "_first_frame.csv"), index=False)
     for figure in dict.fromkeys(f for f, _, _ in conditions):
         name = figure.removesuffix("_calibration")
-        label = "mode=calibration" if figure.endswith("_calibration") else ""
+        label = "mode=calibration" if figure.endswith("_calibration") else "default"
         part = summary[(summary["disturbance"] == name) & (summary["parameters"] == label)]
         _figure(figure, part, args.fig_dir / f"real_response_{figure}.png")
-    if args.frames_out:
-        args.frames_out.mkdir(parents=True, exist_ok=True)
-        for (name, label, level, step), frames in frame_tables.items():
-            tag = f"{name}-{format_level(level)}{'_' + label if label else ''}_step{step}"
-            frames.to_csv(args.frames_out / f"{tag}.csv", index=False)
     elapsed = time.perf_counter() - started
     print(f"{len(summary)} rows -> {args.out_csv}; {len(jobs)} conditions measured in {elapsed:.0f} s")
     print(first.to_string(index=False))
