@@ -12,7 +12,17 @@ import importlib
 import logging
 import sys
 
-SUBCOMMANDS: tuple[str, ...] = ("ingest", "sve", "evaluate", "ape", "frontend-include", "disturb", "measure")
+SUBCOMMANDS: tuple[str, ...] = (
+    "ingest",
+    "sve",
+    "evaluate",
+    "ape",
+    "frontend-include",
+    "disturb",
+    "measure",
+    "table1",
+    "masks",
+)
 """Module names under jsve.cli, in the order `jsve --help` lists them."""
 
 

@@ -1,0 +1,102 @@
+"""`jsve mask-logs LOG... --mots FILE | --png DIR -o OUT`: tracking logs without their dynamic keypoints.
+
+For each LOG, reads its keypoint side file (`<log>.keypoints.csv`, docs/masks.md), removes the keypoints
+that Algorithm 1 puts on a dynamic object of the masks, and writes the log with n_extracted, n_inliers
+and bin_0..bin_63 recomputed to OUT/<log name>, so that SVE and replay can be evaluated with and without
+dynamic features. A thin layer over jsve.masks.apply_masks. Exit code 2 when a file cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "mask-logs",
+        help="remove keypoints on dynamic objects (KITTI MOTS / PNG masks) from logs with keypoint files",
+        description=(
+            "Apply dynamic-object masks to tracking logs through their keypoint side files "
+            "(<log>.keypoints.csv): a keypoint is removed when the mask is set at any of its four integer "
+            "neighbours (Masked ORB-SLAM3, Algorithm 1); the counts and SVE bins are recomputed over the "
+            "rest and the masked logs written to OUT."
+        ),
+    )
+    parser.add_argument("logs", metavar="LOG", nargs="+", help="format-v1 tracking logs")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--mots", metavar="FILE", help="KITTI MOTS instances_txt file of the sequence")
+    source.add_argument(
+        "--png", metavar="DIR", help="folder of one mask PNG per frame (frame number in the name)"
+    )
+    parser.add_argument(
+        "--classes",
+        default=None,
+        metavar="LIST",
+        help="class ids to mask, comma-separated (MOTS default 1,2 = car, pedestrian; add 10 for ignore "
+        "regions). With --png, LIST reads the PNGs as MOTS instance maps; without it, any non-zero "
+        "pixel is set",
+    )
+    parser.add_argument(
+        "--key",
+        choices=("frame", "t_ns"),
+        default="frame",
+        help="how a frame finds its mask: frame index (KITTI) or image stamp (EuRoC file names); "
+        "default frame",
+    )
+    parser.add_argument(
+        "--missing-empty", action="store_true", help="--png: a frame without a PNG has no mask"
+    )
+    parser.add_argument("-o", "--output", required=True, metavar="OUT", help="folder for the masked logs")
+    parser.add_argument(
+        "--no-verify", action="store_true", help="do not check that the keypoints reproduce the log's counts"
+    )
+    parser.add_argument(
+        "--no-verify-bins", action="store_true", help="check n_extracted and n_inliers but not the bins"
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from jsve import masks
+    from jsve.keypoints import keypoints_path, read_keypoints
+    from jsve.logs import LogFormatError, read_log, write_log
+
+    try:
+        classes = None if args.classes is None else [int(c) for c in args.classes.split(",") if c.strip()]
+        if args.mots:
+            source = masks.MotsMasks(args.mots, classes or masks.DYNAMIC_CLASSES)
+        else:
+            source = masks.PngMasks(args.png, classes, missing="empty" if args.missing_empty else "error")
+    except ValueError as error:  # LogFormatError is a ValueError too
+        print(f"jsve mask-logs: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"jsve mask-logs: cannot read the masks: {error}", file=sys.stderr)
+        return 2
+
+    out = Path(args.output)
+    for path in args.logs:
+        try:
+            run_log = read_log(path)
+            keypoints = read_keypoints(keypoints_path(path))
+            result = masks.apply_masks(
+                run_log,
+                keypoints,
+                source,
+                key=args.key,
+                verify=not args.no_verify,
+                verify_bins=not args.no_verify_bins,
+            )
+            target = write_log(result.log, out / Path(path).name)
+        except (LogFormatError, ValueError, OSError) as error:
+            print(f"jsve mask-logs: {error}", file=sys.stderr)
+            return 2
+        n_kp = len(keypoints.keypoints)
+        share = result.removed.sum() / n_kp if n_kp else 0.0
+        print(
+            f"{path} -> {target}: removed {int(result.removed.sum())} of {n_kp} keypoints ({share:.1%}) "
+            f"over {len(run_log.frames)} frames"
+        )
+    return 0
