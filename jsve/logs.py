@@ -72,6 +72,9 @@ PARQUET_RUNS_KEY = b"jsve.runs"
 
 PARQUET_FORMAT_KEY = b"jsve.format"
 
+_NOT_LOGS = tuple(s + p for s in (".quarantine.csv", ".keypoints.csv") for p in ("", PARTIAL_SUFFIX))
+"""CSV files a directory search skips: quarantine reports and keypoint side files (jsve.keypoints)."""
+
 _INT_SET = frozenset(schema.INT_COLUMNS)
 _GT_SET = frozenset(schema.GT_COLUMNS)
 _MAX_SHOWN = 80  # characters of a value shown in a message
@@ -1159,8 +1162,8 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
 
     Arguments:
         source: a directory (searched recursively for `*.csv` and `*.csv.partial`, skipping jsve's own
-            `*.quarantine.csv` reports), a single file, a glob pattern ('**' recursive), or a list of
-            paths (taken as given).
+            `*.quarantine.csv` reports and `*.keypoints.csv` side files), a single file, a glob pattern
+            ('**' recursive), or a list of paths (taken as given).
 
     Raises:
         FileNotFoundError: the path does not exist or the pattern matches nothing.
@@ -1174,7 +1177,7 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
                 for p in path.rglob("*")
                 if p.is_file()
                 and (p.name.endswith(".csv") or p.name.endswith(".csv" + PARTIAL_SUFFIX))
-                and not p.name.endswith((".quarantine.csv", ".quarantine.csv" + PARTIAL_SUFFIX))
+                and not p.name.endswith(_NOT_LOGS)
             ]
         elif path.exists():
             files = [text]
