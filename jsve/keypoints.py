@@ -366,7 +366,7 @@ def validate_keypoints(kp: KeypointLog) -> KeypointLog:
     int64 / float64, RangeIndex, metadata as it reads back from JSON).
 
     Raises:
-        LogFormatError: `<memory>: row 12: column 'inlier' = '2': must be 0 or 1` (0-based row).
+        LogFormatError: `<memory>: column 'inlier' = '2': must be 0 or 1 (keypoint row 12)` (0-based).
     """
     source = kp.source
     try:
@@ -395,7 +395,11 @@ def validate_keypoints(kp: KeypointLog) -> KeypointLog:
     if problem is not None:
         r, column, reason = problem
         raise LogFormatError(
-            source, None, f"row {r}: {reason}", column=column, value=_format_value(frame[column].iloc[r])
+            source,
+            None,
+            f"{reason} (keypoint row {r})",
+            column=column,
+            value=_format_value(frame[column].iloc[r]),
         )
     return KeypointLog(meta=meta, keypoints=frame, source=source)
 
