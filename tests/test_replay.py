@@ -23,8 +23,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from jsve.batch import LogBatch
-from jsve.replay import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST, batch_features, replay
-from jsve.rules import InlierRule, Thresholds, preset
+from jsve.replay import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST, batch_features, replay, replay_run
+from jsve.rules import InlierRule, SoftLogic, SVERule, Thresholds, initial_state, machine_step, preset
 from jsve.sve import FrameFeatures
 
 ORBSLAM3_TH = dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0)
@@ -342,7 +342,7 @@ def single_run_batch(t, scores, imu, fps, delay, dtype=jnp.float64, n_frames=Non
     return logs, to_batch(logs, dtype, with_bins=False)
 
 
-@settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(case=short_logs())
 def test_hypothesis_short_logs_match_oracle(case):
     # float32 on purpose: every time (quarter seconds), score and threshold here is exact in
@@ -600,3 +600,144 @@ def test_dead_reckoning_on_euroc_ground_truth(shared_data, x64):
     assert err_q < 1e-12, err_q
     # The data are a real trajectory (not a trivial one): it moves metres and turns.
     assert np.ptp(p, axis=0).max() > 2.0 and np.abs(dv).max() > 0.3
+
+
+# ------------------------------------------------------------------------------------------------
+# replay_run eager / jit / vmap, and the relaxed (SoftLogic) replay.
+
+
+def _run_args(batch: LogBatch, i: int, score):
+    return (score[i], batch.t[i], batch.valid[i], batch.imu_init[i], batch.vis_p[i], batch.vis_q[i],
+            batch.vis_v[i], batch.imu_dt[i], batch.imu_dp[i], batch.imu_dv[i], batch.imu_dq[i],
+            batch.gravity[i], batch.fps[i], batch.imu_init_delay[i])  # fmt: skip
+
+
+def test_replay_run_eager_jit_vmap_agree(x64):
+    """Called eagerly, under jit, and vmapped over runs, replay_run gives the same decisions
+    exactly and the same poses to 1e-12 (float64; differently fused arithmetic may round
+    differently, a few ulp of metre-scale values after at most 5 s of prediction)."""
+    logs = oracle.random_logs(seed=11, n_runs=4, n_frames=160, min_frames=120)
+    batch = to_batch(logs, jnp.float64, with_bins=False)
+    score = batch.n_inliers.astype(jnp.float64)
+    th = Thresholds(**ORBSLAM3_TH)
+
+    def run(*args):
+        return replay_run(*args, th)
+
+    def check(reference, other, key, i=None):
+        a, b = np.asarray(reference[key]), np.asarray(other[key] if i is None else other[key][i])
+        if key in ("position", "quaternion", "velocity"):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12, err_msg=key)
+        else:  # decisions, modes, segments: exact
+            assert np.array_equal(a, b), key
+
+    stacked = [jnp.stack(x) for x in zip(*[_run_args(batch, i, score) for i in range(4)], strict=True)]
+    batched = jax.jit(jax.vmap(run))(*stacked)
+    for i in range(4):
+        jitted = jax.jit(run)(*_run_args(batch, i, score))
+        assert set(jitted) == set(batched)
+        for key in jitted:
+            check(jitted, batched, key, i)
+    # Called without jit (op by op at the top level; machine_step itself is checked op by op,
+    # under jax.disable_jit, in test_rules.py).
+    jitted = jax.jit(run)(*_run_args(batch, 0, score))
+    eager = run(*_run_args(batch, 0, score))
+    assert set(eager) == set(jitted)
+    for key in jitted:
+        check(jitted, eager, key)
+    assert not np.asarray(jitted["accepted"]).all()  # the run is not trivially all-OK
+
+
+# Half-integer thresholds: integer inlier scores are never tied, so the relaxation must converge.
+OFF_TIE_TH = dict(imu_init=15.5, not_init=49.5, reloc=49.5, recovery=10.5)
+
+
+def test_soft_logic_converges_to_hard_logic(x64):
+    logs = oracle.random_logs(seed=12, n_runs=100, n_frames=300)
+    batch = to_batch(logs, jnp.float64, with_bins=False)
+    features = inlier_features(batch)
+    rule = InlierRule(Thresholds(**OFF_TIE_TH))
+    hard = result_numpy(replay_jit(batch, rule, features))
+    valid, est = logs["valid"], hard["has_estimate"]
+    flag_err, pos_err = [], []
+    for temperature in (1.0, 0.1, 0.05, 0.03, 0.02, 0.01):
+        soft = result_numpy(replay_jit(batch, rule, features, logic=SoftLogic(jnp.asarray(temperature))))
+        keys = ("accepted", "predicted", "has_estimate")
+        flag_err.append(max(np.abs(soft[k][valid] - hard[k][valid]).max() for k in keys))
+        pos_err.append(np.abs(soft["position"][est] - hard["position"][est]).max())
+    # The error falls with the temperature; at 0.01 inliers every |score - threshold| / T >= 50,
+    # each sigmoid is within e^-50 of its limit, and flags, modes, segments and poses are the hard
+    # ones to rounding (flags 1e-12; positions 1e-9 m: errors of 1e-22 in a flag, times metre-scale
+    # differences between visual and predicted states, amplified by at most 5 s of prediction).
+    assert flag_err[0] > 0.5 and pos_err[0] > 1.0, (flag_err, pos_err)
+    assert all(b <= a + 1e-12 for a, b in zip(flag_err, flag_err[1:], strict=False)), flag_err
+    assert all(b <= a + 1e-12 for a, b in zip(pos_err, pos_err[1:], strict=False)), pos_err
+    assert flag_err[-1] < 1e-12 and pos_err[-1] < 1e-9, (flag_err, pos_err)
+    assert np.array_equal(soft["mode"], hard["mode"])
+    np.testing.assert_allclose(soft["segment"][valid], hard["segment"][valid], rtol=0, atol=1e-12)
+
+
+@pytest.mark.xfail(
+    strict=True, reason="relaxed t_lost is blended with the stale timer of the OK mass (rules.py)"
+)
+def test_relaxed_timer_belongs_to_the_recently_lost_mass(x64):
+    """After 10 s of tracking, a frame that fails with probability 0.3 leaves 30 % of the mass in
+    RECENTLY_LOST with its timer started at 10 s; a good next frame must recover that mass (5 s
+    have not passed). machine_step blends t_lost as 0.3 * 10 + 0.7 * 0 = 3 s, so the mass
+    'expires' (10.05 - 3 > 5) and goes to LOST instead: the relaxed replay loses tracking early."""
+    th = Thresholds(**ORBSLAM3_TH)
+    logic = SoftLogic(jnp.asarray(1.0))
+    state = initial_state()
+    for k in range(200):
+        state, _ = machine_step(logic, state, 100.0, k * 0.05, float(k), 1.0, th, 20.0, 0.0)
+    p_fail = 0.3
+    score = 15.0 + math.log((1 - p_fail) / p_fail)  # sigmoid((15 - score) / 1) = 0.3
+    state, _ = machine_step(logic, state, score, 10.0, 200.0, 1.0, th, 20.0, 0.0)
+    np.testing.assert_allclose(float(state.recently_lost), p_fail, rtol=1e-12)
+    state, _ = machine_step(logic, state, 100.0, 10.05, 201.0, 1.0, th, 20.0, 0.0)
+    assert float(state.lost) < 1e-6, float(state.lost)
+    np.testing.assert_allclose(float(state.ok), 1.0, atol=1e-6)
+
+
+TEMPERATURE = {InlierRule: 2.0, SVERule: 0.02}  # in score units: inliers, SVE
+
+
+def _soft_loss(rule, batch, features, direction):
+    """A smooth scalar of the relaxed replay: accepted share plus a projection of the positions."""
+    res = replay(batch, rule, features, logic=SoftLogic(jnp.asarray(TEMPERATURE[type(rule)])))
+    valid = batch.valid.astype(batch.t.dtype)
+    positions = jnp.sum(res.position * direction * valid[..., None])
+    return (jnp.sum(res.accepted) + positions) / jnp.sum(valid)
+
+
+@pytest.mark.parametrize("kind", ["inliers", "sve"])
+def test_relaxed_replay_gradient_matches_finite_difference(x64, kind):
+    """d loss / d theta of the relaxed replay (thresholds; for SVE also the combination's w_a, u_b,
+    p, q and rho) equals a central difference with h = 1e-5. Measured on these logs, the
+    difference converges to the gradient as h^2 (truncation ~ 6e-7 relative at h = 1e-5 for the
+    steepest leaf, w_a, at temperature 0.02); for p at 0 the power mean switches to its p -> 0
+    expansion inside |p| < 1e-6 and the float64 power formula just outside it carries ~eps / p
+    relative error, ~5e-6 relative in this difference. Tolerance 2e-5 relative + 1e-9 absolute:
+    a missing or wrong term of a gradient is O(1) relative. Finite everywhere, frames without
+    features included (the SVE logs have N_extracted = 0 frames)."""
+    logs = oracle.random_logs(
+        seed=13, n_runs=6, n_frames=200, min_frames=150, kind=kind, fractional_fps=False
+    )
+    batch = to_batch(logs, jnp.float64, with_bins=kind == "sve")
+    features = batch_features(batch) if kind == "sve" else inlier_features(batch)
+    direction = jnp.asarray(np.random.default_rng(0).normal(size=(1, 1, 3)))
+    rule = InlierRule(Thresholds(**OFF_TIE_TH)) if kind == "inliers" else preset("sve-option2")
+    loss = eqx.filter_jit(lambda r: _soft_loss(r, batch, features, direction))
+    grads = eqx.filter_jit(eqx.filter_grad(lambda r: _soft_loss(r, batch, features, direction)))(rule)
+    leaves, treedef = jax.tree.flatten(rule)
+    g_leaves = jax.tree.leaves(grads)
+    assert len(g_leaves) == len(leaves) == (4 if kind == "inliers" else 9)
+    h = 1e-5
+    for j, g in enumerate(g_leaves):
+        up = jax.tree.unflatten(treedef, [x + h if m == j else x for m, x in enumerate(leaves)])
+        down = jax.tree.unflatten(treedef, [x - h if m == j else x for m, x in enumerate(leaves)])
+        fd = (loss(up) - loss(down)) / (2 * h)
+        assert np.isfinite(float(g)), j
+        np.testing.assert_allclose(float(g), float(fd), rtol=2e-5, atol=1e-9, err_msg=f"leaf {j}")
+    # Not vacuous: the parameters do move the loss.
+    assert max(abs(float(g)) for g in g_leaves) > 1e-3
