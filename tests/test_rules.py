@@ -1,0 +1,364 @@
+"""jsve.rules: presets, rule descriptions, and machine_step against the oracle's single step.
+
+machine_step is compared with oracle_orbslam3.step on every combination of mode, score class
+(below, at and above each threshold), logged imu_init, IMU delay (before, at, after), relocalisation
+window (inside, last frame, first frame after) and timer (before, at, after 5 s), for two threshold
+orders: 2,916 cases in one vmapped call. The whole-run comparison is tests/test_replay.py.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import oracle_orbslam3 as oracle
+import pytest
+
+from jsve.rules import (
+    MODE_LOST,
+    MODE_OK,
+    MODE_RECENTLY_LOST,
+    PRESETS,
+    TIME_RECENTLY_LOST_S,
+    HardLogic,
+    InlierRule,
+    MachineState,
+    SoftLogic,
+    SVERule,
+    Thresholds,
+    initial_state,
+    machine_step,
+    preset,
+    rule_from_dict,
+    rule_to_dict,
+    tracking_succeeds,
+)
+from jsve.sve import FrameFeatures, frame_features
+
+TH_ORDERS = {
+    "orbslam3": dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0),
+    # recovery above imu_init and reloc below not_init: the success test's later branches decide
+    "shuffled": dict(imu_init=15.0, not_init=49.0, reloc=16.0, recovery=30.0),
+}
+SCORES = (9.0, 10.0, 11.0, 15.0, 16.0, 30.0, 49.0, 50.0, 51.0)
+FPS = 20.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Presets and descriptions
+
+
+def features_grid():
+    """A few frames' features covering clamps and zero denominators."""
+    rng = np.random.default_rng(0)
+    ext = np.array([1000, 1000, 1000, 0, 500, 800, 1000, 300])
+    inl = np.array([0, 50, 400, 0, 100, 15, 1000, 300])
+    fru = np.array([200, 0, 300, 0, 80, 60, 900, 300])
+    bins = np.stack([rng.multinomial(int(n * 0.95), rng.dirichlet(np.full(64, a))) for n, a in
+                     zip(ext, [0.1, 1, 5, 1, 0.5, 2, 50, 0.05], strict=True)])  # fmt: skip
+    return ext, inl, fru, bins
+
+
+def test_orbslam3_preset_is_15_50_50_10_on_inliers():
+    rule = preset("orbslam3")
+    assert isinstance(rule, InlierRule)
+    th = rule.thresholds
+    assert (float(th.imu_init), float(th.not_init), float(th.reloc), float(th.recovery)) == (15, 50, 50, 10)
+    ext, inl, fru, bins = features_grid()
+    assert np.array_equal(np.asarray(rule.score(frame_features(ext, inl, fru, bins))), inl)
+
+
+def _by_hand(ext, inl, fru, bins, rho):
+    sa = np.where(ext > 0, np.clip(inl / np.maximum(rho * ext, 1e-300), 0, 1), 0.0)
+    sb = oracle.s_b_numpy(bins, ext)
+    sc = np.where(fru > 0, np.clip(inl / np.maximum(fru, 1), 0, 1), 0.0)
+    return sa, sb, sc
+
+
+@pytest.mark.parametrize(
+    "name, thresholds, formula, rho",
+    [
+        ("sve-option2", (0.06, 0.2, 0.2, 0.04), lambda a, b, c: np.sqrt(a * (0.5 * b + 0.5 * c)), 0.25),
+        ("sve-eq1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c, 0.5),
+        ("sve-option1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c, 0.5),
+    ],
+)
+def test_sve_presets(x64, name, thresholds, formula, rho):
+    """Scores equal the seed's formulas written out by hand to 1e-12 (float64 rounding of a few
+    operations on values in [0, 1]; the geometric mean is evaluated as exp(mean log))."""
+    rule = preset(name)
+    assert isinstance(rule, SVERule)
+    th = rule.thresholds
+    np.testing.assert_allclose([float(th.imu_init), float(th.not_init), float(th.reloc), float(th.recovery)],
+                               thresholds, rtol=0, atol=1e-15)  # fmt: skip
+    assert float(rule.combination.rho) == rho
+    ext, inl, fru, bins = features_grid()
+    got = np.asarray(rule.score(frame_features(ext, inl, fru, bins)))
+    np.testing.assert_allclose(got, formula(*_by_hand(ext, inl, fru, bins, rho)), rtol=0, atol=1e-12)
+    assert ((got >= 0) & (got <= 1)).all() and got[3] == 0.0  # a frame without features scores 0
+
+
+def test_unknown_preset_names_the_choices():
+    with pytest.raises(ValueError, match="sve-option2"):
+        preset("sve-option3")
+    assert set(PRESETS) == {"orbslam3", "sve-eq1", "sve-option1", "sve-option2"}
+
+
+@pytest.mark.parametrize("float64", [False, True])
+@pytest.mark.parametrize("name", PRESETS)
+def test_rule_dict_round_trip(name, float64):
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", float64)
+    try:
+        rule = preset(name)
+        spec = rule_to_dict(rule)
+        again = rule_from_dict(json.loads(json.dumps(spec)))  # JSON-ready, and back
+        assert type(again) is type(rule)
+        assert rule_to_dict(again) == spec
+        for a, b in zip(jax.tree.leaves(rule), jax.tree.leaves(again), strict=True):
+            assert a.dtype == b.dtype and float(a) == float(b)
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+
+
+def test_rule_from_dict_errors_name_source_and_key():
+    good = rule_to_dict(preset("sve-option2"))
+    with pytest.raises(ValueError, match=r"params\.json: .*'recovery'"):
+        rule_from_dict({**good, "thresholds": {"imu_init": 1, "not_init": 1, "reloc": 1}}, "params.json")
+    with pytest.raises(ValueError, match=r"params\.json: .*'kind'"):
+        rule_from_dict({"thresholds": good["thresholds"]}, "params.json")
+    with pytest.raises(ValueError, match=r"params\.json: .*'rho'"):
+        combo = {k: v for k, v in good["combination"].items() if k != "rho"}
+        rule_from_dict({**good, "combination": combo}, "params.json")
+    with pytest.raises(ValueError, match=r"params\.json: rule kind must be 'inliers' or 'sve', got 'linear'"):
+        rule_from_dict({**good, "kind": "linear"}, "params.json")
+    with pytest.raises(ValueError, match=r"params\.json: bad rule description"):
+        rule_from_dict({**good, "thresholds": {**good["thresholds"], "reloc": "high"}}, "params.json")
+    with pytest.raises(ValueError, match=r"<dict>: "):
+        rule_from_dict([1, 2, 3])
+
+
+def test_sve_rule_scores_its_combination():
+    ext, inl, fru, bins = features_grid()
+    f = frame_features(ext, inl, fru, bins)
+    rule = preset("sve-eq1")
+    assert np.array_equal(
+        np.asarray(rule.score(f)), np.asarray(rule.combination(f.inlier_ratio, f.s_b, f.s_c))
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# machine_step against the oracle's step, exhaustively
+
+
+def _cases():
+    """Every combination, as (oracle state, frame inputs) pairs. Times are exact in binary."""
+    cases = []
+    for th_name, mode, score, imu, delay_rel, window_rel, timer_rel in itertools.product(
+        TH_ORDERS,
+        (oracle.OK, oracle.RECENTLY_LOST, oracle.LOST),
+        SCORES,
+        (0, 1),
+        (-1, 0, 1),
+        (-1, 0, 1),
+        (-1, 0, 1),
+    ):
+        map_start_k, map_start_t = 40, 2.0
+        k = map_start_k + int(FPS) - 1 + window_rel  # inside, the window's last frame, the first after
+        t = 10.0
+        delay = (t - map_start_t) - 0.25 * delay_rel  # usable when t - map_start_t >= delay
+        t_lost = t - TIME_RECENTLY_LOST_S - 0.25 * timer_rel  # expired when t - t_lost > 5
+        state = oracle.State(
+            mode=mode, t_lost=t_lost, map_start_t=map_start_t, map_start_k=map_start_k, segment=3
+        )
+        cases.append((th_name, state, score, t, k, imu, delay))
+    return cases
+
+
+def _jax_state(states, dtype):
+    arr = lambda xs: jnp.asarray(np.array(xs, float), dtype)  # noqa: E731
+    return MachineState(
+        ok=arr([s.mode == oracle.OK for s in states]),
+        recently_lost=arr([s.mode == oracle.RECENTLY_LOST for s in states]),
+        lost=arr([s.mode == oracle.LOST for s in states]), t_lost=arr([s.t_lost for s in states]),
+        map_start_t=arr([s.map_start_t for s in states]), map_start_k=arr([s.map_start_k for s in states]),
+        segment=arr([s.segment for s in states]),
+    )  # fmt: skip
+
+
+def _inputs(cases, dtype):
+    arr = lambda xs: jnp.asarray(np.array(xs, float), dtype)  # noqa: E731
+    th = Thresholds(**{key: arr([TH_ORDERS[c[0]][key] for c in cases]) for key in TH_ORDERS["orbslam3"]})
+    return dict(state=_jax_state([c[1] for c in cases], dtype), score=arr([c[2] for c in cases]),
+                t=arr([c[3] for c in cases]), k=arr([c[4] for c in cases]), imu=arr([c[5] for c in cases]),
+                th=th, delay=arr([c[6] for c in cases]))  # fmt: skip
+
+
+def _step(logic, state, score, t, k, imu, th, delay):
+    return machine_step(logic, state, score, t, k, imu, th, FPS, delay)
+
+
+def _expected(cases):
+    out = []
+    for th_name, state, score, t, k, imu, delay in cases:
+        nxt, visual, predicted = oracle.step(state, score, t, k, imu, TH_ORDERS[th_name], FPS, delay)
+        out.append((nxt, visual, predicted))
+    return out
+
+
+def _check_against_oracle(next_state, decision, cases, expected):
+    ok, rl, lost = (np.asarray(x) for x in (next_state.ok, next_state.recently_lost, next_state.lost))
+    bad = []
+    for i, (case, (nxt, visual, predicted)) in enumerate(zip(cases, expected, strict=True)):
+        got_mode = [ok[i], rl[i], lost[i]]
+        want_mode = [float(nxt.mode == m) for m in (oracle.OK, oracle.RECENTLY_LOST, oracle.LOST)]
+        got = (got_mode, float(decision.accepted[i]), float(decision.predicted[i]),
+               float(next_state.segment[i]), float(next_state.map_start_t[i]),
+               float(next_state.map_start_k[i]))  # fmt: skip
+        want = (want_mode, float(visual), float(predicted), float(nxt.segment), float(nxt.map_start_t),
+                float(nxt.map_start_k))  # fmt: skip
+        if got != want or float(decision.new_map[i]) != float(nxt.segment != case[1].segment):
+            bad.append(f"case {case}: got {got}, oracle {want}")
+        elif nxt.mode == oracle.RECENTLY_LOST and float(next_state.t_lost[i]) != nxt.t_lost:
+            bad.append(f"case {case}: t_lost {float(next_state.t_lost[i])}, oracle {nxt.t_lost}")
+    return bad
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_machine_step_matches_oracle_step_exhaustively(dtype):
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", dtype == jnp.float64)
+    try:
+        cases = _cases()
+        inputs = _inputs(cases, dtype)
+        step = jax.jit(jax.vmap(lambda *a: _step(HardLogic(), *a)))
+        next_state, decision = step(*inputs.values())
+        assert next_state.ok.dtype == dtype
+        bad = _check_against_oracle(next_state, decision, cases, _expected(cases))
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+    assert len(cases) == 2916
+    assert not bad, f"{len(bad)} of {len(cases)} cases differ:\n" + "\n".join(bad[:10])
+
+
+def test_machine_step_eager_jit_vmap_agree(x64):
+    """Op by op (jax.disable_jit), under jit, and vmapped: identical outputs, bit for bit (a step is
+    exact {0, 1} arithmetic and selections of the inputs)."""
+    cases = _cases()[::37]  # 79 cases spread over the grid
+    inputs = _inputs(cases, jnp.float64)
+    batched = jax.jit(jax.vmap(lambda *a: _step(HardLogic(), *a)))(*inputs.values())
+    jitted = jax.jit(lambda *a: _step(HardLogic(), *a))
+    for i in range(len(cases)):
+        one = jax.tree.map(lambda x, i=i: x[i], tuple(inputs.values()))
+        with jax.disable_jit():
+            eager = _step(HardLogic(), *one)
+        for out in (jitted(*one), eager):
+            for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(batched), strict=True):
+                assert float(a) == float(b[i])
+
+
+def test_initial_state_is_ok_in_map_zero():
+    s = initial_state()
+    assert (float(s.ok), float(s.recently_lost), float(s.lost)) == (1.0, 0.0, 0.0)
+    assert float(s.segment) == 0 and float(s.map_start_k) == 0 and float(s.map_start_t) == 0
+    assert (MODE_OK, MODE_RECENTLY_LOST, MODE_LOST) == (oracle.OK, oracle.RECENTLY_LOST, oracle.LOST)
+    assert TIME_RECENTLY_LOST_S == 5.0  # ORB-SLAM3 v1.0 Tracking::time_recently_lost
+
+
+# ------------------------------------------------------------------------------------------------
+# SoftLogic
+
+
+def test_soft_comparisons_tend_to_hard_ones(x64):
+    x = jnp.asarray([-2.0, -0.1, 0.0, 0.1, 2.0])
+    hard = HardLogic()
+    for temperature, tol in ((1.0, 0.5), (0.01, 5e-5), (0.001, 1e-40)):
+        soft = SoftLogic(jnp.asarray(temperature))
+        for name in ("less", "greater"):
+            s, h = np.asarray(getattr(soft, name)(x, 0.0)), np.asarray(getattr(hard, name)(x, 0.0))
+            off_tie = x != 0
+            assert np.abs(s - h)[off_tie].max() <= tol + 1e-300, (name, temperature)
+            assert s[~off_tie] == 0.5  # an exact tie is undecided at every temperature
+    # greater = 1 - less away from ties, monotone in x
+    soft = SoftLogic(jnp.asarray(0.3))
+    np.testing.assert_allclose(np.asarray(soft.less(x, 0.0) + soft.greater(x, 0.0)), 1.0, atol=1e-15)
+    assert np.all(np.diff(np.asarray(soft.less(x, 0.0))) < 0)
+    q = jnp.asarray([2.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(np.asarray(soft.normalize_quat(q)), [1, 0, 0, 0])
+    assert np.array_equal(np.asarray(hard.normalize_quat(q)), np.asarray(q))
+
+
+def test_soft_step_converges_to_hard_step_off_ties(x64):
+    cases = [c for c in _cases() if c[2] not in TH_ORDERS[c[0]].values()]
+    inputs = _inputs(cases, jnp.float64)
+    hard_state, hard_decision = jax.vmap(lambda *a: _step(HardLogic(), *a))(*inputs.values())
+    previous = None
+    for temperature in (3.0, 0.3, 0.03, 0.003):
+        logic = SoftLogic(jnp.asarray(temperature))
+        soft_state, soft_decision = jax.vmap(lambda *a, lg=logic: _step(lg, *a))(*inputs.values())
+        soft_leaves = jax.tree.leaves((soft_state, soft_decision))
+        hard_leaves = jax.tree.leaves((hard_state, hard_decision))
+        err = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(soft_leaves, hard_leaves, strict=True))
+        assert previous is None or err <= previous
+        previous = err
+    # scores are >= 1 inlier from every threshold: at T = 0.003 each sigmoid is within e^-333 of
+    # its limit; the clocks (times ~10 s, frame indices ~60) then match to their rounding.
+    assert previous < 1e-12
+
+
+def test_soft_step_conserves_probability(x64):
+    """From any mixed state (probabilities summing to 1), the next mode flags sum to 1 too, and
+    accepted + predicted <= 1 (the rest is LOST)."""
+    rng = np.random.default_rng(1)
+    n = 500
+    w = rng.dirichlet(np.ones(3), n)
+    state = MachineState(
+        ok=jnp.asarray(w[:, 0]), recently_lost=jnp.asarray(w[:, 1]), lost=jnp.asarray(w[:, 2]),
+        t_lost=jnp.asarray(rng.uniform(0, 10, n)), map_start_t=jnp.asarray(rng.uniform(0, 10, n)),
+        map_start_k=jnp.asarray(rng.integers(0, 200, n).astype(float)),
+        segment=jnp.asarray(rng.uniform(0, 3, n)),
+    )  # fmt: skip
+    th = Thresholds(**TH_ORDERS["orbslam3"])
+    logic = SoftLogic(jnp.asarray(2.0))
+    nxt, decision = jax.vmap(
+        lambda s, sc, t, k, imu, d: machine_step(logic, s, sc, t, k, imu, th, FPS, d)
+    )(state, jnp.asarray(rng.uniform(0, 60, n)), jnp.asarray(rng.uniform(10, 16, n)),
+      jnp.asarray(rng.integers(0, 300, n).astype(float)), jnp.asarray(rng.integers(0, 2, n).astype(float)),
+      jnp.asarray(rng.uniform(0, 3, n)))  # fmt: skip
+    total = np.asarray(nxt.ok + nxt.recently_lost + nxt.lost)
+    np.testing.assert_allclose(total, 1.0, atol=1e-14)  # a few roundings of products of [0, 1] values
+    both = np.asarray(decision.accepted + decision.predicted)
+    assert (both <= 1 + 1e-14).all() and (np.asarray(decision.accepted) >= 0).all()
+    np.testing.assert_allclose(np.asarray(decision.accepted), np.asarray(nxt.ok), atol=0)
+
+
+def test_tracking_succeeds_branch_order():
+    """The success test's order (ORB-SLAM3 v1.0 Tracking::TrackLocalMap): the relocalisation
+    window first, then the recovery rule in RECENTLY_LOST, then the IMU / no-IMU threshold."""
+    th = Thresholds(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0)
+    hard = HardLogic()
+
+    def ok(score, rl, imu, reloc):
+        return float(tracking_succeeds(hard, jnp.asarray(score), th, rl, imu, reloc))
+
+    assert ok(30.0, 1.0, 1.0, 1.0) == 0.0  # window beats recovery: 30 > 10 but < 50
+    assert ok(11.0, 1.0, 0.0, 0.0) == 1.0  # recovery beats the no-IMU threshold: 11 < 50
+    assert ok(10.0, 1.0, 1.0, 0.0) == 0.0  # recovery is strict, then 10 < 15 fails
+    assert ok(15.0, 0.0, 1.0, 0.0) == 1.0 and ok(14.0, 0.0, 1.0, 0.0) == 0.0  # fail only below
+    assert ok(49.0, 0.0, 0.0, 0.0) == 0.0 and ok(50.0, 0.0, 0.0, 1.0) == 1.0
+
+
+def test_features_are_a_pytree_of_arrays():
+    """Rules and features are eqx Modules whose leaves are arrays (sweeps vmap over them)."""
+    rule = preset("sve-option2")
+    assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(rule))
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), rule, rule)
+    ext, inl, fru, bins = features_grid()
+    f = frame_features(ext, inl, fru, bins)
+    scores = eqx.filter_vmap(lambda r: r.score(f))(stacked)
+    assert scores.shape == (2, len(ext))
+    assert isinstance(f, FrameFeatures)
