@@ -485,6 +485,10 @@ def sve_bin_index(grid_xy: Float[Array, "*batch 2"], bounds: Float[ArrayLike, " 
     Returns:
         [...] int32 bin index, -1 outside the grid.
     """
+    if grid_xy.shape[-1:] != (2,):
+        raise ValueError(f"grid_xy must have shape (..., 2), got {tuple(grid_xy.shape)}")
+    if jnp.shape(bounds) != (4,):
+        raise ValueError(f"bounds must be (min_x, max_x, min_y, max_y), got shape {jnp.shape(bounds)}")
     f32 = jnp.float32
     b = jnp.asarray(bounds).astype(f32)
     x = grid_xy[..., 0].astype(f32)
@@ -510,6 +514,11 @@ def frame_counts(
         inlier: [N] map-point inliers after TrackLocalMap.
         bin_index: [N] SVE bin of each keypoint (`sve_bin_index`), -1 for none.
     """
+    if keep.ndim != 1 or inlier.shape != keep.shape or bin_index.shape != keep.shape:
+        raise ValueError(
+            f"keep, inlier and bin_index must have one shape (N,), got {tuple(keep.shape)}, "
+            f"{tuple(inlier.shape)} and {tuple(bin_index.shape)}"
+        )
     keep = keep.astype(bool)
     n_extracted = jnp.sum(keep, dtype=jnp.int32)
     n_inliers = jnp.sum(keep & inlier.astype(bool), dtype=jnp.int32)

@@ -194,6 +194,12 @@ def test_algorithm1_checks_shapes():
         dynamic_keypoints(jnp.zeros((3, 4), bool), jnp.zeros((5, 3)), jnp.ones(5, bool))
     with pytest.raises(ValueError, match=r"valid must have shape \(5,\)"):
         dynamic_keypoints(jnp.zeros((3, 4), bool), jnp.zeros((5, 2)), jnp.ones(4, bool))
+    with pytest.raises(ValueError, match=r"grid_xy must have shape \(..., 2\)"):
+        sve_bin_index(jnp.zeros((5, 3)), jnp.zeros(4))
+    with pytest.raises(ValueError, match="bounds must be"):
+        sve_bin_index(jnp.zeros((5, 2)), jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"one shape \(N,\), got \(5,\), \(4,\)"):
+        frame_counts(jnp.ones(5, bool), jnp.ones(4, bool), jnp.zeros(5, jnp.int32))
 
 
 # --------------------------------------------------------------------------------------------------
