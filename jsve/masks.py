@@ -83,7 +83,7 @@ def rle_counts(counts: bytes) -> np.ndarray:
     if bad.any():
         k = int(np.argmax(bad))
         raise ValueError(
-            f"character {chr(c[k])!r} at position {k} is not valid in a COCO compressed RLE "
+            f"{_describe_byte(int(c[k]))} at position {k} is not valid in a COCO compressed RLE "
             f"(characters '0'..'o', ASCII {_RLE_FIRST}-{_RLE_LAST})"
         )
     c -= _RLE_FIRST
@@ -107,6 +107,10 @@ def rle_counts(counts: bytes) -> np.ndarray:
         k = int(np.argmax(runs < 0))
         raise ValueError(f"run length {k} is negative ({int(runs[k])})")
     return runs
+
+
+def _describe_byte(b: int) -> str:
+    return f"character {chr(b)!r}" if 32 <= b < 127 else f"byte 0x{b:02x}"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -194,8 +198,10 @@ class MotsMasks:
         raise LogFormatError(self.path, line, reason, column=field, value=value, what="field")
 
     def _parse_line(self, raw: bytes, line: int, start: int, size):
+        # Fields stay bytes until checked, so that the RLE's offset and length are those in the file.
+        parts = raw.split(b" ")
+        fields = [p.decode("ascii", errors="replace") for p in parts]
         text = raw.decode("ascii", errors="replace")
-        fields = text.split(" ")
         if len(fields) != len(MOTS_FIELDS) or not all(fields):
             self._fail(
                 line,
@@ -226,7 +232,7 @@ class MotsMasks:
                 fields[3] if height != size[0] else fields[4],
                 f"the image is {height} x {width} here but {size[0]} x {size[1]} on the first line",
             )
-        rle = fields[5].encode("ascii", errors="replace")
+        rle = parts[5]
         try:
             runs = rle_counts(rle)
         except ValueError as e:

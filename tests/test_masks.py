@@ -376,6 +376,7 @@ def mots_file(tmp_path, bad_line: str) -> Path:
         ("0 1002 1 0 8 {rle}", "img_height", "must be positive"),
         ("0 1002 1 7 8 {rle}", "img_height", "the image is 7 x 8 here but 6 x 8 on the first line"),
         ("0 1002 1 6 8 {rle}!", "rle", "character '!' at position"),
+        ("0 1002 1 6 8 {rle}\u00e9", "rle", "byte 0xc3 at position 8 is not valid"),
         ("0 1002 1 6 8 {rle}o", "rle", "ends in the middle of a run length"),
         ("0 1002 1 6 8 {small}", "rle", "the runs cover 24 pixels but the image has 6 x 8 = 48"),
         ("0 1001 1 6 8 {rle}", "obj_id", "repeats line 1 in frame 0"),
