@@ -109,24 +109,34 @@ def _scan_frames(xs, valid, gravity, fps, imu_init_delay, thresholds, logic, tim
     batch_shape = t.shape[1:]
     init = jax.tree.map(lambda x: jnp.broadcast_to(x, batch_shape), initial_state(dtype))
     k = jnp.broadcast_to(jnp.arange(t.shape[0], dtype=dtype).reshape((-1,) + (1,) * len(batch_shape)), t.shape)
-    start = (init, vis_p[0], vis_v[0], vis_q[0], jnp.zeros(batch_shape, dtype))
+    hard = isinstance(logic, HardLogic)
+    # Hard: a 0/1 flag, set once LOST is reached. Relaxed: the part of the mass that has never been
+    # LOST, as a machine state of its own whose LOST mass is dropped every frame, so that
+    # lost_any = 1 - (its OK + RECENTLY_LOST mass) is the probability of ever having been LOST
+    # (accumulating 1 - prod(1 - lost) instead counts mass that stays LOST for n frames n times).
+    lost_carry = jnp.zeros(batch_shape, dtype) if hard else init
+    start = (init, vis_p[0], vis_v[0], vis_q[0], lost_carry)
 
     def step(carry, x):
-        state, p, v, q, lost_any = carry
+        state, p, v, q, lost_carry = carry
         sc, tt, ii, vp, vq, vv, dt, dp, dv, dq, kk = x
-        state, decision = machine_step(
-            logic, state, sc, tt, kk, ii.astype(dtype), thresholds, fps, imu_init_delay, time_recently_lost
-        )
+        args = (sc, tt, kk, ii.astype(dtype), thresholds, fps, imu_init_delay, time_recently_lost)
+        state, decision = machine_step(logic, state, *args)
         pp, pv, pq = imu_predict(p, v, q, dt, dp, dv, dq, gravity)
         a = decision.accepted[..., None]
         p2 = a * vp + (1 - a) * pp
         v2 = a * vv + (1 - a) * pv
         q2 = logic.normalize_quat(a * vq + (1 - a) * pq)
         mode = state.recently_lost * MODE_RECENTLY_LOST + state.lost * MODE_LOST
-        # Probability that the run was ever lost (exact 0/1 in the hard machine).
-        lost_any = lost_any + (1 - lost_any) * state.lost
+        if hard:
+            lost_carry = lost_carry + (1 - lost_carry) * state.lost
+            lost_any = lost_carry
+        else:
+            never, _ = machine_step(logic, lost_carry, *args)
+            lost_carry = eqx.tree_at(lambda s: s.lost, never, jnp.zeros_like(never.lost))
+            lost_any = 1 - (never.ok + never.recently_lost)
         out = (p2, q2, v2, decision.accepted, decision.predicted, mode, state.segment, lost_any)
-        return (state, p2, v2, q2, lost_any), out
+        return (state, p2, v2, q2, lost_carry), out
 
     _, (p, q, v, accepted, predicted, mode, segment, lost_any) = jax.lax.scan(step, start, tuple(xs) + (k,))
     validf = valid.astype(dtype)

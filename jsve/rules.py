@@ -150,6 +150,8 @@ class MachineState(eqx.Module):
     Attributes:
         ok, recently_lost, lost: mode flags, exactly one is 1 in the hard machine.
         t_lost: s, time of the frame that entered RECENTLY_LOST (the timer is never restarted there).
+            Relaxed, it is the timer of the RECENTLY_LOST mass: the mass-weighted mean entry time of
+            the mass now in RECENTLY_LOST (the OK and LOST masses have no timer).
         map_start_t: s, time of the first frame of the current map.
         map_start_k: frame index of the first frame of the current map (ORB-SLAM3 sets
             mnLastRelocFrameId to the initial frame of a new monocular map).
@@ -225,7 +227,9 @@ def machine_step(
     accepted = state.ok * ok_pass + state.recently_lost * rl_pass + state.lost * lost_pass
     # OK -> RECENTLY_LOST when the IMU can carry the estimate; before IMU initialisation ORB-SLAM3
     # resets the active map instead, which the replay treats as LOST (a new segment follows).
-    to_recently_lost = ok_fail * imu_ok + state.recently_lost * (1 - expired) * (1 - rl_pass)
+    entering = ok_fail * imu_ok
+    staying = state.recently_lost * (1 - expired) * (1 - rl_pass)
+    to_recently_lost = entering + staying
     to_lost = ok_fail * (1 - imu_ok) + state.recently_lost * expired + state.lost * (1 - lost_pass)
     new_map = state.lost * lost_pass
 
@@ -233,9 +237,25 @@ def machine_step(
         ok=accepted,
         recently_lost=to_recently_lost,
         lost=to_lost,
-        t_lost=ok_fail * t + (1 - ok_fail) * state.t_lost,
+        t_lost=_recently_lost_timer(entering, staying, ok_fail, t, state.t_lost),
         map_start_t=new_map * t + (1 - new_map) * state.map_start_t,
         map_start_k=new_map * k + (1 - new_map) * state.map_start_k,
         segment=state.segment + new_map,
     )
     return next_state, FrameDecision(accepted=accepted, predicted=to_recently_lost, new_map=new_map)
+
+
+def _recently_lost_timer(entering, staying, ok_fail, t, t_lost):
+    """Timer of the RECENTLY_LOST mass after a step: the mass-weighted mean of its entry times.
+
+    `entering` mass starts its timer now (t); `staying` mass keeps its own (t_lost). With exact flags
+    this is t on entry and t_lost while staying, bit for bit (1 * t / 1, 0 * t + 1 * t_lost); when no
+    mass is in RECENTLY_LOST the timer is irrelevant and follows the hard machine's own update. Blending
+    the timer with the OK mass's instead (0.3 x 10 s + 0.7 x 0 s) would make recently lost mass expire
+    at once (tests/test_replay.py). The timer feeds only the exact expiry comparison, so it carries no
+    gradient (stopped, which also keeps 1 / mass out of the backward pass).
+    """
+    mass = entering + staying
+    some = mass > 0
+    mean = (entering * t + staying * t_lost) / jnp.where(some, mass, 1.0)
+    return jax.lax.stop_gradient(jnp.where(some, mean, ok_fail * t + (1 - ok_fail) * t_lost))

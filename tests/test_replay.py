@@ -677,14 +677,12 @@ def test_soft_logic_converges_to_hard_logic(x64):
     np.testing.assert_allclose(soft["segment"][valid], hard["segment"][valid], rtol=0, atol=1e-12)
 
 
-@pytest.mark.xfail(
-    strict=True, reason="relaxed t_lost is blended with the stale timer of the OK mass (rules.py)"
-)
 def test_relaxed_timer_belongs_to_the_recently_lost_mass(x64):
     """After 10 s of tracking, a frame that fails with probability 0.3 leaves 30 % of the mass in
     RECENTLY_LOST with its timer started at 10 s; a good next frame must recover that mass (5 s
-    have not passed). machine_step blends t_lost as 0.3 * 10 + 0.7 * 0 = 3 s, so the mass
-    'expires' (10.05 - 3 > 5) and goes to LOST instead: the relaxed replay loses tracking early."""
+    have not passed). Blending t_lost with the OK mass's stale timer (0.3 * 10 + 0.7 * 0 = 3 s)
+    would make the mass 'expire' (10.05 - 3 > 5) and go LOST: the relaxed replay would lose
+    tracking early. machine_step carries the RECENTLY_LOST mass's own (mass-weighted) timer."""
     th = Thresholds(**ORBSLAM3_TH)
     logic = SoftLogic(jnp.asarray(1.0))
     state = initial_state()
