@@ -2,8 +2,8 @@
 
 machine_step is compared with oracle_orbslam3.step on every combination of mode, score class
 (below, at and above each threshold), logged imu_init, IMU delay (before, at, after), relocalisation
-window (inside, last frame, first frame after) and timer (before, at, after 5 s), for two threshold
-orders: 2,916 cases in one vmapped call. The whole-run comparison is tests/test_replay.py.
+window (inside, last frame, first frame after) and timer (before, at, after 5 s), for three threshold
+orders and two fps (20, 20.5): 8,748 cases in one vmapped call. Whole runs: tests/test_replay.py.
 """
 
 from __future__ import annotations
@@ -43,9 +43,11 @@ TH_ORDERS = {
     "orbslam3": dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0),
     # recovery above imu_init and reloc below not_init: the success test's later branches decide
     "shuffled": dict(imu_init=15.0, not_init=49.0, reloc=16.0, recovery=30.0),
+    # reloc above not_init: tells a new map's window test from its not_init test
+    "strict_reloc": dict(imu_init=10.0, not_init=16.0, reloc=50.0, recovery=15.0),
 }
 SCORES = (9.0, 10.0, 11.0, 15.0, 16.0, 30.0, 49.0, 50.0, 51.0)
-FPS = 20.0
+FPS_VALUES = (20.0, 20.5)  # ORB-SLAM3's window is int(fps) frames: 20.5 must act as 20
 
 
 # ------------------------------------------------------------------------------------------------
@@ -158,24 +160,19 @@ def test_sve_rule_scores_its_combination():
 def _cases():
     """Every combination, as (oracle state, frame inputs) pairs. Times are exact in binary."""
     cases = []
-    for th_name, mode, score, imu, delay_rel, window_rel, timer_rel in itertools.product(
-        TH_ORDERS,
-        (oracle.OK, oracle.RECENTLY_LOST, oracle.LOST),
-        SCORES,
-        (0, 1),
-        (-1, 0, 1),
-        (-1, 0, 1),
-        (-1, 0, 1),
+    modes = (oracle.OK, oracle.RECENTLY_LOST, oracle.LOST)
+    for th_name, fps, mode, score, imu, delay_rel, window_rel, timer_rel in itertools.product(
+        TH_ORDERS, FPS_VALUES, modes, SCORES, (0, 1), (-1, 0, 1), (-1, 0, 1), (-1, 0, 1)
     ):
         map_start_k, map_start_t = 40, 2.0
-        k = map_start_k + int(FPS) - 1 + window_rel  # inside, the window's last frame, the first after
+        k = map_start_k + int(fps) - 1 + window_rel  # inside, the window's last frame, the first after
         t = 10.0
         delay = (t - map_start_t) - 0.25 * delay_rel  # usable when t - map_start_t >= delay
         t_lost = t - TIME_RECENTLY_LOST_S - 0.25 * timer_rel  # expired when t - t_lost > 5
         state = oracle.State(
             mode=mode, t_lost=t_lost, map_start_t=map_start_t, map_start_k=map_start_k, segment=3
         )
-        cases.append((th_name, state, score, t, k, imu, delay))
+        cases.append((th_name, state, score, t, k, imu, delay, fps))
     return cases
 
 
@@ -195,17 +192,17 @@ def _inputs(cases, dtype):
     th = Thresholds(**{key: arr([TH_ORDERS[c[0]][key] for c in cases]) for key in TH_ORDERS["orbslam3"]})
     return dict(state=_jax_state([c[1] for c in cases], dtype), score=arr([c[2] for c in cases]),
                 t=arr([c[3] for c in cases]), k=arr([c[4] for c in cases]), imu=arr([c[5] for c in cases]),
-                th=th, delay=arr([c[6] for c in cases]))  # fmt: skip
+                th=th, delay=arr([c[6] for c in cases]), fps=arr([c[7] for c in cases]))  # fmt: skip
 
 
-def _step(logic, state, score, t, k, imu, th, delay):
-    return machine_step(logic, state, score, t, k, imu, th, FPS, delay)
+def _step(logic, state, score, t, k, imu, th, delay, fps):
+    return machine_step(logic, state, score, t, k, imu, th, fps, delay)
 
 
 def _expected(cases):
     out = []
-    for th_name, state, score, t, k, imu, delay in cases:
-        nxt, visual, predicted = oracle.step(state, score, t, k, imu, TH_ORDERS[th_name], FPS, delay)
+    for th_name, state, score, t, k, imu, delay, fps in cases:
+        nxt, visual, predicted = oracle.step(state, score, t, k, imu, TH_ORDERS[th_name], fps, delay)
         out.append((nxt, visual, predicted))
     return out
 
@@ -241,14 +238,14 @@ def test_machine_step_matches_oracle_step_exhaustively(dtype):
         bad = _check_against_oracle(next_state, decision, cases, _expected(cases))
     finally:
         jax.config.update("jax_enable_x64", previous)
-    assert len(cases) == 2916
+    assert len(cases) == 8748
     assert not bad, f"{len(bad)} of {len(cases)} cases differ:\n" + "\n".join(bad[:10])
 
 
 def test_machine_step_eager_jit_vmap_agree(x64):
     """Op by op (jax.disable_jit), under jit, and vmapped: identical outputs, bit for bit (a step is
     exact {0, 1} arithmetic and selections of the inputs)."""
-    cases = _cases()[::37]  # 79 cases spread over the grid
+    cases = _cases()[::97]  # 91 cases spread over the grid
     inputs = _inputs(cases, jnp.float64)
     batched = jax.jit(jax.vmap(lambda *a: _step(HardLogic(), *a)))(*inputs.values())
     jitted = jax.jit(lambda *a: _step(HardLogic(), *a))
@@ -325,7 +322,7 @@ def test_soft_step_conserves_probability(x64):
     th = Thresholds(**TH_ORDERS["orbslam3"])
     logic = SoftLogic(jnp.asarray(2.0))
     nxt, decision = jax.vmap(
-        lambda s, sc, t, k, imu, d: machine_step(logic, s, sc, t, k, imu, th, FPS, d)
+        lambda s, sc, t, k, imu, d: machine_step(logic, s, sc, t, k, imu, th, 20.0, d)
     )(state, jnp.asarray(rng.uniform(0, 60, n)), jnp.asarray(rng.uniform(10, 16, n)),
       jnp.asarray(rng.integers(0, 300, n).astype(float)), jnp.asarray(rng.integers(0, 2, n).astype(float)),
       jnp.asarray(rng.uniform(0, 3, n)))  # fmt: skip
