@@ -1,7 +1,9 @@
 """Trajectory error: alignment (se3, sim3, posyaw, origin, none), APE statistics, and per-run evaluation.
 
-Pure JAX over arrays, one run per call; batch over runs with `jax.vmap` (or `batched_run_error`). Everything
-is jit-able with static shapes, and the statistics are differentiable with respect to the estimated positions
+Pure JAX over arrays, one run per call; batch over runs with `jax.vmap` (or `batched_run_error`). The public
+functions are jit-compiled (strings and counts are static arguments; a call outside jit compiles once per
+configuration and shape instead of dispatching hundreds of small operations), work inside jit/vmap/grad
+with static shapes, and the statistics are differentiable with respect to the estimated positions
 (square roots, norms and the SVD are guarded with the double-`where` idiom, so gradients stay finite even for
 degenerate input).
 
@@ -66,7 +68,7 @@ class Transform(eqx.Module):
 
     def apply(self, p: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
         """Map points (metres, estimate frame) into the reference frame: scale * R p + t."""
-        return self.scale * (p @ self.rotation.T) + self.translation
+        return jnp.stack(_apply_columns(self, _columns(p)), axis=-1)
 
     def apply_quat(self, q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
         """Map orientations (wxyz, body in estimate world) into the reference world: q_R * q."""
@@ -120,6 +122,25 @@ class RunError(eqx.Module):
     n_segments: Int[Array, ""]
     failed: Bool[Array, ""]
     segment: Int[Array, ""]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Coordinates as separate columns. XLA on CPU vectorises elementwise work over the frame axis well, but small
+# [T, 3] x [3, 3] products and reductions over a trailing axis of 3 poorly (10-40x slower measured, see
+# analysis/bench_ape.py); so the hot paths below spell out the three coordinates.
+
+
+def _columns(p: Float[Array, "... 3"]) -> tuple[Array, Array, Array]:
+    return p[..., 0], p[..., 1], p[..., 2]
+
+
+def _apply_columns(transform: Transform, cols) -> list[Array]:
+    """scale * R p + t on columns; works for one transform or for one per frame (leaves with a leading T)."""
+    r, t, c = transform.rotation, transform.translation, transform.scale
+    return [
+        c * (r[..., i, 0] * cols[0] + r[..., i, 1] * cols[1] + r[..., i, 2] * cols[2]) + t[..., i]
+        for i in range(3)
+    ]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -194,17 +215,20 @@ def _fit_umeyama(
     total_safe = jnp.where(total > 0, total, 1.0)
     wn = w / total_safe
 
-    mu_x = wn @ x  # Umeyama (1991), eq. 34
-    mu_y = wn @ y  # eq. 35
-    xc = x - mu_x
-    yc = y - mu_y
-    var_x = wn @ jnp.sum(xc * xc, axis=1)  # eq. 36
-    var_y = wn @ jnp.sum(yc * yc, axis=1)
-    cov = (yc * wn[:, None]).T @ xc  # eq. 38: Sigma_xy = sum_i w_i (y_i - mu_y)(x_i - mu_x)^T
+    xs, ys = _columns(x), _columns(y)
+    mu_x = jnp.stack([jnp.sum(wn * c) for c in xs])  # Umeyama (1991), eq. 34
+    mu_y = jnp.stack([jnp.sum(wn * c) for c in ys])  # eq. 35
+    xc = [c - m for c, m in zip(xs, mu_x, strict=True)]
+    yc = [c - m for c, m in zip(ys, mu_y, strict=True)]
+    var_x = sum(jnp.sum(wn * c * c) for c in xc)  # eq. 36
+    var_y = sum(jnp.sum(wn * c * c) for c in yc)
+    # eq. 38: Sigma_xy = sum_i w_i (y_i - mu_y)(x_i - mu_x)^T
+    cov = jnp.stack([jnp.stack([jnp.sum(wn * yc[i] * xc[j]) for j in range(3)]) for i in range(3)])
 
-    # "All points identical" is relative to the coordinates' magnitude: the centroid carries rounding error.
-    ms_x = jax.lax.stop_gradient(wn @ jnp.sum(x * x, axis=1))
-    ms_y = jax.lax.stop_gradient(wn @ jnp.sum(y * y, axis=1))
+    # "All points identical" is relative to the coordinates' magnitude (the centroid carries rounding error):
+    # the mean squared norm is |mu|^2 + sigma^2, no extra pass over the frames needed.
+    ms_x = jax.lax.stop_gradient(jnp.sum(mu_x * mu_x) + var_x)
+    ms_y = jax.lax.stop_gradient(jnp.sum(mu_y * mu_y) + var_y)
     tol = (_IDENTICAL_POINTS_EPS * eps) ** 2
     degenerate = (n_used < MIN_ALIGNMENT_FRAMES) | (var_x <= tol * ms_x) | (var_y <= tol * ms_y)
 
@@ -288,6 +312,7 @@ def _as_weights(mask, dtype) -> Array:
     return mask.astype(dtype) if mask.dtype == jnp.bool_ else jnp.asarray(mask, dtype)
 
 
+@functools.partial(jax.jit, static_argnames=("method", "n_first"))
 def align(
     est_p: Float[Array, "T 3"],
     ref_p: Float[Array, "T 3"],
@@ -344,11 +369,74 @@ def align(
 # Statistics.
 
 
-def _position_errors(aligned_p: Float[Array, "T 3"], ref_p: Float[Array, "T 3"]) -> Float[Array, " T"]:
-    diff = aligned_p - ref_p
-    return _safe_sqrt(jnp.sum(diff * diff, axis=-1))
+def _position_errors(aligned_cols, ref_cols) -> Float[Array, " T"]:
+    """|| aligned - ref || per frame (metres), from coordinate columns; 0 (with zero gradient) where equal."""
+    sq = sum((a - r) * (a - r) for a, r in zip(aligned_cols, ref_cols, strict=True))
+    return _safe_sqrt(sq)
 
 
+_BITS_OF_FLOAT = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}
+
+
+def _masked_median(
+    err: Float[Array, " T"], mask: Bool[Array, " T"], count: Int[Array, ""]
+) -> Float[Array, ""]:
+    """numpy.median of err[mask] for err >= 0, without sorting (XLA's sort is the slowest step on CPU).
+
+    The lower middle value (rank (count - 1) // 2) is found by bisection on the floats' bit patterns, which
+    order non-negative floats exactly like their values: one count per bit, exact, static trip count. The
+    upper middle value (rank count // 2) is either the same value or the next larger masked one. Both are
+    then read back from `err` where it equals them, so the gradient reaches the middle element(s) as it
+    would through a sort (tied elements share it).
+    """
+    int_type = _BITS_OF_FLOAT[err.dtype.itemsize]
+    frozen = jax.lax.stop_gradient(err)
+    candidates = jnp.where(mask, frozen, jnp.inf)  # unmasked frames never count as "at or below"
+    bits = jax.lax.bitcast_convert_type(frozen, int_type)
+    rank_lo = jnp.maximum((count - 1) // 2, 0)
+
+    def halve(_, bounds):
+        lo, hi = bounds
+        mid = lo + (hi - lo) // 2
+        at_or_below = jnp.sum(candidates <= jax.lax.bitcast_convert_type(mid, err.dtype), dtype=jnp.float32)
+        enough = at_or_below > rank_lo  # counts up to 2^24 frames are exact in float32
+        return jnp.where(enough, lo, mid + 1), jnp.where(enough, mid, hi)
+
+    start = (jnp.zeros((), int_type), jnp.max(jnp.where(mask, bits, 0)))
+    _, lower_bits = jax.lax.fori_loop(0, 8 * err.dtype.itemsize, halve, start)
+    lower = jax.lax.bitcast_convert_type(lower_bits, err.dtype)
+    upper_is_same = jnp.sum(candidates <= lower, dtype=jnp.int32) > count // 2
+    upper = jnp.where(upper_is_same, lower, jnp.min(jnp.where(candidates > lower, candidates, jnp.inf)))
+
+    def pick(value):
+        # The masked element(s) equal to `value`, as a differentiable average (ties share the gradient).
+        hit = candidates == value
+        return jnp.sum(jnp.where(hit, err, 0.0)) / jnp.maximum(jnp.sum(hit, dtype=err.dtype), 1.0)
+
+    return jnp.where(count > 0, 0.5 * (pick(lower) + pick(upper)), 0.0)
+
+
+def _error_statistics(err: Float[Array, " T"], mask: Bool[Array, " T"]) -> ErrorStats:
+    """evo's APE statistics of the per-frame errors (metres, >= 0) over the masked frames."""
+    dtype = err.dtype
+    err = jnp.where(mask, err, 0.0)
+    count = jnp.sum(mask, dtype=jnp.int32)
+    n = count.astype(dtype)
+    any_frame = count > 0
+    sse = jnp.sum(err * err)
+    mean = _safe_divide(jnp.sum(err), n)
+    dev = jnp.where(mask, err - mean, 0.0)
+    std = _safe_sqrt(_safe_divide(jnp.sum(dev * dev), n))  # two-pass, like numpy.std
+    rmse = _safe_sqrt(_safe_divide(sse, n))
+    median = _masked_median(err, mask, count)
+    minimum = jnp.where(any_frame, jnp.min(jnp.where(mask, err, jnp.inf)), 0.0)
+    maximum = jnp.where(any_frame, jnp.max(jnp.where(mask, err, -jnp.inf)), 0.0)
+    return ErrorStats(
+        rmse=rmse, mean=mean, median=median, std=std, min=minimum, max=maximum, sse=sse, count=count
+    )
+
+
+@jax.jit
 def ape_statistics(
     aligned_p: Float[Array, "T 3"], ref_p: Float[Array, "T 3"], mask: Bool[Array, " T"]
 ) -> ErrorStats:
@@ -369,36 +457,15 @@ def ape_statistics(
     _check_points("ref_p", ref_p, n_frames)
     _check_mask("mask", mask, n_frames)
     dtype = _float_dtype(aligned_p, ref_p)
-    mask = mask.astype(bool)
-
-    err = jnp.where(mask, _position_errors(aligned_p.astype(dtype), ref_p.astype(dtype)), 0.0)
-    count = jnp.sum(mask, dtype=jnp.int32)
-    n = count.astype(dtype)
-    any_frame = count > 0
-    sse = jnp.sum(err * err)
-    mean = _safe_divide(jnp.sum(err), n)
-    dev = jnp.where(mask, err - mean, 0.0)
-    std = _safe_sqrt(_safe_divide(jnp.sum(dev * dev), n))  # two-pass, like numpy.std
-    rmse = _safe_sqrt(_safe_divide(sse, n))
-
-    # Median inside jit with a static shape: unmasked entries sort to the end.
-    ordered = jnp.sort(jnp.where(mask, err, jnp.inf))
-    lo = jnp.maximum((count - 1) // 2, 0)
-    hi = jnp.maximum(count // 2, 0)
-    middle = jnp.where(any_frame, ordered[jnp.stack([lo, hi])], 0.0)
-    median = 0.5 * (middle[0] + middle[1])
-
-    minimum = jnp.where(any_frame, jnp.min(jnp.where(mask, err, jnp.inf)), 0.0)
-    maximum = jnp.where(any_frame, jnp.max(jnp.where(mask, err, -jnp.inf)), 0.0)
-    return ErrorStats(
-        rmse=rmse, mean=mean, median=median, std=std, min=minimum, max=maximum, sse=sse, count=count
-    )
+    err = _position_errors(_columns(aligned_p.astype(dtype)), _columns(ref_p.astype(dtype)))
+    return _error_statistics(err, mask.astype(bool))
 
 
 # ----------------------------------------------------------------------------------------------------------
 # One replayed run.
 
 
+@functools.partial(jax.jit, static_argnames=("align", "n_first", "segments", "max_segments"))
 def run_error(
     est_p: Float[Array, "T 3"],
     est_q: Float[Array, "T 4"] | None,
@@ -499,8 +566,7 @@ def run_error(
         # Each frame's segment among the k (0 where none: such frames are not evaluated).
         which = jnp.argmax(masks, axis=0)
         per_frame = jax.tree_util.tree_map(lambda leaf: leaf[which], transforms)
-        aligned_p = per_frame.scale[:, None] * jnp.einsum("tij,tj->ti", per_frame.rotation, est_p)
-        aligned_p = aligned_p + per_frame.translation
+        aligned_cols = _apply_columns(per_frame, _columns(est_p))
         chosen = jnp.array(-1, jnp.int32)
         degenerate = jnp.zeros((), bool)
     else:
@@ -510,11 +576,11 @@ def run_error(
             chosen = segment[jnp.argmax(evaluable)]
         selected = evaluable & (segment == chosen)
         transform = _fit(est_p, ref_p, selected.astype(dtype), align, est_q, ref_q, n_first)
-        aligned_p = transform.apply(est_p)
+        aligned_cols = _apply_columns(transform, _columns(est_p))
         degenerate = transform.degenerate
         evaluated = selected & ~degenerate
 
-    stats = ape_statistics(aligned_p, ref_p, evaluated)
+    stats = _error_statistics(_position_errors(aligned_cols, _columns(ref_p)), evaluated)
     coverage = _safe_divide(stats.count.astype(dtype), jnp.sum(with_gt).astype(dtype))
     failed = (n_segments > 1) | (coverage < min_coverage) | (stats.count < MIN_ALIGNMENT_FRAMES) | degenerate
     return RunError(stats=stats, coverage=coverage, n_segments=n_segments, failed=failed, segment=chosen)
