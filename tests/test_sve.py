@@ -1,0 +1,291 @@
+"""jsve.sve: S_a, S_b, S_c, the power mean and the combination family (DESIGN section 3).
+
+Expected values are worked out by hand from the authors' definitions; tolerances are float64
+rounding of a handful of operations unless stated.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jsve.sve import (
+    EQ1,
+    OPTION1,
+    OPTION2,
+    Combination,
+    frame_features,
+    inlier_ratio,
+    power_mean,
+    s_a,
+    s_a_from_ratio,
+    s_a_original,
+    s_b,
+    s_c,
+    sve_table,
+)
+
+EXACT = 1e-15  # a few roundings of values in [0, 1]
+
+
+# ------------------------------------------------------------------------------------------------
+# S_b
+
+
+def test_s_b_uniform_bins_is_one(x64):
+    for per_bin in (1, 3, 15):
+        bins = np.full(64, per_bin)
+        n = 64 * per_bin
+        assert float(s_b(bins, n)) == 1.0
+        assert float(s_b(bins, n, clamp=False)) == 1.0
+
+
+def test_s_b_worst_case_is_zero_and_worse_is_negative_unclamped(x64):
+    # All points spread evenly over 8 of the 64 bins (f = 1/8): chi2 = chi2_w = 7 N, S_b = 0.
+    rng = np.random.default_rng(0)
+    for n_per in (1, 10, 125):
+        bins = np.zeros(64)
+        bins[rng.choice(64, 8, replace=False)] = n_per
+        n = 8 * n_per
+        np.testing.assert_allclose(float(s_b(bins, n, clamp=False)), 0.0, atol=EXACT)
+        np.testing.assert_allclose(float(s_b(bins, n)), 0.0, atol=EXACT)
+    # All points in one bin: sum (n_i - E)^2 = N^2 (63/64)^2 + 63 (N/64)^2 = 63 N^2 / 64, so
+    # chi2 = 63 N and S_b = 1 - 63 N / 7 N = -8 unclamped (Haggart's version), 0 clamped.
+    bins = np.zeros(64)
+    bins[17] = 640
+    np.testing.assert_allclose(float(s_b(bins, 640, clamp=False)), -8.0, atol=1e-13)
+    assert float(s_b(bins, 640)) == 0.0
+    # Half of the bins: chi2 = N, S_b = 1 - 1/7.
+    bins = np.tile([2.0, 0.0], 32)
+    np.testing.assert_allclose(float(s_b(bins, 64)), 6 / 7, atol=EXACT)
+
+
+def test_s_b_counts_keypoints_outside_the_grid_in_n(x64):
+    # One keypoint per bin but N = 128 (half outside the grid): E = 2, chi2 = 64 * 1 / 2 = 32,
+    # chi2_w = 7 * 128 = 896, S_b = 1 - 32 / 896 (the authors divide by all extracted keypoints).
+    np.testing.assert_allclose(float(s_b(np.ones(64), 128)), 1 - 32 / 896, atol=EXACT)
+
+
+def test_s_b_without_features_is_zero_not_nan(x64):
+    assert float(s_b(np.zeros(64), 0)) == 0.0
+    assert float(s_b(np.zeros(64), 0, clamp=False)) == 0.0
+    g = jax.grad(lambda b: s_b(b, jnp.sum(b)))(jnp.zeros(64))
+    assert np.isfinite(np.asarray(g)).all()
+
+
+# ------------------------------------------------------------------------------------------------
+# S_a, S_c
+
+
+def test_s_a(x64):
+    assert float(s_a(100, 1000)) == pytest.approx(0.4, abs=EXACT)  # rho = 0.25 by default
+    assert float(s_a(100, 1000, rho=0.5)) == pytest.approx(0.2, abs=EXACT)
+    assert float(s_a(300, 1000)) == 1.0  # 1.2 clamped
+    assert float(s_a(0, 1000)) == 0.0
+    assert float(s_a(0, 0)) == 0.0 and float(s_a(5, 0)) == 0.0  # no features: 0, not NaN
+    assert float(inlier_ratio(250, 1000)) == 0.25 and float(inlier_ratio(3, 0)) == 0.0
+    assert float(s_a_from_ratio(0.1, 0.25)) == pytest.approx(0.4, abs=EXACT)
+
+
+def test_s_a_original(x64):
+    assert float(s_a_original(379, 1000)) == pytest.approx(0.379, abs=EXACT)
+    assert float(s_a_original(1200, 1000)) == pytest.approx(1.2, abs=EXACT)  # unclamped, as Haggart's
+    assert float(s_a_original(10, 0)) == 0.0
+
+
+def test_s_c(x64):
+    assert float(s_c(50, 200)) == 0.25
+    assert float(s_c(300, 200)) == 1.0
+    assert float(s_c(300, 200, clamp=False)) == 1.5  # Haggart's unclamped version exceeds 1
+    assert float(s_c(10, 0)) == 0.0 and float(s_c(10, 0, clamp=False)) == 0.0
+    assert float(s_c(0, 0)) == 0.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Power mean and combinations
+
+X = np.array([0.3, 0.8, 0.55])
+W = np.array([0.2, 0.5, 0.3])
+
+
+def test_power_mean_special_cases(x64):
+    np.testing.assert_allclose(float(power_mean(X, W, 1.0)), np.sum(W * X), atol=EXACT)
+    np.testing.assert_allclose(float(power_mean(X, W, -1.0)), 1 / np.sum(W / X), atol=EXACT)
+    np.testing.assert_allclose(float(power_mean(X, W, 2.0)), np.sqrt(np.sum(W * X**2)), atol=EXACT)
+    np.testing.assert_allclose(float(power_mean(X, W, 0.0)), np.exp(np.sum(W * np.log(X))), atol=EXACT)
+
+
+def test_power_mean_is_continuous_at_p_zero(x64):
+    """M_p -> the geometric mean G as p -> 0, with slope G Var_w(log x) / 2 (cumulant expansion),
+    from inside and outside the |p| < 1e-6 band where the expansion is used."""
+    log = np.log(X)
+    g = np.exp(np.sum(W * log))
+    slope = g * 0.5 * (np.sum(W * log**2) - np.sum(W * log) ** 2)
+    for p in (-1e-3, -1e-5, -1e-7, 1e-7, 1e-5, 1e-3):
+        exact = np.sum(W * X**p) ** (1 / p)
+        # the float64 power formula itself loses ~eps / |p| relative: compare to the expansion,
+        # whose error is O(p^2) ~ 1e-6 * 1e-2 at |p| = 1e-3
+        np.testing.assert_allclose(float(power_mean(X, W, p)), g + slope * p, rtol=0, atol=1e-7)
+        if abs(p) >= 1e-5:
+            np.testing.assert_allclose(float(power_mean(X, W, p)), exact, rtol=1e-9)
+    # and the derivative in p at 0 is that slope (it used to be 0: the geometric branch ignored p)
+    np.testing.assert_allclose(float(jax.grad(lambda p: power_mean(X, W, p))(0.0)), slope, rtol=1e-12)
+
+
+def test_power_mean_with_zero_entries(x64):
+    x = np.array([0.0, 0.5])
+    w = np.array([0.5, 0.5])
+    assert float(power_mean(x, w, 1.0)) == 0.25
+    np.testing.assert_allclose(float(power_mean(x, w, 0.5)), (0.5 * np.sqrt(0.5)) ** 2, atol=EXACT)
+    for p in (0.0, -1.0, -1e-7, 5e-7):  # a zero with positive weight: 0 for p <= 0 and p -> 0+
+        assert float(power_mean(x, w, p)) == 0.0, p
+    # a zero entry with zero weight does not count
+    np.testing.assert_allclose(float(power_mean(x, np.array([0.0, 1.0]), 0.0)), 0.5, atol=EXACT)
+    assert float(power_mean(np.zeros(2), w, 1.0)) == 0.0
+    # gradients stay finite at zero entries and p = 0
+    for p in (0.0, 1.0, -1.0, 0.5):
+        gx, gp = jax.grad(lambda x, p: power_mean(x, w, p), argnums=(0, 1))(jnp.asarray(x), p)
+        assert np.isfinite(np.asarray(gx)).all() and np.isfinite(float(gp)), p
+
+
+def _abc(n=200, seed=0):
+    """Random (inlier ratio, S_b, S_c) with exact zeros, exact ones and clamped S_a."""
+    rng = np.random.default_rng(seed)
+    ratio, sb, sc = rng.uniform(0, 0.7, n), rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+    ratio[:5], sb[5:10], sc[10:15], sb[15:20] = 0.0, 0.0, 0.0, 1.0
+    return ratio, sb, sc
+
+
+@pytest.mark.parametrize(
+    "params, by_hand",
+    [
+        (EQ1, lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c),
+        (OPTION1, lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c),
+        (OPTION2, lambda a, b, c: np.sqrt(a * (0.5 * b + 0.5 * c))),
+    ],
+)
+def test_combination_presets_equal_the_formulas(x64, params, by_hand):
+    ratio, sb, sc = _abc()
+    a = np.clip(ratio / params["rho"], 0, 1)
+    got = np.asarray(Combination(**params)(jnp.asarray(ratio), jnp.asarray(sb), jnp.asarray(sc)))
+    np.testing.assert_allclose(got, by_hand(a, sb, sc), rtol=0, atol=1e-12)  # exp/log route for Option 2
+
+
+def test_combination_with_p_equal_q_is_the_flat_power_mean(x64):
+    ratio, sb, sc = _abc()
+    w, u, p = 0.3, 0.6, 2.5
+    a = np.clip(ratio / 0.4, 0, 1)
+    flat = (w * a**p + (1 - w) * u * sb**p + (1 - w) * (1 - u) * sc**p) ** (1 / p)
+    got = Combination(w_a=w, u_b=u, p=p, q=p, rho=0.4)(jnp.asarray(ratio), jnp.asarray(sb), jnp.asarray(sc))
+    np.testing.assert_allclose(np.asarray(got), flat, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# eager = jit = vmap; gradients
+
+
+def _metrics(ext, inl, fru, bins, combo):
+    f = frame_features(ext, inl, fru, bins)
+    return jnp.stack([s_a(inl, ext), s_b(bins, ext), s_c(inl, fru), combo(f.inlier_ratio, f.s_b, f.s_c)])
+
+
+def test_eager_jit_vmap_agree(x64):
+    """Per frame eagerly, jitted, and vmapped over frames: equal to 1e-15 (XLA may fuse exp/log
+    differently under jit: a few ulp, as measured)."""
+    rng = np.random.default_rng(3)
+    ext = rng.integers(0, 1000, 40).astype(float)
+    ext[:3] = 0
+    inl = np.floor(ext * rng.uniform(0, 0.6, 40))
+    fru = rng.integers(0, 400, 40).astype(float)
+    bins = np.stack([rng.multinomial(int(n), rng.dirichlet(np.ones(64))) for n in ext]).astype(float)
+    combo = Combination(**OPTION2)
+    batched = np.asarray(jax.vmap(lambda *a: _metrics(*a, combo))(ext, inl, fru, bins))
+    jitted = jax.jit(lambda *a: _metrics(*a, combo))
+    for i in range(40):
+        eager = np.asarray(_metrics(ext[i], inl[i], fru[i], bins[i], combo))
+        np.testing.assert_allclose(
+            np.asarray(jitted(ext[i], inl[i], fru[i], bins[i])), eager, rtol=0, atol=EXACT
+        )
+        np.testing.assert_allclose(batched[i], eager, rtol=0, atol=EXACT)
+    whole = np.asarray(_metrics(ext, inl, fru, bins, combo))  # elementwise over leading axes
+    np.testing.assert_allclose(whole.T, batched, rtol=0, atol=EXACT)
+
+
+def _central(f, x, h):
+    return (f(x + h) - f(x - h)) / (2 * h)
+
+
+def test_metric_gradients_match_finite_differences(x64):
+    """Interior points (no clamp active): S_a and S_c against their analytic slopes, S_b (quadratic
+    in the bins, so a central difference is exact up to rounding, ~eps / h = 1e-12) against
+    central differences with h = 1e-4. Tolerance 1e-7 relative."""
+    tol = dict(rtol=1e-7, atol=1e-10)
+    d = jax.grad(lambda n: s_a(n, 1000.0))(100.0)
+    np.testing.assert_allclose(float(d), 1 / 250, **tol)
+    d = jax.grad(lambda n: s_c(n, 400.0))(100.0)
+    np.testing.assert_allclose(float(d), 1 / 400, **tol)
+    rng = np.random.default_rng(4)
+    bins = jnp.asarray(rng.multinomial(900, rng.dirichlet(np.ones(64))).astype(float))
+    g = jax.grad(lambda b: s_b(b, 1000.0))(bins)
+    for k in (0, 17, 63):
+        e = jnp.zeros(64).at[k].set(1.0)
+        fd = _central(lambda h, e=e: s_b(bins + h * e, 1000.0), 0.0, 1e-4)
+        np.testing.assert_allclose(float(g[k]), float(fd), **tol)
+
+
+@pytest.mark.parametrize("params", [EQ1, OPTION1, OPTION2, dict(w_a=0.35, u_b=0.7, p=-0.6, q=1.7, rho=0.3)])
+def test_combination_gradients_match_finite_differences(x64, params):
+    """d score / d (inputs and parameters) at an interior point, including p = 0 (Option 2),
+    against central differences with h = 1e-4. The differences converge to the gradient as h^2
+    (measured: at most 6e-7 relative, on the inlier ratio, where sqrt(S_a ...) curves most);
+    a smaller h is worse at p = 0, where the power formula just outside the |p| < 1e-6 expansion
+    band carries ~eps / h relative error. Tolerance 2e-6 relative: a wrong term is O(1)."""
+    ratio, sb, sc = 0.06, 0.45, 0.7  # S_a = ratio / rho < 1: no clamp active
+
+    def score(v):
+        c = Combination(w_a=v[3], u_b=v[4], p=v[5], q=v[6], rho=v[7])
+        return c(v[0], v[1], v[2])
+
+    v = jnp.asarray([ratio, sb, sc, params["w_a"], params["u_b"], params["p"], params["q"], params["rho"]])
+    g = np.asarray(jax.grad(score)(v))
+    for j in range(8):
+        e = jnp.zeros(8).at[j].set(1.0)
+        fd = float(_central(lambda h, e=e: score(v + h * e), 0.0, 1e-4))
+        np.testing.assert_allclose(g[j], fd, rtol=2e-6, atol=1e-10, err_msg=f"argument {j}")
+    assert np.all(g[:3] > 0)  # more visibility, higher score
+
+
+def test_gradients_finite_at_zero_features(x64):
+    for params in (EQ1, OPTION1, OPTION2):
+        combo = Combination(**params)
+        g = jax.grad(lambda x, combo=combo: combo(x[0], x[1], x[2]))(jnp.zeros(3))
+        assert np.isfinite(np.asarray(g)).all()
+        gp = jax.grad(lambda c: c(0.0, 0.0, 0.0))(combo)
+        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(gp))
+    # and through the counts, with nothing extracted and an empty frustum
+    g = jax.grad(lambda n: jnp.sum(_metrics(n[0], n[1], n[2], jnp.zeros(64), Combination(**OPTION2))))(
+        jnp.zeros(3)
+    )
+    assert np.isfinite(np.asarray(g)).all()
+
+
+def test_sve_table_columns(x64):
+    rng = np.random.default_rng(5)
+    ext = np.array([1000, 0, 379])
+    inl = np.array([100, 0, 300])
+    fru = np.array([200, 0, 100])
+    bins = np.stack([rng.multinomial(int(n), np.full(64, 1 / 64)) for n in ext])
+    table = sve_table(ext, inl, fru, bins)
+    np.testing.assert_allclose(np.asarray(table["s_a_original"]), [1.0, 0.0, 0.379], atol=EXACT)
+    np.testing.assert_allclose(np.asarray(table["s_a_rho025"]), [0.4, 0.0, 1.0], atol=EXACT)
+    np.testing.assert_allclose(np.asarray(table["s_c_unclamped"]), [0.5, 0.0, 3.0], atol=EXACT)
+    np.testing.assert_allclose(np.asarray(table["s_c"]), [0.5, 0.0, 1.0], atol=EXACT)
+    assert np.all(np.asarray(table["s_b_unclamped"]) <= np.asarray(table["s_b"]) + EXACT)
+    f = frame_features(ext, inl, fru, bins)
+    np.testing.assert_allclose(
+        np.asarray(table["sve_option2"]),
+        np.asarray(Combination(**OPTION2)(f.inlier_ratio, f.s_b, f.s_c)),
+        atol=0,
+    )
