@@ -5,6 +5,7 @@ This file re-exports the public API; a user learns the whole surface from it.
     logs -> LogBatch -> SVE features -> rule + ORB-SLAM3 state machine -> replay -> trajectory error
 """
 
+from . import batch as batch
 from . import schema as schema
 from .aggregate import aggregate as aggregate
 from .aggregate import bootstrap_ci as bootstrap_ci
