@@ -208,20 +208,22 @@ def _expected(cases):
 
 
 def _check_against_oracle(next_state, decision, cases, expected):
-    ok, rl, lost = (np.asarray(x) for x in (next_state.ok, next_state.recently_lost, next_state.lost))
+    s = {
+        k: np.asarray(getattr(next_state, k)).tolist()
+        for k in ("ok", "recently_lost", "lost", "segment", "map_start_t", "map_start_k", "t_lost")
+    }
+    d = {k: np.asarray(getattr(decision, k)).tolist() for k in ("accepted", "predicted", "new_map")}
     bad = []
     for i, (case, (nxt, visual, predicted)) in enumerate(zip(cases, expected, strict=True)):
-        got_mode = [ok[i], rl[i], lost[i]]
+        got = ([s["ok"][i], s["recently_lost"][i], s["lost"][i]], d["accepted"][i], d["predicted"][i],
+               s["segment"][i], s["map_start_t"][i], s["map_start_k"][i], d["new_map"][i])  # fmt: skip
         want_mode = [float(nxt.mode == m) for m in (oracle.OK, oracle.RECENTLY_LOST, oracle.LOST)]
-        got = (got_mode, float(decision.accepted[i]), float(decision.predicted[i]),
-               float(next_state.segment[i]), float(next_state.map_start_t[i]),
-               float(next_state.map_start_k[i]))  # fmt: skip
         want = (want_mode, float(visual), float(predicted), float(nxt.segment), float(nxt.map_start_t),
-                float(nxt.map_start_k))  # fmt: skip
-        if got != want or float(decision.new_map[i]) != float(nxt.segment != case[1].segment):
+                float(nxt.map_start_k), float(nxt.segment != case[1].segment))  # fmt: skip
+        if got != want:
             bad.append(f"case {case}: got {got}, oracle {want}")
-        elif nxt.mode == oracle.RECENTLY_LOST and float(next_state.t_lost[i]) != nxt.t_lost:
-            bad.append(f"case {case}: t_lost {float(next_state.t_lost[i])}, oracle {nxt.t_lost}")
+        elif nxt.mode == oracle.RECENTLY_LOST and s["t_lost"][i] != nxt.t_lost:
+            bad.append(f"case {case}: t_lost {s['t_lost'][i]}, oracle {nxt.t_lost}")
     return bad
 
 
