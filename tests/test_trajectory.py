@@ -443,7 +443,9 @@ def test_run_error_direct_vmap(method, segments):
         kw["max_segments"] = 2
     runs = [run_error(*(None if a is None else a[i] for a in args), **kw) for i in range(3)]
     stacked = _stack(runs)
-    tree_allclose(batched_run_error(*args, **kw), stacked)
+    # One vmapped block, or (origin-all) blocks of 2 runs one after another with a remainder block of 1.
+    block = dict(runs_per_block=2) if segments == "all" else {}
+    tree_allclose(batched_run_error(*args, **kw, **block), stacked)
     assert list(np.asarray(stacked.failed)) == [False, True, True]  # runs 1 and 2 have several segments
     assert list(np.asarray(stacked.n_segments)) == [1, 2, 3]
     # "all" with max_segments=2 aligns run 2's two largest segments (40 + 20 frames); "largest" the 40.
