@@ -22,6 +22,9 @@ from .evaluate import evaluate_batch as evaluate_batch
 from .importers import read_haggart_sve as read_haggart_sve
 from .importers import read_seed_sve_csv as read_seed_sve_csv
 from .importers import read_sve_output as read_sve_output
+from .keypoints import KeypointLog as KeypointLog
+from .keypoints import read_keypoints as read_keypoints
+from .keypoints import write_keypoints as write_keypoints
 from .logs import GroundTruth as GroundTruth
 from .logs import LogFormatError as LogFormatError
 from .logs import LogIncompleteError as LogIncompleteError
@@ -34,6 +37,11 @@ from .logs import read_parquet as read_parquet
 from .logs import validate_run as validate_run
 from .logs import write_log as write_log
 from .logs import write_quarantine_report as write_quarantine_report
+from .masks import MotsMasks as MotsMasks
+from .masks import PngMasks as PngMasks
+from .masks import apply_masks as apply_masks
+from .masks import dynamic_keypoints as dynamic_keypoints
+from .masks import masked_log as masked_log
 from .replay import ReplayResult as ReplayResult
 from .replay import batch_features as batch_features
 from .replay import imu_predict as imu_predict
@@ -58,6 +66,7 @@ from .sve import s_a_original as s_a_original
 from .sve import s_b as s_b
 from .sve import s_c as s_c
 from .sve import sve_table as sve_table
+from .tablei import table_one as table_one
 from .trajectory import ErrorStats as ErrorStats
 from .trajectory import RunError as RunError
 from .trajectory import Transform as Transform
