@@ -51,7 +51,8 @@ class ReplayResult(eqx.Module):
 
     Attributes:
         position, quaternion, velocity: the estimate (m, wxyz, m/s; world frame of its segment).
-            Meaningful where has_estimate; elsewhere they hold the last state.
+            Meaningful where has_estimate; on frames without one (LOST) they hold the IMU
+            prediction carried forward, which no error statistic uses.
         accepted: the visual estimate was used. predicted: the IMU prediction was used.
         has_estimate: accepted or predicted, and the frame exists.
         mode: MODE_OK / MODE_RECENTLY_LOST / MODE_LOST after the frame (int8; -1 on padding; the

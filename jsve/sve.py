@@ -98,10 +98,11 @@ def power_mean(x: Float[Array, "... k"], w: Float[Array, "k"], p: ArrayLike) -> 
     mean_log = jnp.sum(w * logs, axis=-1)
     var_log = jnp.sum(w * (logs - mean_log[..., None]) ** 2, axis=-1)
     geometric = jnp.exp(mean_log + 0.5 * p * var_log)
-    terms = jnp.where(positive, jnp.exp(p_safe * logs), 0.0)
-    inner = jnp.sum(w * terms, axis=-1)
-    inner_ok = inner > 0
-    powered = jnp.where(inner_ok, jnp.exp(jnp.log(jnp.where(inner_ok, inner, 1.0)) / p_safe), 0.0)
+    # sum_i w_i x_i^p - 1 = sum_i w_i expm1(p log x_i) (weights sum to 1; x_i = 0 contributes -w_i):
+    # expm1/log1p keep float32 accurate for small |p|, where inner**(1/p) cancels catastrophically.
+    excess = jnp.sum(w * jnp.where(positive, jnp.expm1(p_safe * logs), -1.0), axis=-1)
+    inner_ok = excess > -1
+    powered = jnp.where(inner_ok, jnp.exp(jnp.log1p(jnp.where(inner_ok, excess, 0.0)) / p_safe), 0.0)
     value = jnp.where(near_zero_p, geometric, powered)
     # A zero entry with p <= 0 gives 0 (x^p -> inf in the sum); for 0 < p < 1e-6 the mean is
     # (sum of the other weights)^(1/p) -> 0 as well, which the expansion above does not know.
