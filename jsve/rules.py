@@ -232,30 +232,38 @@ def machine_step(
     to_recently_lost = entering + staying
     to_lost = ok_fail * (1 - imu_ok) + state.recently_lost * expired + state.lost * (1 - lost_pass)
     new_map = state.lost * lost_pass
+    tracking = accepted + to_recently_lost
 
     next_state = MachineState(
         ok=accepted,
         recently_lost=to_recently_lost,
         lost=to_lost,
-        t_lost=_recently_lost_timer(entering, staying, ok_fail, t, state.t_lost),
-        map_start_t=new_map * t + (1 - new_map) * state.map_start_t,
-        map_start_k=new_map * k + (1 - new_map) * state.map_start_k,
+        t_lost=_mass_mean(entering, staying, t, state.t_lost, ok_fail * t + (1 - ok_fail) * state.t_lost),
+        # The map start belongs to the tracking (OK + RECENTLY_LOST) mass: the mass starting a new map
+        # now, and the rest of the tracking mass, which keeps its own.
+        map_start_t=_mass_mean(new_map, tracking - new_map, t, state.map_start_t,
+                               new_map * t + (1 - new_map) * state.map_start_t),
+        map_start_k=_mass_mean(new_map, tracking - new_map, k, state.map_start_k,
+                               new_map * k + (1 - new_map) * state.map_start_k),
         segment=state.segment + new_map,
     )
     return next_state, FrameDecision(accepted=accepted, predicted=to_recently_lost, new_map=new_map)
 
 
-def _recently_lost_timer(entering, staying, ok_fail, t, t_lost):
-    """Timer of the RECENTLY_LOST mass after a step: the mass-weighted mean of its entry times.
+def _mass_mean(entering, staying, now, old, hard_update):
+    """A per-mass clock after a step: the mass-weighted mean of `now` (for the `entering` mass) and of
+    `old` (the clock the `staying` mass already had).
 
-    `entering` mass starts its timer now (t); `staying` mass keeps its own (t_lost). With exact flags
-    this is t on entry and t_lost while staying, bit for bit (1 * t / 1, 0 * t + 1 * t_lost); when no
-    mass is in RECENTLY_LOST the timer is irrelevant and follows the hard machine's own update. Blending
-    the timer with the OK mass's instead (0.3 x 10 s + 0.7 x 0 s) would make recently lost mass expire
-    at once (tests/test_replay.py). The timer feeds only the exact expiry comparison, so it carries no
-    gradient (stopped, which also keeps 1 / mass out of the backward pass).
+    The relaxed machine holds probabilities, and the RECENTLY_LOST timer and the map start belong to
+    parts of that mass, not to all of it: blending them with the clocks of the other modes (a LOST
+    mass's stale map start, an OK mass's stale timer) would make recently lost mass expire at once or
+    a new map look old (tests/test_replay.py). With exact flags this is `now` on entry and `old` while
+    staying, bit for bit (1 * now / 1, 0 * now + 1 * old); when no mass holds the clock it is
+    irrelevant and follows the hard machine's own update `hard_update`. The clocks feed only exact
+    comparisons (expiry, relocalisation window, IMU age), so they carry no gradient (stopped, which
+    also keeps 1 / mass out of the backward pass).
     """
     mass = entering + staying
     some = mass > 0
-    mean = (entering * t + staying * t_lost) / jnp.where(some, mass, 1.0)
-    return jax.lax.stop_gradient(jnp.where(some, mean, ok_fail * t + (1 - ok_fail) * t_lost))
+    mean = (entering * now + staying * old) / jnp.where(some, mass, 1.0)
+    return jax.lax.stop_gradient(jnp.where(some, mean, hard_update))

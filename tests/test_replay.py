@@ -706,16 +706,14 @@ def test_relaxed_timer_belongs_to_the_recently_lost_mass(x64):
     np.testing.assert_allclose(float(state.ok), 1.0, atol=1e-6)
 
 
-@pytest.mark.xfail(
-    strict=True, reason="relaxed map_start_t/k are blended with the LOST mass's stale map start"
-)
 def test_relaxed_map_start_belongs_to_the_new_map_mass(x64):
     """All mass LOST at t = 10 s (frame 200) of a run whose first map started at 0; the frame passes
     the strict test with probability 0.3, so 30 % of the mass starts a new map there. On the next
     frame that mass is inside its map's relocalisation window (needs 50) and its IMU is not usable
-    yet (imu_init_delay 2 s): 30 inliers must fail it. machine_step blends the map start as
-    0.3 * 10 + 0.7 * 0 = 3 s (frame 60), with the LOST mass's stale start, so the new map looks
-    7 s old: the window is over, the IMU usable, and 30 inliers pass (ok = 0.3 instead of ~0)."""
+    yet (imu_init_delay 2 s): 30 inliers must fail it. Blending the map start with the LOST mass's
+    stale start (0.3 * 10 + 0.7 * 0 = 3 s, frame 60) would make the new map look 7 s old: the window
+    over, the IMU usable, and 30 inliers passing (ok = 0.3 instead of ~0). machine_step carries the
+    map start of the tracking (OK + RECENTLY_LOST) mass."""
     th = Thresholds(**ORBSLAM3_TH)
     logic = SoftLogic(jnp.asarray(1.0))
     one, zero = jnp.asarray(1.0), jnp.asarray(0.0)
