@@ -1,13 +1,16 @@
-"""Tracking logs, format v1: write, read and validate, batch-read, ground truth, Parquet.
+"""Tracking logs, format v1: write, read and validate one log.
 
 The I/O edge of jsve (docs/log-format.md describes the format for people; jsve.schema is the one
 home of its names). Everything downstream receives `RunLog`s whose frames have been validated here:
 
     write_log(run, path)                 one run -> one CSV log, atomically (`<path>.partial`, then rename)
     read_log(path)                       one CSV log -> RunLog, strict; any defect raises LogFormatError
-    read_logs(source)                    many logs, in parallel, sorted, raise or quarantine
-    associate_ground_truth(run, file)    gt_* columns from an EuRoC / TUM / KITTI trajectory
-    ingest(source, out)                  many logs -> one Parquet file;  read_parquet(out) -> RunLogs
+    parse_log(data), validate_run(run)   the same rules on bytes, and on an in-memory run
+
+Two modules build on this one: jsve.groundtruth (`associate_ground_truth`, `GroundTruth`: gt_* columns
+from an EuRoC / TUM / KITTI trajectory) and jsve.ingest (`read_logs`: many logs in parallel, raise or
+quarantine; `ingest` / `read_parquet`: one Parquet file). Their public names can also be imported from
+here, as before they had homes of their own.
 
 Errors name the file, the 1-based line, the column and the value as written in the file, e.g.
 `logs/r7.csv:1288: column 'imu_dt' = '-0.05': must be >= 0`.
@@ -19,70 +22,37 @@ never pass through float, and floats are parsed correctly rounded, so a log writ
 
 from __future__ import annotations
 
-import collections
-import concurrent.futures as cf
-import glob as globlib
+import importlib
 import json
-import logging
 import math
-import multiprocessing
 import os
 import re
-import sys
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
-from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
-from functools import lru_cache
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.csv as pacsv
-import pyarrow.parquet as pq
-from tqdm.auto import tqdm
 
 from . import schema
 from .schema import RunLog
 
-logger = logging.getLogger(__name__)
+if TYPE_CHECKING:
+    from .groundtruth import GroundTruthSpec
 
 PARTIAL_SUFFIX = ".partial"
 """A file whose name ends in this is a log (or Parquet file) that its writer has not finished."""
-
-GT_FORMATS = ("euroc", "tum", "kitti")
-"""Ground-truth file formats accepted by `associate_ground_truth`."""
-
-DEFAULT_MAX_GAP_NS = 200_000_000
-"""Default largest gap (ns) between two ground-truth samples that a frame may be interpolated across.
-
-0.2 s covers EuRoC's 200 Hz state estimate and ORB-SLAM3's 20 Hz left-camera files (50 ms) and KITTI's
-10 Hz poses (~104 ms), and leaves frames in genuine ground-truth dropouts without ground truth."""
 
 GT_METADATA = {"gt_missing_frames": int, "gt_source": str}
 """Metadata keys written by `associate_ground_truth`: frames left without ground truth (count) and
 the ground-truth file used."""
 
-QUARANTINE_COLUMNS = ("path", "line", "column", "reason", "message", "incomplete")
-"""Columns of the quarantine report (`ReadResult.report()`, `write_quarantine_report`)."""
-
-PARQUET_RUNS_KEY = b"jsve.runs"
-"""Parquet key-value metadata key: a JSON list of {run_id, source, meta, n_frames, has_ground_truth}."""
-
-PARQUET_FORMAT_KEY = b"jsve.format"
-
-_NOT_LOGS = tuple(s + p for s in (".quarantine.csv", ".keypoints.csv") for p in ("", PARTIAL_SUFFIX))
-"""CSV files a directory search skips: quarantine reports and keypoint side files (jsve.keypoints)."""
-
 _INT_SET = frozenset(schema.INT_COLUMNS)
 _GT_SET = frozenset(schema.GT_COLUMNS)
 _MAX_SHOWN = 80  # characters of a value shown in a message
-_ROW_GROUP_ROWS = 262_144  # Parquet row group target: ~70 runs of 3,600 frames, ~200 MB in memory
-_MIN_LOGS_PER_WORKER = 8  # below 16 logs in all, starting processes (~1 s) costs more than it saves
-_MAX_WORKER_WARNINGS = 20  # warnings from worker processes re-emitted per batch, then one summary line
-
-OnError = Literal["raise", "quarantine"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -627,6 +597,8 @@ def read_log(path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = 
         data = f.read()
     run = parse_log(data, source)
     if ground_truth is not None:
+        from .groundtruth import _apply_ground_truth  # jsve.groundtruth builds on this module
+
         run = _apply_ground_truth(run, ground_truth)
     return run
 
@@ -804,768 +776,43 @@ def _file_error(p: _Problem, region: bytes, columns: list[str], source: str) -> 
 
 
 # --------------------------------------------------------------------------------------------------
-# Ground truth
-
-
-@dataclass(frozen=True)
-class GroundTruth:
-    """A ground-truth trajectory file and how to associate it with logs (see `associate_ground_truth`).
-
-    Attributes:
-        path: the file.
-        fmt: "euroc" (CSV, int ns stamps, p, q wxyz), "tum" (s stamps, p, q xyzw) or "kitti" (3x4 poses).
-        kitti_times: KITTI times file (s, one per pose); None associates KITTI poses by frame index.
-        max_gap_ns: frames are only given ground truth between samples less than this apart (ns).
-        interpolate: linear in position and slerp in rotation; False takes the nearer sample.
-    """
-
-    path: str
-    fmt: str = "euroc"
-    kitti_times: str | None = None
-    max_gap_ns: int = DEFAULT_MAX_GAP_NS
-    interpolate: bool = True
-
-    def __post_init__(self):
-        object.__setattr__(self, "path", os.fspath(self.path))
-        if self.kitti_times is not None:
-            object.__setattr__(self, "kitti_times", os.fspath(self.kitti_times))
-        _check_gt_args(self.fmt, self.kitti_times, self.max_gap_ns)
-
-
-GroundTruthSpec = GroundTruth | str | os.PathLike | Mapping[str, GroundTruth | str | os.PathLike]
-"""What `read_log` / `read_logs` / `ingest` accept as `ground_truth`: one GroundTruth (or a path, read
-as EuRoC) for every log, or a mapping from metadata `sequence` to one."""
-
-
-def _check_gt_args(fmt, kitti_times, max_gap_ns) -> None:
-    if fmt not in GT_FORMATS:
-        raise ValueError(f"fmt must be one of {GT_FORMATS}, got {fmt!r}")
-    if kitti_times is not None and fmt != "kitti":
-        raise ValueError(f"kitti_times is only used with fmt='kitti', got fmt={fmt!r}")
-    if not max_gap_ns > 0:
-        raise ValueError(f"max_gap_ns must be positive (nanoseconds), got {max_gap_ns!r}")
-
-
-@dataclass(frozen=True)
-class _Trajectory:
-    stamps: np.ndarray | None  # int64 ns, strictly increasing; None for KITTI without times
-    p: np.ndarray  # [n, 3] metres
-    q: np.ndarray  # [n, 4] unit wxyz
-
-
-def _decimal_ns(text: str, exponent: int) -> int:
-    """Exact integer nanoseconds of a decimal string in units of 10^-exponent... i.e. value * 10^exponent."""
-    d = Decimal(text)
-    if not d.is_finite():
-        raise InvalidOperation
-    return int(d.scaleb(exponent).to_integral_value(rounding=ROUND_HALF_EVEN))
-
-
-def _read_stamps_ns(path: str, delimiter: str | None, exponent: int) -> np.ndarray:
-    """First field of every non-comment line as int64 ns (parsed from the text: evo's float seconds
-    lose ~200 ns at 1.4e9 s). Comment and skipping rules follow evo's csv_read_matrix."""
-    stamps = []
-    with open(path, encoding="utf-8-sig") as f:
-        for lineno, line in enumerate(f, start=1):
-            if line.startswith("#") or not line.strip():
-                continue
-            text = line.strip().split(delimiter)[0]
-            try:
-                stamps.append(_decimal_ns(text, exponent))
-            except (InvalidOperation, ValueError):
-                raise ValueError(f"{path}:{lineno}: timestamp '{_shorten(text)}' is not a number") from None
-    return np.asarray(stamps, dtype=np.int64)
-
-
-def _unit_quaternions(q: np.ndarray, path: str) -> np.ndarray:
-    norm = np.linalg.norm(q, axis=1)
-    bad = np.abs(norm - 1.0) > 1e-3
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise ValueError(f"{path}: pose {k} has a quaternion of norm {norm[k]:.6g}: not a rotation")
-    # Files store ~10 digits; normalising moves values by < 1e-9 and keeps the v1 tolerance.
-    return q / norm[:, None]
-
-
-def _file_key(path: str | None):
-    if path is None:
-        return None
-    st = os.stat(path)
-    return (os.path.abspath(path), st.st_mtime_ns, st.st_size)
-
-
-def load_ground_truth(
-    gt_path: str | os.PathLike, fmt: str = "euroc", *, kitti_times: str | os.PathLike | None = None
-) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-    """Read a ground-truth trajectory: poses through evo's file_interface, stamps as exact int64 ns.
-
-    Arguments:
-        gt_path: EuRoC CSV (state_groundtruth_estimate0/data.csv or ORB-SLAM3's *_GT.txt; stamps in ns,
-            a trailing '.000...' accepted), TUM (stamps in s) or KITTI poses (no stamps).
-        fmt: "euroc", "tum" or "kitti".
-        kitti_times: KITTI times file (seconds, one line per pose).
-
-    Returns:
-        (stamps int64 ns [n] or None for KITTI without times, positions [n, 3] in metres,
-        quaternions [n, 4] wxyz normalised). Arrays are read-only and cached per file version.
-    """
-    _check_gt_args(fmt, kitti_times, 1)
-    gt_path = os.fspath(gt_path)
-    kitti_times = None if kitti_times is None else os.fspath(kitti_times)
-    traj = _load_cached(gt_path, fmt, kitti_times, _file_key(gt_path), _file_key(kitti_times))
-    return traj.stamps, traj.p, traj.q
-
-
-@lru_cache(maxsize=32)
-def _load_cached(gt_path, fmt, kitti_times, _key, _times_key) -> _Trajectory:
-    from evo.tools import file_interface  # 0.4 s import; only when ground truth is used
-
-    readers = {
-        "euroc": file_interface.read_euroc_csv_trajectory,
-        "tum": file_interface.read_tum_trajectory_file,
-        "kitti": file_interface.read_kitti_poses_file,
-    }
-    try:
-        evo_traj = readers[fmt](gt_path)
-    except file_interface.FileInterfaceException as e:
-        raise ValueError(f"{gt_path}: not a readable {fmt} ground-truth file: {e}") from None
-    if fmt == "euroc":
-        stamps = _read_stamps_ns(gt_path, ",", 0)
-    elif fmt == "tum":
-        stamps = _read_stamps_ns(gt_path, None, 9)
-    else:
-        stamps = None if kitti_times is None else _read_stamps_ns(kitti_times, None, 9)
-    p = np.array(evo_traj.positions_xyz, dtype=np.float64)
-    q = _unit_quaternions(np.array(evo_traj.orientations_quat_wxyz, dtype=np.float64), gt_path)
-    if stamps is not None:
-        source = kitti_times if fmt == "kitti" else gt_path
-        if len(stamps) != len(p):
-            raise ValueError(f"{source}: {len(stamps)} timestamps for {len(p)} poses in {gt_path}")
-        step = np.diff(stamps)
-        if (step <= 0).any():
-            k = int(np.argmax(step <= 0)) + 1
-            raise ValueError(f"{source}: timestamps not strictly increasing at pose {k} ({stamps[k]} ns)")
-    for a in (p, q) + (() if stamps is None else (stamps,)):
-        a.setflags(write=False)
-    return _Trajectory(stamps, p, q)
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Spherical linear interpolation of unit wxyz quaternions, row-wise, along the shorter arc."""
-    sign = np.where(np.sum(q0 * q1, axis=1) < 0.0, -1.0, 1.0)
-    q1 = q1 * sign[:, None]
-    # Angle between the 4-vectors via atan2: accurate near 0, unlike arccos of the dot product.
-    omega = 2.0 * np.arctan2(np.linalg.norm(q1 - q0, axis=1), np.linalg.norm(q1 + q0, axis=1))
-    sin_omega = np.sin(omega)
-    small = sin_omega < 1e-9
-    safe = np.where(small, 1.0, sin_omega)
-    w0 = np.where(small, 1.0 - alpha, np.sin((1.0 - alpha) * omega) / safe)
-    w1 = np.where(small, alpha, np.sin(alpha * omega) / safe)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _associate_by_time(stamps, p_gt, q_gt, t, max_gap_ns: int, interpolate: bool):
-    """Ground truth at frame times t (int64 ns); NaN where t is outside the span or in a gap."""
-    n, m = len(t), len(stamps)
-    p = np.full((n, 3), np.nan)
-    q = np.full((n, 4), np.nan)
-    j = np.searchsorted(stamps, t, side="left")  # stamps[j-1] < t <= stamps[j]
-    jc = np.minimum(j, m - 1)
-    exact = (j < m) & (stamps[jc] == t)
-    p[exact] = p_gt[jc[exact]]
-    q[exact] = q_gt[jc[exact]]
-    lo, hi = np.clip(j - 1, 0, m - 1), jc
-    gap = stamps[hi] - stamps[lo]
-    between = ~exact & (j > 0) & (j < m) & (gap < max_gap_ns)
-    if between.any():
-        lo, hi = lo[between], hi[between]
-        # Differences of int64 stamps are exact in float64 (< 2^53 ns).
-        alpha = (t[between] - stamps[lo]).astype(np.float64) / (stamps[hi] - stamps[lo]).astype(np.float64)
-        if interpolate:
-            p[between] = p_gt[lo] + alpha[:, None] * (p_gt[hi] - p_gt[lo])
-            q[between] = _slerp(q_gt[lo], q_gt[hi], alpha)
-        else:
-            nearest = np.where(alpha <= 0.5, lo, hi)
-            p[between] = p_gt[nearest]
-            q[between] = q_gt[nearest]
-    return p, q
-
-
-def associate_ground_truth(
-    run: RunLog,
-    gt_path: str | os.PathLike,
-    fmt: str = "euroc",
-    *,
-    kitti_times: str | os.PathLike | None = None,
-    max_gap_ns: int = DEFAULT_MAX_GAP_NS,
-    interpolate: bool = True,
-) -> RunLog:
-    """Fill the gt_* columns of a run from a ground-truth trajectory file.
-
-    EuRoC and TUM files, and KITTI with a times file, are associated by time: a frame whose t_ns equals
-    a ground-truth stamp takes that pose; a frame between two samples less than `max_gap_ns` apart
-    takes the interpolated pose (linear in position, slerp in rotation), or the nearer sample when
-    `interpolate` is False. Stamps are compared as exact int64 ns (the frames' clock must be the
-    ground truth's: EuRoC ns, KITTI seconds from the times file). KITTI without times is associated by
-    frame index: frame i takes pose i.
-
-    Frames left without ground truth (outside the file's span, in a gap, or past the last KITTI pose)
-    get NaN in all seven gt_* columns; their count is stored in meta['gt_missing_frames'] (and the
-    file in meta['gt_source']) and logged as a warning. Existing gt_* columns are replaced.
-
-    Arguments:
-        run: the run (not modified).
-        gt_path: ground-truth file; poses read with evo.tools.file_interface.
-        fmt: "euroc", "tum" or "kitti".
-        kitti_times: KITTI times file (s), or None to associate by index.
-        max_gap_ns: largest ground-truth sample spacing to interpolate across, ns.
-        interpolate: interpolate between samples (True) or take the nearer one (False).
-
-    Returns:
-        A new RunLog with gt_px, gt_py, gt_pz (metres, ground-truth world frame) and gt_qw..gt_qz
-        (unit quaternion wxyz, body to world), as the file defines body and world.
-    """
-    _check_gt_args(fmt, kitti_times, max_gap_ns)
-    stamps, p_gt, q_gt = load_ground_truth(gt_path, fmt, kitti_times=kitti_times)
-    t = run.frames["t_ns"].to_numpy(dtype=np.int64)
-    if stamps is None:
-        n, k = len(t), min(len(t), len(p_gt))
-        p = np.full((n, 3), np.nan)
-        q = np.full((n, 4), np.nan)
-        p[:k], q[:k] = p_gt[:k], q_gt[:k]
-    else:
-        p, q = _associate_by_time(stamps, p_gt, q_gt, t, int(max_gap_ns), interpolate)
-    missing = int(np.isnan(p[:, 0]).sum())
-    base = run.frames.drop(columns=list(schema.GT_COLUMNS), errors="ignore")
-    gt = pd.DataFrame(np.concatenate([p, q], axis=1), columns=list(schema.GT_COLUMNS), index=base.index)
-    frames = pd.concat([base, gt], axis=1)
-    meta = {**run.meta, "gt_missing_frames": missing, "gt_source": os.fspath(gt_path)}
-    out = RunLog(meta=meta, frames=frames, source=run.source)
-    if missing:
-        how = (
-            "by frame index" if stamps is None else f"outside its span or in gaps >= {max_gap_ns / 1e6:g} ms"
-        )
-        logger.warning(
-            "%s (%s): %d of %d frames have no ground truth in %s (%s); their gt_* are NaN "
-            "(meta['gt_missing_frames'])",
-            out.run_id,
-            run.source,
-            missing,
-            len(t),
-            os.fspath(gt_path),
-            how,
-        )
-    return out
-
-
-def _apply_ground_truth(run: RunLog, spec: GroundTruthSpec) -> RunLog:
-    if isinstance(spec, Mapping):
-        sequence = run.meta["sequence"]
-        if sequence not in spec:
-            logger.warning(
-                "%s (%s): no ground truth given for sequence '%s'; the run has none",
-                run.run_id,
-                run.source,
-                sequence,
-            )
-            return run
-        spec = spec[sequence]
-    if not isinstance(spec, GroundTruth):
-        spec = GroundTruth(spec)
-    if run.has_ground_truth and not run.frames[list(schema.GT_COLUMNS)].isna().all(axis=None):
-        logger.warning(
-            "%s (%s): the log carries its own ground truth; kept it and did not use %s",
-            run.run_id,
-            run.source,
-            spec.path,
-        )
-        return run
-    return associate_ground_truth(
-        run,
-        spec.path,
-        spec.fmt,
-        kitti_times=spec.kitti_times,
-        max_gap_ns=spec.max_gap_ns,
-        interpolate=spec.interpolate,
-    )
-
-
-# --------------------------------------------------------------------------------------------------
-# Many logs
-
-
-@dataclass(frozen=True)
-class Quarantined:
-    """A log that was set aside, with why.
-
-    Attributes:
-        path: the file.
-        line: 1-based line of the defect, or None.
-        column: column / metadata key / column range, or None.
-        reason: what is wrong.
-        message: the full LogFormatError message.
-        incomplete: True when the log is incomplete (its writer did not finish).
-    """
-
-    path: str
-    line: int | None
-    column: str | None
-    reason: str
-    message: str
-    incomplete: bool = False
-
-    @classmethod
-    def from_error(cls, err: LogFormatError) -> Quarantined:
-        return cls(err.path, err.line, err.column, err.reason, str(err), isinstance(err, LogIncompleteError))
-
-
-@dataclass
-class ReadResult:
-    """What `read_logs` returns: the valid runs in sorted path order, and every log set aside."""
-
-    runs: list[RunLog]
-    quarantined: list[Quarantined] = field(default_factory=list)
-
-    def report(self) -> pd.DataFrame:
-        """One row per quarantined log; columns QUARANTINE_COLUMNS (line as nullable Int64)."""
-        df = pd.DataFrame(
-            [[getattr(q, c) for c in QUARANTINE_COLUMNS] for q in self.quarantined],
-            columns=list(QUARANTINE_COLUMNS),
-        )
-        return df.astype({"line": "Int64", "incomplete": bool})
-
-
-def write_quarantine_report(result: ReadResult | Sequence[Quarantined], path: str | os.PathLike) -> Path:
-    """Write the quarantine report (one row per quarantined log) as CSV, atomically.
-
-    Arguments:
-        result: a ReadResult, or the list of Quarantined entries.
-        path: destination CSV.
-    """
-    if not isinstance(result, ReadResult):
-        result = ReadResult(runs=[], quarantined=list(result))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + PARTIAL_SUFFIX)
-    try:
-        result.report().to_csv(tmp, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:
-    """The log files of `source`, sorted.
-
-    Arguments:
-        source: a directory (searched recursively for `*.csv` and `*.csv.partial`, skipping jsve's own
-            `*.quarantine.csv` reports and `*.keypoints.csv` side files), a single file, a glob pattern
-            ('**' recursive), or a list of paths (taken as given).
-
-    Raises:
-        FileNotFoundError: the path does not exist or the pattern matches nothing.
-    """
-    if isinstance(source, (str, os.PathLike)):
-        text = os.fspath(source)
-        path = Path(text)
-        if path.is_dir():
-            files = [
-                os.fspath(p)
-                for p in path.rglob("*")
-                if p.is_file()
-                and (p.name.endswith(".csv") or p.name.endswith(".csv" + PARTIAL_SUFFIX))
-                and not p.name.endswith(_NOT_LOGS)
-            ]
-        elif path.exists():
-            files = [text]
-        elif any(ch in text for ch in "*?["):
-            files = [p for p in globlib.glob(text, recursive=True) if os.path.isfile(p)]
-            if not files:
-                raise FileNotFoundError(f"no files match {text!r}")
-        else:
-            raise FileNotFoundError(f"no such file or directory: {text!r}")
-    else:
-        files = [os.fspath(p) for p in source]
-    return sorted(set(files))
-
-
-def _read_one(path: str, ground_truth) -> RunLog | LogFormatError:
-    try:
-        return read_log(path, ground_truth=ground_truth)
-    except LogFormatError as e:
-        return e
-    except OSError as e:
-        return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
-
-
-class _Collect(logging.Handler):
-    def __init__(self, records: list):
-        super().__init__(logging.WARNING)
-        self.records = records
-
-    def emit(self, record: logging.LogRecord) -> None:
-        record.msg, record.args, record.exc_info = record.getMessage(), None, None
-        self.records.append(record)
-
-
-def _read_chunk(paths: list[str], ground_truth, stop_on_error: bool):
-    """Worker: read a chunk of logs; warnings are returned to the parent to be logged there."""
-    records: list = []
-    handler = _Collect(records)
-    logger.addHandler(handler)
-    propagate, logger.propagate = logger.propagate, False
-    try:
-        out = []
-        for p in paths:
-            result = _read_one(p, ground_truth)
-            out.append((p, result))
-            if stop_on_error and isinstance(result, LogFormatError):
-                break
-        return out, records
-    finally:
-        logger.removeHandler(handler)
-        logger.propagate = propagate
-
-
-def _mp_context():
-    # Not fork: the parent may hold JAX's (or Arrow's) threads, and fork with threads can deadlock.
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["jsve.logs"])
-        return ctx
-    return multiprocessing.get_context("spawn")
-
-
-def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_truth, stop_on_error: bool):
-    """(path, RunLog | LogFormatError) in the order of `paths`, read in parallel chunks."""
-    workers = (os.cpu_count() or 1) if workers is None else int(workers)
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    bar = tqdm(total=len(paths), disable=not progress, file=sys.stderr, unit="log", desc="reading logs")
-    try:
-        if workers == 1 or len(paths) < _MIN_LOGS_PER_WORKER * 2:
-            for p in paths:
-                result = _read_one(p, ground_truth)
-                bar.update(1)
-                yield p, result
-            return
-        chunk = max(1, min(16, math.ceil(len(paths) / (4 * workers))))
-        chunks = iter([paths[i : i + chunk] for i in range(0, len(paths), chunk)])
-        executor = cf.ProcessPoolExecutor(max_workers=min(workers, len(paths)), mp_context=_mp_context())
-        try:
-            pending = collections.deque()
-            # A bounded window of chunks in flight keeps memory flat however many logs there are.
-            for c in chunks:
-                pending.append(executor.submit(_read_chunk, c, ground_truth, stop_on_error))
-                if len(pending) >= 2 * workers:
-                    break
-            n_warnings = 0
-            while pending:
-                out, records = pending.popleft().result()
-                for record in records:
-                    n_warnings += 1
-                    if n_warnings <= _MAX_WORKER_WARNINGS:
-                        logger.handle(record)
-                nxt = next(chunks, None)
-                if nxt is not None:
-                    pending.append(executor.submit(_read_chunk, nxt, ground_truth, stop_on_error))
-                for p, result in out:
-                    bar.update(1)
-                    yield p, result
-            if n_warnings > _MAX_WORKER_WARNINGS:
-                logger.warning("... and %d more warnings like these", n_warnings - _MAX_WORKER_WARNINGS)
-        finally:
-            executor.shutdown(wait=True, cancel_futures=True)
-    finally:
-        bar.close()
-
-
-def _good_runs(
-    paths, *, on_error: OnError, workers, progress, ground_truth, quarantined: list
-) -> Iterator[RunLog]:
-    """Valid runs in path order; bad logs raise (on_error='raise') or go to `quarantined`."""
-    if on_error not in ("raise", "quarantine"):
-        raise ValueError(f"on_error must be 'raise' or 'quarantine', got {on_error!r}")
-    seen: dict[str, str] = {}
-    results = _iter_read(
-        paths,
-        workers=workers,
-        progress=progress,
-        ground_truth=ground_truth,
-        stop_on_error=on_error == "raise",
-    )
-    for path, result in results:
-        if isinstance(result, RunLog) and result.run_id in seen:
-            result = LogFormatError(
-                path,
-                1,
-                f"duplicate run id: '{result.run_id}' is also the run id of {seen[result.run_id]} "
-                "(sequence/disturbance-level/run must be unique)",
-            )
-        if isinstance(result, LogFormatError):
-            if on_error == "raise":
-                results.close()
-                raise result
-            quarantined.append(Quarantined.from_error(result))
-            continue
-        seen[result.run_id] = path
-        yield result
-
-
-def read_logs(
-    source: str | os.PathLike | Sequence[str | os.PathLike],
-    *,
-    on_error: OnError = "raise",
-    workers: int | None = None,
-    progress: bool = True,
-    ground_truth: GroundTruthSpec | None = None,
-) -> ReadResult:
-    """Read and validate many logs in parallel.
-
-    Arguments:
-        source: a directory (recursive `*.csv` and `*.csv.partial`), a glob, a file or a list of paths
-            (see `find_logs`). `.partial` files are always reported as incomplete, never skipped.
-        on_error: "raise" stops at the first bad log in sorted path order with its LogFormatError;
-            "quarantine" sets bad logs aside in ReadResult.quarantined (nothing is dropped silently).
-        workers: processes (default os.cpu_count()); 1, or fewer than 16 logs, reads in this process.
-            Processes start with multiprocessing's "forkserver" method (not fork: the caller may hold
-            JAX's threads), so a script that calls this needs the usual `if __name__ == "__main__":`.
-        progress: tqdm progress bar on stderr.
-        ground_truth: associated with logs that carry none (see `read_log`); must be picklable.
-
-    Returns:
-        ReadResult(runs in sorted path order, quarantined). A run id (RunLog.run_id) met a second time
-        is an error naming both files (the later file is the one raised or quarantined).
-    """
-    paths = find_logs(source)
-    quarantined: list[Quarantined] = []
-    runs = list(
-        _good_runs(
-            paths,
-            on_error=on_error,
-            workers=workers,
-            progress=progress,
-            ground_truth=ground_truth,
-            quarantined=quarantined,
-        )
-    )
-    return ReadResult(runs=runs, quarantined=quarantined)
-
-
-# --------------------------------------------------------------------------------------------------
-# Parquet
-
-
-PARQUET_SCHEMA = pa.schema(
-    [
-        pa.field("run_id", pa.dictionary(pa.int32(), pa.string()), nullable=False),
-        pa.field("frame", pa.int32(), False),
-    ]
-    + [pa.field(c, pa.int64(), nullable=False) for c in schema.INT_COLUMNS]
-    + [pa.field(c, pa.float64(), nullable=False) for c in schema.FLOAT_COLUMNS]
-    + [pa.field(c, pa.float64(), nullable=True) for c in schema.GT_COLUMNS]
-)
-"""Layout of the consolidated Parquet file: one row per frame, runs contiguous in sorted path order.
-gt_* are null for runs without ground truth, NaN for frames without it in runs that have it."""
-
-
-@dataclass(frozen=True)
-class IngestSummary:
-    """What `ingest` did.
-
-    Attributes:
-        out_path: the Parquet file written.
-        n_runs: runs written.
-        n_frames: frames (rows) written.
-        quarantined: logs set aside (on_error='quarantine').
-        quarantine_report: the CSV report written, or None when nothing was quarantined.
-    """
-
-    out_path: Path
-    n_runs: int
-    n_frames: int
-    quarantined: list[Quarantined]
-    quarantine_report: Path | None
-
-    def line(self) -> str:
-        """A one-line summary for people."""
-        text = (
-            f"ingested {self.n_runs} runs, {self.n_frames} frames -> {self.out_path}; "
-            f"quarantined {len(self.quarantined)}"
-        )
-        if self.quarantine_report is not None:
-            text += f" (report: {self.quarantine_report})"
-        return text
-
-
-def _runs_to_table(runs: list[RunLog]) -> pa.Table:
-    lengths = np.array([len(r.frames) for r in runs])
-    run_ids = pa.DictionaryArray.from_arrays(
-        pa.array(np.repeat(np.arange(len(runs), dtype=np.int32), lengths)),
-        pa.array([r.run_id for r in runs], pa.string()),
-    )
-    frame = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
-    arrays = [run_ids, pa.array(frame)]
-    for c in schema.REQUIRED_COLUMNS:
-        arrays.append(pa.array(np.concatenate([r.frames[c].to_numpy() for r in runs])))
-    no_gt = np.repeat([not r.has_ground_truth for r in runs], lengths)
-    for c in schema.GT_COLUMNS:
-        values = np.concatenate(
-            [r.frames[c].to_numpy() if r.has_ground_truth else np.full(len(r.frames), np.nan) for r in runs]
-        )
-        # NaN stays NaN (a frame without ground truth); null marks a run without gt columns.
-        arrays.append(pa.array(values, mask=no_gt if no_gt.any() else None))
-    return pa.Table.from_arrays(arrays, schema=PARQUET_SCHEMA)
-
-
-def default_quarantine_report_path(out_path: str | os.PathLike) -> Path:
-    """`OUT.quarantine.csv` beside `OUT.parquet`."""
-    return Path(out_path).with_suffix(".quarantine.csv")
-
-
-def ingest(
-    source: str | os.PathLike | Sequence[str | os.PathLike],
-    out_path: str | os.PathLike,
-    *,
-    on_error: OnError = "raise",
-    workers: int | None = None,
-    progress: bool = True,
-    ground_truth: GroundTruthSpec | None = None,
-    quarantine_report: str | os.PathLike | None = None,
-) -> IngestSummary:
-    """Validate many logs (optionally associating ground truth) and consolidate them into one Parquet file.
-
-    The file (layout PARQUET_SCHEMA) holds one row per frame: `run_id` (dictionary-encoded string),
-    `frame` (int32, 0-based), then the v1 columns; runs are contiguous, in sorted path order. The
-    schema's key-value metadata holds b'jsve.runs': a JSON list of {run_id, source, meta, n_frames,
-    has_ground_truth}, one per run in file order. Logs are streamed (row groups of ~260k frames), so
-    memory stays flat. The file is written as `<out>.partial` and renamed when complete.
-
-    Arguments:
-        source: logs (see `find_logs`).
-        out_path: the Parquet file.
-        on_error, workers, progress, ground_truth: as in `read_logs`.
-        quarantine_report: CSV path for the report of quarantined logs; default `OUT.quarantine.csv`
-            beside the output. Written only when logs were quarantined (a stale report at the default
-            path is removed).
-
-    Returns:
-        IngestSummary.
-
-    Raises:
-        LogFormatError: the first bad log, with on_error='raise' (nothing is written).
-        FileNotFoundError: no logs in `source`.
-    """
-    paths = find_logs(source)
-    if not paths:
-        raise FileNotFoundError(f"no tracking logs (*.csv, *.csv.partial) in {os.fspath(source)!r}")
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + PARTIAL_SUFFIX)
-    quarantined: list[Quarantined] = []
-    entries = []
-    n_frames = 0
-    writer = pq.ParquetWriter(tmp, PARQUET_SCHEMA, compression="zstd")
-    try:
-        batch: list[RunLog] = []
-        batch_rows = 0
-        runs = _good_runs(
-            paths,
-            on_error=on_error,
-            workers=workers,
-            progress=progress,
-            ground_truth=ground_truth,
-            quarantined=quarantined,
-        )
-        for run in runs:
-            entries.append(
-                {
-                    "run_id": run.run_id,
-                    "source": run.source,
-                    "meta": run.meta,
-                    "n_frames": len(run.frames),
-                    "has_ground_truth": run.has_ground_truth,
-                }
-            )
-            n_frames += len(run.frames)
-            batch.append(run)
-            batch_rows += len(run.frames)
-            if batch_rows >= _ROW_GROUP_ROWS:
-                writer.write_table(_runs_to_table(batch))
-                batch, batch_rows = [], 0
-        if batch:
-            writer.write_table(_runs_to_table(batch))
-        writer.add_key_value_metadata(
-            {
-                PARQUET_RUNS_KEY: json.dumps(entries, allow_nan=False),
-                PARQUET_FORMAT_KEY: str(schema.FORMAT_VERSION),
-            }
-        )
-        writer.close()
-        os.replace(tmp, out)
-    except BaseException:
-        writer.close()
-        tmp.unlink(missing_ok=True)
-        raise
-
-    default_report = default_quarantine_report_path(out)
-    report = Path(quarantine_report) if quarantine_report is not None else default_report
-    if quarantined:
-        write_quarantine_report(quarantined, report)
-        logger.warning("%d logs quarantined; see %s", len(quarantined), report)
-    else:
-        if quarantine_report is None and default_report.exists():
-            logger.info("removing the stale quarantine report %s", default_report)
-            default_report.unlink()
-        report = None
-    return IngestSummary(out, len(entries), n_frames, quarantined, report)
-
-
-def read_parquet(path: str | os.PathLike) -> list[RunLog]:
-    """Restore the runs of a Parquet file written by `ingest`, exactly (ints exact, floats bitwise).
-
-    Returns:
-        RunLogs in file order, with the metadata and source recorded at ingest; runs ingested without
-        ground truth have no gt_* columns.
-
-    Raises:
-        LogFormatError: not a jsve Parquet file, or its rows disagree with its run list.
-    """
-    source = os.fspath(path)
-    pf = pq.ParquetFile(source)
-    kv = pf.metadata.metadata or {}
-    if PARQUET_RUNS_KEY not in kv:
-        raise LogFormatError(
-            source, None, f"not a jsve Parquet file: no {PARQUET_RUNS_KEY.decode()!r} metadata"
-        )
-    entries = json.loads(kv[PARQUET_RUNS_KEY])
-    table = pf.read()
-    lengths = np.array([e["n_frames"] for e in entries], dtype=np.int64)
-    if table.num_rows != lengths.sum():
-        raise LogFormatError(
-            source, None, f"has {table.num_rows} rows but its run list accounts for {int(lengths.sum())}"
-        )
-    index = {e["run_id"]: i for i, e in enumerate(entries)}
-    ids = []
-    for chunk in table.column("run_id").chunks:
-        lut = np.array([index.get(s, -1) for s in chunk.dictionary.to_pylist()] or [-1], dtype=np.int64)
-        ids.append(lut[chunk.indices.to_numpy(zero_copy_only=False)])
-    ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-    offsets = np.concatenate([[0], np.cumsum(lengths)])
-    expected_frame = np.arange(table.num_rows) - np.repeat(offsets[:-1], lengths)
-    frame = table.column("frame").to_numpy()
-    if not (
-        np.array_equal(ids, np.repeat(np.arange(len(entries)), lengths))
-        and np.array_equal(frame, expected_frame)
-    ):
-        raise LogFormatError(source, None, "rows are not grouped by run in the order of its run list")
-    columns = {c: table.column(c).to_numpy() for c in schema.COLUMNS}
-    runs = []
-    for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
-        names = schema.COLUMNS if e["has_ground_truth"] else schema.REQUIRED_COLUMNS
-        frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
-        runs.append(RunLog(meta=e["meta"], frames=frames, source=e["source"]))
-    return runs
+# Names whose home is jsve.groundtruth or jsve.ingest. Those modules import this one, so importing
+# them here would be a cycle; they are looked up when first asked for (PEP 562).
+
+_MOVED = {
+    "jsve.groundtruth": (
+        "DEFAULT_MAX_GAP_NS",
+        "GT_FORMATS",
+        "GroundTruth",
+        "GroundTruthSpec",
+        "associate_ground_truth",
+        "load_ground_truth",
+    ),
+    "jsve.ingest": (
+        "PARQUET_FORMAT_KEY",
+        "PARQUET_RUNS_KEY",
+        "PARQUET_SCHEMA",
+        "QUARANTINE_COLUMNS",
+        "IngestSummary",
+        "OnError",
+        "Quarantined",
+        "ReadResult",
+        "default_quarantine_report_path",
+        "find_logs",
+        "ingest",
+        "read_logs",
+        "read_parquet",
+        "write_quarantine_report",
+    ),
+}
+_HOME = {name: module for module, names in _MOVED.items() for name in names}
+
+
+def __getattr__(name: str):
+    if name in _HOME:
+        return getattr(importlib.import_module(_HOME[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_HOME})

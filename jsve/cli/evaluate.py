@@ -14,7 +14,8 @@ import os
 import sys
 from pathlib import Path
 
-from .. import logs
+from ..ingest import read_logs, read_parquet
+from ..logs import LogFormatError
 
 
 def register(subparsers) -> None:
@@ -65,8 +66,8 @@ def load_rules(names: list[str] | None):
 def load_runs(source: str, *, on_error: str, workers: int | None, progress: bool):
     """RunLogs from a Parquet file or from logs on disk (quarantined logs reported on stderr)."""
     if source.endswith(".parquet"):
-        return logs.read_parquet(source)
-    result = logs.read_logs(source, on_error=on_error, workers=workers, progress=progress)
+        return read_parquet(source)
+    result = read_logs(source, on_error=on_error, workers=workers, progress=progress)
     for q in result.quarantined:
         print(f"jsve evaluate: quarantined {q.message}", file=sys.stderr)
     return result.runs
@@ -87,7 +88,7 @@ def run(args) -> int:
     try:
         rules = load_rules(args.rule)
         runs = load_runs(args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress)
-    except (ValueError, logs.LogFormatError, OSError) as err:
+    except (ValueError, LogFormatError, OSError) as err:
         print(f"jsve evaluate: {err}", file=sys.stderr)
         return 2
     if not runs:

@@ -2,7 +2,7 @@
 
     jsve ingest logs/ -o study.parquet --on-error quarantine --gt V101_GT.txt --gt-format euroc
 
-A thin layer over jsve.logs.ingest; docs/log-format.md describes the format, the errors and the output.
+A thin layer over jsve.ingest.ingest; docs/log-format.md describes the format, the errors and the output.
 Exit status: 0 on success (quarantined logs are listed in the summary and the report), 2 when a log is
 malformed with --on-error raise, or when there are no logs.
 """
@@ -12,7 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .. import logs
+from ..groundtruth import DEFAULT_MAX_GAP_NS, GT_FORMATS, GroundTruth
+from ..ingest import ingest
 
 
 def register(subparsers) -> None:
@@ -47,7 +48,7 @@ def register(subparsers) -> None:
     gt = p.add_argument_group("ground truth (associated with logs that carry none)")
     gt.add_argument("--gt", metavar="FILE", help="ground-truth trajectory file")
     gt.add_argument(
-        "--gt-format", choices=logs.GT_FORMATS, default="euroc", help="format of --gt (default: euroc)"
+        "--gt-format", choices=GT_FORMATS, default="euroc", help="format of --gt (default: euroc)"
     )
     gt.add_argument(
         "--kitti-times", metavar="FILE", help="KITTI times file (s); without it, associate by frame index"
@@ -55,7 +56,7 @@ def register(subparsers) -> None:
     gt.add_argument(
         "--gt-max-gap-ms",
         type=float,
-        default=logs.DEFAULT_MAX_GAP_NS / 1e6,
+        default=DEFAULT_MAX_GAP_NS / 1e6,
         metavar="MS",
         help="largest ground-truth sample spacing to interpolate across, ms (default: %(default)g)",
     )
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         parser.error("--workers must be >= 1")
     ground_truth = None
     if args.gt is not None:
-        ground_truth = logs.GroundTruth(
+        ground_truth = GroundTruth(
             args.gt,
             args.gt_format,
             kitti_times=args.kitti_times,
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
             interpolate=not args.no_interpolate,
         )
     try:
-        summary = logs.ingest(
+        summary = ingest(
             args.logdir,
             args.output,
             on_error=args.on_error,
