@@ -1,0 +1,168 @@
+"""jsve.evaluate and the `jsve evaluate` / `jsve sve` commands.
+
+The oracle for `evaluate` is the composition of its parts run one run at a time (replay of a
+one-run batch, then `run_error` on that run): chunking, bucketing and padding must not change a
+single number. The CLI tests check the files it writes against the library functions.
+"""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+from logfactory import make_run
+
+import jsve
+from jsve.cli import main as jsve_main
+from jsve.logs import write_log
+
+
+@pytest.fixture(scope="module")
+def runs():
+    # Lengths straddle the 64-frame padding multiple so buckets and padding are exercised.
+    lengths = [150, 210, 200, 390, 64, 333]
+    return [
+        make_run(n, seed=10 + i, run=i, disturbance="blur" if i % 2 else "none", level=5 * (i % 3))
+        for i, n in enumerate(lengths)
+    ]
+
+
+def _one_run_oracle(run, rule, align="se3"):
+    """Replay a one-run batch and score it with run_error directly (no chunking, no buckets)."""
+    batch = jsve.from_runs([run], dtype=jnp.float32).batch
+    result = jax.jit(jsve.replay)(batch, rule)
+    n = len(run.frames)
+    err = jsve.run_error(
+        result.position[0], result.quaternion[0], result.has_estimate[0], result.segment[0],
+        batch.gt_p[0], batch.gt_q[0], batch.gt_valid[0], batch.valid[0], align=align,
+    )  # fmt: skip
+    return err, bool(result.lost_any[0]), float(np.sum(np.asarray(result.accepted[0])[:n])) / n
+
+
+@pytest.mark.parametrize("rule_name", ["orbslam3", "sve-option2"])
+def test_evaluate_equals_per_run_composition(runs, rule_name):
+    rule = jsve.preset(rule_name)
+    table = jsve.evaluate(jsve.buckets(runs), rule, rule_name=rule_name, runs_per_chunk=2, progress=False)
+    assert sorted(table["run_id"]) == sorted(r.run_id for r in runs)  # every run, exactly once
+    by_id = table.set_index("run_id")
+    for run in runs:
+        err, lost_any, accepted = _one_run_oracle(run, rule)
+        row = by_id.loc[run.run_id]
+        assert row["count"] == int(err.stats.count)
+        if row["count"] > 0:
+            # Same float32 kernels on the same frames; padding (zero weight) may reorder sums.
+            np.testing.assert_allclose(row["rmse"], float(err.stats.rmse), rtol=1e-5)
+        assert row["lost_any"] == lost_any
+        assert row["failed"] == (bool(err.failed) or lost_any)
+        np.testing.assert_allclose(row["accepted_fraction"], accepted, rtol=1e-6)
+        assert row["rule"] == rule_name
+        assert row["n_frames"] == len(run.frames)
+
+
+def test_chunk_size_does_not_change_results(runs):
+    rule = jsve.preset("orbslam3")
+    groups = jsve.buckets(runs)
+    a = jsve.evaluate(groups, rule, runs_per_chunk=1, progress=False)
+    b = jsve.evaluate(groups, rule, runs_per_chunk=64, progress=False)
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_accept_all_rule_scores_the_visual_estimate(runs):
+    """With thresholds that accept every frame the replay is the logged visual trajectory, so the
+    APE must equal evo-style scoring of vis_* against gt_* (here: jsve.align + ape_statistics)."""
+    rule = jsve.InlierRule(jsve.Thresholds(imu_init=-1, not_init=-1, reloc=-1, recovery=-1))
+    table = jsve.evaluate(jsve.buckets(runs), rule, progress=False).set_index("run_id")
+    for run in runs:
+        f = run.frames
+        est = jnp.asarray(f[["vis_px", "vis_py", "vis_pz"]].to_numpy(), jnp.float32)
+        ref = jnp.asarray(f[["gt_px", "gt_py", "gt_pz"]].to_numpy(), jnp.float32)
+        mask = jnp.ones(len(f), bool)
+        aligned, _, _ = jsve.align(est, ref, mask, method="se3")
+        stats = jsve.ape_statistics(aligned, ref, mask)
+        row = table.loc[run.run_id]
+        assert row["accepted_fraction"] == 1.0 and not row["lost_any"] and row["coverage"] == 1.0
+        np.testing.assert_allclose(row["rmse"], float(stats.rmse), rtol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def log_dir(runs, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("logs")
+    for run in runs:
+        write_log(run, folder / f"{run.run_id.replace('/', '_')}.csv")
+    return folder
+
+
+def test_cli_evaluate_writes_tables_matching_the_library(runs, log_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = jsve_main(["evaluate", str(log_dir), "--rule", "orbslam3", "--rule", "sve-option2", "-o", str(out),
+                      "--no-progress", "--by", "disturbance,rule"])  # fmt: skip
+    assert code == 0
+    per_run = pd.read_parquet(out / "runs.parquet")
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(per_run) == 2 * len(runs)
+    assert set(summary["rule"]) == {"orbslam3", "sve-option2"}
+    lib = jsve.evaluate(jsve.buckets(runs), jsve.preset("orbslam3"), rule_name="orbslam3", progress=False)
+    cli = per_run[per_run["rule"] == "orbslam3"].set_index("run_id").loc[lib["run_id"]]
+    np.testing.assert_allclose(cli["rmse"].to_numpy(), lib["rmse"].to_numpy(), rtol=1e-6)
+    # The on-screen summary lists every (disturbance, rule) group.
+    printed = capsys.readouterr().out
+    assert printed.count("sve-option2") == summary["rule"].eq("sve-option2").sum()
+    assert not list(out.glob("*.partial"))
+
+
+def test_cli_evaluate_rule_file_round_trip(runs, log_dir, tmp_path):
+    rule = jsve.preset("sve-eq1")
+    path = tmp_path / "eq1.json"
+    path.write_text(json.dumps(jsve.rule_to_dict(rule)))
+    out = tmp_path / "o"
+    assert jsve_main(["evaluate", str(log_dir), "--rule", str(path), "-o", str(out), "--no-progress"]) == 0
+    from_file = pd.read_csv(out / "runs.csv").set_index("run_id")
+    lib = jsve.evaluate(jsve.buckets(runs), rule, progress=False).set_index("run_id")
+    np.testing.assert_allclose(from_file.loc[lib.index, "rmse"], lib["rmse"], rtol=1e-6)
+    assert set(from_file["rule"]) == {"eq1"}
+
+
+def test_cli_evaluate_errors(log_dir, tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"kind": "sve",\n "thresholds": }')
+    assert jsve_main(["evaluate", str(log_dir), "--rule", str(bad), "--no-progress"]) == 2
+    assert f"{bad}:2: not valid JSON" in capsys.readouterr().err
+    incomplete = tmp_path / "incomplete.json"
+    incomplete.write_text(json.dumps({"kind": "inliers", "thresholds": {"imu_init": 15}}))
+    assert jsve_main(["evaluate", str(log_dir), "--rule", str(incomplete), "--no-progress"]) == 2
+    assert "lacks key 'not_init'" in capsys.readouterr().err
+    assert jsve_main(["evaluate", str(log_dir), "--rule", "no-such-preset", "--no-progress"]) == 2
+    assert "neither a preset" in capsys.readouterr().err
+    assert jsve_main(["evaluate", str(log_dir), "--by", "weather", "--no-progress"]) == 2
+    assert "'weather'" in capsys.readouterr().err
+
+
+def test_cli_evaluate_refuses_logs_without_ground_truth(tmp_path, capsys):
+    write_log(make_run(120, seed=3, with_gt=False), tmp_path / "r.csv")
+    assert jsve_main(["evaluate", str(tmp_path), "--no-progress"]) == 2
+    assert "no ground truth" in capsys.readouterr().err
+
+
+def test_cli_sve_matches_sve_table(runs, log_dir, tmp_path):
+    run = runs[3]
+    log = log_dir / f"{run.run_id.replace('/', '_')}.csv"
+    out = tmp_path / "sve.csv"
+    assert jsve_main(["sve", str(log), "-o", str(out)]) == 0
+    table = pd.read_csv(out)
+    f = run.frames
+    expected = jsve.sve_table(f["n_extracted"], f["n_inliers"], f["n_frustum"],
+                              f[list(jsve.schema.BIN_COLUMNS)].to_numpy(), n_features=run.meta["n_features"])  # fmt: skip
+    assert table["t_ns"].tolist() == f["t_ns"].tolist()  # int64 stamps exact
+    for name, values in expected.items():
+        np.testing.assert_allclose(table[name], np.asarray(values), rtol=1e-6, atol=1e-7, err_msg=name)
+
+
+def test_cli_sve_bad_log(tmp_path, capsys):
+    path = tmp_path / "empty.csv"
+    path.write_text("")
+    assert jsve_main(["sve", str(path)]) == 2
+    assert str(path) in capsys.readouterr().err
