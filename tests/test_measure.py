@@ -1,4 +1,4 @@
-"""jsve.measure: ORB-SLAM3-style extraction, SVE bins, and counts on real EuRoC frames."""
+"""jsve.measure and jsve.orb: ORB-SLAM3-style extraction, SVE bins, and counts on real EuRoC frames."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 
 from jsve import disturb as d
 from jsve import measure as m
+from jsve import orb
 from jsve.schema import BIN_COLUMNS
 
 SEQUENCE = "euroc/V1_01_first95"
@@ -37,7 +38,7 @@ def test_features_per_level_sum_to_n_features():
 
 def test_ic_disc_is_orbs_symmetric_disc():
     # u_max of ORB's 31 x 31 patch (Rublee et al. 2011; the table every ORB implementation derives).
-    assert m._disc_half_widths(15).tolist() == [15, 15, 15, 15, 14, 14, 14, 13, 13, 12, 11, 10, 9, 8, 6, 3]
+    assert orb._disc_half_widths(15).tolist() == [15, 15, 15, 15, 14, 14, 14, 13, 13, 12, 11, 10, 9, 8, 6, 3]
 
 
 @pytest.mark.parametrize(("axis", "expected"), [(1, 0.0), (0, 90.0)])

@@ -51,7 +51,8 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from jsve.disturb import DatasetError
-    from jsve.measure import OrbSettings, measure_datasets
+    from jsve.measure import measure_datasets
+    from jsve.orb import OrbSettings
 
     try:
         orb = OrbSettings(extractor=args.extractor, fallback=not args.no_fallback, n_features=args.n_features)
