@@ -22,6 +22,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "measure",
     "table1",
     "masks",
+    "simulate",
 )
 """Module names under jsve.cli, in the order `jsve --help` lists them."""
 
