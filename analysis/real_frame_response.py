@@ -36,17 +36,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.disturb import DISTURBANCES, disturb_image, format_level
+from jsve.disturb import DISTURBANCES, disturb_image
+from jsve.disturb_datasets import format_level
 from jsve.measure import (
     Camera,
     FrameCounts,
-    OrbSettings,
-    extract_orb,
     measure_frames,
     read_image,
     read_sequence,
     visibility_table,
 )
+from jsve.orb import OrbSettings, extract_orb
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "euroc" / "V1_01_first95"

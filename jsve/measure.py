@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .disturb import DatasetError, camera_dirs, read_frame_list, read_yaml_list, run_parallel
+from .disturb_datasets import DatasetError, camera_dirs, read_frame_list, read_yaml_list, run_parallel
 from .orb import EXTRACTORS as EXTRACTORS
 from .orb import Features as Features
 from .orb import OrbSettings as OrbSettings

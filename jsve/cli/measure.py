@@ -50,7 +50,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jsve.disturb import DatasetError
+    from jsve.disturb_datasets import DatasetError
     from jsve.measure import measure_datasets
     from jsve.orb import OrbSettings
 
