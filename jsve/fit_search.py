@@ -176,9 +176,9 @@ def _power_mean2(x1, x2, w, p):
     mean_log = w * l1 + w2 * l2
     var_log = w * (l1 - mean_log) ** 2 + w2 * (l2 - mean_log) ** 2
     geometric = jnp.exp(mean_log + 0.5 * p * var_log)
-    inner = w * jnp.where(pos1, jnp.exp(p_safe * l1), 0.0) + w2 * jnp.where(pos2, jnp.exp(p_safe * l2), 0.0)
-    inner_ok = inner > 0
-    powered = jnp.where(inner_ok, jnp.exp(jnp.log(jnp.where(inner_ok, inner, 1.0)) / p_safe), 0.0)
+    excess = w * jnp.where(pos1, jnp.expm1(p_safe * l1), -1.0) + w2 * jnp.where(pos2, jnp.expm1(p_safe * l2), -1.0)
+    inner_ok = excess > -1
+    powered = jnp.where(inner_ok, jnp.exp(jnp.log1p(jnp.where(inner_ok, excess, 0.0)) / p_safe), 0.0)
     value = jnp.where(near_zero_p, geometric, powered)
     has_zero = (~pos1 & (w > 0)) | (~pos2 & (w2 > 0))
     return jnp.where(has_zero & (near_zero_p | (p <= 0)), 0.0, value)
@@ -480,25 +480,47 @@ def search(
         raise ValueError(f"values must have shape (S, {space.dim}) for {space.names}, got {values.shape}")
     n_settings = values.shape[0]
     run_counts = list(run_counts) if run_counts is not None else [p.n_runs for p in parts]
-    per_part = []
+    # Calls are dispatched asynchronously, round-robin over the local devices: with several CPU devices
+    # (XLA_FLAGS=--xla_force_host_platform_device_count=N, which `jsve fit` / `jsve demo` set to the
+    # number of cores) the calls run on all cores at once; the results are collected afterwards.
+    devices = jax.local_devices()
+    pending = []
+    for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
+        size = settings_per_call or 2 ** int(math.log2(max(1, LANES_PER_CALL // part.n_runs)))
+        size = min(size, 2 ** math.ceil(math.log2(n_settings)))
+        copies = [part] if len(devices) == 1 else [jax.device_put(part, d) for d in devices]
+        for i, sl in enumerate(_settings_chunks(n_settings, size)):
+            chunk = values[sl]
+            if len(chunk) < size:
+                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)])
+            k = i % len(copies)
+            rules = space.rule(jnp.asarray(chunk, part.t.dtype))
+            if len(copies) > 1:
+                rules = jax.device_put(rules, devices[k])
+            pending.append((p, sl, n_real, search_chunk(copies[k], rules, config)))
+    per_part: list[list] = [[] for _ in parts]
     total = n_settings * sum(run_counts)
     with tqdm(total=total, desc=desc, unit="run-setting", unit_scale=True, disable=not progress) as bar:
-        for part, n_real in zip(parts, run_counts, strict=True):
-            size = settings_per_call or 2 ** int(math.log2(max(1, LANES_PER_CALL // part.n_runs)))
-            size = min(size, 2 ** math.ceil(math.log2(n_settings)))
-            outs = []
-            for sl in _settings_chunks(n_settings, size):
-                chunk = values[sl]
-                padded = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)]) if len(chunk) < size else chunk
-                rules = space.rule(jnp.asarray(padded, part.t.dtype))
-                res = search_chunk(part, rules, config)
-                outs.append(jax.tree.map(lambda x, n=len(chunk): np.asarray(x)[:n, :n_real], res))
-                bar.update(len(chunk) * n_real)
-            per_part.append(jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *outs))
-    merged = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *per_part)
+        for p, sl, n_real, res in pending:
+            n = sl.stop - sl.start
+            per_part[p].append(jax.tree.map(lambda x, n=n, r=n_real: np.asarray(x)[:n, :r], res))
+            bar.update(n * n_real)
+    merged = [jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *chunks) for chunks in per_part]
+    merged = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *merged)
     return SearchResult(values=values, loss=merged.loss, failed=merged.failed, rmse=merged.rmse,
                         coverage=merged.coverage)  # fmt: skip
 
 
+def use_all_cores() -> None:
+    """Ask XLA for one CPU device per core, so that `search` runs its calls on every core. Effective
+    only before JAX's backend starts, and only when XLA_FLAGS does not set a device count already.
+    For the command line and scripts: a library user decides this for their own process."""
+    import os
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
+
+
 __all__ = ["sobol", "halton", "random_design", "grid_design", "design", "SearchBatch", "prepare", "search_chunk",
-           "search", "SearchResult", "score_columns", "imu_predict_columns"]  # fmt: skip
+           "search", "SearchResult", "score_columns", "imu_predict_columns", "use_all_cores"]  # fmt: skip

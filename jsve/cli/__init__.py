@@ -23,6 +23,9 @@ SUBCOMMANDS: tuple[str, ...] = (
     "table1",
     "masks",
     "simulate",
+    "fit",
+    "report",
+    "demo",
 )
 """Module names under jsve.cli, in the order `jsve --help` lists them."""
 

@@ -1,0 +1,99 @@
+"""`jsve fit LOGS -o OUT`: fit switching rules to minimise position error, cross-validate, and report.
+
+    jsve fit study.parquet -o results/ --config sweeps/fit.toml
+
+LOGS is a folder of format-v1 logs, a log, or a Parquet file from `jsve ingest`; the logs need ground
+truth. Runs every stage of jsve.fit_study (presets, fits, cross-validation, bootstrap, heat map, SVE per
+level) into OUT, resumably, then writes OUT/report.md and OUT/report.html (`jsve report OUT` re-renders).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import tomllib
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit", help="fit SVE weights and thresholds (and ORB-SLAM3's) to minimise position error",
+        description="Search, Nelder-Mead and (optionally) relaxed BFGS fits of each rule family, with k-fold and "
+        "leave-one-group-out cross-validation against the presets, bootstrap confidence intervals and a report.",
+    )  # fmt: skip
+    p.add_argument("logs", metavar="LOGS", help="folder of logs, a log, or a Parquet file from `jsve ingest`")
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="study folder (resumed if it exists)")
+    p.add_argument("--config", metavar="TOML", help="study settings (see sweeps/fit.toml)")
+    p.add_argument("--family", action="append", choices=("sve", "inliers"),
+                   help="rule family to fit; repeatable (default: both)")  # fmt: skip
+    p.add_argument("--failure-penalty", type=float, metavar="M", help="metres charged for a failed run")
+    p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
+    p.add_argument("--seed", type=int, help="seed of designs, folds and bootstraps")
+    p.add_argument("--on-error", choices=("raise", "quarantine"), default="raise")
+    p.add_argument("--workers", type=int, metavar="N")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-report", action="store_true", help="write the tables only")
+    p.set_defaults(func=run)
+
+
+def load_study_config(path: str | None, **overrides):
+    """StudyConfig from a TOML file (top-level study keys, a [fit] table) with command-line overrides."""
+    from dataclasses import asdict
+
+    from ..fit_study import StudyConfig
+
+    spec = {}
+    if path:
+        try:
+            spec = tomllib.loads(Path(path).read_text())
+        except (OSError, tomllib.TOMLDecodeError) as err:
+            raise ValueError(f"{path}: {err}") from None
+        spec.pop("demo", None)
+    base = asdict(StudyConfig())
+    base["fit"] = {**base["fit"], **spec.pop("fit", {})}
+    base.update(spec)
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if key == "relaxed":
+            base["fit"]["relaxed"] = True
+        elif key == "seed":
+            base["seed"] = base["fit"]["seed"] = value
+        else:
+            base[key] = value
+    return StudyConfig.from_dict(base, source=path or "<defaults>")
+
+
+def run(args) -> int:
+    from ..fit_search import use_all_cores
+
+    use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
+    from .evaluate import load_runs
+
+    try:
+        config = load_study_config(args.config, families=tuple(args.family) if args.family else None,
+                                   failure_penalty=args.failure_penalty, relaxed=args.relaxed or None,
+                                   seed=args.seed)  # fmt: skip
+        runs = load_runs(args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress)
+    except (ValueError, OSError) as err:
+        print(f"jsve fit: {err}", file=sys.stderr)
+        return 2
+    if not runs:
+        print(f"jsve fit: no valid logs in {args.logs}", file=sys.stderr)
+        return 2
+    from ..fit import FitData
+    from ..fit_study import run_study
+    from ..report import write_report
+
+    try:
+        data = FitData.from_runs(runs, config.objective())
+    except ValueError as err:
+        print(f"jsve fit: {err}", file=sys.stderr)
+        return 2
+    logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
+    run_study(data, args.output, config, progress=not args.no_progress,
+              data_description={"source": str(args.logs)})  # fmt: skip
+    if not args.no_report:
+        written = write_report(args.output)
+        print(f"jsve fit: report in {written['markdown']} and {written['html']}")
+    return 0

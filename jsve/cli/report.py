@@ -1,0 +1,32 @@
+"""`jsve report OUT`: render the threshold report (Markdown, self-contained HTML, figures) of a study folder.
+
+The folder is what `jsve fit` or `jsve demo` wrote; every number of the report comes from its tables.
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "report", help="render the threshold report of a `jsve fit` / `jsve demo` folder",
+        description="Write OUT/report.md, OUT/report.html (figures embedded) and OUT/figures/*.png from the "
+        "study's tables. Deterministic: the same tables give the same files.",
+    )  # fmt: skip
+    p.add_argument("output", metavar="OUT", help="study folder")
+    p.add_argument("--title", default="jsve threshold report")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..report import write_report
+
+    try:
+        written = write_report(args.output, title=args.title)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"jsve report: {err}", file=sys.stderr)
+        return 2
+    for name, path in written.items():
+        print(f"{name}: {path}")
+    return 0
