@@ -29,7 +29,7 @@ import numpy as np
 import optimistix as optx
 import pandas as pd
 
-from .batch import Bucket, LogBatch, buckets, iter_chunks
+from .batch import Bucket, LogBatch, bucket_by_length, from_runs, iter_chunks
 from .fit_params import ParamSpace
 from .fit_search import SearchBatch, SearchResult, design, prepare, search, search_chunk
 from .objective import ObjectiveConfig, run_losses
@@ -40,8 +40,10 @@ from .sve import FrameFeatures
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TEMPERATURES = (0.03, 0.01, 0.003, 0.001)
-"""Annealing schedule of the relaxed fit, in SVE units (x250 for inlier thresholds)."""
+DEFAULT_TEMPERATURES = (0.1, 0.03, 0.01, 0.003)
+"""Annealing schedule of the relaxed fit, in SVE units (x250 for inlier thresholds). It starts broad:
+at a temperature much below the distance of most scores from the thresholds every sigmoid saturates
+and the relaxed objective is flat (no gradient) far from the optimum."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -109,7 +111,17 @@ class FitData:
         missing = [r.source for r in runs if not r.has_ground_truth]
         if missing:
             raise ValueError(f"FitData.from_runs: {len(missing)} runs have no ground truth (first: {missing[0]})")
-        return cls.from_buckets(buckets(runs, max_padding=max_padding, dtype=dtype), config)
+        # jsve.batch groups by padding; groups that pad to the same length (e.g. equal-length runs) are
+        # merged here, since for fitting every extra shape is another compilation.
+        lengths = [len(r.frames) for r in runs]
+        groups: list[list[int]] = []
+        for group in bucket_by_length(lengths, max_padding=max_padding):
+            padded = _padded(max(lengths[i] for i in group))
+            if groups and _padded(max(lengths[i] for i in groups[-1])) == padded:
+                groups[-1].extend(int(i) for i in group)
+            else:
+                groups.append([int(i) for i in group])
+        return cls.from_buckets([from_runs([runs[i] for i in g], dtype=dtype) for g in groups], config)
 
     def split_weights(self, weights) -> list[jax.Array]:
         """Per-part weight arrays (padding runs 0) of [R] run weights."""
@@ -123,6 +135,11 @@ class FitData:
             out.append(jnp.asarray(chunk, part.t.dtype))
             start += n
         return out
+
+
+def _padded(n: int, multiple: int = 64) -> int:
+    """jsve.batch's padded length of a run of n frames."""
+    return max(multiple, -(-n // multiple) * multiple)
 
 
 def _default_weights(data: FitData, weights) -> np.ndarray:

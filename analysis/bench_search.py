@@ -1,0 +1,92 @@
+"""Throughput of the batched search (jsve.fit_search) in frame-settings per second.
+
+    python analysis/bench_search.py                      # all cores (one XLA CPU device per core)
+    python analysis/bench_search.py --devices 1          # one device
+    python analysis/bench_search.py --settings 4096 --output bench_search.json
+
+Simulates a study (procedural flights x the seed's settings, jsve.simulate), prepares it once, and times
+`jsve.fit_search.search` on Sobol designs of both rule families (inlier thresholds; SVE combination and
+thresholds). A frame-setting is one frame replayed under one setting, alignment statistics included.
+Reports wall-clock and per-CPU-second rates (the machine may be shared), after one warm-up call per
+shape (compilation is timed separately). For reference it also times the generic path, jsve.objective's
+run_losses (replay + trajectory alignment per run) vmapped over settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--devices", type=int, default=os.cpu_count(), help="XLA CPU devices (default: cores)")
+    parser.add_argument("--sequences", type=int, default=2)
+    parser.add_argument("--runs", type=int, default=1, help="runs per sequence and setting")
+    parser.add_argument("--duration", type=float, default=60.0, help="flight length, s")
+    parser.add_argument("--settings", type=int, default=2048, help="settings per family")
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--output", help="write the results as JSON here")
+    args = parser.parse_args(argv)
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                               f" --xla_force_host_platform_device_count={args.devices}").strip()  # fmt: skip
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jsve.fit import FitData
+    from jsve.fit_params import inlier_space, sve_space
+    from jsve.fit_search import search, sobol
+    from jsve.objective import run_losses
+    from jsve.simulate import SimConfig, simulate_study
+    from jsve.simulate_motion import FlightProfile
+
+    t0 = time.perf_counter()
+    runs = simulate_study(procedural=args.sequences, runs=args.runs, disturbances="seed", seed=0,
+                          config=SimConfig(flight=FlightProfile(duration_s=(args.duration, args.duration))))  # fmt: skip
+    data = FitData.from_runs(runs)
+    frames = data.n_frames
+    print(f"{len(runs)} runs, {frames} frames (simulated and prepared in {time.perf_counter() - t0:.1f} s); "
+          f"{len(jax.local_devices())} XLA CPU device(s), {os.cpu_count()} cores", flush=True)  # fmt: skip
+    results = {"runs": len(runs), "frames": frames, "devices": len(jax.local_devices()), "cores": os.cpu_count(),
+               "families": {}}  # fmt: skip
+    for space in (inlier_space(), sve_space()):
+        values = np.asarray(space.values_from_unit(sobol(args.settings, space.dim, seed=1)))
+        t = time.perf_counter()
+        search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
+        first = time.perf_counter() - t
+        walls, cpus = [], []
+        for _ in range(args.repeats):
+            t, c = time.perf_counter(), time.process_time()
+            search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
+            walls.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
+        wall, cpu = min(walls), min(cpus)
+        work = args.settings * frames
+        row = {"settings": args.settings, "frame_settings": work, "first_call_s": first, "wall_s": wall,
+               "cpu_s": cpu, "per_s": work / wall, "per_cpu_s": work / cpu}  # fmt: skip
+        # the generic path: replay + alignment per run, vmapped over a few settings
+        few = 16
+        rules = space.rule(jnp.asarray(values[:few], jnp.float32))
+        fn = jax.jit(jax.vmap(lambda r, b=data.batches[0], f=data.features[0]: run_losses(b, r, f).loss))
+        jax.block_until_ready(fn(rules))
+        t = time.perf_counter()
+        jax.block_until_ready(fn(rules))
+        generic = few * float(np.sum(np.asarray(data.batches[0].valid))) / (time.perf_counter() - t)
+        row["generic_per_s"] = generic
+        results["families"][space.kind] = row
+        print(f"{space.kind:8s} {args.settings} settings x {frames} frames: {wall:.2f} s wall, {cpu:.2f} s CPU -> "
+              f"{row['per_s']:.3g} frame-settings/s ({row['per_cpu_s']:.3g} per CPU-second); first call "
+              f"{first:.1f} s; generic replay + alignment path {generic:.3g}/s", flush=True)  # fmt: skip
+    if args.output:
+        with open(args.output, "w") as f:
+            json.dump(results, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
