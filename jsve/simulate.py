@@ -22,7 +22,6 @@ its calibration against real frames and its limits.
 from __future__ import annotations
 
 import concurrent.futures
-import dataclasses
 import functools
 import logging
 import math
@@ -40,11 +39,12 @@ import pandas as pd
 from . import schema
 from .schema import RunLog
 from .simulate_motion import (
-    GRAVITY,
     EUROC_CAM0_T_BS,
+    GRAVITY,
     FlightProfile,
     ImuNoise,
     Trajectory,
+    euroc_file_stem,
     frame_bias_estimate,
     frame_substeps,
     gauss_markov,
@@ -53,11 +53,9 @@ from .simulate_motion import (
     procedural_trajectory,
     quat_exp,
     quat_mul,
-    quat_rotate,
     quat_to_matrix,
     read_imu_stream,
     synthesize_imu,
-    euroc_file_stem,
 )
 from .simulate_vision import (
     EUROC_CAM0,
@@ -253,8 +251,11 @@ def euroc_sequences(names: Sequence[str], euroc_gt: str | os.PathLike) -> list[S
         if not (gt / f"{stem}_GT.txt").is_file():
             raise FileNotFoundError(f"{gt / f'{stem}_GT.txt'}: no ground truth for sequence {name}")
         canonical = next(k for k, v in _EUROC_NAMES.items() if v == stem)
-        out.append(SequenceSpec(canonical, str(gt), str(ts) if ts.is_dir() else None,
-                                str(imu) if imu.is_dir() else None))  # fmt: skip
+        out.append(
+            SequenceSpec(
+                canonical, str(gt), str(ts) if ts.is_dir() else None, str(imu) if imu.is_dir() else None
+            )
+        )
     return out
 
 
@@ -332,10 +333,21 @@ def make_recording(spec: SequenceSpec, seed: int = 0, config: SimConfig = SimCon
     scene = make_scene(np.random.default_rng(_key(seed, "scene", spec.name)), t, omega, config.scene)
     travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     return Recording(
-        spec=spec, trajectory=trajectory, frame_ns=trajectory.frame_ns, t=t, p=p, q=q, v=v, omega=omega,
-        r_wc=r_wc, preint_zero=preintegrate(steps, np.zeros(3), np.zeros(3)), preint_est=preintegrate(steps, bg, ba),
-        scene=scene, travelled=travelled, imu_source=imu.source,
-    )  # fmt: skip
+        spec=spec,
+        trajectory=trajectory,
+        frame_ns=trajectory.frame_ns,
+        t=t,
+        p=p,
+        q=q,
+        v=v,
+        omega=omega,
+        r_wc=r_wc,
+        preint_zero=preintegrate(steps, np.zeros(3), np.zeros(3)),
+        preint_est=preintegrate(steps, bg, ba),
+        scene=scene,
+        travelled=travelled,
+        imu_source=imu.source,
+    )
 
 
 @functools.lru_cache(maxsize=4)
@@ -370,14 +382,17 @@ def _unit_information(recording: Recording, counts: Counts, tracking: TrackingPa
     depth = recording.scene.depth
     inv_z = 1.0 / depth
     inv_z2 = (1.0 + tracking.depth_spread**2) / depth**2
-    blocks = np.concatenate([geo.info_t.reshape(64, 36), geo.info_m.reshape(64, 36), geo.info_r.reshape(64, 36)], 1)
+    blocks = np.concatenate(
+        [geo.info_t.reshape(64, 36), geo.info_m.reshape(64, 36), geo.info_r.reshape(64, 36)], 1
+    )
     per_frame = counts.bins.astype(float) @ blocks  # [F, 108]
     info = per_frame[:, :36] * inv_z2[:, None] + per_frame[:, 36:72] * inv_z[:, None] + per_frame[:, 72:]
     return info.reshape(-1, 6, 6) * ((EUROC_CAM0.fx / counts.sigma_loc) ** 2)[:, None, None]
 
 
-def _draw_run(recording: Recording, counts: Counts, unit_info: np.ndarray, rng: np.random.Generator,
-              config: SimConfig) -> dict:
+def _draw_run(
+    recording: Recording, counts: Counts, unit_info: np.ndarray, rng: np.random.Generator, config: SimConfig
+) -> dict:
     """Per-frame columns of one run (everything that varies between runs of one setting)."""
     tr = config.tracking
     F = recording.n_frames
@@ -401,7 +416,9 @@ def _draw_run(recording: Recording, counts: Counts, unit_info: np.ndarray, rng: 
     chol = np.linalg.cholesky(0.5 * (cov + np.swapaxes(cov, 1, 2)))
     xi = np.einsum("fij,fj->fi", chol, rng.normal(size=(F, 6)))
     r_wc = recording.r_wc
-    jitter = np.concatenate([np.einsum("fij,fj->fi", r_wc, xi[:, :3]), np.einsum("fij,fj->fi", r_wc, xi[:, 3:])], 1)
+    jitter = np.concatenate(
+        [np.einsum("fij,fj->fi", r_wc, xi[:, :3]), np.einsum("fij,fj->fi", r_wc, xi[:, 3:])], 1
+    )
     step = np.diff(recording.travelled, prepend=0.0)
     drift_inc = np.zeros((F, 6))
     drift_inc[:, :3] = rng.normal(size=(F, 3)) * (tr.drift_per_sqrt_m * np.sqrt(step))[:, None]
@@ -424,7 +441,9 @@ def _draw_run(recording: Recording, counts: Counts, unit_info: np.ndarray, rng: 
     vis_q = vis_q / np.linalg.norm(vis_q, axis=1, keepdims=True)
     vis_v = recording.v + vel_err
     t_init = rng.uniform(*tr.imu_init_s)
-    return dict(n_inliers=n_inliers, n_frustum=n_frustum, vis_p=vis_p, vis_q=vis_q, vis_v=vis_v, t_init=t_init)
+    return dict(
+        n_inliers=n_inliers, n_frustum=n_frustum, vis_p=vis_p, vis_q=vis_q, vis_v=vis_v, t_init=t_init
+    )
 
 
 def _orbslam3_states(n_inliers: np.ndarray, t: np.ndarray, imu_init: np.ndarray, fps: float) -> np.ndarray:
@@ -442,9 +461,19 @@ def _orbslam3_states(n_inliers: np.ndarray, t: np.ndarray, imu_init: np.ndarray,
     tt = np.pad(t.astype(np.float32), (0, pad), mode="edge")
     init = np.pad(imu_init.astype(np.float32), ((0, 0), (0, pad)), mode="edge")
     delay = np.array([t[np.argmax(i)] if i.any() else np.inf for i in imu_init], np.float32)
-    modes = np.asarray(_machine_modes(jnp.asarray(score), jnp.asarray(tt), jnp.asarray(init),
-                                      jnp.float32(fps), jnp.asarray(delay), preset("orbslam3").thresholds))[:, :F]  # fmt: skip
-    state = np.where(modes == 0, schema.STATE_OK, np.where(modes == 1, schema.STATE_RECENTLY_LOST, schema.STATE_LOST))
+    modes = np.asarray(
+        _machine_modes(
+            jnp.asarray(score),
+            jnp.asarray(tt),
+            jnp.asarray(init),
+            jnp.float32(fps),
+            jnp.asarray(delay),
+            preset("orbslam3").thresholds,
+        )
+    )[:, :F]
+    state = np.where(
+        modes == 0, schema.STATE_OK, np.where(modes == 1, schema.STATE_RECENTLY_LOST, schema.STATE_LOST)
+    )
     was_lost = np.concatenate([np.zeros((R, 1), bool), modes[:, :-1] == MODE_LOST], axis=1)
     state = np.where((modes == MODE_LOST) & was_lost, schema.STATE_NOT_INITIALIZED, state)
     return state.astype(np.int64)
@@ -482,8 +511,13 @@ def _round(x: np.ndarray, decimals: int) -> np.ndarray:
     return np.round(x, decimals)
 
 
-def simulate_setting(recording: Recording, setting: Setting, runs: Sequence[int], seed: int = 0,
-                     config: SimConfig = SimConfig()) -> list[RunLog]:
+def simulate_setting(
+    recording: Recording,
+    setting: Setting,
+    runs: Sequence[int],
+    seed: int = 0,
+    config: SimConfig = SimConfig(),
+) -> list[RunLog]:
     """All runs of one (sequence, setting): extraction once, then each run's tracking draws."""
     deg = degradation(setting.disturbance, setting.level, config.vision, seed=seed)
     counts = extract(recording.scene, deg, config.vision, n_features=config.n_features)
@@ -491,10 +525,17 @@ def simulate_setting(recording: Recording, setting: Setting, runs: Sequence[int]
     fps = float(round(1e9 / np.median(np.diff(recording.frame_ns)), 6)) if F > 1 else 20.0
     unit_info = _unit_information(recording, counts, config.tracking)
     draws = [
-        _draw_run(recording, counts, unit_info, np.random.default_rng(
-            _key(seed, "run", recording.spec.name, setting.disturbance, float(setting.level), int(r))), config)
+        _draw_run(
+            recording,
+            counts,
+            unit_info,
+            np.random.default_rng(
+                _key(seed, "run", recording.spec.name, setting.disturbance, float(setting.level), int(r))
+            ),
+            config,
+        )
         for r in runs
-    ]  # fmt: skip
+    ]
     imu_init = np.stack([recording.t >= d["t_init"] for d in draws])
     states = _orbslam3_states(np.stack([d["n_inliers"] for d in draws]), recording.t, imu_init, fps)
     out = []
@@ -505,9 +546,13 @@ def simulate_setting(recording: Recording, setting: Setting, runs: Sequence[int]
         # The interval ending at frame k is corrected with the biases held at frame k - 1.
         ready = np.concatenate([[False], imu_init[i, :-1]])[:, None]
         columns = {
-            "t_ns": recording.frame_ns, "state": states[i], "imu_init": imu_init[i].astype(np.int64),
-            "n_extracted": counts.n_extracted, "n_inliers": d["n_inliers"], "n_frustum": d["n_frustum"],
-        }  # fmt: skip
+            "t_ns": recording.frame_ns,
+            "state": states[i],
+            "imu_init": imu_init[i].astype(np.int64),
+            "n_extracted": counts.n_extracted,
+            "n_inliers": d["n_inliers"],
+            "n_frustum": d["n_frustum"],
+        }
         columns.update({c: bins[:, k] for k, c in enumerate(schema.BIN_COLUMNS)})
         columns.update(_split(schema.VIS_POSITION, _round(d["vis_p"], 6)))
         columns.update(_split(schema.VIS_QUATERNION, _round(d["vis_q"], 9)))
@@ -520,13 +565,24 @@ def simulate_setting(recording: Recording, setting: Setting, runs: Sequence[int]
         columns.update(_split(schema.GT_QUATERNION, _round(recording.q, 9)))
         frames = pd.DataFrame(columns, columns=list(schema.COLUMNS))
         meta = {
-            "sequence": recording.spec.name, "disturbance": setting.disturbance, "level": _meta_level(setting.level),
-            "run": int(r), "sensor": "imu_monocular", "n_features": config.n_features,
-            "image_size": [EUROC_CAM0.width, EUROC_CAM0.height], "grid": [8, 8], "fps": fps,
-            "gravity": [float(g) for g in GRAVITY], "frontend": FRONTEND, "seed": int(seed),
-            "trajectory": recording.trajectory.source, "imu": recording.imu_source,
-        }  # fmt: skip
-        out.append(RunLog(meta=meta, frames=frames, source=f"<simulated {recording.spec.name}/{setting.label}/{r}>"))
+            "sequence": recording.spec.name,
+            "disturbance": setting.disturbance,
+            "level": _meta_level(setting.level),
+            "run": int(r),
+            "sensor": "imu_monocular",
+            "n_features": config.n_features,
+            "image_size": [EUROC_CAM0.width, EUROC_CAM0.height],
+            "grid": [8, 8],
+            "fps": fps,
+            "gravity": [float(g) for g in GRAVITY],
+            "frontend": FRONTEND,
+            "seed": int(seed),
+            "trajectory": recording.trajectory.source,
+            "imu": recording.imu_source,
+        }
+        out.append(
+            RunLog(meta=meta, frames=frames, source=f"<simulated {recording.spec.name}/{setting.label}/{r}>")
+        )
     return out
 
 
@@ -543,21 +599,35 @@ def _split(names: Sequence[str], values: np.ndarray) -> dict:
 
 
 def _as_specs(sequences, euroc_gt, procedural) -> list[SequenceSpec]:
-    if sequences is not None and not isinstance(sequences, str) and sequences and isinstance(sequences[0], SequenceSpec):
+    if (
+        sequences is not None
+        and not isinstance(sequences, str)
+        and sequences
+        and isinstance(sequences[0], SequenceSpec)
+    ):
         return list(sequences)
     if isinstance(sequences, str):
         sequences = [s.strip() for s in sequences.split(",") if s.strip()]
     if sequences:
         if euroc_gt is None:
-            raise ValueError("EuRoC sequences need euroc_gt (the folder of ORB-SLAM3's *_GT.txt files); "
-                             "without it use procedural=N")  # fmt: skip
+            raise ValueError(
+                "EuRoC sequences need euroc_gt (the folder of ORB-SLAM3's *_GT.txt files); "
+                "without it use procedural=N"
+            )
         return euroc_sequences(sequences, euroc_gt)
     return procedural_sequences(11 if procedural is None else int(procedural))
 
 
-def simulate_run(sequence: str | SequenceSpec = "proc_00", disturbance: str = "none", level: float = 0.0,
-                 run: int = 0, *, seed: int = 0, euroc_gt: str | os.PathLike | None = None,
-                 config: SimConfig = SimConfig()) -> RunLog:
+def simulate_run(
+    sequence: str | SequenceSpec = "proc_00",
+    disturbance: str = "none",
+    level: float = 0.0,
+    run: int = 0,
+    *,
+    seed: int = 0,
+    euroc_gt: str | os.PathLike | None = None,
+    config: SimConfig = SimConfig(),
+) -> RunLog:
     """Simulate one run's tracking log.
 
     Arguments:
@@ -568,16 +638,26 @@ def simulate_run(sequence: str | SequenceSpec = "proc_00", disturbance: str = "n
     Returns:
         A RunLog (validated by jsve.logs when written or read).
     """
-    spec = sequence if isinstance(sequence, SequenceSpec) else (
-        euroc_sequences([sequence], euroc_gt)[0] if euroc_gt is not None else SequenceSpec(sequence))  # fmt: skip
+    spec = (
+        sequence
+        if isinstance(sequence, SequenceSpec)
+        else (euroc_sequences([sequence], euroc_gt)[0] if euroc_gt is not None else SequenceSpec(sequence))
+    )
     recording = _cached_recording(spec, seed, config)
     return simulate_setting(recording, Setting(disturbance, float(level)), [run], seed, config)[0]
 
 
-def simulate_study(sequences: Sequence[str] | str | None = None, *, procedural: int | None = None,
-                   euroc_gt: str | os.PathLike | None = None, disturbances: str | Iterable[str] = "seed",
-                   runs: int | Sequence[int] = 10, seed: int = 0, config: SimConfig = SimConfig(),
-                   progress: bool = False) -> list[RunLog]:
+def simulate_study(
+    sequences: Sequence[str] | str | None = None,
+    *,
+    procedural: int | None = None,
+    euroc_gt: str | os.PathLike | None = None,
+    disturbances: str | Iterable[str] = "seed",
+    runs: int | Sequence[int] = 10,
+    seed: int = 0,
+    config: SimConfig = SimConfig(),
+    progress: bool = False,
+) -> list[RunLog]:
     """Simulate a study in memory: every sequence x setting x run, as RunLogs.
 
     Arguments:
@@ -663,11 +743,20 @@ def _init_worker() -> None:
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 
-def write_study(out_dir: str | os.PathLike, sequences: Sequence[str] | str | None = None, *,
-                procedural: int | None = None, euroc_gt: str | os.PathLike | None = None,
-                disturbances: str | Iterable[str] = "seed", runs: int | Sequence[int] = 10, seed: int = 0,
-                workers: int | None = None, config: SimConfig = SimConfig(), progress: bool = True,
-                parquet: bool = False) -> StudyResult:
+def write_study(
+    out_dir: str | os.PathLike,
+    sequences: Sequence[str] | str | None = None,
+    *,
+    procedural: int | None = None,
+    euroc_gt: str | os.PathLike | None = None,
+    disturbances: str | Iterable[str] = "seed",
+    runs: int | Sequence[int] = 10,
+    seed: int = 0,
+    workers: int | None = None,
+    config: SimConfig = SimConfig(),
+    progress: bool = True,
+    parquet: bool = False,
+) -> StudyResult:
     """Simulate a study and write one format-v1 log per run under out_dir (see log_path).
 
     Resumable: logs already complete are skipped (a re-run after an interruption finishes the rest;
@@ -704,7 +793,9 @@ def write_study(out_dir: str | os.PathLike, sequences: Sequence[str] | str | Non
         else:
             # Contiguous blocks of jobs per process: a process meets few sequences (cached recordings).
             context = multiprocessing.get_context("spawn")
-            with concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker) as pool:
+            with concurrent.futures.ProcessPoolExecutor(
+                workers, mp_context=context, initializer=_init_worker
+            ) as pool:
                 futures = [pool.submit(_run_job, job) for job in jobs]
                 outcomes = []
                 for future in concurrent.futures.as_completed(futures):
@@ -725,7 +816,22 @@ def write_study(out_dir: str | os.PathLike, sequences: Sequence[str] | str | Non
 
 
 __all__ = [
-    "FRONTEND", "GRIDS", "EXTRA_GRIDS", "Setting", "settings", "TrackingParams", "SimConfig", "SequenceSpec",
-    "procedural_sequences", "euroc_sequences", "Recording", "make_recording", "simulate_setting", "simulate_run",
-    "simulate_study", "write_study", "log_path", "StudyResult",
-]  # fmt: skip
+    "FRONTEND",
+    "GRIDS",
+    "EXTRA_GRIDS",
+    "Setting",
+    "settings",
+    "TrackingParams",
+    "SimConfig",
+    "SequenceSpec",
+    "procedural_sequences",
+    "euroc_sequences",
+    "Recording",
+    "make_recording",
+    "simulate_setting",
+    "simulate_run",
+    "simulate_study",
+    "write_study",
+    "log_path",
+    "StudyResult",
+]

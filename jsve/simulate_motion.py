@@ -98,15 +98,18 @@ def matrix_to_quat(m: np.ndarray) -> np.ndarray:
     """Unit quaternion (w >= 0) of rotation matrices; Shepperd's method (as jsve.geometry)."""
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     trace = m00 + m11 + m22
+    s01, d01 = m[..., 0, 1] + m[..., 1, 0], m[..., 1, 0] - m[..., 0, 1]
+    s02, d02 = m[..., 0, 2] + m[..., 2, 0], m[..., 0, 2] - m[..., 2, 0]
+    s12, d12 = m[..., 1, 2] + m[..., 2, 1], m[..., 2, 1] - m[..., 1, 2]
     cands = np.stack(
         [
-            np.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]], -1),
-            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22], -1),
+            np.stack([1 + trace, d12, d02, d01], -1),
+            np.stack([d12, 1 + m00 - m11 - m22, s01, s02], -1),
+            np.stack([d02, s01, 1 - m00 + m11 - m22, s12], -1),
+            np.stack([d01, s02, s12, 1 - m00 - m11 + m22], -1),
         ],
         axis=-2,
-    )  # fmt: skip
+    )
     lead = np.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
     best = np.argmax(lead, axis=-1)
     q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
@@ -164,7 +167,9 @@ def skew(v: np.ndarray) -> np.ndarray:
 def _bspline_weights(u: np.ndarray, order: int) -> np.ndarray:
     """Weights of the 4 control points of a uniform cubic B-spline segment at u in [0, 1): [N, 4]."""
     if order == 0:
-        return np.stack([(1 - u) ** 3, 3 * u**3 - 6 * u**2 + 4, -3 * u**3 + 3 * u**2 + 3 * u + 1, u**3], -1) / 6
+        return (
+            np.stack([(1 - u) ** 3, 3 * u**3 - 6 * u**2 + 4, -3 * u**3 + 3 * u**2 + 3 * u + 1, u**3], -1) / 6
+        )
     if order == 1:
         return np.stack([-((1 - u) ** 2), 3 * u**2 - 4 * u, -3 * u**2 + 2 * u + 1, u**2], -1) / 2
     if order == 2:
@@ -292,8 +297,15 @@ def _continuous_sign(q: np.ndarray) -> np.ndarray:
 
 
 def trajectory_from_poses(
-    name: str, t_ns: np.ndarray, p: np.ndarray, q: np.ndarray, *, frame_ns: np.ndarray | None = None,
-    knot_s: float = 0.1, smooth: float = 1e-3, source: str = "<memory>",
+    name: str,
+    t_ns: np.ndarray,
+    p: np.ndarray,
+    q: np.ndarray,
+    *,
+    frame_ns: np.ndarray | None = None,
+    knot_s: float = 0.1,
+    smooth: float = 1e-3,
+    source: str = "<memory>",
 ) -> Trajectory:
     """Fit smooth splines to sampled body poses.
 
@@ -359,8 +371,13 @@ def euroc_file_stem(sequence: str) -> str:
 
 
 def load_euroc_trajectory(
-    sequence: str, gt_dir: str | os.PathLike, *, timestamps_dir: str | os.PathLike | None = None,
-    t_bs: np.ndarray = EUROC_CAM0_T_BS, knot_s: float = 0.1, smooth: float = 1e-3,
+    sequence: str,
+    gt_dir: str | os.PathLike,
+    *,
+    timestamps_dir: str | os.PathLike | None = None,
+    t_bs: np.ndarray = EUROC_CAM0_T_BS,
+    knot_s: float = 0.1,
+    smooth: float = 1e-3,
 ) -> Trajectory:
     """A EuRoC sequence from ORB-SLAM3's left-camera ground truth (`<gt_dir>/MH01_GT.txt`, ...).
 
@@ -391,7 +408,9 @@ def load_euroc_trajectory(
         if stamps_path.is_file():
             stamps = np.loadtxt(stamps_path, dtype=np.int64, ndmin=1)
             frame_ns = t_ns[np.isin(t_ns, stamps)]
-    name = sequence if sequence in EUROC_SEQUENCES else next(k for k, v in EUROC_SEQUENCES.items() if v == stem)
+    name = (
+        sequence if sequence in EUROC_SEQUENCES else next(k for k, v in EUROC_SEQUENCES.items() if v == stem)
+    )
     return trajectory_from_poses(name, t_ns, p_wb, q_wb, frame_ns=frame_ns, knot_s=knot_s, smooth=smooth,
                                  source=str(path))  # fmt: skip
 
@@ -404,13 +423,15 @@ class FlightProfile:
         duration_s: flight length range, s. mean_speed: target mean speed range, m/s.
         room: half extents of the flight volume, m (x, y, z). fps: frame rate.
         yaw_rate: typical yaw rate scale, rad/s. camera_pitch_deg: camera tilt below the horizon.
+        periods_s: range of the periods of the path's sinusoids, s.
     """
 
     duration_s: tuple[float, float] = (80.0, 180.0)
     mean_speed: tuple[float, float] = (0.3, 1.0)
     room: tuple[float, float, float] = (4.0, 4.0, 1.0)
     fps: float = 20.0
-    yaw_rate: float = 0.35
+    yaw_rate: float = 0.6
+    periods_s: tuple[float, float] = (2.0, 60.0)
     camera_pitch_deg: tuple[float, float] = (5.0, 30.0)
 
 
@@ -418,7 +439,9 @@ PROCEDURAL_T0_NS = 1_600_000_000_000_000_000
 """Start stamp of procedural flights (an arbitrary epoch in 2020, far from EuRoC's 2014 stamps)."""
 
 
-def procedural_trajectory(name: str, rng: np.random.Generator, profile: FlightProfile = FlightProfile()) -> Trajectory:
+def procedural_trajectory(
+    name: str, rng: np.random.Generator, profile: FlightProfile = FlightProfile()
+) -> Trajectory:
     """An EuRoC-like flight: smooth 3D path in a room, quadrotor attitude, frames at profile.fps.
 
     The path is a sum of random sinusoids per axis (periods 10 to 60 s) scaled to fill the room and
@@ -428,12 +451,15 @@ def procedural_trajectory(name: str, rng: np.random.Generator, profile: FlightPr
     """
     duration = rng.uniform(*profile.duration_s)
     target_speed = rng.uniform(*profile.mean_speed)
-    n_terms = 4
+    n_terms = 6
     fine_dt = 0.01
     t_fine = np.arange(0.0, duration + 2 * fine_dt, fine_dt)
-    freq = rng.uniform(1 / 60, 1 / 10, size=(3, n_terms))
+    # Periods log-uniform in profile.periods_s; amplitudes in proportion to the period, so that slow
+    # terms carry the MAV across the room and fast ones make its manoeuvres and wobble.
+    period = np.exp(rng.uniform(*np.log(profile.periods_s), size=(3, n_terms)))
+    freq = 1.0 / period
     phase = rng.uniform(0, 2 * np.pi, size=(3, n_terms))
-    amp = rng.uniform(0.5, 1.0, size=(3, n_terms))
+    amp = rng.uniform(0.5, 1.0, size=(3, n_terms)) * period
     amp /= amp.sum(axis=1, keepdims=True)
     amp *= np.asarray(profile.room)[:, None]
 
@@ -451,10 +477,12 @@ def procedural_trajectory(name: str, rng: np.random.Generator, profile: FlightPr
     p[:, 2] += profile.room[2] + 0.5  # fly above the floor
     a = path(scale, 2)
     # Heading: slow random yaw (sum of sinusoids) around the direction of travel's mean.
-    yaw_freq = rng.uniform(1 / 40, 1 / 8, size=3)
+    yaw_freq = rng.uniform(1 / 40, 1 / 4, size=3)
     yaw_phase = rng.uniform(0, 2 * np.pi, size=3)
     yaw_amp = profile.yaw_rate / (2 * np.pi * yaw_freq) / 3
-    yaw = rng.uniform(-np.pi, np.pi) + np.sum(yaw_amp * np.sin(2 * np.pi * yaw_freq * t_fine[:, None] + yaw_phase), 1)
+    yaw = rng.uniform(-np.pi, np.pi) + np.sum(
+        yaw_amp * np.sin(2 * np.pi * yaw_freq * t_fine[:, None] + yaw_phase), 1
+    )
     up = a - GRAVITY  # thrust direction
     up /= np.linalg.norm(up, axis=1, keepdims=True)
     forward = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], 1)
@@ -534,7 +562,9 @@ class ImuNoise:
         return cls(gyro_gm=0.0, accel_gm=0.0)
 
 
-def gauss_markov(rng: np.random.Generator, t: np.ndarray, sigma: float, tau: float, dim: int = 3) -> np.ndarray:
+def gauss_markov(
+    rng: np.random.Generator, t: np.ndarray, sigma: float, tau: float, dim: int = 3
+) -> np.ndarray:
     """A stationary first-order Gauss-Markov (Ornstein-Uhlenbeck) process sampled at times t (s).
 
     x_i = a_i x_(i-1) + sigma sqrt(1 - a_i^2) n_i with a_i = exp(-(t_i - t_(i-1)) / tau): exact for any
@@ -578,8 +608,11 @@ def imu_sample_times(frame_ns: np.ndarray, rate_hz: float = IMU_RATE_HZ) -> np.n
 
 
 def synthesize_imu(
-    trajectory: Trajectory, rng: np.random.Generator, noise: ImuNoise | None = ImuNoise(),
-    rate_hz: float = IMU_RATE_HZ, gravity: np.ndarray = GRAVITY,
+    trajectory: Trajectory,
+    rng: np.random.Generator,
+    noise: ImuNoise | None = ImuNoise(),
+    rate_hz: float = IMU_RATE_HZ,
+    gravity: np.ndarray = GRAVITY,
 ) -> ImuStream:
     """Gyro and accelerometer samples of the trajectory under the ImuNoise model.
 
@@ -697,8 +730,9 @@ def preintegrate(steps: Substeps, bias_gyro: np.ndarray, bias_accel: np.ndarray)
     return steps.dt.sum(axis=1), dp, dv, dq
 
 
-def trailing_bias(imu: ImuStream, trajectory: Trajectory, window_s: float = 10.0,
-                  gravity: np.ndarray = GRAVITY) -> tuple[np.ndarray, np.ndarray]:
+def trailing_bias(
+    imu: ImuStream, trajectory: Trajectory, window_s: float = 10.0, gravity: np.ndarray = GRAVITY
+) -> tuple[np.ndarray, np.ndarray]:
     """The biases a sliding-window estimator with perfect motion knowledge would hold at each sample.
 
     Mean of (measurement - ideal reading) over the trailing window [t - window_s, t] (the first
@@ -726,8 +760,9 @@ def trailing_bias(imu: ImuStream, trajectory: Trajectory, window_s: float = 10.0
     return (csum_g[hi] - csum_g[lo]) / n, (csum_a[hi] - csum_a[lo]) / n
 
 
-def frame_bias_estimate(imu: ImuStream, trajectory: Trajectory, *, window_s: float = 10.0,
-                        t_init_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def frame_bias_estimate(
+    imu: ImuStream, trajectory: Trajectory, *, window_s: float = 10.0, t_init_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """The bias estimate each frame's preintegration is corrected with, [F, 3] gyro and accel.
 
     ORB-SLAM3 preintegrates the interval ending at frame k with the estimate held at frame k - 1;
@@ -751,8 +786,13 @@ def imu_predict(p, v, q, dt, dp, dv, dq, gravity=GRAVITY):
 
 
 def dead_reckoning_drift(
-    trajectory: Trajectory, preintegration: tuple[np.ndarray, ...], *, horizons_s=(1.0, 2.0, 5.0),
-    start_every_s: float = 1.0, skip_s: float = 10.0, gravity: np.ndarray = GRAVITY,
+    trajectory: Trajectory,
+    preintegration: tuple[np.ndarray, ...],
+    *,
+    horizons_s=(1.0, 2.0, 5.0),
+    start_every_s: float = 1.0,
+    skip_s: float = 10.0,
+    gravity: np.ndarray = GRAVITY,
 ) -> dict[float, np.ndarray]:
     """Position error of IMU-only prediction from the true state, per start and horizon.
 

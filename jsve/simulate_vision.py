@@ -111,7 +111,8 @@ class BinGeometry:
         return len(self.pixel_bin)
 
     def occluded_share(self, side_px: float, camera: CameraModel = EUROC_CAM0) -> np.ndarray:
-        """[64] fraction of each bin's area hidden by a centred black square of side_px (jsve.disturb.occlusion)."""
+        """[64] share of each bin's area hidden by a centred black square of side_px px (as
+        jsve.disturb.occlusion draws it)."""
         if side_px <= 0:
             return np.zeros(64)
         n = int(side_px)
@@ -128,8 +129,12 @@ class BinGeometry:
         x0 = np.clip(np.floor(gx).astype(int), 0, w - 2)
         y0 = np.clip(np.floor(gy).astype(int), 0, h - 2)
         fx, fy = gx - x0, gy - y0
-        v = (values[y0, x0] * (1 - fx) * (1 - fy) + values[y0, x0 + 1] * fx * (1 - fy)
-             + values[y0 + 1, x0] * (1 - fx) * fy + values[y0 + 1, x0 + 1] * fx * fy)  # fmt: skip
+        v = (
+            values[y0, x0] * (1 - fx) * (1 - fy)
+            + values[y0, x0 + 1] * fx * (1 - fy)
+            + values[y0 + 1, x0] * (1 - fx) * fy
+            + values[y0 + 1, x0 + 1] * fx * fy
+        )
         ok = self.pixel_bin >= 0
         total = np.bincount(self.pixel_bin[ok], weights=v[ok], minlength=64)
         count = np.bincount(self.pixel_bin[ok], minlength=64)
@@ -179,7 +184,9 @@ def bin_geometry(camera: CameraModel = EUROC_CAM0, stride: int = 2) -> BinGeomet
     means = {}
     for key, value in blocks.items():
         flat = value.reshape(len(xy), -1)[inside]
-        sums = np.stack([np.bincount(pixel_bin[inside], weights=flat[:, j], minlength=64) for j in range(9)], 1)
+        sums = np.stack(
+            [np.bincount(pixel_bin[inside], weights=flat[:, j], minlength=64) for j in range(9)], 1
+        )
         means[key] = (sums / count[:, None]).reshape(64, 3, 3)
 
     def embed(tt, tr, rr):
@@ -213,8 +220,9 @@ class VisionParams:
         fine_wavelength, coarse_wavelength: px, wavelengths of the two scales of texture that make
             corners: fine grain (carpet, concrete) and coarse structure (furniture, panels, edges);
             ORB-SLAM3's 8-level pyramid finds each at the level whose FAST circle matches it.
-        fine_wavelength_sigma: log spread of the fine grain's wavelength over the image (its own
-            spatial pattern): regions of very fine grain lose their corners to the slightest blur.
+        fine_wavelength_sigma: log spread of the fine grain's median wavelength over the image (its
+            own spatial pattern): regions of very fine grain lose their corners to the slightest blur.
+        fine_wavelength_spread: log spread of the wavelengths mixed within one region.
         coarse_fraction, coarse_sigma: candidates of the coarse structure relative to the fine grain,
             and the log spread of their density over the image (an independent spatial pattern).
         texture_sigma: spread (log) of the fine texture's density between image regions.
@@ -238,28 +246,29 @@ class VisionParams:
         loc_noise: DN of noise-to-contrast at which the localisation error grows by sqrt 2.
     """
 
-    candidates: float = 17957.8358
-    contrast_mu: float = 2.2209
-    contrast_sigma: float = 0.2246
-    fine_wavelength: float = 10.7751
-    coarse_wavelength: float = 24.0699
-    fine_wavelength_sigma: float = 0.4613
-    coarse_fraction: float = 0.0066
-    coarse_sigma: float = 1.7751
-    texture_sigma: float = 1.6485
-    contrast_coupling: float = -0.2615
-    blank_z: float = -0.0949
+    candidates: float = 27983.7901
+    contrast_mu: float = 0.0869
+    contrast_sigma: float = 0.2427
+    fine_wavelength: float = 14.9736
+    coarse_wavelength: float = 49.5335
+    fine_wavelength_sigma: float = 0.1072
+    fine_wavelength_spread: float = 0.6816
+    coarse_fraction: float = 0.005
+    coarse_sigma: float = 2.4994
+    texture_sigma: float = 2.4358
+    contrast_coupling: float = -0.057
+    blank_z: float = 0.0185
     blank_density: float = 0.01
     motion_blur_alpha: float = 0.05
-    natural_noise: float = 3.1114
-    match_max: float = 0.7473
-    match_noise: float = 31.5365
-    match_gamma: float = 2.6498
+    natural_noise: float = 2.9487
+    match_max: float = 0.7448
+    match_noise: float = 28.3106
+    match_gamma: float = 2.2283
     streak_match: float = 60.0
-    noise_corners: float = 1093.0528
+    noise_corners: float = 1389.7604
     map_fraction: float = 0.46
     loc_floor: float = 0.5
-    loc_per_blur: float = 0.45
+    loc_per_blur: float = 0.35
     loc_noise: float = 20.0
 
 
@@ -308,8 +317,13 @@ def gaussian_blur_sigma(n: float) -> float:
     return 0.3 * ((k - 1) * 0.5 - 1.0) + 0.8
 
 
-def degradation(name: str, level: float, params: VisionParams = VisionParams(),
-                geometry: BinGeometry | None = None, seed: int = 0) -> Degradation:
+def degradation(
+    name: str,
+    level: float,
+    params: VisionParams = VisionParams(),
+    geometry: BinGeometry | None = None,
+    seed: int = 0,
+) -> Degradation:
     """The Degradation of jsve.disturb's disturbance `name` at `level` (its default parameters).
 
     Arguments:
@@ -370,6 +384,8 @@ class SceneProfile:
         sequence_sigma: log spread of a sequence's mean texture around the reference scene.
         lowtex_rate: low-texture stretches per second (a blank wall, a dark corner, the floor).
         lowtex_duration: (min, max) s of a stretch. lowtex_depth: (min, max) of -ln(texture factor).
+        init_clear_s: s at the start free of low-texture stretches: a log starts once ORB-SLAM3 has
+            initialised its map, which it does on a textured view.
         field_tau: s, correlation time of the spatial pattern over the bins.
         depth: (min, max) m, median scene depth along the flight (EuRoC rooms and hall).
         exposure_s: s, exposure time: the camera's own motion blur is f |omega| exposure px.
@@ -381,7 +397,8 @@ class SceneProfile:
     lowtex_rate: float = 1.0 / 45.0
     lowtex_duration: tuple[float, float] = (0.5, 3.0)
     lowtex_depth: tuple[float, float] = (1.0, 4.0)
-    field_tau: float = 2.0
+    init_clear_s: float = 5.0
+    field_tau: float = 5.0
     depth: tuple[float, float] = (2.0, 6.0)
     exposure_s: float = 0.003
 
@@ -408,10 +425,6 @@ class Scene:
     depth: np.ndarray
     streak_px: np.ndarray
 
-    def subset(self, frames: slice | np.ndarray) -> Scene:
-        return Scene(self.texture[frames], self.field[frames], self.scale_field[frames], self.grain_field[frames],
-                     self.pool_z[frames], self.depth[frames], self.streak_px[frames])  # fmt: skip
-
 
 def _spatial_smoother() -> np.ndarray:
     """[64, 64] Gaussian smoothing over the 8 x 8 bins (length 1.5 bins), rows scaled to unit variance."""
@@ -421,8 +434,13 @@ def _spatial_smoother() -> np.ndarray:
     return k / np.sqrt(np.sum(k * k, axis=1, keepdims=True))
 
 
-def make_scene(rng: np.random.Generator, t: np.ndarray, angular_rate: np.ndarray | None = None,
-               profile: SceneProfile = SceneProfile(), camera: CameraModel = EUROC_CAM0) -> Scene:
+def make_scene(
+    rng: np.random.Generator,
+    t: np.ndarray,
+    angular_rate: np.ndarray | None = None,
+    profile: SceneProfile = SceneProfile(),
+    camera: CameraModel = EUROC_CAM0,
+) -> Scene:
     """Draw the scene process along frame times t (s).
 
     Arguments:
@@ -430,28 +448,45 @@ def make_scene(rng: np.random.Generator, t: np.ndarray, angular_rate: np.ndarray
             EuRoC's camera nearly shares) streaks less, the others streak f |omega| exposure px.
     """
     n = len(t)
-    log_tex = rng.normal(0.0, profile.sequence_sigma) + gauss_markov(rng, t, profile.texture_sigma,
-                                                                     profile.texture_tau, 1)[:, 0]  # fmt: skip
+    log_tex = (
+        rng.normal(0.0, profile.sequence_sigma)
+        + gauss_markov(rng, t, profile.texture_sigma, profile.texture_tau, 1)[:, 0]
+    )
     # Low-texture stretches: Poisson events, smooth (raised-cosine) entry and exit of 0.3 s.
     duration = t[-1] - t[0] if n > 1 else 0.0
-    n_events = rng.poisson(profile.lowtex_rate * duration)
-    centres = rng.uniform(t[0], t[-1], n_events) if n_events else np.zeros(0)
+    n_events = rng.poisson(profile.lowtex_rate * max(duration - profile.init_clear_s, 0.0))
+    start = min(t[0] + profile.init_clear_s, t[-1])
+    centres = rng.uniform(start, t[-1], n_events) if n_events else np.zeros(0)
     lengths = rng.uniform(*profile.lowtex_duration, n_events)
     depths = rng.uniform(*profile.lowtex_depth, n_events)
     for c, length, d in zip(centres, lengths, depths, strict=True):
+        c = max(c, start + length / 2 + 0.3)  # wholly after the initialisation view
         edge = np.clip((length / 2 + 0.3 - np.abs(t - c)) / 0.3, 0.0, 1.0)
         log_tex -= d * (0.5 - 0.5 * np.cos(np.pi * edge))
+    # Spatial patterns only redistribute texture over the image: each frame's pattern has mean 0 and
+    # standard deviation 1 over the bins (the overall amount is `texture`).
     smoother = _spatial_smoother().T
-    field = gauss_markov(rng, t, 1.0, profile.field_tau, 64) @ smoother
-    scale_field = gauss_markov(rng, t, 1.0, profile.field_tau, 64) @ smoother
-    grain_field = gauss_markov(rng, t, 1.0, profile.field_tau, 64) @ smoother
+
+    def pattern():
+        g = gauss_markov(rng, t, 1.0, profile.field_tau, 64) @ smoother
+        g = g - g.mean(axis=1, keepdims=True)
+        return g / np.maximum(g.std(axis=1, keepdims=True), 1e-9)
+
+    field, scale_field, grain_field = pattern(), pattern(), pattern()
     log_depth = np.log(rng.uniform(*profile.depth)) + gauss_markov(rng, t, 0.25, 8.0, 1)[:, 0]
     if angular_rate is None:
         streak = np.zeros(n)
     else:
         streak = camera.fx * np.linalg.norm(angular_rate[:, :2], axis=1) * profile.exposure_s
-    return Scene(texture=np.exp(log_tex), field=field, scale_field=scale_field, grain_field=grain_field, pool_z=rng.normal(0.0, 1.0, (n, 64)),
-                 depth=np.exp(log_depth), streak_px=streak)  # fmt: skip
+    return Scene(
+        texture=np.exp(log_tex),
+        field=field,
+        scale_field=scale_field,
+        grain_field=grain_field,
+        pool_z=rng.normal(0.0, 1.0, (n, 64)),
+        depth=np.exp(log_depth),
+        streak_px=streak,
+    )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -462,14 +497,41 @@ def _erfc_fast(x: np.ndarray) -> np.ndarray:
     """erfc to 1.2e-7 (Numerical Recipes' Chebyshev fit), vectorised in numpy."""
     z = np.abs(x)
     t = 1.0 / (1.0 + 0.5 * z)
-    r = t * np.exp(-z * z - 1.26551223 + t * (1.00002368 + t * (0.37409196 + t * (0.09678418 + t * (
-        -0.18628806 + t * (0.27886807 + t * (-1.13520398 + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
+    r = t * np.exp(
+        -z * z
+        - 1.26551223
+        + t
+        * (
+            1.00002368
+            + t
+            * (
+                0.37409196
+                + t
+                * (
+                    0.09678418
+                    + t
+                    * (
+                        -0.18628806
+                        + t
+                        * (
+                            0.27886807
+                            + t * (-1.13520398 + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))
+                        )
+                    )
+                )
+            )
+        )
+    )
     return np.where(x >= 0, r, 2.0 - r)
 
 
 def normal_sf(z: np.ndarray) -> np.ndarray:
     return 0.5 * _erfc_fast(np.asarray(z, float) / math.sqrt(2.0))
 
+
+_GH_NODES, _GH_WEIGHTS = np.polynomial.hermite_e.hermegauss(5)
+_GH_WEIGHTS = _GH_WEIGHTS / _GH_WEIGHTS.sum()
+"""5-point Gauss-Hermite rule for expectations over a standard normal."""
 
 SCALE_FACTOR = 1.2
 N_LEVELS = 8
@@ -510,8 +572,13 @@ def texture_mtf(sigma: np.ndarray, wavelength: np.ndarray, box: float = 0.0) -> 
     return out
 
 
-def extract(scene: Scene, deg: Degradation, params: VisionParams = VisionParams(),
-            geometry: BinGeometry | None = None, n_features: int = N_FEATURES) -> Counts:
+def extract(
+    scene: Scene,
+    deg: Degradation,
+    params: VisionParams = VisionParams(),
+    geometry: BinGeometry | None = None,
+    n_features: int = N_FEATURES,
+) -> Counts:
     """Keypoints per bin after ORB-SLAM3's extraction, and the per-frame matching and localisation.
 
     Deterministic given the scene (ORB extraction on the same images is deterministic): run-level
@@ -526,16 +593,32 @@ def extract(scene: Scene, deg: Degradation, params: VisionParams = VisionParams(
     blur_eq = np.sqrt(blur**2 + 0.25 * max(deg.box_px**2 - 1.0, 0.0))
     # Two scales of texture per bin: fine grain (dense, short wavelength; its spatial density follows
     # `field`) and coarse structure (sparse, long wavelength; density follows `scale_field`).
-    blank = params.blank_density + (1.0 - params.blank_density) / (1.0 + np.exp(-(scene.field - params.blank_z) / 0.25))
-    fine = np.exp(params.texture_sigma * scene.field - 0.5 * params.texture_sigma**2) * blank
-    coarse = params.coarse_fraction * np.exp(params.coarse_sigma * scene.scale_field - 0.5 * params.coarse_sigma**2)
+    blank = params.blank_density + (1.0 - params.blank_density) / (
+        1.0 + np.exp(-(scene.field - params.blank_z) / 0.25)
+    )
+    # Spatial patterns redistribute texture over the image; the amount per frame is scene.texture.
+    fine = np.exp(params.texture_sigma * scene.field) * blank
+    fine /= np.maximum(np.sum(fine * geometry.share, axis=1, keepdims=True), 1e-12)
+    coarse = np.exp(params.coarse_sigma * scene.scale_field)
+    coarse *= params.coarse_fraction / np.maximum(
+        np.sum(coarse * geometry.share, axis=1, keepdims=True), 1e-12
+    )
     mu = params.contrast_mu + params.contrast_coupling * scene.field
     share = geometry.share / max(geometry.share.sum(), 1e-12)
     base = params.candidates * scene.texture[:, None] * share * deg.visible
+    # The fine grain of a region mixes wavelengths (log-normal, spread fine_wavelength_spread about
+    # the region's median): Gauss-Hermite quadrature over it.
     fine_wavelength = params.fine_wavelength * np.exp(params.fine_wavelength_sigma * scene.grain_field)
-    gain_f = np.maximum(texture_mtf(blur, fine_wavelength, deg.box_px) * deg.contrast, 1e-300)
+    lam_f = np.zeros_like(base)
+    weighted_gain = np.zeros_like(base)
+    for node, w in zip(_GH_NODES, _GH_WEIGHTS, strict=True):
+        wl = fine_wavelength * np.exp(params.fine_wavelength_spread * node)
+        g = np.maximum(texture_mtf(blur, wl, deg.box_px) * deg.contrast, 1e-300)
+        part = w * base * fine * normal_sf(-(mu + np.log(g)) / params.contrast_sigma)
+        lam_f += part
+        weighted_gain += part * g
+    gain_f = weighted_gain / np.maximum(lam_f, 1e-300)
     gain_c = np.maximum(texture_mtf(blur, params.coarse_wavelength, deg.box_px) * deg.contrast, 1e-300)
-    lam_f = base * fine * normal_sf(-(mu + np.log(gain_f)) / params.contrast_sigma)
     lam_c = base * coarse * normal_sf(-(params.contrast_mu + np.log(gain_c)) / params.contrast_sigma)
     lam_real = lam_f + lam_c
     gain = np.maximum((lam_f * gain_f + lam_c * gain_c) / np.maximum(lam_real, 1e-300), 1e-12)
@@ -555,12 +638,18 @@ def extract(scene: Scene, deg: Degradation, params: VisionParams = VisionParams(
     # Matching: noise over the corners' contrast; spurious corners never match.
     real_share = np.where(lam > 0, lam_real / np.maximum(lam, 1e-300), 1.0)
     rel_noise = noise[:, None] / gain
-    match_b = params.match_max * real_share / (1.0 + np.minimum(rel_noise / params.match_noise, 1e6) ** params.match_gamma)
+    match_b = (
+        params.match_max
+        * real_share
+        / (1.0 + np.minimum(rel_noise / params.match_noise, 1e6) ** params.match_gamma)
+    )
     match = np.sum(weight * match_b, axis=1) / (1.0 + (streak / params.streak_match) ** 2)
     # Localisation: a bin's corners are found at the pyramid level matching their wavelength, where
     # the blur and ORB-SLAM3's gate are both measured in that level's pixels.
     level_scale = np.clip(wavelength / LEVEL0_WAVELENGTH, 1.0, SCALE_FACTOR ** (N_LEVELS - 1))
-    loc = np.hypot(params.loc_floor, params.loc_per_blur * blur_eq / level_scale) * np.hypot(1.0, np.minimum(rel_noise, 1e6) / params.loc_noise)
+    loc = np.hypot(params.loc_floor, params.loc_per_blur * blur_eq / level_scale) * np.hypot(
+        1.0, np.minimum(rel_noise, 1e6) / params.loc_noise
+    )
     gate = np.sum(weight * inlier_gate(loc), axis=1)
     sigma_loc = np.sqrt(np.sum(weight * (loc * level_scale) ** 2, axis=1))
     return Counts(bins=bins, n_extracted=n_extracted, match_prob=match, gate=gate, sigma_loc=sigma_loc)

@@ -28,18 +28,28 @@ def register(subparsers) -> None:
     source = p.add_mutually_exclusive_group()
     source.add_argument("--sequences", metavar="MH_01,...", help="EuRoC sequences (needs --euroc-gt)")
     source.add_argument("--procedural", type=int, metavar="N", help="N procedural flights (default 11)")
-    p.add_argument("--euroc-gt", metavar="DIR",
-                   help="ORB-SLAM3's EuRoC left-camera ground truth folder (MH01_GT.txt, ...); sibling "
-                   "timestamps/ and imu/ folders are used when present")  # fmt: skip
-    p.add_argument("--disturbances", default="seed",
-                   help="seed (31 settings), all, or names with optional levels: blur,occlusion or "
-                   "blur:0:25:50 (default seed)")  # fmt: skip
+    p.add_argument(
+        "--euroc-gt",
+        metavar="DIR",
+        help="ORB-SLAM3's EuRoC left-camera ground truth folder (MH01_GT.txt, ...); sibling "
+        "timestamps/ and imu/ folders are used when present",
+    )
+    p.add_argument(
+        "--disturbances",
+        default="seed",
+        help="seed (31 settings), all, or names with optional levels: blur,occlusion or "
+        "blur:0:25:50 (default seed)",
+    )
     p.add_argument("--runs", type=int, default=10, help="runs per setting (default 10)")
     p.add_argument("--seed", type=int, default=0, help="study seed (default 0)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
-    p.add_argument("--imu", choices=("synthetic", "real"), default="synthetic",
-                   help="synthetic IMU (default) or the real EuRoC imu0 stream where --euroc-gt's sibling "
-                   "imu/ folder has one")  # fmt: skip
+    p.add_argument(
+        "--imu",
+        choices=("synthetic", "real"),
+        default="synthetic",
+        help="synthetic IMU (default) or the real EuRoC imu0 stream where --euroc-gt's sibling "
+        "imu/ folder has one",
+    )
     p.add_argument("--parquet", action="store_true", help="also consolidate the logs into OUT/study.parquet")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -57,15 +67,24 @@ def run(args: argparse.Namespace) -> int:
     try:
         grid = settings(args.disturbances)
         result = write_study(
-            args.out, args.sequences, procedural=args.procedural, euroc_gt=args.euroc_gt,
-            disturbances=args.disturbances, runs=args.runs, seed=args.seed, workers=args.workers,
-            config=SimConfig(imu_source=args.imu), progress=not args.no_progress, parquet=args.parquet,
-        )  # fmt: skip
+            args.out,
+            args.sequences,
+            procedural=args.procedural,
+            euroc_gt=args.euroc_gt,
+            disturbances=args.disturbances,
+            runs=args.runs,
+            seed=args.seed,
+            workers=args.workers,
+            config=SimConfig(imu_source=args.imu),
+            progress=not args.no_progress,
+            parquet=args.parquet,
+        )
     except (ValueError, FileNotFoundError) as err:
         print(f"jsve simulate: {err}", file=sys.stderr)
         return 2
     print(
-        f"{result.written} logs written, {result.skipped} already complete, to {args.out} in {result.seconds:.1f} s"
+        f"{result.written} logs written, {result.skipped} already complete, to {args.out} "
+        f"in {result.seconds:.1f} s"
         f" ({len(grid)} settings; simulation {result.simulate_s:.1f} s and writing {result.write_s:.1f} s"
         f" summed over workers)" + (f"; Parquet: {result.parquet}" if result.parquet else "")
     )
