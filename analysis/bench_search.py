@@ -23,7 +23,9 @@ import time
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--devices", type=int, default=os.cpu_count(), help="XLA CPU devices (default: cores)")
+    parser.add_argument(
+        "--devices", type=int, default=os.cpu_count(), help="XLA CPU devices (default: cores)"
+    )
     parser.add_argument("--sequences", type=int, default=2)
     parser.add_argument("--runs", type=int, default=1, help="runs per sequence and setting")
     parser.add_argument("--duration", type=float, default=60.0, help="flight length, s")
@@ -31,8 +33,9 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--output", help="write the results as JSON here")
     args = parser.parse_args(argv)
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                               f" --xla_force_host_platform_device_count={args.devices}").strip()  # fmt: skip
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={args.devices}"
+    ).strip()
 
     import jax
     import jax.numpy as jnp
@@ -46,14 +49,27 @@ def main(argv=None) -> int:
     from jsve.simulate_motion import FlightProfile
 
     t0 = time.perf_counter()
-    runs = simulate_study(procedural=args.sequences, runs=args.runs, disturbances="seed", seed=0,
-                          config=SimConfig(flight=FlightProfile(duration_s=(args.duration, args.duration))))  # fmt: skip
+    runs = simulate_study(
+        procedural=args.sequences,
+        runs=args.runs,
+        disturbances="seed",
+        seed=0,
+        config=SimConfig(flight=FlightProfile(duration_s=(args.duration, args.duration))),
+    )
     data = FitData.from_runs(runs)
     frames = data.n_frames
-    print(f"{len(runs)} runs, {frames} frames (simulated and prepared in {time.perf_counter() - t0:.1f} s); "
-          f"{len(jax.local_devices())} XLA CPU device(s), {os.cpu_count()} cores", flush=True)  # fmt: skip
-    results = {"runs": len(runs), "frames": frames, "devices": len(jax.local_devices()), "cores": os.cpu_count(),
-               "families": {}}  # fmt: skip
+    print(
+        f"{len(runs)} runs, {frames} frames (simulated and prepared in {time.perf_counter() - t0:.1f} s); "
+        f"{len(jax.local_devices())} XLA CPU device(s), {os.cpu_count()} cores",
+        flush=True,
+    )
+    results = {
+        "runs": len(runs),
+        "frames": frames,
+        "devices": len(jax.local_devices()),
+        "cores": os.cpu_count(),
+        "families": {},
+    }
     for space in (inlier_space(), sve_space()):
         values = np.asarray(space.values_from_unit(sobol(args.settings, space.dim, seed=1)))
         t = time.perf_counter()
@@ -67,8 +83,15 @@ def main(argv=None) -> int:
             cpus.append(time.process_time() - c)
         wall, cpu = min(walls), min(cpus)
         work = args.settings * frames
-        row = {"settings": args.settings, "frame_settings": work, "first_call_s": first, "wall_s": wall,
-               "cpu_s": cpu, "per_s": work / wall, "per_cpu_s": work / cpu}  # fmt: skip
+        row = {
+            "settings": args.settings,
+            "frame_settings": work,
+            "first_call_s": first,
+            "wall_s": wall,
+            "cpu_s": cpu,
+            "per_s": work / wall,
+            "per_cpu_s": work / cpu,
+        }
         # the generic path: replay + alignment per run, vmapped over a few settings
         few = 16
         rules = space.rule(jnp.asarray(values[:few], jnp.float32))
@@ -79,9 +102,13 @@ def main(argv=None) -> int:
         generic = few * float(np.sum(np.asarray(data.batches[0].valid))) / (time.perf_counter() - t)
         row["generic_per_s"] = generic
         results["families"][space.kind] = row
-        print(f"{space.kind:8s} {args.settings} settings x {frames} frames: {wall:.2f} s wall, {cpu:.2f} s CPU -> "
-              f"{row['per_s']:.3g} frame-settings/s ({row['per_cpu_s']:.3g} per CPU-second); first call "
-              f"{first:.1f} s; generic replay + alignment path {generic:.3g}/s", flush=True)  # fmt: skip
+        print(
+            f"{space.kind:8s} {args.settings} settings x {frames} frames: {wall:.2f} s wall, {cpu:.2f} s CPU "
+            "-> "
+            f"{row['per_s']:.3g} frame-settings/s ({row['per_cpu_s']:.3g} per CPU-second); first call "
+            f"{first:.1f} s; generic replay + alignment path {generic:.3g}/s",
+            flush=True,
+        )
     if args.output:
         with open(args.output, "w") as f:
             json.dump(results, f, indent=2)

@@ -67,8 +67,15 @@ def leave_one_out(meta: pd.DataFrame, column: str) -> list[Fold]:
 # Bootstrap
 
 
-def bootstrap_weighted_mean(values, weights=None, *, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
-                            index: np.ndarray | None = None) -> tuple[float, float, float]:  # fmt: skip
+def bootstrap_weighted_mean(
+    values,
+    weights=None,
+    *,
+    n_boot: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+    index: np.ndarray | None = None,
+) -> tuple[float, float, float]:
     """Weighted mean of `values` and its percentile bootstrap interval over resampled runs.
 
     Arguments:
@@ -120,8 +127,14 @@ def preset_space(name: str) -> ParamSpace:
 
 def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
     """Per-run results of one setting (free values in `space`) on every run: [1, R] matrices."""
-    return search(data.parts, space, np.asarray(values, np.float64)[None], data.config, run_counts=data.run_counts,
-                  progress=False)  # fmt: skip
+    return search(
+        data.parts,
+        space,
+        np.asarray(values, np.float64)[None],
+        data.config,
+        run_counts=data.run_counts,
+        progress=False,
+    )
 
 
 def cross_validate(
@@ -148,10 +161,19 @@ def cross_validate(
     searches = dict(searches or {})
     for name, space in spaces.items():
         if name not in searches:
-            searches[name] = search(data.parts, space, search_design(space, config), data.config,
-                                    run_counts=data.run_counts, progress=progress, desc=f"search {name}")  # fmt: skip
-    per_rule = {name: rule_results(data, preset_space(name), preset_space(name).values_of(preset(name)))
-                for name in presets}  # fmt: skip
+            searches[name] = search(
+                data.parts,
+                space,
+                search_design(space, config),
+                data.config,
+                run_counts=data.run_counts,
+                progress=progress,
+                desc=f"search {name}",
+            )
+    per_rule = {
+        name: rule_results(data, preset_space(name), preset_space(name).values_of(preset(name)))
+        for name in presets
+    }
 
     rows, params = [], []
     for fold in tqdm(folds, desc="cross-validation", unit="fold", disable=not progress):
@@ -162,8 +184,15 @@ def cross_validate(
         for name, space in spaces.items():
             result = fit(data, space, train, config, search_result=searches[name], progress=False)
             fitted[f"fitted-{name}"] = rule_results(data, space, result.values)
-            params.append({"fold_kind": fold.kind, "fold": fold.name, "family": name,
-                           "train_objective": result.objective, **result.params()})  # fmt: skip
+            params.append(
+                {
+                    "fold_kind": fold.kind,
+                    "fold": fold.name,
+                    "family": name,
+                    "train_objective": result.objective,
+                    **result.params(),
+                }
+            )
         for rule, res in {**fitted, **per_rule}.items():
             held = np.flatnonzero(fold.test)
             table = meta.iloc[held].copy()
@@ -176,8 +205,14 @@ def cross_validate(
     return CrossValidation(heldout=pd.concat(rows, ignore_index=True), params=pd.DataFrame(params))
 
 
-def compare(heldout: pd.DataFrame, *, baselines: Sequence[str] = ("orbslam3", "sve-option2"), n_boot: int = 2000,
-            level: float = 0.95, seed: int = 0) -> pd.DataFrame:  # fmt: skip
+def compare(
+    heldout: pd.DataFrame,
+    *,
+    baselines: Sequence[str] = ("orbslam3", "sve-option2"),
+    n_boot: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> pd.DataFrame:
     """Held-out comparison per fold kind: every rule's weighted mean loss with a bootstrap CI, its failure
     rate and coverage, and its paired difference to each baseline (negative: better than the baseline).
 
@@ -194,14 +229,28 @@ def compare(heldout: pd.DataFrame, *, baselines: Sequence[str] = ("orbslam3", "s
         for rule in wide.columns:
             x = wide[rule].to_numpy()
             mean, low, high = bootstrap_weighted_mean(x, weight, index=index, level=level)
-            row = {"fold_kind": kind, "rule": rule, "n_runs": len(x), "mean_loss": mean, "ci_low": low,
-                   "ci_high": high,
-                   "failure_rate": float(np.sum(weight * fail.loc[wide.index, rule].to_numpy()) / np.sum(weight)),
-                   "coverage": float(np.sum(weight * cov.loc[wide.index, rule].to_numpy()) / np.sum(weight))}  # fmt: skip
+            row = {
+                "fold_kind": kind,
+                "rule": rule,
+                "n_runs": len(x),
+                "mean_loss": mean,
+                "ci_low": low,
+                "ci_high": high,
+                "failure_rate": float(
+                    np.sum(weight * fail.loc[wide.index, rule].to_numpy()) / np.sum(weight)
+                ),
+                "coverage": float(np.sum(weight * cov.loc[wide.index, rule].to_numpy()) / np.sum(weight)),
+            }
             for base in baselines:
                 if base in wide.columns and base != rule:
-                    d, dl, dh = bootstrap_weighted_mean(x - wide[base].to_numpy(), weight, index=index, level=level)
-                    row[f"diff_vs_{base}"], row[f"diff_vs_{base}_ci_low"], row[f"diff_vs_{base}_ci_high"] = d, dl, dh
+                    d, dl, dh = bootstrap_weighted_mean(
+                        x - wide[base].to_numpy(), weight, index=index, level=level
+                    )
+                    row[f"diff_vs_{base}"], row[f"diff_vs_{base}_ci_low"], row[f"diff_vs_{base}_ci_high"] = (
+                        d,
+                        dl,
+                        dh,
+                    )
             out.append(row)
     return pd.DataFrame(out)
 
@@ -220,9 +269,19 @@ def local_design(space: ParamSpace, center, n: int, *, fraction: float = 0.15, s
     return a + (b - a) * sobol(n, space.dim, seed=seed)
 
 
-def parameter_bootstrap(data: FitData, space: ParamSpace, result: FitResult, weights=None, *, n_local: int = 1024,
-                        fraction: float = 0.15, n_boot: int = 500, level: float = 0.95, seed: int = 0,
-                        progress: bool = True) -> pd.DataFrame:  # fmt: skip
+def parameter_bootstrap(
+    data: FitData,
+    space: ParamSpace,
+    result: FitResult,
+    weights=None,
+    *,
+    n_local: int = 1024,
+    fraction: float = 0.15,
+    n_boot: int = 500,
+    level: float = 0.95,
+    seed: int = 0,
+    progress: bool = True,
+) -> pd.DataFrame:
     """Bootstrap confidence intervals of the fitted parameters.
 
     Each resample of runs (with replacement, weights kept) is refitted by taking the best setting, under
@@ -235,15 +294,25 @@ def parameter_bootstrap(data: FitData, space: ParamSpace, result: FitResult, wei
         the derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
-    local = np.concatenate([local_design(space, result.values, n_local, fraction=fraction, seed=seed),
-                            result.values[None]])  # fmt: skip
-    res = search(data.parts, space, local, data.config, run_counts=data.run_counts, progress=progress,
-                 desc=f"bootstrap design {space.kind}")  # fmt: skip
+    local = np.concatenate(
+        [local_design(space, result.values, n_local, fraction=fraction, seed=seed), result.values[None]]
+    )
+    res = search(
+        data.parts,
+        space,
+        local,
+        data.config,
+        run_counts=data.run_counts,
+        progress=progress,
+        desc=f"bootstrap design {space.kind}",
+    )
     if result.search is not None:
         res = result.search.concat(res)
     rng = np.random.default_rng(seed)
     n = data.n_runs
-    counts = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(n_boot)]).astype(np.float64)
+    counts = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(n_boot)]).astype(
+        np.float64
+    )
     objective = res.objective(counts * w[None])  # [n_boot, S]
     picks = res.values[np.argmin(objective, axis=1)]  # [n_boot, d]
     names, fitted = list(space.names), list(result.values)
@@ -251,16 +320,38 @@ def parameter_bootstrap(data: FitData, space: ParamSpace, result: FitResult, wei
         ia, iu = names.index("w_a"), names.index("u_b")
 
         def simplex(v):
-            return np.stack([v[..., ia], (1 - v[..., ia]) * v[..., iu], (1 - v[..., ia]) * (1 - v[..., iu])], -1)
+            return np.stack(
+                [v[..., ia], (1 - v[..., ia]) * v[..., iu], (1 - v[..., ia]) * (1 - v[..., iu])], -1
+            )
 
         picks = np.concatenate([picks, simplex(picks)], axis=1)
         fitted += list(simplex(np.asarray(result.values)))
         names += ["weight_a", "weight_b", "weight_c"]
     alpha = (1 - level) / 2
     low, high = np.quantile(picks, [alpha, 1 - alpha], axis=0)
-    return pd.DataFrame({"family": space.kind, "parameter": names, "value": fitted, "ci_low": low, "ci_high": high,
-                         "boot_std": picks.std(axis=0), "n_boot": n_boot})  # fmt: skip
+    return pd.DataFrame(
+        {
+            "family": space.kind,
+            "parameter": names,
+            "value": fitted,
+            "ci_low": low,
+            "ci_high": high,
+            "boot_std": picks.std(axis=0),
+            "n_boot": n_boot,
+        }
+    )
 
 
-__all__ = ["Fold", "kfold", "leave_one_out", "bootstrap_weighted_mean", "CrossValidation", "cross_validate",
-           "compare", "local_design", "parameter_bootstrap", "rule_results", "preset_space"]  # fmt: skip
+__all__ = [
+    "Fold",
+    "kfold",
+    "leave_one_out",
+    "bootstrap_weighted_mean",
+    "CrossValidation",
+    "cross_validate",
+    "compare",
+    "local_design",
+    "parameter_bootstrap",
+    "rule_results",
+    "preset_space",
+]

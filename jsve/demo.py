@@ -40,7 +40,8 @@ class DemoConfig:
 
     Attributes:
         sequences: procedural EuRoC-like flights. runs: runs per (sequence, setting).
-        duration_s: range of flight lengths, s (equal by default: one padded shape, one compilation). disturbances: settings spec ("seed": the seed's 31).
+        duration_s: range of flight lengths, s (equal by default: one padded shape, one compilation).
+        disturbances: settings spec ("seed": the seed's 31).
         seed: simulator seed. study: jsve.fit_study.StudyConfig.
     """
 
@@ -68,8 +69,13 @@ class DemoConfig:
         return cls(**demo, study=StudyConfig.from_dict(base, source))
 
 
-def run_demo(out_dir: str | os.PathLike = "jsve-demo", config: DemoConfig = DemoConfig(), *,  # noqa: B008
-             progress: bool = True, workers: int | None = None) -> dict:  # fmt: skip
+def run_demo(
+    out_dir: str | os.PathLike = "jsve-demo",
+    config: DemoConfig = DemoConfig(),
+    *,  # noqa: B008
+    progress: bool = True,
+    workers: int | None = None,
+) -> dict:
     """Simulate, fit, cross-validate and report into `out_dir`; returns the seconds of each part."""
     from .fit import FitData
     from .fit_study import run_study
@@ -83,18 +89,33 @@ def run_demo(out_dir: str | os.PathLike = "jsve-demo", config: DemoConfig = Demo
     timings = {}
     started = time.perf_counter()
     sim = SimConfig(flight=FlightProfile(duration_s=tuple(config.duration_s)))
-    log.info("simulating %d sequences x %s settings x %d runs", config.sequences, config.disturbances, config.runs)
-    study = write_study(out / "logs", procedural=config.sequences, disturbances=config.disturbances,
-                        runs=config.runs, seed=config.seed, config=sim, workers=workers, progress=progress,
-                        parquet=True)  # fmt: skip
+    log.info(
+        "simulating %d sequences x %s settings x %d runs", config.sequences, config.disturbances, config.runs
+    )
+    study = write_study(
+        out / "logs",
+        procedural=config.sequences,
+        disturbances=config.disturbances,
+        runs=config.runs,
+        seed=config.seed,
+        config=sim,
+        workers=workers,
+        progress=progress,
+        parquet=True,
+    )
     runs = read_parquet(study.parquet)
     timings["simulate"] = time.perf_counter() - started
 
     t = time.perf_counter()
     data = FitData.from_runs(runs, config.study.objective())
-    description = {"source": "jsve simulator (procedural EuRoC-like flights)", "sequences": config.sequences,
-                   "settings": config.disturbances, "runs per setting": config.runs,
-                   "flight length, s": list(config.duration_s), "simulator seed": config.seed}  # fmt: skip
+    description = {
+        "source": "jsve simulator (procedural EuRoC-like flights)",
+        "sequences": config.sequences,
+        "settings": config.disturbances,
+        "runs per setting": config.runs,
+        "flight length, s": list(config.duration_s),
+        "simulator seed": config.seed,
+    }
     stages = run_study(data, out, config.study, progress=progress, data_description=description)
     timings["study"] = time.perf_counter() - t
     t = time.perf_counter()

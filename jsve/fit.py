@@ -83,8 +83,9 @@ class FitData:
         return int(sum(float(jnp.sum(b.valid)) for b in self.batches))
 
     @classmethod
-    def from_buckets(cls, groups: Sequence[Bucket], config: ObjectiveConfig | None = None, *,
-                     runs_per_part: int = 4096) -> FitData:  # fmt: skip
+    def from_buckets(
+        cls, groups: Sequence[Bucket], config: ObjectiveConfig | None = None, *, runs_per_part: int = 4096
+    ) -> FitData:
         """FitData of length buckets (jsve.batch.buckets); buckets with more than `runs_per_part` runs
         are cut into parts of that many runs (the last padded)."""
         batches, features, parts, counts, metas = [], [], [], [], []
@@ -93,7 +94,9 @@ class FitData:
             size = min(n, runs_per_part)
             for runs, chunk in iter_chunks(bucket.batch, size):
                 feats = batch_features(chunk)
-                slim = eqx.tree_at(lambda b: b.bins, chunk, jnp.zeros((chunk.n_runs, 1, 64), chunk.bins.dtype))
+                slim = eqx.tree_at(
+                    lambda b: b.bins, chunk, jnp.zeros((chunk.n_runs, 1, 64), chunk.bins.dtype)
+                )
                 batches.append(slim)
                 features.append(feats)
                 parts.append(prepare(slim, feats))
@@ -103,14 +106,22 @@ class FitData:
         return cls(batches, features, parts, counts, meta, config or ObjectiveConfig(), list(groups))
 
     @classmethod
-    def from_runs(cls, runs: Sequence[RunLog], config: ObjectiveConfig | None = None, *, dtype=jnp.float32,
-                  max_padding: float = 0.1) -> FitData:  # fmt: skip
+    def from_runs(
+        cls,
+        runs: Sequence[RunLog],
+        config: ObjectiveConfig | None = None,
+        *,
+        dtype=jnp.float32,
+        max_padding: float = 0.1,
+    ) -> FitData:
         """FitData of parsed runs (bucketed by length, float32 by default)."""
         if not runs:
             raise ValueError("FitData.from_runs: no runs")
         missing = [r.source for r in runs if not r.has_ground_truth]
         if missing:
-            raise ValueError(f"FitData.from_runs: {len(missing)} runs have no ground truth (first: {missing[0]})")
+            raise ValueError(
+                f"FitData.from_runs: {len(missing)} runs have no ground truth (first: {missing[0]})"
+            )
         # jsve.batch groups by padding; groups that pad to the same length (e.g. equal-length runs) are
         # merged here, since for fitting every extra shape is another compilation.
         lengths = [len(r.frames) for r in runs]
@@ -156,7 +167,9 @@ def _default_weights(data: FitData, weights) -> np.ndarray:
 def _hard_value(z, parts, weights, space: ParamSpace, config: ObjectiveConfig):
     """Weighted mean hard loss of the setting with unconstrained coordinates z (the search kernel, S = 1)."""
     rule = space.rule(space.values_from_z(z)[None])
-    total = sum(jnp.sum(w * search_chunk(sb, rule, config).loss[0]) for sb, w in zip(parts, weights, strict=True))
+    total = sum(
+        jnp.sum(w * search_chunk(sb, rule, config).loss[0]) for sb, w in zip(parts, weights, strict=True)
+    )
     return total / sum(jnp.sum(w) for w in weights)
 
 
@@ -164,24 +177,30 @@ def _relaxed_value(z, batches, features, weights, temperature, space: ParamSpace
     """Weighted mean relaxed loss (SoftLogic(temperature x score scale)); differentiable in z."""
     rule = space.rule(space.values_from_z(z))
     logic = SoftLogic(temperature * space.score_scale)
-    total = sum(jnp.sum(w * run_losses(b, rule, f, config, logic=logic).loss)
-                for b, f, w in zip(batches, features, weights, strict=True))  # fmt: skip
+    total = sum(
+        jnp.sum(w * run_losses(b, rule, f, config, logic=logic).loss)
+        for b, f, w in zip(batches, features, weights, strict=True)
+    )
     return total / sum(jnp.sum(w) for w in weights)
 
 
 def hard_objective(data: FitData, space: ParamSpace, values, weights=None) -> float:
     """The hard objective (metres) of one setting's free values."""
     w = data.split_weights(_default_weights(data, weights))
-    return float(_hard_jit(space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype)), data.parts, w, space,
-                           data.config))  # fmt: skip
+    return float(
+        _hard_jit(
+            space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype)), data.parts, w, space, data.config
+        )
+    )
 
 
 def relaxed_objective(data: FitData, space: ParamSpace, values, temperature: float, weights=None) -> float:
     """The relaxed objective (metres) of one setting at a temperature in SVE units."""
     w = data.split_weights(_default_weights(data, weights))
     z = space.z_from_values(jnp.asarray(values, data.batches[0].t.dtype))
-    return float(_relaxed_jit(z, data.batches, data.features, w, jnp.asarray(temperature, z.dtype), space,
-                              data.config))  # fmt: skip
+    return float(
+        _relaxed_jit(z, data.batches, data.features, w, jnp.asarray(temperature, z.dtype), space, data.config)
+    )
 
 
 _hard_jit = eqx.filter_jit(_hard_value)
@@ -209,13 +228,23 @@ def _bfgs(z0, batches, features, weights, temperature, space, config, max_steps,
         return _relaxed_value(z, args[0], args[1], args[2], args[3], space, config)
 
     solver = optx.BFGS(rtol=rtol, atol=atol)
-    sol = optx.minimise(fn, solver, z0, args=(batches, features, weights, temperature), max_steps=max_steps,
-                        throw=False)  # fmt: skip
+    sol = optx.minimise(
+        fn, solver, z0, args=(batches, features, weights, temperature), max_steps=max_steps, throw=False
+    )
     return sol.value, sol.stats["num_steps"]
 
 
-def nelder_mead(data: FitData, space: ParamSpace, start, weights=None, *, max_steps: int = 200,
-                step: float = 0.5, rtol: float = 1e-4, atol: float = 1e-4) -> tuple[np.ndarray, float, int]:  # fmt: skip
+def nelder_mead(
+    data: FitData,
+    space: ParamSpace,
+    start,
+    weights=None,
+    *,
+    max_steps: int = 200,
+    step: float = 0.5,
+    rtol: float = 1e-4,
+    atol: float = 1e-4,
+) -> tuple[np.ndarray, float, int]:
     """optimistix Nelder-Mead on the hard objective from `start` (free values).
 
     The simplex starts at the start's unconstrained coordinates z plus `step` along each axis (a step
@@ -227,15 +256,24 @@ def nelder_mead(data: FitData, space: ParamSpace, start, weights=None, *, max_st
     """
     w = data.split_weights(_default_weights(data, weights))
     z0 = space.z_from_values(jnp.asarray(start, data.parts[0].t.dtype))
-    z, steps = _nelder_mead(z0, data.parts, w, space, data.config, int(max_steps), float(step), float(rtol),
-                            float(atol))  # fmt: skip
+    z, steps = _nelder_mead(
+        z0, data.parts, w, space, data.config, int(max_steps), float(step), float(rtol), float(atol)
+    )
     values = np.asarray(space.values_from_z(z), np.float64)
     return values, float(_hard_jit(z, data.parts, w, space, data.config)), int(steps)
 
 
-def relaxed_fit(data: FitData, space: ParamSpace, start, weights=None, *,
-                temperatures: Sequence[float] = DEFAULT_TEMPERATURES, max_steps: int = 60, rtol: float = 1e-4,
-                atol: float = 1e-5) -> tuple[np.ndarray, list[dict]]:  # fmt: skip
+def relaxed_fit(
+    data: FitData,
+    space: ParamSpace,
+    start,
+    weights=None,
+    *,
+    temperatures: Sequence[float] = DEFAULT_TEMPERATURES,
+    max_steps: int = 60,
+    rtol: float = 1e-4,
+    atol: float = 1e-5,
+) -> tuple[np.ndarray, list[dict]]:
     """optimistix BFGS on the relaxed objective, annealing the temperature (SVE units) from high to low.
 
     Returns:
@@ -248,12 +286,26 @@ def relaxed_fit(data: FitData, space: ParamSpace, start, weights=None, *,
     history = []
     for temperature in temperatures:
         tau = jnp.asarray(temperature, dtype)
-        z, steps = _bfgs(z, data.batches, data.features, w, tau, space, data.config, int(max_steps), float(rtol),
-                         float(atol))  # fmt: skip
+        z, steps = _bfgs(
+            z,
+            data.batches,
+            data.features,
+            w,
+            tau,
+            space,
+            data.config,
+            int(max_steps),
+            float(rtol),
+            float(atol),
+        )
         relaxed = float(_relaxed_jit(z, data.batches, data.features, w, tau, space, data.config))
         hard = float(_hard_jit(z, data.parts, w, space, data.config))
-        history.append({"temperature": float(temperature), "relaxed": relaxed, "hard": hard, "steps": int(steps)})
-        log.info("relaxed fit T=%g: relaxed %.5f m, hard %.5f m (%d steps)", temperature, relaxed, hard, steps)
+        history.append(
+            {"temperature": float(temperature), "relaxed": relaxed, "hard": hard, "steps": int(steps)}
+        )
+        log.info(
+            "relaxed fit T=%g: relaxed %.5f m, hard %.5f m (%d steps)", temperature, relaxed, hard, steps
+        )
     return np.asarray(space.values_from_z(z), np.float64), history
 
 
@@ -339,7 +391,9 @@ def preset_values(space: ParamSpace) -> dict[str, np.ndarray]:
 
 def search_design(space: ParamSpace, config: FitConfig, starts: Sequence[np.ndarray] = ()) -> np.ndarray:
     """The fit's design: config.n_search points of the named design, plus presets and given starts."""
-    values = np.asarray(space.values_from_unit(design(config.design, config.n_search, space.dim, seed=config.seed)))
+    values = np.asarray(
+        space.values_from_unit(design(config.design, config.n_search, space.dim, seed=config.seed))
+    )
     extra = list(preset_values(space).values()) if config.include_presets else []
     extra += [np.asarray(s, np.float64) for s in starts]
     if extra:
@@ -368,38 +422,88 @@ def fit(
     stages = []
     t0 = time.perf_counter()
     if search_result is None:
-        search_result = search(data.parts, space, search_design(space, config), data.config,
-                               run_counts=data.run_counts, progress=progress, desc=f"search {space.kind}")  # fmt: skip
+        search_result = search(
+            data.parts,
+            space,
+            search_design(space, config),
+            data.config,
+            run_counts=data.run_counts,
+            progress=progress,
+            desc=f"search {space.kind}",
+        )
     obj = search_result.objective(w)
     order = np.argsort(obj, kind="stable")
     best_values, best = search_result.values[order[0]], float(obj[order[0]])
-    stages.append({"stage": "search", "objective": best, "values": best_values.tolist(),
-                   "settings": int(len(obj)), "seconds": time.perf_counter() - t0})  # fmt: skip
+    stages.append(
+        {
+            "stage": "search",
+            "objective": best,
+            "values": best_values.tolist(),
+            "settings": int(len(obj)),
+            "seconds": time.perf_counter() - t0,
+        }
+    )
     log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
 
     starts = [search_result.values[i] for i in order[: max(config.n_starts, 0)]]
     for i, start in enumerate(starts):
         t1 = time.perf_counter()
-        values, value, steps = nelder_mead(data, space, start, w, max_steps=config.nm_steps, step=config.nm_step)
-        stages.append({"stage": f"nelder_mead_{i}", "objective": value, "values": values.tolist(), "steps": steps,
-                       "seconds": time.perf_counter() - t1})  # fmt: skip
+        values, value, steps = nelder_mead(
+            data, space, start, w, max_steps=config.nm_steps, step=config.nm_step
+        )
+        stages.append(
+            {
+                "stage": f"nelder_mead_{i}",
+                "objective": value,
+                "values": values.tolist(),
+                "steps": steps,
+                "seconds": time.perf_counter() - t1,
+            }
+        )
         log.info("%s Nelder-Mead from start %d: %.5f m (%d steps)", space.kind, i, value, steps)
         if value < best:
             best, best_values = value, values
     if config.relaxed:
         t1 = time.perf_counter()
-        values, history = relaxed_fit(data, space, best_values, w, temperatures=config.temperatures,
-                                      max_steps=config.bfgs_steps)  # fmt: skip
+        values, history = relaxed_fit(
+            data, space, best_values, w, temperatures=config.temperatures, max_steps=config.bfgs_steps
+        )
         value = history[-1]["hard"] if history else float("inf")
-        stages.append({"stage": "relaxed", "objective": value, "values": values.tolist(), "history": history,
-                       "seconds": time.perf_counter() - t1})  # fmt: skip
+        stages.append(
+            {
+                "stage": "relaxed",
+                "objective": value,
+                "values": values.tolist(),
+                "history": history,
+                "seconds": time.perf_counter() - t1,
+            }
+        )
         if value < best:
             best, best_values = value, values
-    final = search(data.parts, space, best_values[None], data.config, run_counts=data.run_counts, progress=False)
-    return FitResult(space=space, values=np.asarray(best_values, np.float64), objective=float(final.objective(w)[0]),
-                     failure_rate=float(final.failure_rate(w)[0]), coverage=float(final.coverage_mean(w)[0]),
-                     stages=stages, search=search_result)  # fmt: skip
+    final = search(
+        data.parts, space, best_values[None], data.config, run_counts=data.run_counts, progress=False
+    )
+    return FitResult(
+        space=space,
+        values=np.asarray(best_values, np.float64),
+        objective=float(final.objective(w)[0]),
+        failure_rate=float(final.failure_rate(w)[0]),
+        coverage=float(final.coverage_mean(w)[0]),
+        stages=stages,
+        search=search_result,
+    )
 
 
-__all__ = ["FitData", "FitConfig", "FitResult", "fit", "nelder_mead", "relaxed_fit", "hard_objective",
-           "relaxed_objective", "preset_values", "search_design", "DEFAULT_TEMPERATURES"]  # fmt: skip
+__all__ = [
+    "FitData",
+    "FitConfig",
+    "FitResult",
+    "fit",
+    "nelder_mead",
+    "relaxed_fit",
+    "hard_objective",
+    "relaxed_objective",
+    "preset_values",
+    "search_design",
+    "DEFAULT_TEMPERATURES",
+]

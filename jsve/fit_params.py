@@ -47,7 +47,12 @@ SVE_BOUNDS = {
 """Default boxes of the SVE family. The exponents span harmonic-like (-4) to max-like (4) means; the
 thresholds the useful part of [0, 1] (the seed's values are 0.04-0.3)."""
 
-INLIER_BOUNDS = {"imu_init": (0.0, 100.0), "not_init": (0.0, 200.0), "reloc": (0.0, 200.0), "recovery": (0.0, 100.0)}
+INLIER_BOUNDS = {
+    "imu_init": (0.0, 100.0),
+    "not_init": (0.0, 200.0),
+    "reloc": (0.0, 200.0),
+    "recovery": (0.0, 100.0),
+}
 """Default boxes of ORB-SLAM3's thresholds, inliers (its own values: 15, 50, 50, 10; nFeatures 1000).
 Wider boxes cost search resolution where it matters: 1,024 Sobol points put ~6 levels on each axis."""
 
@@ -82,11 +87,15 @@ class ParamSpace:
         if not self.names:
             raise ValueError("ParamSpace needs at least one free parameter")
         if not (len(self.names) == len(self.lo) == len(self.hi)):
-            raise ValueError(f"names, lo and hi differ in length: {len(self.names)}, {len(self.lo)}, {len(self.hi)}")
+            raise ValueError(
+                f"names, lo and hi differ in length: {len(self.names)}, {len(self.lo)}, {len(self.hi)}"
+            )
         covered = list(self.names) + [k for k, _ in self.fixed]
         if sorted(covered) != sorted(family):
-            raise ValueError(f"{self.kind} parameters must each be free or fixed exactly once; got free "
-                             f"{list(self.names)}, fixed {[k for k, _ in self.fixed]}, need {list(family)}")  # fmt: skip
+            raise ValueError(
+                f"{self.kind} parameters must each be free or fixed exactly once; got free "
+                f"{list(self.names)}, fixed {[k for k, _ in self.fixed]}, need {list(family)}"
+            )
         for name, a, b in zip(self.names, self.lo, self.hi, strict=True):
             if not (np.isfinite(a) and np.isfinite(b) and a < b):
                 raise ValueError(f"bounds of {name!r} must be finite with lo < hi, got [{a}, {b}]")
@@ -124,7 +133,9 @@ class ParamSpace:
         """The rule with these free values (leaves of shape values.shape[:-1]: a stack of rules)."""
         values = jnp.asarray(values)
         if values.shape[-1] != self.dim:
-            raise ValueError(f"values have {values.shape[-1]} coordinates, the space has {self.dim} ({self.names})")
+            raise ValueError(
+                f"values have {values.shape[-1]} coordinates, the space has {self.dim} ({self.names})"
+            )
         batch = values.shape[:-1]
         full = {name: jnp.full(batch, value, values.dtype) for name, value in self.fixed}
         for i, name in enumerate(self.names):
@@ -153,9 +164,13 @@ class ParamSpace:
         if unknown:
             raise ValueError(f"cannot fix {unknown}: not free in this space ({self.names})")
         keep = [i for i, k in enumerate(self.names) if k not in values]
-        return replace(self, names=tuple(self.names[i] for i in keep), lo=tuple(self.lo[i] for i in keep),
-                       hi=tuple(self.hi[i] for i in keep),
-                       fixed=self.fixed + tuple((k, float(v)) for k, v in values.items()))  # fmt: skip
+        return replace(
+            self,
+            names=tuple(self.names[i] for i in keep),
+            lo=tuple(self.lo[i] for i in keep),
+            hi=tuple(self.hi[i] for i in keep),
+            fixed=self.fixed + tuple((k, float(v)) for k, v in values.items()),
+        )
 
     def bounded(self, **boxes: tuple[float, float]) -> ParamSpace:
         """The same space with new boxes for some free parameters."""
@@ -169,8 +184,11 @@ class ParamSpace:
 
     def describe(self) -> dict:
         """JSON-ready description (for reports and resumable outputs)."""
-        return {"kind": self.kind, "free": {k: [a, b] for k, a, b in zip(self.names, self.lo, self.hi, strict=True)},
-                "fixed": dict(self.fixed)}  # fmt: skip
+        return {
+            "kind": self.kind,
+            "free": {k: [a, b] for k, a, b in zip(self.names, self.lo, self.hi, strict=True)},
+            "fixed": dict(self.fixed),
+        }
 
 
 def sve_space(**bounds: tuple[float, float]) -> ParamSpace:
@@ -182,8 +200,9 @@ def sve_space(**bounds: tuple[float, float]) -> ParamSpace:
 def inlier_space(**bounds: tuple[float, float]) -> ParamSpace:
     """ORB-SLAM3's rule with its four thresholds free (default boxes, INLIER_BOUNDS, overridable)."""
     b = {**INLIER_BOUNDS, **bounds}
-    return ParamSpace("inliers", INLIER_NAMES, tuple(b[k][0] for k in INLIER_NAMES),
-                      tuple(b[k][1] for k in INLIER_NAMES))  # fmt: skip
+    return ParamSpace(
+        "inliers", INLIER_NAMES, tuple(b[k][0] for k in INLIER_NAMES), tuple(b[k][1] for k in INLIER_NAMES)
+    )
 
 
 def space_from_dict(spec: dict) -> ParamSpace:

@@ -37,13 +37,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array
 from tqdm.auto import tqdm
 
 from .batch import LogBatch
 from .objective import ObjectiveConfig
-from .rules import HardLogic, InlierRule, Rule, SVERule, initial_state, machine_step
-from .sve import FrameFeatures, s_a_from_ratio
+from .rules import HardLogic, InlierRule, Rule, initial_state, machine_step
+from .sve import FrameFeatures
 from .trajectory import MIN_ALIGNMENT_FRAMES
 
 log = logging.getLogger(__name__)
@@ -53,11 +53,22 @@ log = logging.getLogger(__name__)
 
 # Joe & Kuo (2008), new-joe-kuo-6.21201: dimension, degree s, polynomial a, initial direction numbers m.
 _JOE_KUO = (
-    (1, 0, (1,)), (2, 1, (1, 3)), (3, 1, (1, 3, 1)), (3, 2, (1, 1, 1)), (4, 1, (1, 1, 3, 3)),
-    (4, 4, (1, 3, 5, 13)), (5, 2, (1, 1, 5, 5, 17)), (5, 4, (1, 1, 5, 5, 5)), (5, 7, (1, 1, 7, 11, 19)),
-    (5, 11, (1, 1, 5, 1, 1)), (5, 13, (1, 1, 1, 3, 11)), (5, 14, (1, 3, 5, 5, 31)),
-    (6, 1, (1, 3, 3, 9, 7, 49)), (6, 13, (1, 1, 1, 15, 21, 21)), (6, 16, (1, 3, 1, 13, 27, 49)),
-)  # fmt: skip
+    (1, 0, (1,)),
+    (2, 1, (1, 3)),
+    (3, 1, (1, 3, 1)),
+    (3, 2, (1, 1, 1)),
+    (4, 1, (1, 1, 3, 3)),
+    (4, 4, (1, 3, 5, 13)),
+    (5, 2, (1, 1, 5, 5, 17)),
+    (5, 4, (1, 1, 5, 5, 5)),
+    (5, 7, (1, 1, 7, 11, 19)),
+    (5, 11, (1, 1, 5, 1, 1)),
+    (5, 13, (1, 1, 1, 3, 11)),
+    (5, 14, (1, 3, 5, 5, 31)),
+    (6, 1, (1, 3, 3, 9, 7, 49)),
+    (6, 13, (1, 1, 1, 15, 21, 21)),
+    (6, 16, (1, 3, 1, 13, 27, 49)),
+)
 SOBOL_MAX_DIM = 1 + len(_JOE_KUO)
 _SOBOL_BITS = 32
 
@@ -163,34 +174,64 @@ def design(kind: str, n: int, d: int, *, seed: int = 0) -> np.ndarray:
 # The two-entry power mean in columns
 
 
-def _power_mean2(x1, x2, w, p):
-    """M_p([x1, x2]; [w, 1 - w]) elementwise, without stacking: jsve.sve.power_mean's definition
-    (same p -> 0 expansion, same zero rules) on two columns. tests/test_fit.py checks it against
-    power_mean; stacking on a trailing axis of 2 made the search 7x slower on CPU."""
-    pos1, pos2 = x1 > 0, x2 > 0
-    l1 = jnp.log(jnp.where(pos1, x1, 1.0))
-    l2 = jnp.log(jnp.where(pos2, x2, 1.0))
+def _log_power_mean2(l1, pos1, l2, pos2, w, p):
+    """log M_p([x1, x2]; [w, 1 - w]) from l_i = log x_i (where pos_i: x_i > 0), and whether M is 0.
+
+    jsve.sve.power_mean's definition (the same p -> 0 expansion and zero rules) in the log domain, on
+    two columns: the logs of the features are computed once per frame and shared by every setting, and a
+    nested mean passes its log on without an exp/log round trip. tests/test_fit.py checks it against
+    power_mean; stacking on a trailing axis of 2 instead made the search 7x slower on CPU.
+    """
+    l1 = jnp.where(pos1, l1, 0.0)
+    l2 = jnp.where(pos2, l2, 0.0)
     w2 = 1 - w
     near_zero_p = jnp.abs(p) < 1e-6
     p_safe = jnp.where(near_zero_p, 1.0, p)
     mean_log = w * l1 + w2 * l2
-    var_log = w * (l1 - mean_log) ** 2 + w2 * (l2 - mean_log) ** 2
-    geometric = jnp.exp(mean_log + 0.5 * p * var_log)
-    excess = w * jnp.where(pos1, jnp.expm1(p_safe * l1), -1.0) + w2 * jnp.where(pos2, jnp.expm1(p_safe * l2), -1.0)
+    # Near p = 0: log M = mean log x + p Var(log x) / 2 (cumulant expansion; jsve.sve.power_mean)
+    log_geometric = mean_log + 0.5 * p * (w * (l1 - mean_log) ** 2 + w2 * (l2 - mean_log) ** 2)
+    excess = w * jnp.where(pos1, jnp.expm1(p_safe * l1), -1.0) + w2 * jnp.where(
+        pos2, jnp.expm1(p_safe * l2), -1.0
+    )
     inner_ok = excess > -1
-    powered = jnp.where(inner_ok, jnp.exp(jnp.log1p(jnp.where(inner_ok, excess, 0.0)) / p_safe), 0.0)
-    value = jnp.where(near_zero_p, geometric, powered)
+    log_powered = jnp.log1p(jnp.where(inner_ok, excess, 0.0)) / p_safe
     has_zero = (~pos1 & (w > 0)) | (~pos2 & (w2 > 0))
-    return jnp.where(has_zero & (near_zero_p | (p <= 0)), 0.0, value)
+    zero = (has_zero & (near_zero_p | (p <= 0))) | (~near_zero_p & ~inner_ok)
+    return jnp.where(near_zero_p, log_geometric, log_powered), zero
 
 
-def score_columns(rule: Rule, n_inliers, ratio, s_b, s_c):
-    """The rule's score from feature columns (rule leaves broadcast against the columns)."""
+def _power_mean2(x1, x2, w, p):
+    """M_p([x1, x2]; [w, 1 - w]) elementwise (the log-domain kernel, exponentiated)."""
+    pos1, pos2 = x1 > 0, x2 > 0
+    log_m, zero = _log_power_mean2(
+        jnp.log(jnp.where(pos1, x1, 1.0)), pos1, jnp.log(jnp.where(pos2, x2, 1.0)), pos2, w, p
+    )
+    return jnp.where(zero, 0.0, jnp.exp(jnp.where(zero, 0.0, log_m)))
+
+
+def score_columns(rule: Rule, n_inliers, log_ratio, log_s_b, log_s_c, pos_ratio, pos_s_b, pos_s_c):
+    """The rule's score from feature columns (rule leaves broadcast against the columns).
+
+    SVE features come as logs (log of N_inliers / N_extracted, of S_b, of S_c; `pos_*` where the feature is
+    > 0): S_a = clip(ratio / rho, 0, 1) is then min(log ratio - log rho, 0) in the log domain.
+    """
     if isinstance(rule, InlierRule):
         return n_inliers
     c = rule.combination
-    s_a = s_a_from_ratio(ratio, c.rho)
-    return _power_mean2(s_a, _power_mean2(s_b, s_c, c.u_b, c.q), c.w_a, c.p)
+    rho_ok = c.rho > 0
+    log_s_a = jnp.minimum(log_ratio - jnp.log(jnp.where(rho_ok, c.rho, 1.0)), 0.0)
+    pos_s_a = pos_ratio & rho_ok
+    log_inner, inner_zero = _log_power_mean2(log_s_b, pos_s_b, log_s_c, pos_s_c, c.u_b, c.q)
+    log_m, zero = _log_power_mean2(log_s_a, pos_s_a, log_inner, ~inner_zero, c.w_a, c.p)
+    return jnp.where(zero, 0.0, jnp.exp(jnp.where(zero, 0.0, log_m)))
+
+
+def feature_logs(ratio, s_b, s_c):
+    """(log ratio, log S_b, log S_c, ratio > 0, S_b > 0, S_c > 0), logs 0 where the feature is 0."""
+    out = []
+    for x in (ratio, s_b, s_c):
+        out.append(jnp.log(jnp.where(x > 0, x, 1.0)))
+    return (*out, ratio > 0, s_b > 0, s_c > 0)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -204,9 +245,12 @@ class SearchBatch(eqx.Module):
     """
 
     n_inliers: Array
-    ratio: Array
-    s_b: Array
-    s_c: Array
+    log_ratio: Array  # log N_inliers / N_extracted (0 where it is 0, see pos_ratio)
+    log_s_b: Array
+    log_s_c: Array
+    pos_ratio: Array
+    pos_s_b: Array
+    pos_s_c: Array
     t: Array
     imu_init: Array
     valid: Array
@@ -251,16 +295,36 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
     offset = mean(batch.vis_p - batch.gt_p)
     g_c = (batch.gt_p - g_mean[:, None]) * weight[..., None]
     gram = jnp.einsum("rfi,rfj->ijr", g_c, g_c)
+    logs = feature_logs(fm(features.inlier_ratio), fm(features.s_b), fm(features.s_c))
     return SearchBatch(
-        n_inliers=fm(features.n_inliers), ratio=fm(features.inlier_ratio), s_b=fm(features.s_b),
-        s_c=fm(features.s_c), t=fm(batch.t), imu_init=fm(batch.imu_init), valid=fm(batch.valid),
-        weight=fm(weight), vis_p=cols(batch.vis_p), vis_q=cols(batch.vis_q), vis_v=cols(batch.vis_v),
-        imu_dt=fm(batch.imu_dt), imu_dp=cols(batch.imu_dp), imu_dv=cols(batch.imu_dv), imu_dq=cols(batch.imu_dq),
-        ref=cols(batch.gt_p + offset[:, None]), g_c=cols(g_c),
-        gravity=tuple(batch.gravity[:, i].astype(dtype) for i in range(3)), fps=batch.fps.astype(dtype),
-        imu_init_delay=batch.imu_init_delay.astype(dtype), offset=offset.T, g_mean=g_mean.T, gram=gram,
+        n_inliers=fm(features.n_inliers),
+        log_ratio=logs[0],
+        log_s_b=logs[1],
+        log_s_c=logs[2],
+        pos_ratio=logs[3],
+        pos_s_b=logs[4],
+        pos_s_c=logs[5],
+        t=fm(batch.t),
+        imu_init=fm(batch.imu_init),
+        valid=fm(batch.valid),
+        weight=fm(weight),
+        vis_p=cols(batch.vis_p),
+        vis_q=cols(batch.vis_q),
+        vis_v=cols(batch.vis_v),
+        imu_dt=fm(batch.imu_dt),
+        imu_dp=cols(batch.imu_dp),
+        imu_dv=cols(batch.imu_dv),
+        imu_dq=cols(batch.imu_dq),
+        ref=cols(batch.gt_p + offset[:, None]),
+        g_c=cols(g_c),
+        gravity=tuple(batch.gravity[:, i].astype(dtype) for i in range(3)),
+        fps=batch.fps.astype(dtype),
+        imu_init_delay=batch.imu_init_delay.astype(dtype),
+        offset=offset.T,
+        g_mean=g_mean.T,
+        gram=gram,
         n_eval=n,
-    )  # fmt: skip
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -270,8 +334,12 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
 def _quat_mul(a, b):
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)  # fmt: skip
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
 
 
 def _quat_rotate(q, v):
@@ -311,7 +379,9 @@ def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
     d_c = s_ee - n * sum(x * x for x in mu)  # sum |e - mean e|^2
     gram = sb.gram  # [3, 3, R]; symmetric
     # M[j][i] = sum e_j g_c,i;  cov[i][j] = (G[i][j] + M[j][i]) / n  (Umeyama eq. 38 with y = truth)
-    cov = jnp.stack([jnp.stack([(gram[i, j] + m[j][i]) / n_safe for j in range(3)], -1) for i in range(3)], -2)
+    cov = jnp.stack(
+        [jnp.stack([(gram[i, j] + m[j][i]) / n_safe for j in range(3)], -1) for i in range(3)], -2
+    )
     tr_g = gram[0, 0] + gram[1, 1] + gram[2, 2]
     tr_m = m[0][0] + m[1][1] + m[2][2]
     var_y = tr_g / n_safe
@@ -323,7 +393,11 @@ def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
     degenerate = (n < MIN_ALIGNMENT_FRAMES) | (var_x <= tol * ms_x) | (var_y <= tol * ms_y)
     eye = jnp.eye(3, dtype=dtype)
     if method == "none":
-        e2 = s_ee + 2 * sum(sb.offset[i] * s_e[i] for i in range(3)) + n * sum(sb.offset[i] ** 2 for i in range(3))
+        e2 = (
+            s_ee
+            + 2 * sum(sb.offset[i] * s_e[i] for i in range(3))
+            + n * sum(sb.offset[i] ** 2 for i in range(3))
+        )
         return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), jnp.zeros_like(degenerate)
     if method == "posyaw":
         a = cov[..., 0, 0] + cov[..., 1, 1]
@@ -332,12 +406,19 @@ def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
         ok = a * a + b * b > 0
         c_t, s_t = jnp.where(ok, a / r, 1.0), jnp.where(ok, b / r, 0.0)
         zero, one = jnp.zeros_like(a), jnp.ones_like(a)
-        rot = jnp.stack([jnp.stack([c_t, -s_t, zero], -1), jnp.stack([s_t, c_t, zero], -1),
-                         jnp.stack([zero, zero, one], -1)], -2)  # fmt: skip
+        rot = jnp.stack(
+            [
+                jnp.stack([c_t, -s_t, zero], -1),
+                jnp.stack([s_t, c_t, zero], -1),
+                jnp.stack([zero, zero, one], -1),
+            ],
+            -2,
+        )
         scale = one
     else:
-        u, d, vt = jnp.linalg.svd(jnp.where(degenerate[..., None, None], jnp.diag(jnp.array([3.0, 2.0, 1.0], dtype)),
-                                            cov))  # fmt: skip
+        u, d, vt = jnp.linalg.svd(
+            jnp.where(degenerate[..., None, None], jnp.diag(jnp.array([3.0, 2.0, 1.0], dtype)), cov)
+        )
         flip = jnp.linalg.det(u) * jnp.linalg.det(vt) < 0  # Umeyama eq. 43
         s = jnp.stack([jnp.ones_like(d[..., 0]), jnp.ones_like(d[..., 0]), jnp.where(flip, -1.0, 1.0)], -1)
         rot = (u * s[..., None, :]) @ vt
@@ -358,8 +439,10 @@ def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
 def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008
     """Hard objective of S rule settings (leaves [S]) on every run of a SearchBatch: [S, R] results."""
     if config.align == "origin":
-        raise ValueError("the search kernel aligns from sufficient statistics; align='origin' needs the first "
-                         "pose: use jsve.objective.run_losses")  # fmt: skip
+        raise ValueError(
+            "the search kernel aligns from sufficient statistics; align='origin' needs the first "
+            "pose: use jsve.objective.run_losses"
+        )
     dtype = sb.t.dtype
     S = jax.tree.leaves(rules)[0].shape[0]
     lanes = (S, sb.n_runs)
@@ -369,16 +452,42 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
     zeros = jnp.zeros(lanes, dtype)
     start = (state0, first(sb.vis_p), first(sb.vis_v), first(sb.vis_q), zeros, zeros, (zeros,) * _MOMENTS)
     k = jnp.arange(sb.n_frames, dtype=dtype)
-    xs = (sb.n_inliers, sb.ratio, sb.s_b, sb.s_c, sb.t, sb.imu_init, sb.valid, sb.weight, sb.vis_p, sb.vis_q,
-          sb.vis_v, sb.imu_dt, sb.imu_dp, sb.imu_dv, sb.imu_dq, sb.ref, sb.g_c, k)  # fmt: skip
+    xs = (
+        sb.n_inliers,
+        (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c),
+        sb.t,
+        sb.imu_init,
+        sb.valid,
+        sb.weight,
+        sb.vis_p,
+        sb.vis_q,
+        sb.vis_v,
+        sb.imu_dt,
+        sb.imu_dp,
+        sb.imu_dv,
+        sb.imu_dq,
+        sb.ref,
+        sb.g_c,
+        k,
+    )
     logic = HardLogic()
 
     def step(carry, x):
         state, p, v, q, lost, n_est, mom = carry
-        n_inl, ratio, s_b, s_c, t, imu_init, valid, w, vp, vq, vv, dt, dp, dv, dq, ref, g_c, kk = x
-        score = score_columns(rule, n_inl, ratio, s_b, s_c)
-        state, decision = machine_step(logic, state, score, t, kk, imu_init, rule.thresholds, sb.fps,
-                                       sb.imu_init_delay, config.time_recently_lost)  # fmt: skip
+        n_inl, feats, t, imu_init, valid, w, vp, vq, vv, dt, dp, dv, dq, ref, g_c, kk = x
+        score = score_columns(rule, n_inl, *feats)
+        state, decision = machine_step(
+            logic,
+            state,
+            score,
+            t,
+            kk,
+            imu_init,
+            rule.thresholds,
+            sb.fps,
+            sb.imu_init_delay,
+            config.time_recently_lost,
+        )
         pp, pv, pq = imu_predict_columns(p, v, q, dt, dp, dv, dq, sb.gravity)
         # (machine_step computes in result_type(t, float): float64 for float32 data under jax_enable_x64)
         state, decision = jax.tree.map(lambda x: x.astype(dtype), (state, decision))
@@ -388,7 +497,11 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
         lost = jnp.maximum(lost, state.lost * valid)
         n_est = n_est + w * (decision.accepted + decision.predicted)
         e = [w * (p2[i] - ref[i]) for i in range(3)]
-        new = e + [e[j] * g_c[i] for j in range(3) for i in range(3)] + [e[0] * e[0] + e[1] * e[1] + e[2] * e[2]]
+        new = (
+            e
+            + [e[j] * g_c[i] for j in range(3) for i in range(3)]
+            + [e[0] * e[0] + e[1] * e[1] + e[2] * e[2]]
+        )
         mom = tuple(acc + d for acc, d in zip(mom, new, strict=True))
         return (state, p2, v2, q2, lost, n_est, mom), None
 
@@ -437,15 +550,18 @@ class SearchResult:
 
     def concat(self, other: SearchResult) -> SearchResult:
         """Both sets of settings (same runs)."""
-        return SearchResult(*(np.concatenate([a, b]) for a, b in zip(self.as_tuple(), other.as_tuple(), strict=True)))
+        return SearchResult(
+            *(np.concatenate([a, b]) for a, b in zip(self.as_tuple(), other.as_tuple(), strict=True))
+        )
 
     def as_tuple(self):
         return (self.values, self.loss, self.failed, self.rmse, self.coverage)
 
 
-LANES_PER_CALL = 32768
+LANES_PER_CALL = 8192
 """Settings x runs per kernel call: enough lanes to vectorise each frame step, few enough that the scan's
-carry (~50 floats per lane, 6 MB) stays in cache (analysis/bench_search.py)."""
+carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (measured best of 4k-64k lanes,
+analysis/bench_search.py)."""
 
 
 def _settings_chunks(n: int, size: int) -> Iterator[slice]:
@@ -507,8 +623,9 @@ def search(
             bar.update(n * n_real)
     merged = [jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *chunks) for chunks in per_part]
     merged = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *merged)
-    return SearchResult(values=values, loss=merged.loss, failed=merged.failed, rmse=merged.rmse,
-                        coverage=merged.coverage)  # fmt: skip
+    return SearchResult(
+        values=values, loss=merged.loss, failed=merged.failed, rmse=merged.rmse, coverage=merged.coverage
+    )
 
 
 def use_all_cores() -> None:
@@ -519,8 +636,24 @@ def use_all_cores() -> None:
 
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
+        os.environ["XLA_FLAGS"] = (
+            f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
+        )
 
 
-__all__ = ["sobol", "halton", "random_design", "grid_design", "design", "SearchBatch", "prepare", "search_chunk",
-           "search", "SearchResult", "score_columns", "imu_predict_columns", "use_all_cores"]  # fmt: skip
+__all__ = [
+    "sobol",
+    "halton",
+    "random_design",
+    "grid_design",
+    "design",
+    "SearchBatch",
+    "prepare",
+    "search_chunk",
+    "search",
+    "SearchResult",
+    "score_columns",
+    "feature_logs",
+    "imu_predict_columns",
+    "use_all_cores",
+]

@@ -75,7 +75,9 @@ class StudyConfig:
     seed: int = 0
 
     def objective(self) -> ObjectiveConfig:
-        return ObjectiveConfig(failure_penalty=self.failure_penalty, align=self.align, min_coverage=self.min_coverage)
+        return ObjectiveConfig(
+            failure_penalty=self.failure_penalty, align=self.align, min_coverage=self.min_coverage
+        )
 
     def space(self, family: str) -> ParamSpace:
         if family in self.spaces:
@@ -189,9 +191,12 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
         sums = []
         for feats, batch, n_real in zip(data.features, data.batches, data.run_counts, strict=True):
             valid = np.asarray(batch.valid[:n_real], np.float64)
-            values = {"sve": combo(feats.inlier_ratio, feats.s_b, feats.s_c),
-                      "s_a": jnp.clip(feats.inlier_ratio / combo.rho, 0.0, 1.0), "s_b": feats.s_b,
-                      "s_c": feats.s_c}  # fmt: skip
+            values = {
+                "sve": combo(feats.inlier_ratio, feats.s_b, feats.s_c),
+                "s_a": jnp.clip(feats.inlier_ratio / combo.rho, 0.0, 1.0),
+                "s_b": feats.s_b,
+                "s_c": feats.s_c,
+            }
             part = {"count": valid.sum(1)}
             for key, v in values.items():
                 x = np.asarray(v[:n_real], np.float64)
@@ -222,27 +227,51 @@ def heatmap_table(data: FitData, space: ParamSpace, values, weights, x: str, y: 
     grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
     grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
     res = search(data.parts, space, grid, data.config, run_counts=data.run_counts, progress=False)
-    return pd.DataFrame({"family": space.kind, "x_name": x, "y_name": y, "x": grid[:, ix], "y": grid[:, iy],
-                         "objective": res.objective(weights), "failure_rate": res.failure_rate(weights)})  # fmt: skip
+    return pd.DataFrame(
+        {
+            "family": space.kind,
+            "x_name": x,
+            "y_name": y,
+            "x": grid[:, ix],
+            "y": grid[:, iy],
+            "objective": res.objective(weights),
+            "failure_rate": res.failure_rate(weights),
+        }
+    )
 
 
 def _fit_record(name: str, result: FitResult) -> dict:
-    return {"family": name, "space": result.space.describe(), "values": result.values.tolist(),
-            "params": result.params(), "rule": rule_to_dict(result.rule), "objective": result.objective,
-            "failure_rate": result.failure_rate, "coverage": result.coverage, "stages": result.stages}  # fmt: skip
+    return {
+        "family": name,
+        "space": result.space.describe(),
+        "values": result.values.tolist(),
+        "params": result.params(),
+        "rule": rule_to_dict(result.rule),
+        "objective": result.objective,
+        "failure_rate": result.failure_rate,
+        "coverage": result.coverage,
+        "stages": result.stages,
+    }
 
 
 def _save_search(result: SearchResult, path: Path) -> None:
     tmp = path.with_name(path.name + ".partial.npz")
-    np.savez_compressed(tmp, values=result.values, loss=result.loss, failed=result.failed, rmse=result.rmse,
-                        coverage=result.coverage)  # fmt: skip
+    np.savez_compressed(
+        tmp,
+        values=result.values,
+        loss=result.loss,
+        failed=result.failed,
+        rmse=result.rmse,
+        coverage=result.coverage,
+    )
     os.replace(tmp, path)
 
 
 def _load_search(path: Path) -> SearchResult:
     with np.load(path) as z:
-        return SearchResult(values=z["values"], loss=z["loss"], failed=z["failed"], rmse=z["rmse"],
-                            coverage=z["coverage"])  # fmt: skip
+        return SearchResult(
+            values=z["values"], loss=z["loss"], failed=z["failed"], rmse=z["rmse"], coverage=z["coverage"]
+        )
 
 
 def _folds(meta: pd.DataFrame, config: StudyConfig):
@@ -257,8 +286,14 @@ def _folds(meta: pd.DataFrame, config: StudyConfig):
     return folds
 
 
-def run_study(data: FitData, out_dir: str | os.PathLike, config: StudyConfig = StudyConfig(), *,  # noqa: B008
-              progress: bool = True, data_description: dict | None = None) -> dict:  # fmt: skip
+def run_study(
+    data: FitData,
+    out_dir: str | os.PathLike,
+    config: StudyConfig = StudyConfig(),
+    *,  # noqa: B008
+    progress: bool = True,
+    data_description: dict | None = None,
+) -> dict:
     """Run every stage of a fitting study on `data` and write its tables to `out_dir`.
 
     Arguments:
@@ -272,12 +307,22 @@ def run_study(data: FitData, out_dir: str | os.PathLike, config: StudyConfig = S
     if data.config != config.objective():
         data = replace(data, config=config.objective())
     meta = data.meta
-    data_fp = fingerprint({"runs": meta.get("run_id", meta.index).astype(str).tolist(), "frames": data.n_frames})
+    data_fp = fingerprint(
+        {"runs": meta.get("run_id", meta.index).astype(str).tolist(), "frames": data.n_frames}
+    )
     stages = Stages(out, fingerprint(config.to_dict()), data_fp)
     by = [c for c in config.balance_by if c in meta.columns]
     weights = group_weights(meta, by)
-    write_json({"config": config.to_dict(), "data": data_description or {}, "n_runs": data.n_runs,
-                "n_frames": data.n_frames, "balance_by": by}, out / "study.json")  # fmt: skip
+    write_json(
+        {
+            "config": config.to_dict(),
+            "data": data_description or {},
+            "n_runs": data.n_runs,
+            "n_frames": data.n_frames,
+            "balance_by": by,
+        },
+        out / "study.json",
+    )
     spaces = {f: config.space(f) for f in config.families}
     eval_kwargs = dict(align=config.align, min_coverage=config.min_coverage, progress=progress)
 
@@ -299,17 +344,28 @@ def run_study(data: FitData, out_dir: str | os.PathLike, config: StudyConfig = S
 
         stages.run(f"fit_{family}", do_fit, [json_path, search_path])
         record = json.loads(json_path.read_text())
-        fits[family] = FitResult(space=space, values=np.asarray(record["values"]), objective=record["objective"],
-                                 failure_rate=record["failure_rate"], coverage=record["coverage"],
-                                 stages=record["stages"], search=_load_search(search_path))  # fmt: skip
+        fits[family] = FitResult(
+            space=space,
+            values=np.asarray(record["values"]),
+            objective=record["objective"],
+            failure_rate=record["failure_rate"],
+            coverage=record["coverage"],
+            stages=record["stages"],
+            search=_load_search(search_path),
+        )
 
     def evaluate_fitted():
-        tables = [evaluate(data.buckets, r.rule, rule_name=f"fitted-{f}", **eval_kwargs) for f, r in fits.items()]
+        tables = [
+            evaluate(data.buckets, r.rule, rule_name=f"fitted-{f}", **eval_kwargs) for f, r in fits.items()
+        ]
         per_run = pd.concat([read_table(out, "runs_presets")] + tables, ignore_index=True)
         write_table(per_run, out, "runs")
         group = [c for c in ("disturbance", "level") if c in per_run.columns]
-        write_table(aggregate(per_run, group + ["rule"], n_boot=config.n_boot, level=config.level,
-                              seed=config.seed), out, "summary")  # fmt: skip
+        write_table(
+            aggregate(per_run, group + ["rule"], n_boot=config.n_boot, level=config.level, seed=config.seed),
+            out,
+            "summary",
+        )
 
     stages.run("evaluate_fitted", evaluate_fitted, [out / "runs.parquet", out / "summary.parquet"])
 
@@ -317,36 +373,64 @@ def run_study(data: FitData, out_dir: str | os.PathLike, config: StudyConfig = S
         folds = _folds(meta, config)
         if not folds:
             return {"folds": 0}
-        cv = cross_validate(data, spaces, folds, weights, config.fit, searches={f: r.search for f, r in fits.items()},
-                            progress=progress)  # fmt: skip
+        cv = cross_validate(
+            data,
+            spaces,
+            folds,
+            weights,
+            config.fit,
+            searches={f: r.search for f, r in fits.items()},
+            progress=progress,
+        )
         write_table(cv.heldout, out, "heldout")
         write_table(cv.params, out, "cv_params")
-        write_table(compare(cv.heldout, n_boot=config.n_boot, level=config.level, seed=config.seed), out,
-                    "heldout_summary")  # fmt: skip
+        write_table(
+            compare(cv.heldout, n_boot=config.n_boot, level=config.level, seed=config.seed),
+            out,
+            "heldout_summary",
+        )
         return {"folds": len(folds)}
 
     stages.run("cross_validation", crossvalidate, [out / "heldout_summary.parquet"])
 
     def bootstrap():
-        tables = [parameter_bootstrap(data, spaces[f], r, weights, n_local=config.n_local,
-                                      fraction=config.local_fraction, n_boot=config.n_boot, level=config.level,
-                                      seed=config.seed, progress=progress) for f, r in fits.items()]  # fmt: skip
+        tables = [
+            parameter_bootstrap(
+                data,
+                spaces[f],
+                r,
+                weights,
+                n_local=config.n_local,
+                fraction=config.local_fraction,
+                n_boot=config.n_boot,
+                level=config.level,
+                seed=config.seed,
+                progress=progress,
+            )
+            for f, r in fits.items()
+        ]
         write_table(pd.concat(tables, ignore_index=True), out, "params")
 
     stages.run("parameter_bootstrap", bootstrap, [out / "params.parquet"])
 
     def heatmap():
         x, y, n = config.heatmap
-        tables = [heatmap_table(data, spaces[f], r.values, weights, x, y, int(n)) for f, r in fits.items()
-                  if x in spaces[f].names and y in spaces[f].names]  # fmt: skip
+        tables = [
+            heatmap_table(data, spaces[f], r.values, weights, x, y, int(n))
+            for f, r in fits.items()
+            if x in spaces[f].names and y in spaces[f].names
+        ]
         if tables:
             write_table(pd.concat(tables, ignore_index=True), out, "heatmap")
 
     stages.run("heatmap", heatmap, [out / "heatmap.parquet"] if config.heatmap else [])
 
     def sve_levels():
-        combos = {"sve-eq1": Combination(**EQ1), "sve-option1": Combination(**OPTION1),
-                  "sve-option2": Combination(**OPTION2)}  # fmt: skip
+        combos = {
+            "sve-eq1": Combination(**EQ1),
+            "sve-option1": Combination(**OPTION1),
+            "sve-option2": Combination(**OPTION2),
+        }
         if "sve" in fits:
             combos["fitted-sve"] = fits["sve"].rule.combination
         if {"disturbance", "level"} <= set(meta.columns):

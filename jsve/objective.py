@@ -64,7 +64,9 @@ class ObjectiveConfig(eqx.Module):
 
     def __check_init__(self):
         if not (np.isfinite(self.failure_penalty) and self.failure_penalty >= 0):
-            raise ValueError(f"failure_penalty must be a finite number of metres >= 0, got {self.failure_penalty}")
+            raise ValueError(
+                f"failure_penalty must be a finite number of metres >= 0, got {self.failure_penalty}"
+            )
         if self.align not in ("se3", "sim3", "posyaw", "origin", "none"):
             raise ValueError(f"align must be se3, sim3, posyaw, origin or none, got {self.align!r}")
         if not 0.0 <= self.min_coverage <= 1.0:
@@ -161,9 +163,15 @@ def run_losses(
     with_q = config.align == "origin"
     kernel = functools.partial(_one_run_loss, config=config, hard=hard)
     return jax.vmap(kernel)(
-        result.position, result.quaternion if with_q else None, result.has_estimate, result.lost_any,
-        batch.gt_p, batch.gt_q if with_q else None, batch.gt_valid, batch.valid,
-    )  # fmt: skip
+        result.position,
+        result.quaternion if with_q else None,
+        result.has_estimate,
+        result.lost_any,
+        batch.gt_p,
+        batch.gt_q if with_q else None,
+        batch.gt_valid,
+        batch.valid,
+    )
 
 
 def weighted_objective(losses: RunLoss, weights: Float[Array, " R"]) -> ObjectiveValue:
@@ -197,11 +205,15 @@ def objective(
         Others as `run_losses`.
     """
     if weights.shape != (batch.n_runs,):
-        raise ValueError(f"weights must have shape ({batch.n_runs},) (one per run), got {tuple(weights.shape)}")
+        raise ValueError(
+            f"weights must have shape ({batch.n_runs},) (one per run), got {tuple(weights.shape)}"
+        )
     return weighted_objective(run_losses(batch, rule, features, config, logic=logic), weights)
 
 
-def group_weights(meta: pd.DataFrame, by: Sequence[str] | None = ("sequence", "disturbance", "level")) -> np.ndarray:
+def group_weights(
+    meta: pd.DataFrame, by: Sequence[str] | None = ("sequence", "disturbance", "level")
+) -> np.ndarray:
     """Run weights under which every group of `by` counts equally (mean weight 1).
 
     Arguments:

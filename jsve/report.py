@@ -31,8 +31,14 @@ import pandas as pd  # noqa: E402
 log = logging.getLogger(__name__)
 
 RULE_ORDER = ("orbslam3", "sve-eq1", "sve-option1", "sve-option2", "fitted-inliers", "fitted-sve")
-RULE_COLORS = {"orbslam3": "#444444", "sve-eq1": "#1f77b4", "sve-option1": "#2ca02c", "sve-option2": "#ff7f0e",
-               "fitted-inliers": "#7f7f7f", "fitted-sve": "#d62728"}  # fmt: skip
+RULE_COLORS = {
+    "orbslam3": "#444444",
+    "sve-eq1": "#1f77b4",
+    "sve-option1": "#2ca02c",
+    "sve-option2": "#ff7f0e",
+    "fitted-inliers": "#7f7f7f",
+    "fitted-sve": "#d62728",
+}
 PNG_META = {"Software": None}
 
 
@@ -62,8 +68,10 @@ def markdown_table(table: pd.DataFrame) -> str:
 
 def html_table(table: pd.DataFrame) -> str:
     cells = "".join(f"<th>{html.escape(str(c))}</th>" for c in table.columns)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
-                   for row in table.itertuples(index=False))  # fmt: skip
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
+        for row in table.itertuples(index=False)
+    )
     return f"<table><thead><tr>{cells}</tr></thead><tbody>{body}</tbody></table>"
 
 
@@ -122,14 +130,17 @@ def figure_ate_levels(summary: pd.DataFrame, path: Path) -> Path:
     """Per disturbance: mean RMS ATE of the runs that kept tracking (top) and failure rate (bottom) per
     level, one line per rule (seed Fig 7)."""
     disturbances = [d for d in sorted(summary["disturbance"].astype(str).unique()) if d != "none"] or ["none"]
-    fig, axes = plt.subplots(2, len(disturbances), figsize=(4.2 * len(disturbances), 5.6), squeeze=False,
-                             sharey="row")  # fmt: skip
+    fig, axes = plt.subplots(
+        2, len(disturbances), figsize=(4.2 * len(disturbances), 5.6), squeeze=False, sharey="row"
+    )
     for j, dist in enumerate(disturbances):
         part = summary[summary["disturbance"].astype(str) == dist]
         for rule in _rules(part["rule"]):
             g = part[part["rule"] == rule].sort_values("level", key=lambda s: s.astype(float))
             x = g["level"].astype(float).to_numpy()
-            axes[0, j].plot(x, g["rmse_mean_nonfailed"], marker="o", ms=3, label=rule, color=RULE_COLORS.get(rule))
+            axes[0, j].plot(
+                x, g["rmse_mean_nonfailed"], marker="o", ms=3, label=rule, color=RULE_COLORS.get(rule)
+            )
             axes[1, j].plot(x, g["failure_rate"], marker="o", ms=3, label=rule, color=RULE_COLORS.get(rule))
         axes[0, j].set_title(dist)
         axes[1, j].set_xlabel(f"{dist} level")
@@ -145,7 +156,9 @@ def figure_ate_levels(summary: pd.DataFrame, path: Path) -> Path:
 def figure_heatmap(heat: pd.DataFrame, path: Path, marks: dict[str, tuple[float, float]]) -> Path:
     """The objective over the grid of two thresholds, with marked points (the fit, a preset)."""
     xs, ys = np.unique(heat["x"]), np.unique(heat["y"])
-    grid = heat.pivot_table(index="y", columns="x", values="objective").reindex(index=ys, columns=xs).to_numpy()
+    grid = (
+        heat.pivot_table(index="y", columns="x", values="objective").reindex(index=ys, columns=xs).to_numpy()
+    )
     fig, ax = plt.subplots(figsize=(5.6, 4.6))
     im = ax.pcolormesh(xs, ys, grid, shading="nearest", cmap="viridis")
     fig.colorbar(im, ax=ax, label="objective, m (penalised mean ATE)")
@@ -169,7 +182,9 @@ def figure_heldout(summary: pd.DataFrame, path: Path) -> Path:
         rules = _rules(part.index)
         y = part.loc[rules, "mean_loss"].to_numpy()
         err = np.stack([y - part.loc[rules, "ci_low"].to_numpy(), part.loc[rules, "ci_high"].to_numpy() - y])
-        axes[0, j].bar(range(len(rules)), y, yerr=err, capsize=3, color=[RULE_COLORS.get(r, "#999") for r in rules])
+        axes[0, j].bar(
+            range(len(rules)), y, yerr=err, capsize=3, color=[RULE_COLORS.get(r, "#999") for r in rules]
+        )
         axes[0, j].set_xticks(range(len(rules)), rules, rotation=45, ha="right", fontsize=8)
         axes[0, j].set_title(kind, fontsize=9)
         axes[0, j].grid(alpha=0.3, axis="y")
@@ -190,22 +205,36 @@ def _read(out: Path, name: str) -> pd.DataFrame | None:
 def _heldout_view(summary: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for d in summary.to_dict("records"):
-        row = {"fold kind": d["fold_kind"], "rule": d["rule"], "runs": d["n_runs"],
-               "held-out objective, m [95% CI]": _ci(d["mean_loss"], d["ci_low"], d["ci_high"]),
-               "failure rate": d["failure_rate"], "coverage": d["coverage"]}  # fmt: skip
+        row = {
+            "fold kind": d["fold_kind"],
+            "rule": d["rule"],
+            "runs": d["n_runs"],
+            "held-out objective, m [95% CI]": _ci(d["mean_loss"], d["ci_low"], d["ci_high"]),
+            "failure rate": d["failure_rate"],
+            "coverage": d["coverage"],
+        }
         for base in ("orbslam3", "sve-option2"):
             key = f"diff_vs_{base}"
             present = key in d and pd.notna(d[key])
-            row[f"vs {base}, m [CI]"] = _ci(d[key], d[f"{key}_ci_low"], d[f"{key}_ci_high"]) if present else "-"
+            row[f"vs {base}, m [CI]"] = (
+                _ci(d[key], d[f"{key}_ci_low"], d[f"{key}_ci_high"]) if present else "-"
+            )
         rows.append(row)
     return pd.DataFrame(rows)
 
 
 def _params_view(params: pd.DataFrame) -> pd.DataFrame:
-    return pd.DataFrame({"family": params["family"], "parameter": params["parameter"],
-                         "fitted": params["value"], "95% CI": [f"[{_fmt(a)}, {_fmt(b)}]" for a, b in
-                                                               zip(params["ci_low"], params["ci_high"], strict=True)],
-                         "bootstrap std": params["boot_std"]})  # fmt: skip
+    return pd.DataFrame(
+        {
+            "family": params["family"],
+            "parameter": params["parameter"],
+            "fitted": params["value"],
+            "95% CI": [
+                f"[{_fmt(a)}, {_fmt(b)}]" for a, b in zip(params["ci_low"], params["ci_high"], strict=True)
+            ],
+            "bootstrap std": params["boot_std"],
+        }
+    )
 
 
 def _levels_view(summary: pd.DataFrame, disturbance: str) -> pd.DataFrame:
@@ -217,11 +246,19 @@ def _levels_view(summary: pd.DataFrame, disturbance: str) -> pd.DataFrame:
             if g.empty:
                 continue
             r = g.iloc[0]
-            rows.append({"level": level, "rule": rule, "runs": int(r["n_runs"]),
-                         "ATE RMSE, m (mean ± std, runs that kept tracking)": _pm(r["rmse_mean_nonfailed"],
-                                                                                   r["rmse_std_nonfailed"]),
-                         "ATE RMSE, m (all runs)": _pm(r["rmse_mean_all"], r["rmse_std_all"]),
-                         "failure rate": r["failure_rate"], "coverage": r["mean_coverage"]})  # fmt: skip
+            rows.append(
+                {
+                    "level": level,
+                    "rule": rule,
+                    "runs": int(r["n_runs"]),
+                    "ATE RMSE, m (mean ± std, runs that kept tracking)": _pm(
+                        r["rmse_mean_nonfailed"], r["rmse_std_nonfailed"]
+                    ),
+                    "ATE RMSE, m (all runs)": _pm(r["rmse_mean_all"], r["rmse_std_all"]),
+                    "failure rate": r["failure_rate"],
+                    "coverage": r["mean_coverage"],
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -235,7 +272,9 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
     study = json.loads((out / "study.json").read_text()) if (out / "study.json").is_file() else {}
     summary, heldout_summary = _read(out, "summary"), _read(out, "heldout_summary")
     params, heat, sve_levels = _read(out, "params"), _read(out, "heatmap"), _read(out, "sve_levels")
-    fitted = {p.stem.removeprefix("fitted_"): json.loads(p.read_text()) for p in sorted(out.glob("fitted_*.json"))}
+    fitted = {
+        p.stem.removeprefix("fitted_"): json.loads(p.read_text()) for p in sorted(out.glob("fitted_*.json"))
+    }
     if summary is None:
         raise FileNotFoundError(f"{out}: no summary.parquet; run `jsve fit` (or `jsve demo`) into it first")
     figures: dict[str, Path] = {}
@@ -243,7 +282,9 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
     if sve_levels is not None:
         for dist in sorted(sve_levels["disturbance"].astype(str).unique()):
             if dist != "none":
-                figures[f"SVE per {dist} level"] = figure_sve_levels(sve_levels, dist, fig_dir / f"sve_levels_{dist}.png")
+                figures[f"SVE per {dist} level"] = figure_sve_levels(
+                    sve_levels, dist, fig_dir / f"sve_levels_{dist}.png"
+                )
     if {"disturbance", "level"} <= set(summary.columns):
         figures["RMS ATE and failures per level"] = figure_ate_levels(summary, fig_dir / "ate_levels.png")
     if heat is not None:
@@ -259,40 +300,69 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
             th = preset(base).thresholds
             marks[base] = (float(getattr(th, x_name)), float(getattr(th, y_name)))
             figures[f"Objective over {x_name} x {y_name} ({family})"] = figure_heatmap(
-                g, fig_dir / f"heatmap_{family}.png", marks)  # fmt: skip
+                g, fig_dir / f"heatmap_{family}.png", marks
+            )
     if heldout_summary is not None:
         figures["Held-out objective per rule"] = figure_heldout(heldout_summary, fig_dir / "heldout.png")
 
     sections: list[tuple[str, str, object]] = []  # (heading, text, table or figure path)
     cfg = study.get("config", {})
     facts = study.get("data", {})
-    intro = (f"{study.get('n_runs', '?')} runs, {study.get('n_frames', '?')} frames. Objective: mean per-run ATE "
-             f"RMSE after {cfg.get('align', 'se3')} alignment, a failed run (LOST, degenerate alignment or "
-             f"coverage below {cfg.get('min_coverage', 0)}) costs {cfg.get('failure_penalty', '?')} m; runs "
-             f"weighted so that each group of {', '.join(study.get('balance_by', [])) or 'runs'} counts equally.")  # fmt: skip
+    intro = (
+        f"{study.get('n_runs', '?')} runs, {study.get('n_frames', '?')} frames. Objective: mean per-run ATE "
+        f"RMSE after {cfg.get('align', 'se3')} alignment, a failed run (LOST, degenerate alignment or "
+        f"coverage below {cfg.get('min_coverage', 0)}) costs {cfg.get('failure_penalty', '?')} m; runs "
+        f"weighted so that each group of {', '.join(study.get('balance_by', [])) or 'runs'} counts equally."
+    )
     if facts:
         intro += " Data: " + ", ".join(f"{k} = {v}" for k, v in facts.items()) + "."
     sections.append(("Study", intro, None))
     if heldout_summary is not None:
-        sections.append(("Held-out comparison",
-                         "Each run is held out once per fold kind; fitted rules are refitted without it. Bootstrap "
-                         "95% intervals over runs; differences are paired (negative: the rule beats the baseline).",
-                         _heldout_view(heldout_summary)))  # fmt: skip
+        sections.append(
+            (
+                "Held-out comparison",
+                "Each run is held out once per fold kind; fitted rules are refitted without it. Bootstrap "
+                "95% intervals over runs; differences are paired (negative: the rule beats the baseline).",
+                _heldout_view(heldout_summary),
+            )
+        )
     if params is not None:
-        sections.append(("Fitted parameters",
-                         "Fitted on all runs; 95% intervals from refits on bootstrap resamples of the runs "
-                         "(best setting of the search and a dense local design under each resample's weights).",
-                         _params_view(params)))  # fmt: skip
+        sections.append(
+            (
+                "Fitted parameters",
+                "Fitted on all runs; 95% intervals from refits on bootstrap resamples of the runs "
+                "(best setting of the search and a dense local design under each resample's weights).",
+                _params_view(params),
+            )
+        )
     for family, rec in fitted.items():
-        stages = pd.DataFrame([{"stage": s["stage"], "objective, m": s["objective"],
-                                "seconds": s.get("seconds", float("nan"))} for s in rec["stages"]])  # fmt: skip
-        sections.append((f"Fit of the {family} family",
-                         f"Rule: `{json.dumps(rec['rule'], sort_keys=True)}`; objective {_fmt(rec['objective'])} m, "
-                         f"failure rate {_fmt(rec['failure_rate'])}, coverage {_fmt(rec['coverage'])}.", stages))  # fmt: skip
+        stages = pd.DataFrame(
+            [
+                {
+                    "stage": s["stage"],
+                    "objective, m": s["objective"],
+                    "seconds": s.get("seconds", float("nan")),
+                }
+                for s in rec["stages"]
+            ]
+        )
+        sections.append(
+            (
+                f"Fit of the {family} family",
+                f"Rule: `{json.dumps(rec['rule'], sort_keys=True)}`; objective {_fmt(rec['objective'])} m, "
+                f"failure rate {_fmt(rec['failure_rate'])}, coverage {_fmt(rec['coverage'])}.",
+                stages,
+            )
+        )
     if {"disturbance", "level"} <= set(summary.columns):
         for dist in sorted(summary["disturbance"].astype(str).unique()):
-            sections.append((f"Per level: {dist}", "ATE RMSE in metres; failure rate and coverage per rule.",
-                             _levels_view(summary, dist)))  # fmt: skip
+            sections.append(
+                (
+                    f"Per level: {dist}",
+                    "ATE RMSE in metres; failure rate and coverage per rule.",
+                    _levels_view(summary, dist),
+                )
+            )
     for name, path in figures.items():
         sections.append((name, "", path))
 
@@ -313,12 +383,17 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
             data = base64.b64encode(obj.read_bytes()).decode("ascii")
             body.append(f'<img alt="{html.escape(heading)}" src="data:image/png;base64,{data}">')
     md.append("Every number above is in the study folder's tables (Parquet and CSV); see docs/report.md.")
-    style = ("body{font-family:sans-serif;max-width:70em;margin:2em auto;padding:0 1em}"
-             "table{border-collapse:collapse;margin:1em 0;font-size:90%}td,th{border:1px solid #ccc;"
-             "padding:2px 6px;text-align:right}th{background:#f4f4f4}img{max-width:100%}")  # fmt: skip
-    page = (f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>"
-            f"<style>{style}</style></head><body><h1>{html.escape(title)}</h1>\n" + "\n".join(body) +
-            "\n<p>Every number above is in the study folder's tables (Parquet and CSV).</p></body></html>\n")  # fmt: skip
+    style = (
+        "body{font-family:sans-serif;max-width:70em;margin:2em auto;padding:0 1em}"
+        "table{border-collapse:collapse;margin:1em 0;font-size:90%}td,th{border:1px solid #ccc;"
+        "padding:2px 6px;text-align:right}th{background:#f4f4f4}img{max-width:100%}"
+    )
+    page = (
+        f'<!DOCTYPE html>\n<html><head><meta charset="utf-8"><title>{html.escape(title)}</title>'
+        f"<style>{style}</style></head><body><h1>{html.escape(title)}</h1>\n"
+        + "\n".join(body)
+        + "\n<p>Every number above is in the study folder's tables (Parquet and CSV).</p></body></html>\n"
+    )
     written = {"markdown": out / "report.md", "html": out / "report.html"}
     for key, text in (("markdown", "\n".join(md) + "\n"), ("html", page)):
         tmp = written[key].with_name(written[key].name + ".partial")
@@ -326,4 +401,3 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
         os.replace(tmp, written[key])
     written.update({f"figure {k}": v for k, v in figures.items()})
     return written
-

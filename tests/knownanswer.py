@@ -34,13 +34,38 @@ N_EXTRACTED = 1000
 
 
 def _euler_matrix(yaw, pitch, roll):
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    rz = np.stack([np.stack([cy, -sy, 0 * cy], -1), np.stack([sy, cy, 0 * cy], -1),
-                   np.stack([0 * cy, 0 * cy, 1 + 0 * cy], -1)], -2)  # fmt: skip
-    ry = np.stack([np.stack([cp, 0 * cp, sp], -1), np.stack([0 * cp, 1 + 0 * cp, 0 * cp], -1),
-                   np.stack([-sp, 0 * cp, cp], -1)], -2)  # fmt: skip
-    rx = np.stack([np.stack([1 + 0 * cr, 0 * cr, 0 * cr], -1), np.stack([0 * cr, cr, -sr], -1),
-                   np.stack([0 * cr, sr, cr], -1)], -2)  # fmt: skip
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
+    rz = np.stack(
+        [
+            np.stack([cy, -sy, 0 * cy], -1),
+            np.stack([sy, cy, 0 * cy], -1),
+            np.stack([0 * cy, 0 * cy, 1 + 0 * cy], -1),
+        ],
+        -2,
+    )
+    ry = np.stack(
+        [
+            np.stack([cp, 0 * cp, sp], -1),
+            np.stack([0 * cp, 1 + 0 * cp, 0 * cp], -1),
+            np.stack([-sp, 0 * cp, cp], -1),
+        ],
+        -2,
+    )
+    rx = np.stack(
+        [
+            np.stack([1 + 0 * cr, 0 * cr, 0 * cr], -1),
+            np.stack([0 * cr, cr, -sr], -1),
+            np.stack([0 * cr, sr, cr], -1),
+        ],
+        -2,
+    )
     return rz @ ry @ rx
 
 
@@ -65,12 +90,18 @@ def preintegration(p, v, rot, dt, accel_bias):
     for the flight, plus the effect of a constant accelerometer bias (body frame, m/s^2)."""
     d = dt[1:, None]
     r1t = np.swapaxes(rot[:-1], -1, -2)
-    dp = np.einsum("kij,kj->ki", r1t, p[1:] - p[:-1] - v[:-1] * d - 0.5 * GRAVITY * d * d) + 0.5 * accel_bias * d * d
+    dp = (
+        np.einsum("kij,kj->ki", r1t, p[1:] - p[:-1] - v[:-1] * d - 0.5 * GRAVITY * d * d)
+        + 0.5 * accel_bias * d * d
+    )
     dv = np.einsum("kij,kj->ki", r1t, v[1:] - v[:-1] - GRAVITY * d) + accel_bias * d
     dq = matrix_to_quat(r1t @ rot[1:])
     zero = np.zeros((1, 3))
-    return (np.concatenate([zero, dp]), np.concatenate([zero, dv]),
-            np.concatenate([[[1.0, 0.0, 0.0, 0.0]], dq]))  # fmt: skip
+    return (
+        np.concatenate([zero, dp]),
+        np.concatenate([zero, dv]),
+        np.concatenate([[[1.0, 0.0, 0.0, 0.0]], dq]),
+    )
 
 
 def bad_episodes(n_frames: int, rng: np.random.Generator, rate_per_s: float) -> np.ndarray:
@@ -96,8 +127,17 @@ def _spread_bins(rng, n, n_bins_lo, n_bins_hi):
     return out
 
 
-def make_run(kind: str, seed: int, *, k_min: int = 40, n_frames: int = 600, sequence: str = "KA",
-             disturbance: str = "none", level: int = 0, accel_bias: float = 0.05) -> RunLog:  # fmt: skip
+def make_run(
+    kind: str,
+    seed: int,
+    *,
+    k_min: int = 40,
+    n_frames: int = 600,
+    sequence: str = "KA",
+    disturbance: str = "none",
+    level: int = 0,
+    accel_bias: float = 0.05,
+) -> RunLog:
     """One known-answer run of `kind` "counts" or "occlusion" (see the module docstring).
 
     Arguments:
@@ -136,26 +176,50 @@ def make_run(kind: str, seed: int, *, k_min: int = 40, n_frames: int = 600, sequ
     vis_v = v + bad[:, None] * rng.normal(scale=0.3, size=(n, 3))
     q = quat_normalize(matrix_to_quat(rot))
 
-    cols = {"t_ns": t_ns, "state": np.full(n, schema.STATE_OK), "imu_init": np.ones(n, np.int64),
-            "n_extracted": np.full(n, N_EXTRACTED), "n_inliers": inliers.astype(np.int64), "n_frustum": frustum}  # fmt: skip
+    cols = {
+        "t_ns": t_ns,
+        "state": np.full(n, schema.STATE_OK),
+        "imu_init": np.ones(n, np.int64),
+        "n_extracted": np.full(n, N_EXTRACTED),
+        "n_inliers": inliers.astype(np.int64),
+        "n_frustum": frustum,
+    }
     for j, c in enumerate(schema.BIN_COLUMNS):
         cols[c] = bins[:, j]
-    for names, values in ((schema.VIS_POSITION, vis_p), (schema.VIS_QUATERNION, q), (schema.VIS_VELOCITY, vis_v),
-                          (schema.IMU_DP, dp), (schema.IMU_DV, dv), (schema.IMU_DQ, dq),
-                          (schema.GT_POSITION, p), (schema.GT_QUATERNION, q)):  # fmt: skip
+    for names, values in (
+        (schema.VIS_POSITION, vis_p),
+        (schema.VIS_QUATERNION, q),
+        (schema.VIS_VELOCITY, vis_v),
+        (schema.IMU_DP, dp),
+        (schema.IMU_DV, dv),
+        (schema.IMU_DQ, dq),
+        (schema.GT_POSITION, p),
+        (schema.GT_QUATERNION, q),
+    ):
         for j, c in enumerate(names):
             cols[c] = np.ascontiguousarray(values[:, j], dtype=np.float64)
     cols["imu_dt"] = dt
-    meta = {"sequence": sequence, "disturbance": disturbance, "level": level, "run": seed, "fps": FPS,
-            "gravity": GRAVITY.tolist(), "n_features": N_EXTRACTED, "frontend": "tests/knownanswer.py"}  # fmt: skip
+    meta = {
+        "sequence": sequence,
+        "disturbance": disturbance,
+        "level": level,
+        "run": seed,
+        "fps": FPS,
+        "gravity": GRAVITY.tolist(),
+        "n_features": N_EXTRACTED,
+        "frontend": "tests/knownanswer.py",
+    }
     assert np.allclose(quat_to_matrix(q), rot, atol=1e-12)
-    return RunLog(meta=meta, frames=pd.DataFrame(cols, columns=list(schema.COLUMNS)), source=f"<{kind} {seed}>")
+    return RunLog(
+        meta=meta, frames=pd.DataFrame(cols, columns=list(schema.COLUMNS)), source=f"<{kind} {seed}>"
+    )
 
 
 def make_study(kind: str, seeds, **kwargs) -> list[RunLog]:
     """Runs of `kind` for every seed, spread over 3 sequences and 2 'levels' (metadata for CV tests)."""
     runs = []
     for i, seed in enumerate(seeds):
-        runs.append(make_run(kind, int(seed), sequence=f"S{i % 3}", disturbance=kind, level=(i // 3) % 2,
-                             **kwargs))  # fmt: skip
+        runs.append(
+            make_run(kind, int(seed), sequence=f"S{i % 3}", disturbance=kind, level=(i // 3) % 2, **kwargs)
+        )
     return runs

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import json
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from jsve.cli import SUBCOMMANDS, build_parser, main
 from jsve.demo import DEMO_STUDY, DemoConfig
@@ -87,10 +87,24 @@ def test_demo_end_to_end_then_fit_on_its_logs(tmp_path, capsys):
     fit_out = tmp_path / "fit"
     toml = "\n".join(line for line in TINY.split("[demo]")[0].splitlines())
     (tmp_path / "study.toml").write_text(toml)
-    assert main(["fit", str(out / "logs" / "study.parquet"), "-o", str(fit_out), "--config",
-                 str(tmp_path / "study.toml"), "--no-progress"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "fit",
+                str(out / "logs" / "study.parquet"),
+                "-o",
+                str(fit_out),
+                "--config",
+                str(tmp_path / "study.toml"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     a = json.loads((out / "fitted_sve.json").read_text())
     b = json.loads((fit_out / "fitted_sve.json").read_text())
     assert a["objective"] == pytest.approx(b["objective"], rel=1e-6)
-    assert main(["report", str(out), "--title", "jsve demo: fitted switching rules on a simulated study"]) == 0
+    assert (
+        main(["report", str(out), "--title", "jsve demo: fitted switching rules on a simulated study"]) == 0
+    )
     assert (out / "report.html").read_text() == page

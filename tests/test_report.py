@@ -1,4 +1,5 @@
-"""jsve.fit_study and jsve.report: a small study end to end, its tables, resumption and the report.
+"""jsve.fit_study and jsve.report: a small study end to end, its tables, resumption and the report
+(slow: compiles every stage), and the report alone from hand-made tables (fast).
 
 The report's numbers must be the tables' numbers; the HTML must be self-contained; rendering twice gives
 the same bytes; a rerun with the same configuration skips finished stages and changes nothing.
@@ -20,8 +21,14 @@ from jsve.fit_study import StudyConfig, read_table, run_study
 from jsve.objective import group_weights
 from jsve.report import markdown_table, write_report
 
-SMALL = StudyConfig(fit=FitConfig(n_search=64, n_starts=1, nm_steps=10), kfold=2, leave_one_out=("sequence",),
-                    n_boot=100, n_local=32, heatmap=("imu_init", "recovery", 4))  # fmt: skip
+SMALL = StudyConfig(
+    fit=FitConfig(n_search=64, n_starts=1, nm_steps=10),
+    kfold=2,
+    leave_one_out=("sequence",),
+    n_boot=100,
+    n_local=32,
+    heatmap=("imu_init", "recovery", 4),
+)
 
 
 @pytest.fixture(scope="module")
@@ -37,25 +44,57 @@ def study(tmp_path_factory):
     return out, data, stages, first, written
 
 
+@pytest.mark.slow
 def test_study_writes_every_table_as_parquet_and_csv(study):
     out, data, stages, _, _ = study
-    names = ("runs_presets", "runs", "summary", "heldout", "cv_params", "heldout_summary", "params", "heatmap",
-             "sve_levels")  # fmt: skip
+    names = (
+        "runs_presets",
+        "runs",
+        "summary",
+        "heldout",
+        "cv_params",
+        "heldout_summary",
+        "params",
+        "heatmap",
+        "sve_levels",
+    )
     for name in names:
         parquet = pd.read_parquet(out / f"{name}.parquet")
         csv = pd.read_csv(out / f"{name}.csv")
         assert len(parquet) == len(csv) > 0, name
         numeric = parquet.select_dtypes("number").columns
-        np.testing.assert_allclose(csv[numeric].to_numpy(float), parquet[numeric].to_numpy(float), rtol=1e-12,
-                                   equal_nan=True, err_msg=name)  # fmt: skip
-    assert set(stages) == {"evaluate_presets", "fit_sve", "fit_inliers", "evaluate_fitted", "cross_validation",
-                           "parameter_bootstrap", "heatmap", "sve_levels"}  # fmt: skip
+        # float32 columns are written to CSV with the shortest text that reads back as the same float32
+        np.testing.assert_allclose(
+            csv[numeric].to_numpy(float),
+            parquet[numeric].to_numpy(float),
+            rtol=1e-7,
+            equal_nan=True,
+            err_msg=name,
+        )
+    assert set(stages) == {
+        "evaluate_presets",
+        "fit_sve",
+        "fit_inliers",
+        "evaluate_fitted",
+        "cross_validation",
+        "parameter_bootstrap",
+        "heatmap",
+        "sve_levels",
+    }
     assert not list(out.glob("*.partial")) and not list(out.glob("figures/*.partial"))
     runs = read_table(out, "runs")
-    assert set(runs["rule"]) == {"orbslam3", "sve-eq1", "sve-option1", "sve-option2", "fitted-sve", "fitted-inliers"}
+    assert set(runs["rule"]) == {
+        "orbslam3",
+        "sve-eq1",
+        "sve-option1",
+        "sve-option2",
+        "fitted-sve",
+        "fitted-inliers",
+    }
     assert (runs.groupby("rule").size() == data.n_runs).all()
 
 
+@pytest.mark.slow
 def test_fitted_objective_is_the_evaluate_tables_penalised_mean(study):
     """The fit's recorded objective equals the group-weighted mean of jsve.evaluate's per-run table with
     failed runs at the penalty (float32: 1e-5 relative)."""
@@ -69,6 +108,7 @@ def test_fitted_objective_is_the_evaluate_tables_penalised_mean(study):
         assert rec["objective"] == pytest.approx(np.sum(w * loss) / np.sum(w), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_stages_and_changes_nothing(study):
     out, data, _, first, written = study
     before = {p.name: p.read_bytes() for p in out.glob("*.parquet")}
@@ -85,14 +125,19 @@ def test_rerun_skips_finished_stages_and_changes_nothing(study):
     assert Stages(out, fingerprint(changed.to_dict()), record["key"]["data"]).done == {}
 
 
+@pytest.mark.slow
 def test_report_is_self_contained_deterministic_and_matches_the_tables(study, tmp_path):
     out, _, _, _, written = study
     md = written["markdown"].read_text()
     page = written["html"].read_text()
     assert page.startswith("<!DOCTYPE html>") and "data:image/png;base64," in page
     assert not re.search(r'src="(?!data:)', page)  # nothing loaded from elsewhere
-    for fig in ("figures/ate_levels.png", "figures/heatmap_sve.png", "figures/heldout.png",
-                "figures/sve_levels_occlusion.png"):  # fmt: skip
+    for fig in (
+        "figures/ate_levels.png",
+        "figures/heatmap_sve.png",
+        "figures/heldout.png",
+        "figures/sve_levels_occlusion.png",
+    ):
         assert f"({fig})" in md and (out / fig).is_file()
     # numbers in the report are the tables' numbers
     heldout = read_table(out, "heldout_summary")
@@ -104,12 +149,154 @@ def test_report_is_self_contained_deterministic_and_matches_the_tables(study, tm
     # rendering again gives the same bytes
     again = write_report(out, title="test report")
     assert again["markdown"].read_text() == md and again["html"].read_text() == page
-    assert (out / "figures/ate_levels.png").read_bytes() == written["figure RMS ATE and failures per level"].read_bytes()
+    assert (out / "figures/ate_levels.png").read_bytes() == written[
+        "figure RMS ATE and failures per level"
+    ].read_bytes()
     with pytest.raises(FileNotFoundError, match="no summary.parquet"):
         write_report(tmp_path)
 
 
 def test_markdown_table_formats_numbers():
     table = pd.DataFrame({"a": [1, 2], "b": [0.123456, float("nan")], "c": ["x", "y"]})
-    assert markdown_table(table).splitlines() == ["| a | b | c |", "|---|---|---|", "| 1 | 0.1235 | x |",
-                                                  "| 2 | - | y |"]  # fmt: skip
+    assert markdown_table(table).splitlines() == [
+        "| a | b | c |",
+        "|---|---|---|",
+        "| 1 | 0.1235 | x |",
+        "| 2 | - | y |",
+    ]
+
+
+def _fake_study(out):
+    """The tables write_report reads, made by hand (two disturbances, two rules, one family)."""
+    from jsve.fit_study import write_json, write_table
+
+    write_json(
+        {"n_runs": 8, "n_frames": 800, "balance_by": ["sequence"], "config": {"failure_penalty": 1.0}},
+        out / "study.json",
+    )
+    rows = []
+    for dist in ("blur", "occlusion"):
+        for level in (0, 25, 50):
+            for i, rule in enumerate(("orbslam3", "fitted-sve")):
+                rows.append(
+                    {
+                        "disturbance": dist,
+                        "level": level,
+                        "rule": rule,
+                        "n_runs": 2,
+                        "failure_rate": 0.5 * i,
+                        "mean_coverage": 1.0 - 0.1 * i,
+                        "rmse_mean_nonfailed": 0.01 * (level + 1 + i),
+                        "rmse_std_nonfailed": 0.001,
+                        "rmse_mean_all": 0.02,
+                        "rmse_std_all": 0.002,
+                    }
+                )
+    write_table(pd.DataFrame(rows), out, "summary")
+    write_table(
+        pd.DataFrame(
+            [
+                {
+                    "fold_kind": "kfold",
+                    "rule": "fitted-sve",
+                    "n_runs": 8,
+                    "mean_loss": 0.0123456,
+                    "ci_low": 0.011,
+                    "ci_high": 0.0141,
+                    "failure_rate": 0.0,
+                    "coverage": 1.0,
+                    "diff_vs_orbslam3": -0.2,
+                    "diff_vs_orbslam3_ci_low": -0.3,
+                    "diff_vs_orbslam3_ci_high": -0.1,
+                },
+                {
+                    "fold_kind": "kfold",
+                    "rule": "orbslam3",
+                    "n_runs": 8,
+                    "mean_loss": 0.2123,
+                    "ci_low": 0.15,
+                    "ci_high": 0.25,
+                    "failure_rate": 0.25,
+                    "coverage": 0.9,
+                },
+            ]
+        ),
+        out,
+        "heldout_summary",
+    )
+    write_table(
+        pd.DataFrame(
+            {
+                "family": "sve",
+                "parameter": ["imu_init", "recovery"],
+                "value": [0.06, 0.04],
+                "ci_low": [0.05, 0.01],
+                "ci_high": [0.0712345, 0.09],
+                "boot_std": [0.01, 0.02],
+                "n_boot": 100,
+            }
+        ),
+        out,
+        "params",
+    )
+    xs, ys = np.meshgrid(np.linspace(0, 0.6, 4), np.linspace(0, 0.6, 4))
+    write_table(
+        pd.DataFrame(
+            {
+                "family": "sve",
+                "x_name": "imu_init",
+                "y_name": "recovery",
+                "x": xs.ravel(),
+                "y": ys.ravel(),
+                "objective": (xs + ys).ravel(),
+                "failure_rate": 0.0,
+            }
+        ),
+        out,
+        "heatmap",
+    )
+    write_table(
+        pd.DataFrame(
+            [
+                {
+                    "disturbance": d,
+                    "level": lv,
+                    "combination": c,
+                    "frames": 100,
+                    "sve_mean": 0.5,
+                    "sve_std": 0.1,
+                }
+                for d in ("blur",)
+                for lv in (0, 25, 50)
+                for c in ("sve-option2", "fitted-sve")
+            ]
+        ),
+        out,
+        "sve_levels",
+    )
+    write_json(
+        {
+            "params": {"imu_init": 0.06, "recovery": 0.04},
+            "rule": {"kind": "sve"},
+            "objective": 0.0123,
+            "failure_rate": 0.0,
+            "coverage": 1.0,
+            "stages": [{"stage": "search", "objective": 0.013}],
+        },
+        out / "fitted_sve.json",
+    )
+
+
+def test_report_from_tables_is_deterministic_and_self_contained(tmp_path):
+    _fake_study(tmp_path)
+    written = write_report(tmp_path, title="fake")
+    md, page = written["markdown"].read_text(), written["html"].read_text()
+    assert "0.01235 [0.011, 0.0141]" in md and "-0.2 [-0.3, -0.1]" in md  # held-out row, from the table
+    assert "[0.05, 0.07123]" in md  # parameter CI
+    assert "| blur | " not in md and "## Per level: occlusion" in md
+    for name in ("ate_levels", "heatmap_sve", "heldout", "sve_levels_blur"):
+        assert (tmp_path / "figures" / f"{name}.png").is_file() and f"figures/{name}.png" in md
+    assert page.count("data:image/png;base64,") == 4 and not re.search(r'src="(?!data:)', page)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    write_report(tmp_path, title="fake")
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before

@@ -9,17 +9,21 @@ from __future__ import annotations
 
 import json
 import sys
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "demo", help="simulate a study, fit the rules, cross-validate and write the threshold report",
-        description="Simulate EuRoC-like flights under the seed paper's 31 disturbance settings, evaluate the "
-        "presets, fit SVE and ORB-SLAM3 thresholds, cross-validate, and write OUT/report.html.",
-    )  # fmt: skip
-    p.add_argument("-o", "--output", default="jsve-demo", metavar="DIR", help="output folder (default: %(default)s)")
+        "demo",
+        help="simulate a study, fit the rules, cross-validate and write the threshold report",
+        description="Simulate EuRoC-like flights under the seed paper's 31 disturbance settings, evaluate "
+        "the presets, fit SVE and ORB-SLAM3 thresholds, cross-validate, and write OUT/report.html.",
+    )
+    p.add_argument(
+        "-o", "--output", default="jsve-demo", metavar="DIR", help="output folder (default: %(default)s)"
+    )
     p.add_argument("--config", metavar="TOML", help="demo and study settings (see sweeps/demo.toml)")
     p.add_argument("--sequences", type=int, help="procedural flights (default 3)")
     p.add_argument("--runs", type=int, help="runs per sequence and setting (default 2)")
@@ -41,11 +45,16 @@ def run(args) -> int:
         config = DemoConfig()
         if args.config:
             try:
-                config = DemoConfig.from_dict(tomllib.loads(Path(args.config).read_text()), source=args.config)
+                config = DemoConfig.from_dict(
+                    tomllib.loads(Path(args.config).read_text()), source=args.config
+                )
             except (OSError, tomllib.TOMLDecodeError) as err:
                 raise ValueError(f"{args.config}: {err}") from None
-        changes = {k: v for k, v in (("sequences", args.sequences), ("runs", args.runs), ("seed", args.seed))
-                   if v is not None}  # fmt: skip
+        changes = {
+            k: v
+            for k, v in (("sequences", args.sequences), ("runs", args.runs), ("seed", args.seed))
+            if v is not None
+        }
         config = replace(config, **changes)
     except (ValueError, TypeError) as err:
         print(f"jsve demo: {err}", file=sys.stderr)
@@ -53,5 +62,9 @@ def run(args) -> int:
     timings = run_demo(args.output, config, progress=not args.no_progress, workers=args.workers)
     out = Path(args.output)
     print(f"jsve demo: report in {out / 'report.html'} ({timings['total']:.0f} s)")
-    print(json.dumps({k: round(v, 1) if isinstance(v, float) else v for k, v in timings.items() if k != "stages"}))
+    print(
+        json.dumps(
+            {k: round(v, 1) if isinstance(v, float) else v for k, v in timings.items() if k != "stages"}
+        )
+    )
     return 0

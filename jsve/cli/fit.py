@@ -11,21 +11,28 @@ from __future__ import annotations
 
 import logging
 import sys
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "fit", help="fit SVE weights and thresholds (and ORB-SLAM3's) to minimise position error",
-        description="Search, Nelder-Mead and (optionally) relaxed BFGS fits of each rule family, with k-fold and "
-        "leave-one-group-out cross-validation against the presets, bootstrap confidence intervals and a report.",
-    )  # fmt: skip
+        "fit",
+        help="fit SVE weights and thresholds (and ORB-SLAM3's) to minimise position error",
+        description="Search, Nelder-Mead and (optionally) relaxed BFGS fits of each rule family, with "
+        "k-fold and leave-one-group-out cross-validation against the presets, bootstrap confidence intervals "
+        "and a report.",
+    )
     p.add_argument("logs", metavar="LOGS", help="folder of logs, a log, or a Parquet file from `jsve ingest`")
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="study folder (resumed if it exists)")
     p.add_argument("--config", metavar="TOML", help="study settings (see sweeps/fit.toml)")
-    p.add_argument("--family", action="append", choices=("sve", "inliers"),
-                   help="rule family to fit; repeatable (default: both)")  # fmt: skip
+    p.add_argument(
+        "--family",
+        action="append",
+        choices=("sve", "inliers"),
+        help="rule family to fit; repeatable (default: both)",
+    )
     p.add_argument("--failure-penalty", type=float, metavar="M", help="metres charged for a failed run")
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument("--seed", type=int, help="seed of designs, folds and bootstraps")
@@ -71,10 +78,16 @@ def run(args) -> int:
     from .evaluate import load_runs
 
     try:
-        config = load_study_config(args.config, families=tuple(args.family) if args.family else None,
-                                   failure_penalty=args.failure_penalty, relaxed=args.relaxed or None,
-                                   seed=args.seed)  # fmt: skip
-        runs = load_runs(args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress)
+        config = load_study_config(
+            args.config,
+            families=tuple(args.family) if args.family else None,
+            failure_penalty=args.failure_penalty,
+            relaxed=args.relaxed or None,
+            seed=args.seed,
+        )
+        runs = load_runs(
+            args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress
+        )
     except (ValueError, OSError) as err:
         print(f"jsve fit: {err}", file=sys.stderr)
         return 2
@@ -91,8 +104,9 @@ def run(args) -> int:
         print(f"jsve fit: {err}", file=sys.stderr)
         return 2
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
-    run_study(data, args.output, config, progress=not args.no_progress,
-              data_description={"source": str(args.logs)})  # fmt: skip
+    run_study(
+        data, args.output, config, progress=not args.no_progress, data_description={"source": str(args.logs)}
+    )
     if not args.no_report:
         written = write_report(args.output)
         print(f"jsve fit: report in {written['markdown']} and {written['html']}")

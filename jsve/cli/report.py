@@ -10,10 +10,11 @@ import sys
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "report", help="render the threshold report of a `jsve fit` / `jsve demo` folder",
+        "report",
+        help="render the threshold report of a `jsve fit` / `jsve demo` folder",
         description="Write OUT/report.md, OUT/report.html (figures embedded) and OUT/figures/*.png from the "
         "study's tables. Deterministic: the same tables give the same files.",
-    )  # fmt: skip
+    )
     p.add_argument("output", metavar="OUT", help="study folder")
     p.add_argument("--title", default="jsve threshold report")
     p.set_defaults(func=run)
