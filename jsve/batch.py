@@ -191,11 +191,12 @@ def from_runs(
 
 
 def bucket_by_length(lengths: Sequence[int], *, max_padding: float = 0.1, pad_multiple: int = 64) -> list[np.ndarray]:
-    """Group run indices so that each group's padding is at most `max_padding` of its frames.
+    """Group run indices so that the padding a group adds stays within `max_padding` of its frames.
 
-    Runs are sorted by length and a group is closed when adding the next (longer) run would make the
-    padded total exceed (1 + max_padding) x the real frame count. Padded lengths are multiples of
-    `pad_multiple` so that similar buckets share a compiled shape.
+    Runs are sorted by length; a group is closed when adding the next (longer) run would make the
+    padding beyond each run's own rounding to `pad_multiple` exceed `max_padding` x the group's
+    rounded frames. Runs of equal length therefore always share a group, whatever the multiple, and
+    padded lengths are multiples of `pad_multiple` so that similar buckets share a compiled shape.
 
     Returns:
         Index arrays into `lengths`, each sorted ascending by length, covering every run exactly once.
@@ -206,15 +207,16 @@ def bucket_by_length(lengths: Sequence[int], *, max_padding: float = 0.1, pad_mu
     order = np.argsort(lengths, kind="stable")
     groups: list[list[int]] = []
     current: list[int] = []
-    real = 0
+    own = 0  # sum of the group's lengths, each rounded up to pad_multiple on its own
     for idx in order:
-        n = int(lengths[idx])
-        padded = _pad_length(n, pad_multiple) * (len(current) + 1)
-        if current and padded > (1 + max_padding) * (real + n):
+        rounded = _pad_length(int(lengths[idx]), pad_multiple)
+        # Sorted ascending: the new run sets the group's padded length.
+        extra = rounded * (len(current) + 1) - (own + rounded)
+        if current and extra > max_padding * (own + rounded):
             groups.append(current)
-            current, real = [], 0
+            current, own = [], 0
         current.append(int(idx))
-        real += n
+        own += rounded
     groups.append(current)
     return [np.asarray(g, dtype=np.int64) for g in groups]
 

@@ -109,6 +109,64 @@ def power_mean(x: Float[Array, "... k"], w: Float[Array, "k"], p: ArrayLike) -> 
     return jnp.where(has_zero & (near_zero_p | (p <= 0)), 0.0, value)
 
 
+def log_power_mean2(l1, pos1, l2, pos2, w, p):
+    """log M_p([x1, x2]; [w, 1 - w]) from l_i = log x_i (where pos_i: x_i > 0), and whether M is 0.
+
+    `power_mean`'s definition (the same p -> 0 expansion and zero rules) in the log domain, on two
+    columns: the combinations are nested two-entry means, so a nested mean passes its log on without
+    an exp/log round trip, and sweeps share the logs of the features across settings. Separate
+    columns rather than a stacked axis of 2: several times faster on CPU (tests/test_fit.py checks
+    this kernel against `power_mean`).
+    Returns:
+        (log M, M == 0), elementwise.
+    """
+    l1 = jnp.where(pos1, l1, 0.0)
+    l2 = jnp.where(pos2, l2, 0.0)
+    w2 = 1 - w
+    near_zero_p = jnp.abs(p) < 1e-6
+    p_safe = jnp.where(near_zero_p, 1.0, p)
+    mean_log = w * l1 + w2 * l2
+    # Near p = 0: log M = mean log x + p Var(log x) / 2 (cumulant expansion, as in power_mean).
+    log_geometric = mean_log + 0.5 * p * (w * (l1 - mean_log) ** 2 + w2 * (l2 - mean_log) ** 2)
+    excess = w * jnp.where(pos1, jnp.expm1(p_safe * l1), -1.0) + w2 * jnp.where(pos2, jnp.expm1(p_safe * l2), -1.0)
+    inner_ok = excess > -1
+    log_powered = jnp.log1p(jnp.where(inner_ok, excess, 0.0)) / p_safe
+    has_zero = (~pos1 & (w > 0)) | (~pos2 & (w2 > 0))
+    zero = (has_zero & (near_zero_p | (p <= 0))) | (~near_zero_p & ~inner_ok)
+    return jnp.where(near_zero_p, log_geometric, log_powered), zero
+
+
+def power_mean2(x1, x2, w, p):
+    """M_p([x1, x2]; [w, 1 - w]) elementwise for non-negative columns (the log-domain kernel)."""
+    pos1, pos2 = x1 > 0, x2 > 0
+    log_m, zero = log_power_mean2(
+        jnp.log(jnp.where(pos1, x1, 1.0)), pos1, jnp.log(jnp.where(pos2, x2, 1.0)), pos2, w, p
+    )
+    return jnp.where(zero, 0.0, jnp.exp(jnp.where(zero, 0.0, log_m)))
+
+
+def feature_logs(ratio, s_b, s_c):
+    """(log ratio, log S_b, log S_c, ratio > 0, S_b > 0, S_c > 0); logs are 0 where the feature is 0.
+
+    `ratio` is N_inliers / N_extracted (S_a before rho). Computed once per frame, shared by rules.
+    """
+    out = [jnp.log(jnp.where(x > 0, x, 1.0)) for x in (ratio, s_b, s_c)]
+    return (*out, ratio > 0, s_b > 0, s_c > 0)
+
+
+def combination_from_logs(c, log_ratio, log_s_b, log_s_c, pos_ratio, pos_s_b, pos_s_c):
+    """The SVE score of Combination `c` from `feature_logs` (any broadcastable shapes).
+
+    S_a = clip(ratio / rho, 0, 1) is min(log ratio - log rho, 0) in the log domain.
+    """
+    rho_ok = c.rho > 0
+    log_s_a = jnp.minimum(log_ratio - jnp.log(jnp.where(rho_ok, c.rho, 1.0)), 0.0)
+    pos_s_a = pos_ratio & rho_ok
+    log_inner, inner_zero = log_power_mean2(log_s_b, pos_s_b, log_s_c, pos_s_c, c.u_b, c.q)
+    log_m, zero = log_power_mean2(log_s_a, pos_s_a, log_inner, ~inner_zero, c.w_a, c.p)
+    return jnp.where(zero, 0.0, jnp.exp(jnp.where(zero, 0.0, log_m)))
+
+
 class Combination(eqx.Module):
     """The nested power-mean family of SVE combinations.
 
@@ -135,9 +193,8 @@ class Combination(eqx.Module):
 
     def __call__(self, ratio: Array, sb: Array, sc: Array) -> Float[Array, "..."]:
         """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes)."""
-        sa = s_a_from_ratio(ratio, self.rho)
-        inner = power_mean(jnp.stack([sb, sc], -1), jnp.stack([self.u_b, 1 - self.u_b]), self.q)
-        return power_mean(jnp.stack([sa, inner], -1), jnp.stack([self.w_a, 1 - self.w_a]), self.p)
+        ratio, sb, sc = (jnp.asarray(x, float) for x in (ratio, sb, sc))
+        return combination_from_logs(self, *feature_logs(ratio, sb, sc))
 
 
 EQ1 = dict(w_a=0.2, u_b=0.5, p=1.0, q=1.0, rho=0.5)

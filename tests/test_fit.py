@@ -21,8 +21,6 @@ from jsve.crossval import bootstrap_weighted_mean, compare, cross_validate, kfol
 from jsve.fit import FitConfig, FitData, fit, hard_objective, nelder_mead, preset_values, relaxed_fit
 from jsve.fit_params import ParamSpace, RuleParams, inlier_space, space_from_dict, sve_space
 from jsve.fit_search import (
-    _power_mean2,
-    feature_logs,
     grid_design,
     halton,
     imu_predict_columns,
@@ -35,7 +33,7 @@ from jsve.fit_search import (
 from jsve.objective import ObjectiveConfig, run_losses
 from jsve.replay import batch_features, imu_predict
 from jsve.rules import InlierRule, SVERule, preset
-from jsve.sve import power_mean
+from jsve.sve import feature_logs, power_mean, power_mean2
 
 K = 40
 
@@ -114,7 +112,7 @@ def test_param_space_coordinates_and_rules():
 
 
 def test_two_entry_power_mean_is_power_mean(x64):
-    """_power_mean2 is jsve.sve.power_mean on two columns: to 1e-13 in float64 over exponents from -4
+    """power_mean2 is jsve.sve.power_mean on two columns: to 1e-13 in float64 over exponents from -4
     to 4, p near and at 0, zero entries and zero weights."""
     rng = np.random.default_rng(1)
     n = 4000
@@ -127,7 +125,7 @@ def test_two_entry_power_mean_is_power_mean(x64):
     p = rng.uniform(-4, 4, n)
     p[::5] = 0.0
     p[::9] = rng.uniform(-2e-6, 2e-6, len(p[::9]))
-    ours = _power_mean2(jnp.asarray(x1), jnp.asarray(x2), jnp.asarray(w), jnp.asarray(p))
+    ours = power_mean2(jnp.asarray(x1), jnp.asarray(x2), jnp.asarray(w), jnp.asarray(p))
     ref = jax.vmap(power_mean)(
         jnp.stack([jnp.asarray(x1), jnp.asarray(x2)], -1),
         jnp.stack([jnp.asarray(w), 1 - jnp.asarray(w)], -1),
