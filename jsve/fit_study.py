@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from . import atomic
 from .aggregate import aggregate
 from .crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from .evaluate import evaluate
@@ -126,12 +127,8 @@ def fingerprint(obj) -> str:
 
 def write_table(table: pd.DataFrame, out: Path, name: str) -> None:
     """`name`.parquet and `name`.csv, each written under a temporary name and renamed."""
-    out.mkdir(parents=True, exist_ok=True)
     for suffix in (".parquet", ".csv"):
-        path = out / f"{name}{suffix}"
-        tmp = path.with_name(path.name + ".partial")
-        (table.to_parquet(tmp, index=False) if suffix == ".parquet" else table.to_csv(tmp, index=False))
-        os.replace(tmp, path)
+        atomic.write_table(table, Path(out) / f"{name}{suffix}")
 
 
 def read_table(out: Path, name: str) -> pd.DataFrame:
@@ -139,9 +136,7 @@ def read_table(out: Path, name: str) -> pd.DataFrame:
 
 
 def write_json(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
-    os.replace(tmp, path)
+    atomic.write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
 
 
 def _json_default(x):

@@ -28,6 +28,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
+from . import atomic
 from .logs import PARTIAL_SUFFIX, LogFormatError, LogIncompleteError
 from .schema import RunLog
 
@@ -430,18 +431,7 @@ def write_keypoints(kp: KeypointLog, path: str | os.PathLike) -> Path:
         pacsv.write_csv(table, sink, pacsv.WriteOptions(include_header=False, quoting_style="none"))
     head = (MAGIC + json.dumps(kp.meta, allow_nan=False) + "\n" + ",".join(COLUMNS) + "\n").encode("utf-8")
     tail = f"{END_MARKER}{len(kp.keypoints)}\n".encode("ascii")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + PARTIAL_SUFFIX)
-    try:
-        with open(partial, "wb") as f:
-            f.write(head)
-            f.write(sink.getvalue())
-            f.write(tail)
-        os.replace(partial, path)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
-    return path
+    return atomic.write_bytes(path, head, sink.getvalue(), tail)
 
 
 # --------------------------------------------------------------------------------------------------

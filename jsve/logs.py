@@ -37,13 +37,13 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
-from . import schema
+from . import atomic, schema
 from .schema import RunLog
 
 if TYPE_CHECKING:
     from .groundtruth import GroundTruthSpec
 
-PARTIAL_SUFFIX = ".partial"
+PARTIAL_SUFFIX = atomic.PARTIAL_SUFFIX
 """A file whose name ends in this is a log (or Parquet file) that its writer has not finished."""
 
 GT_METADATA = {"gt_missing_frames": int, "gt_source": str}
@@ -548,18 +548,7 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
     ).encode("utf-8")
     tail = f"{schema.END_MARKER}{len(frames)}\n".encode("ascii")
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + PARTIAL_SUFFIX)
-    try:
-        with open(partial, "wb") as f:
-            f.write(head)
-            f.write(sink.getvalue())
-            f.write(tail)
-        os.replace(partial, path)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
-    return path
+    return atomic.write_bytes(path, head, sink.getvalue(), tail)
 
 
 # --------------------------------------------------------------------------------------------------

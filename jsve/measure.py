@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from . import atomic
 from .disturb_datasets import DatasetError, camera_dirs, read_frame_list, read_yaml_list, run_parallel
 from .orb import EXTRACTORS as EXTRACTORS
 from .orb import Features as Features
@@ -500,14 +500,7 @@ TABLE_FORMATS = ("csv", "parquet")
 
 def write_table(table: pd.DataFrame, path: Path) -> None:
     """Write a table as CSV or Parquet (by suffix) atomically: a temporary file renamed into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    if path.suffix == ".parquet":
-        table.to_parquet(tmp, index=False)
-    else:
-        table.to_csv(tmp, index=False)
-    os.replace(tmp, path)
+    atomic.write_table(table, path)
 
 
 def measure_datasets(

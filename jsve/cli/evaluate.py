@@ -10,10 +10,10 @@ the summary.
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
+from .. import atomic
 from ..ingest import read_logs, read_parquet
 from ..logs import LogFormatError
 
@@ -116,20 +116,11 @@ def run(args) -> int:
     if args.output:
         out = Path(args.output)
         out.mkdir(parents=True, exist_ok=True)
-        write_atomic(per_run, out / "runs.parquet")
-        write_atomic(per_run, out / "runs.csv")
-        write_atomic(summary, out / "summary.csv")
+        atomic.write_table(per_run, out / "runs.parquet")
+        atomic.write_table(per_run, out / "runs.csv")
+        atomic.write_table(summary, out / "summary.csv")
     shown = by + ["n_runs", "failure_rate", "mean_coverage", "rmse_mean_all", "rmse_median_all", "pooled_rmse_all"]
     with pd.option_context("display.width", 160, "display.max_columns", 20, "display.max_rows", 200):
         print(summary[shown].to_string(index=False, float_format=lambda x: f"{x:.4g}"))
     return 0
 
-
-def write_atomic(table, path: Path) -> None:
-    """Write a table as CSV or Parquet via a temporary name, so no half-written file is left."""
-    tmp = path.with_name(path.name + ".partial")
-    if path.suffix == ".parquet":
-        table.to_parquet(tmp, index=False)
-    else:
-        table.to_csv(tmp, index=False)
-    os.replace(tmp, path)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 
-from .. import logs
+from .. import atomic, logs
 
 
 def register(subparsers) -> None:
@@ -42,11 +42,7 @@ def run(args) -> int:
     )  # fmt: skip
     table = pd.DataFrame({"t_ns": f["t_ns"].to_numpy()} | {k: np.asarray(v) for k, v in columns.items()})
     if args.output:
-        tmp = args.output + ".partial"
-        table.to_csv(tmp, index=False, float_format="%.9g")
-        import os
-
-        os.replace(tmp, args.output)
+        atomic.write_table(table, args.output, float_format="%.9g")
     else:
         try:
             table.to_csv(sys.stdout, index=False, float_format="%.9g")
