@@ -236,40 +236,42 @@ class VisionParams:
         natural_noise: DN, the camera's own noise (MT9M034 at EuRoC's exposures).
         match_max: frame-to-frame match-and-verify probability of a real corner without noise.
         match_noise, match_gamma: the probability falls as 1 / (1 + (n / match_noise)^gamma), n the
-            noise (DN) over the corners' relative contrast.
+            noise over the detected corners' mean FAST contrast (DN / DN).
         streak_match: px, motion-blur length that halves matchability (elongated corners).
         noise_corners: spurious FAST corners per frame on pure noise at the fallback threshold.
+        dirt_scale: peak-to-mean ratio of lens-dirt opacity over the image (its blotches).
     Tracking (ORB-SLAM3's map, not measurable frame to frame; see docs/simulator.md):
         map_fraction: share of matched keypoints that carry a local-map point.
         loc_floor: px, keypoint localisation error of a sharp corner.
         loc_per_blur: px of localisation error per px of effective blur.
-        loc_noise: DN of noise-to-contrast at which the localisation error grows by sqrt 2.
+        loc_noise: noise-to-contrast ratio at which the localisation error grows by sqrt 2.
     """
 
-    candidates: float = 27983.7901
-    contrast_mu: float = 0.0869
-    contrast_sigma: float = 0.2427
-    fine_wavelength: float = 14.9736
-    coarse_wavelength: float = 49.5335
-    fine_wavelength_sigma: float = 0.1072
-    fine_wavelength_spread: float = 0.6816
-    coarse_fraction: float = 0.005
-    coarse_sigma: float = 2.4994
-    texture_sigma: float = 2.4358
-    contrast_coupling: float = -0.057
-    blank_z: float = 0.0185
+    candidates: float = 14471.3118
+    contrast_mu: float = 2.8
+    contrast_sigma: float = 0.5
+    fine_wavelength: float = 4.7523
+    coarse_wavelength: float = 17.1119
+    fine_wavelength_sigma: float = 0.0546
+    fine_wavelength_spread: float = 0.4249
+    coarse_fraction: float = 0.0146
+    coarse_sigma: float = 2.4976
+    texture_sigma: float = 2.5
+    contrast_coupling: float = 1.5
+    blank_z: float = 0.4997
     blank_density: float = 0.01
-    motion_blur_alpha: float = 0.05
-    natural_noise: float = 2.9487
-    match_max: float = 0.7448
-    match_noise: float = 28.3106
-    match_gamma: float = 2.2283
-    streak_match: float = 60.0
-    noise_corners: float = 1389.7604
+    motion_blur_alpha: float = 0.0716
+    natural_noise: float = 3.241
+    match_max: float = 0.7641
+    match_noise: float = 0.0699
+    match_gamma: float = 1.9668
+    streak_match: float = 65.5723
+    dirt_scale: float = 0.8494
+    noise_corners: float = 1496.581
     map_fraction: float = 0.46
     loc_floor: float = 0.5
     loc_per_blur: float = 0.35
-    loc_noise: float = 20.0
+    loc_noise: float = 0.3
 
 
 # --------------------------------------------------------------------------------------------------
@@ -355,17 +357,18 @@ def degradation(
         # jsve.disturb.low_light: signal x k, Poisson-Gaussian noise of variance
         # k (1 - k) I / c + (1 - k^2) (r / c)^2 added (c = 20 e-/DN, r = 2 e-).
         added = math.sqrt(level * (1 - level) * MEAN_INTENSITY_DN / 20.0 + (1 - level**2) * (2.0 / 20.0) ** 2)
-        return Degradation(contrast=np.full(64, level), noise_dn=added / level, noise_scale=1.0)
+        # The dimmer image: contrast and the camera's own noise x k, plus the added shot/read noise.
+        return Degradation(contrast=np.full(64, level), noise_dn=added, noise_scale=level)
     if name == "motion_blur":
         return Degradation(streak_px=level)
     if name == "haze":
         t = math.exp(-level)
-        # I = J t + A (1 - t): contrast x t; rounding to DN (1/sqrt(12)) then weighs more.
-        return Degradation(contrast=np.full(64, t), noise_dn=math.sqrt(1 / 12) / t)
+        # I = J t + A (1 - t): contrast and the camera's noise x t; rounding to DN adds 1/sqrt(12).
+        return Degradation(contrast=np.full(64, t), noise_dn=math.sqrt(1 / 12), noise_scale=t)
     if name == "lens_dirt":
         rng = np.random.default_rng((seed, 7))
         coarse = rng.uniform(0.0, 1.0, (5, 7))
-        opacity = np.clip(geometry.field_share(coarse) * 2 * level, 0.0, 0.98)
+        opacity = np.clip(geometry.field_share(coarse) * params.dirt_scale * level, 0.0, 0.98)
         return Degradation(contrast=1.0 - opacity)
     raise ValueError(f"unknown disturbance {name!r} for the simulator")
 
@@ -610,18 +613,22 @@ def extract(
     # the region's median): Gauss-Hermite quadrature over it.
     fine_wavelength = params.fine_wavelength * np.exp(params.fine_wavelength_sigma * scene.grain_field)
     lam_f = np.zeros_like(base)
-    weighted_gain = np.zeros_like(base)
+    contrast_f = np.zeros_like(base)  # candidates x their mean contrast, summed over the quadrature
     for node, w in zip(_GH_NODES, _GH_WEIGHTS, strict=True):
         wl = fine_wavelength * np.exp(params.fine_wavelength_spread * node)
         g = np.maximum(texture_mtf(blur, wl, deg.box_px) * deg.contrast, 1e-300)
-        part = w * base * fine * normal_sf(-(mu + np.log(g)) / params.contrast_sigma)
-        lam_f += part
-        weighted_gain += part * g
-    gain_f = weighted_gain / np.maximum(lam_f, 1e-300)
+        p_detect, mean_contrast = _detected(mu, params.contrast_sigma, g)
+        lam_f += w * base * fine * p_detect
+        contrast_f += w * base * fine * p_detect * mean_contrast
     gain_c = np.maximum(texture_mtf(blur, params.coarse_wavelength, deg.box_px) * deg.contrast, 1e-300)
-    lam_c = base * coarse * normal_sf(-(params.contrast_mu + np.log(gain_c)) / params.contrast_sigma)
+    p_detect, mean_contrast = _detected(params.contrast_mu, params.contrast_sigma, gain_c)
+    lam_c = base * coarse * p_detect
     lam_real = lam_f + lam_c
-    gain = np.maximum((lam_f * gain_f + lam_c * gain_c) / np.maximum(lam_real, 1e-300), 1e-12)
+    # Mean FAST contrast (DN) of the corners detected in each bin: what their matching and
+    # localisation compete with the noise on.
+    contrast_dn = FAST_FALLBACK_THRESHOLD * np.maximum(
+        (contrast_f + lam_c * mean_contrast) / np.maximum(lam_real, 1e-300), 1.0
+    )
     wavelength = (lam_f * fine_wavelength + lam_c * params.coarse_wavelength) / np.maximum(lam_real, 1e-300)
     # Spurious corners on noise: FAST-7 fires when the noise across its circle exceeds 7 DN.
     noise = _effective_noise(deg, blur_eq[:, 0], params)  # [F] DN left after the blur
@@ -637,7 +644,7 @@ def extract(
     weight = kept / np.maximum(kept.sum(axis=1, keepdims=True), 1e-12)
     # Matching: noise over the corners' contrast; spurious corners never match.
     real_share = np.where(lam > 0, lam_real / np.maximum(lam, 1e-300), 1.0)
-    rel_noise = noise[:, None] / gain
+    rel_noise = noise[:, None] / contrast_dn
     match_b = (
         params.match_max
         * real_share
@@ -653,6 +660,18 @@ def extract(
     gate = np.sum(weight * inlier_gate(loc), axis=1)
     sigma_loc = np.sqrt(np.sum(weight * (loc * level_scale) ** 2, axis=1))
     return Counts(bins=bins, n_extracted=n_extracted, match_prob=match, gate=gate, sigma_loc=sigma_loc)
+
+
+def _detected(mu, sigma: float, gain) -> tuple[np.ndarray, np.ndarray]:
+    """For corners whose contrast over the FAST threshold is log-normal (ln x ~ N(mu, sigma^2)) seen
+    through a gain: the probability that x gain clears 1, and the mean x gain of those that do
+    (the log-normal's truncated mean, exp(mu + sigma^2 / 2) Q(z - sigma) / Q(z), times the gain)."""
+    log_gain = np.log(gain)
+    z = -(mu + log_gain) / sigma
+    p = normal_sf(z)
+    tail = normal_sf(z - sigma)
+    mean = np.exp(mu + log_gain + 0.5 * sigma * sigma) * tail / np.maximum(p, 1e-300)
+    return p, np.where(p > 1e-300, mean, 1.0)
 
 
 def _effective_noise(deg: Degradation, blur: np.ndarray, params: VisionParams) -> np.ndarray:
