@@ -123,13 +123,13 @@ def compare(real: pd.DataFrame, sim: pd.DataFrame) -> pd.DataFrame:
 # ---- fitting ----------------------------------------------------------------------------------------
 
 FIT_GROUPS = {
-    # contrast_mu and contrast_sigma (the corners' FAST contrast over the threshold) are set from haze
-    # and low light, which scale contrast without blurring: half the keypoints survive a gain of
-    # about 0.06 (haze tau 2.8, light 6 %), and the survival falls from 85 % to 20 % as the gain goes
-    # from 0.135 to 0.05: ln-mean 2.8, ln-spread 0.5. Blur then fits the texture's wavelengths.
+    # Haze and low light scale contrast without blurring: with blur, downsampling and occlusion they
+    # pin both the corners' contrast distribution and the texture's wavelengths.
     "extraction": dict(
         bounds={
             "candidates": (2e3, 1e5),
+            "contrast_mu": (0.5, 3.5),
+            "contrast_sigma": (0.2, 1.5),
             "fine_wavelength": (1.5, 40.0),
             "coarse_wavelength": (10.0, 80.0),
             "coarse_fraction": (0.005, 0.5),
@@ -143,7 +143,7 @@ FIT_GROUPS = {
             "noise_corners": (1e2, 1e5),
         },
         log=("candidates", "fine_wavelength", "coarse_wavelength", "coarse_fraction", "noise_corners"),
-        disturbances=SEED_DISTURBANCES,
+        disturbances=SEED_DISTURBANCES + ("haze", "low_light"),
         keys=("n_extracted", "n_extracted_cv", "bins_occupied", "s_b"),
     ),
     "matching": dict(
@@ -162,7 +162,7 @@ FIT_GROUPS = {
     ),
 }
 
-SCALE = {"n_extracted": 0.05, "n_extracted_cv": 0.1, "match_ratio": 0.03, "bins_occupied": 3.0, "s_b": 0.08}
+SCALE = {"n_extracted": 0.05, "n_extracted_cv": 0.1, "match_ratio": 0.03, "bins_occupied": 5.0, "s_b": 0.12}
 CAP = {"n_extracted": 400.0, "n_extracted_cv": 25.0, "match_ratio": 25.0, "bins_occupied": 25.0, "s_b": 9.0}
 # n_extracted_cv: the frame-to-frame spread of the keypoint count over a few seconds of one scene
 # (the measured frames span 4.7 s); without it the fit buys the spatial statistics with a scene

@@ -247,27 +247,27 @@ class VisionParams:
         loc_noise: noise-to-contrast ratio at which the localisation error grows by sqrt 2.
     """
 
-    candidates: float = 14471.3118
-    contrast_mu: float = 2.8
-    contrast_sigma: float = 0.5
-    fine_wavelength: float = 4.7523
-    coarse_wavelength: float = 17.1119
-    fine_wavelength_sigma: float = 0.0546
-    fine_wavelength_spread: float = 0.4249
-    coarse_fraction: float = 0.0146
-    coarse_sigma: float = 2.4976
+    candidates: float = 5246.0591
+    contrast_mu: float = 0.7186
+    contrast_sigma: float = 0.942
+    fine_wavelength: float = 10.3809
+    coarse_wavelength: float = 29.5788
+    fine_wavelength_sigma: float = 0.0021
+    fine_wavelength_spread: float = 0.3682
+    coarse_fraction: float = 0.0629
+    coarse_sigma: float = 2.498
     texture_sigma: float = 2.5
-    contrast_coupling: float = 1.5
-    blank_z: float = 0.4997
+    contrast_coupling: float = 0.5531
+    blank_z: float = 0.5
     blank_density: float = 0.01
     motion_blur_alpha: float = 0.0716
-    natural_noise: float = 3.241
-    match_max: float = 0.7641
-    match_noise: float = 0.0699
-    match_gamma: float = 1.9668
+    natural_noise: float = 2.4713
+    match_max: float = 0.7624
+    match_noise: float = 7.1439
+    match_gamma: float = 2.9462
     streak_match: float = 65.5723
     dirt_scale: float = 0.8494
-    noise_corners: float = 1496.581
+    noise_corners: float = 9483.8325
     map_fraction: float = 0.46
     loc_floor: float = 0.5
     loc_per_blur: float = 0.35
@@ -662,14 +662,21 @@ def extract(
     return Counts(bins=bins, n_extracted=n_extracted, match_prob=match, gate=gate, sigma_loc=sigma_loc)
 
 
+MAX_CONTRAST = 255.0 / FAST_FALLBACK_THRESHOLD
+"""An 8-bit corner cannot differ from its surround by more than 255 DN: 36 times the FAST-7 threshold."""
+
+
 def _detected(mu, sigma: float, gain) -> tuple[np.ndarray, np.ndarray]:
-    """For corners whose contrast over the FAST threshold is log-normal (ln x ~ N(mu, sigma^2)) seen
-    through a gain: the probability that x gain clears 1, and the mean x gain of those that do
-    (the log-normal's truncated mean, exp(mu + sigma^2 / 2) Q(z - sigma) / Q(z), times the gain)."""
+    """For corners whose contrast over the FAST-7 threshold is log-normal (ln x ~ N(mu, sigma^2)),
+    truncated at MAX_CONTRAST, seen through a gain: the probability that x gain clears 1, and the
+    mean x gain of those that do (the truncated log-normal's mean over [1 / gain, MAX_CONTRAST])."""
     log_gain = np.log(gain)
-    z = -(mu + log_gain) / sigma
-    p = normal_sf(z)
-    tail = normal_sf(z - sigma)
+    upper = math.log(MAX_CONTRAST)
+    z = np.minimum(-(mu + log_gain), upper - mu) / sigma
+    z_max = (upper - mu) / sigma
+    norm = np.maximum(1.0 - normal_sf(z_max), 1e-300)
+    p = np.maximum(normal_sf(z) - normal_sf(z_max), 0.0) / norm
+    tail = np.maximum(normal_sf(z - sigma) - normal_sf(z_max - sigma), 0.0) / norm
     mean = np.exp(mu + log_gain + 0.5 * sigma * sigma) * tail / np.maximum(p, 1e-300)
     return p, np.where(p > 1e-300, mean, 1.0)
 

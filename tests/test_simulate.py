@@ -214,15 +214,15 @@ def reference_scene() -> sv.Scene:
     return dataclasses.replace(scene, texture=np.ones(len(t)), streak_px=np.zeros(len(t)))
 
 
-TOLERANCE = {"n_extracted": 0.35, "match_ratio": 0.08, "bins_occupied": 10.0, "s_b": 0.25}
-"""Bounds every seed level meets (docs/simulator.md, "Calibration", gives the table): the tighter
-bounds of analysis/simulator_calibration.py (15 %, 0.08, 6 bins, 0.15) hold at 106 of 120 entries;
-the rest sit at blur 30-35 (the model's blur cliff is 5 px of kernel late: +30 % keypoints) and in
-the spatial statistics of one real scene."""
+TOLERANCE = {"n_extracted": 0.35, "match_ratio": 0.08, "bins_occupied": 12.0, "s_b": 0.25}
+"""Bounds every seed level meets (docs/simulator.md, section 6, gives the table): the tighter bounds
+of analysis/simulator_calibration.py (15 %, 0.08, 6 bins, 0.15) hold at 108 of 120 entries; the rest
+sit at blur 30-35 (the model's blur cliff is gentler: +26 % and +34 % keypoints), downsampling (bins
+empty sooner in the model) and in the spatial statistics of one real scene."""
 KNOWN_QUIRKS = {("blur", 25.0, "s_b"), ("downsample", 0.1, "s_b")}
 """Two misses docs/simulator.md (section 6) lists: the measured S_b of 0.08 at blur 25 (the few
 checkerboard cells left with FAST-20 corners fill the whole budget, a property of that one scene),
-and S_b at downsample 0.1, where the model keeps only the coarse structure's few bins (0.2) but ORB
+and S_b at downsample 0.1, where the model keeps only the coarse structure's few bins (0.3) but ORB
 on the real 10x-upscaled image also finds corners on the interpolation's blocks (0.56)."""
 
 
