@@ -40,6 +40,7 @@ from . import schema
 from .schema import RunLog
 from .simulate_motion import (
     EUROC_CAM0_T_BS,
+    EUROC_SEQUENCES,
     GRAVITY,
     FlightProfile,
     ImuNoise,
@@ -250,16 +251,13 @@ def euroc_sequences(names: Sequence[str], euroc_gt: str | os.PathLike) -> list[S
         stem = euroc_file_stem(name)
         if not (gt / f"{stem}_GT.txt").is_file():
             raise FileNotFoundError(f"{gt / f'{stem}_GT.txt'}: no ground truth for sequence {name}")
-        canonical = next(k for k, v in _EUROC_NAMES.items() if v == stem)
+        canonical = next(k for k, v in EUROC_SEQUENCES.items() if v == stem)
         out.append(
             SequenceSpec(
                 canonical, str(gt), str(ts) if ts.is_dir() else None, str(imu) if imu.is_dir() else None
             )
         )
     return out
-
-
-from .simulate_motion import EUROC_SEQUENCES as _EUROC_NAMES  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -455,7 +453,7 @@ def _orbslam3_states(n_inliers: np.ndarray, t: np.ndarray, imu_init: np.ndarray,
     from .rules import MODE_LOST, preset
 
     R, F = n_inliers.shape
-    padded = max(256, int(math.ceil(F / 256)) * 256)  # few distinct shapes: few compilations
+    padded = max(1024, int(math.ceil(F / 1024)) * 1024)  # few distinct shapes: few compilations
     pad = padded - F
     score = np.pad(n_inliers.astype(np.float32), ((0, 0), (0, pad)))
     tt = np.pad(t.astype(np.float32), (0, pad), mode="edge")
@@ -702,8 +700,7 @@ class StudyResult:
 @dataclass(frozen=True)
 class _Job:
     spec: SequenceSpec
-    setting: Setting
-    runs: tuple[int, ...]
+    todo: tuple[tuple[Setting, tuple[int, ...]], ...]  # (setting, runs still to write)
     out_dir: str
     seed: int
     config: SimConfig
@@ -724,23 +721,44 @@ def _is_complete(path: Path) -> bool:
 
 
 def _run_job(job: _Job) -> tuple[int, float, float, list[str]]:
+    """All pending logs of one sequence: its recording is built once, in one process."""
     from .logs import write_log
 
+    simulate_s = write_s = 0.0
     started = time.perf_counter()
-    recording = _cached_recording(job.spec, job.seed, job.config)
-    logs = simulate_setting(recording, job.setting, job.runs, job.seed, job.config)
-    simulated = time.perf_counter()
+    recording = make_recording(job.spec, job.seed, job.config)
+    simulate_s += time.perf_counter() - started
     paths = []
-    for run in logs:
-        path = log_path(job.out_dir, job.spec.name, job.setting, run.meta["run"])
-        write_log(run, path)
-        paths.append(str(path))
-    return len(logs), simulated - started, time.perf_counter() - simulated, paths
+    for setting, runs in job.todo:
+        started = time.perf_counter()
+        logs = simulate_setting(recording, setting, runs, job.seed, job.config)
+        simulated = time.perf_counter()
+        for run in logs:
+            path = log_path(job.out_dir, job.spec.name, setting, run.meta["run"])
+            write_log(run, path)
+            paths.append(str(path))
+        simulate_s += simulated - started
+        write_s += time.perf_counter() - simulated
+    return len(paths), simulate_s, write_s, paths
 
 
 def _init_worker() -> None:
-    os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    # Workers run the small state-machine scan only: keep them off any accelerator (one process per
+    # core would otherwise each claim the GPU's memory).
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+
+def _sequence_size(spec: SequenceSpec) -> float:
+    """Frames of a sequence, for scheduling: the ground-truth file's lines, or a procedural flight's
+    expected length."""
+    if spec.procedural:
+        return 130.0 * 20.0
+    stem = euroc_file_stem(spec.name)
+    try:
+        with open(Path(spec.euroc_gt) / f"{stem}_GT.txt", "rb") as f:
+            return float(sum(1 for _ in f))
+    except OSError:
+        return 0.0
 
 
 def write_study(
@@ -761,8 +779,8 @@ def write_study(
 
     Resumable: logs already complete are skipped (a re-run after an interruption finishes the rest;
     jsve.logs.write_log writes `.partial` files and renames them, and stale ones are removed).
-    Parallel: one job per (sequence, setting) in `workers` processes (default: all cores), jobs of one
-    sequence kept together so each process builds a recording once. parquet=True then consolidates
+    Parallel: one job per sequence (its recording built once) in `workers` processes (default: all
+    cores), longest first; the progress bar advances as sequences finish. parquet=True then consolidates
     all logs into out_dir/study.parquet with jsve.logs.ingest.
     """
     from tqdm.auto import tqdm
@@ -777,13 +795,21 @@ def write_study(
     result = StudyResult()
     jobs = []
     for spec in specs:
+        todo = []
         for setting in grid:
-            todo = tuple(r for r in run_ids if not _is_complete(log_path(out_dir, spec.name, setting, r)))
-            result.skipped += len(run_ids) - len(todo)
-            if todo:
-                jobs.append(_Job(spec, setting, todo, str(out_dir), int(seed), config))
+            runs_left = tuple(
+                r for r in run_ids if not _is_complete(log_path(out_dir, spec.name, setting, r))
+            )
+            result.skipped += len(run_ids) - len(runs_left)
+            if runs_left:
+                todo.append((setting, runs_left))
+        if todo:
+            jobs.append(_Job(spec, tuple(todo), str(out_dir), int(seed), config))
+    # One job per sequence (each recording built once), the biggest first so that the processes
+    # finish together (longest-processing-time-first scheduling).
+    jobs.sort(key=lambda j: -sum(len(r) for _, r in j.todo) * _sequence_size(j.spec))
     workers = workers or os.cpu_count() or 1
-    total = sum(len(j.runs) for j in jobs)
+    total = sum(len(r) for j in jobs for _, r in j.todo)
     with tqdm(total=total, desc="simulate", unit="log", disable=not progress) as bar:
         if workers <= 1 or len(jobs) <= 1:
             outcomes = []
@@ -791,7 +817,6 @@ def write_study(
                 outcomes.append(_run_job(job))
                 bar.update(outcomes[-1][0])
         else:
-            # Contiguous blocks of jobs per process: a process meets few sequences (cached recordings).
             context = multiprocessing.get_context("spawn")
             with concurrent.futures.ProcessPoolExecutor(
                 workers, mp_context=context, initializer=_init_worker

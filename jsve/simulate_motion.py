@@ -177,6 +177,37 @@ def _bspline_weights(u: np.ndarray, order: int) -> np.ndarray:
     raise ValueError(f"B-spline derivative order must be 0, 1 or 2; got {order}")
 
 
+def _solve_banded_spd(band: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve S x = rhs for a symmetric positive definite S given in lower band form
+    (band[k, r] = S[r, r - k]), by banded Cholesky S = L L^T (Golub & Van Loan, algorithm 4.3.5)."""
+    p, m = band.shape[0] - 1, band.shape[1]
+    low = np.zeros_like(band)  # low[k, r] = L[r, r - k]
+    b = [list(row) for row in band]
+    lo = [[0.0] * m for _ in range(p + 1)]
+    for r in range(m):
+        for k in range(min(p, r), 0, -1):
+            c = r - k
+            acc = b[k][r]
+            for j in range(1, p - k + 1):
+                if c - j < 0:
+                    break
+                acc -= lo[k + j][r] * lo[j][c]
+            lo[k][r] = acc / lo[0][c]
+        acc = b[0][r] - sum(lo[k][r] ** 2 for k in range(1, min(p, r) + 1))
+        lo[0][r] = math.sqrt(acc)
+    low[:] = np.array(lo)
+    x = np.array(rhs, float)
+    for r in range(m):  # L z = rhs
+        for k in range(1, min(p, r) + 1):
+            x[r] -= low[k, r] * x[r - k]
+        x[r] /= low[0, r]
+    for r in range(m - 1, -1, -1):  # L^T x = z
+        for k in range(1, min(p, m - 1 - r) + 1):
+            x[r] -= low[k, r + k] * x[r + k]
+        x[r] /= low[0, r]
+    return x
+
+
 @dataclass(frozen=True)
 class Spline:
     """A uniform cubic B-spline in time: control points [M, D], knot spacing h (s), start t0 (s).
@@ -218,16 +249,21 @@ class Spline:
         x = (t - t0) / h
         i = np.clip(np.floor(x).astype(np.int64), 0, n_seg - 1)
         w = _bspline_weights(x - i, 0)
-        ata = np.zeros((m, m))
+        # Normal equations in lower band form: band[k, r] = (A^T A + smooth D^T D)[r, r - k], k = 0..3.
+        band = np.zeros((4, m))
         aty = np.zeros((m, y.shape[1]))
         for a in range(4):
-            np.add.at(aty, i + a, w[:, a : a + 1] * y)
-            for b in range(4):
-                np.add.at(ata, (i + a, i + b), w[:, a] * w[:, b])
-        d2 = np.zeros((m - 2, m))
-        r = np.arange(m - 2)
-        d2[r, r], d2[r, r + 1], d2[r, r + 2] = 1.0, -2.0, 1.0
-        coef = np.linalg.solve(ata + smooth * d2.T @ d2, aty)
+            aty += np.stack(
+                [np.bincount(i + a, weights=w[:, a] * y[:, d], minlength=m) for d in range(y.shape[1])], 1
+            )
+            for b in range(a + 1):
+                band[a - b] += np.bincount(i + a, weights=w[:, a] * w[:, b], minlength=m)
+        # D^T D of second differences (rows r, r+1, r+2 with 1, -2, 1).
+        stencil = np.array([1.0, -2.0, 1.0])
+        for a in range(3):
+            for b in range(a + 1):
+                np.add.at(band[a - b], np.arange(m - 2) + a, smooth * stencil[a] * stencil[b])
+        coef = _solve_banded_spd(band, aty)
         return Spline(coef=coef, h=h, t0=t0)
 
 

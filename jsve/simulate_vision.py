@@ -241,7 +241,6 @@ class VisionParams:
         noise_corners: spurious FAST corners per frame on pure noise at the fallback threshold.
         dirt_scale: peak-to-mean ratio of lens-dirt opacity over the image (its blotches).
     Tracking (ORB-SLAM3's map, not measurable frame to frame; see docs/simulator.md):
-        map_fraction: share of matched keypoints that carry a local-map point.
         loc_floor: px, keypoint localisation error of a sharp corner.
         loc_per_blur: px of localisation error per px of effective blur.
         loc_noise: noise-to-contrast ratio at which the localisation error grows by sqrt 2.
@@ -268,7 +267,6 @@ class VisionParams:
     streak_match: float = 65.5723
     dirt_scale: float = 0.8494
     noise_corners: float = 9483.8325
-    map_fraction: float = 0.46
     loc_floor: float = 0.5
     loc_per_blur: float = 0.35
     loc_noise: float = 0.3
@@ -614,10 +612,11 @@ def extract(
     fine_wavelength = params.fine_wavelength * np.exp(params.fine_wavelength_sigma * scene.grain_field)
     lam_f = np.zeros_like(base)
     contrast_f = np.zeros_like(base)  # candidates x their mean contrast, summed over the quadrature
+    upper = _upper_tail(mu, params.contrast_sigma)
     for node, w in zip(_GH_NODES, _GH_WEIGHTS, strict=True):
         wl = fine_wavelength * np.exp(params.fine_wavelength_spread * node)
         g = np.maximum(texture_mtf(blur, wl, deg.box_px) * deg.contrast, 1e-300)
-        p_detect, mean_contrast = _detected(mu, params.contrast_sigma, g)
+        p_detect, mean_contrast = _detected(mu, params.contrast_sigma, g, upper)
         lam_f += w * base * fine * p_detect
         contrast_f += w * base * fine * p_detect * mean_contrast
     gain_c = np.maximum(texture_mtf(blur, params.coarse_wavelength, deg.box_px) * deg.contrast, 1e-300)
@@ -666,17 +665,24 @@ MAX_CONTRAST = 255.0 / FAST_FALLBACK_THRESHOLD
 """An 8-bit corner cannot differ from its surround by more than 255 DN: 36 times the FAST-7 threshold."""
 
 
-def _detected(mu, sigma: float, gain) -> tuple[np.ndarray, np.ndarray]:
+def _upper_tail(mu, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Terms of `_detected` that do not depend on the gain: the mass below MAX_CONTRAST and the two
+    tail probabilities at it."""
+    z_max = (math.log(MAX_CONTRAST) - mu) / sigma
+    q_max, q_max_shift = normal_sf(z_max), normal_sf(z_max - sigma)
+    return np.maximum(1.0 - q_max, 1e-300), q_max, q_max_shift
+
+
+def _detected(mu, sigma: float, gain, upper=None) -> tuple[np.ndarray, np.ndarray]:
     """For corners whose contrast over the FAST-7 threshold is log-normal (ln x ~ N(mu, sigma^2)),
     truncated at MAX_CONTRAST, seen through a gain: the probability that x gain clears 1, and the
-    mean x gain of those that do (the truncated log-normal's mean over [1 / gain, MAX_CONTRAST])."""
+    mean x gain of those that do (the truncated log-normal's mean over [1 / gain, MAX_CONTRAST]).
+    `upper` is `_upper_tail(mu, sigma)` when the caller reuses it over several gains."""
+    norm, q_max, q_max_shift = upper if upper is not None else _upper_tail(mu, sigma)
     log_gain = np.log(gain)
-    upper = math.log(MAX_CONTRAST)
-    z = np.minimum(-(mu + log_gain), upper - mu) / sigma
-    z_max = (upper - mu) / sigma
-    norm = np.maximum(1.0 - normal_sf(z_max), 1e-300)
-    p = np.maximum(normal_sf(z) - normal_sf(z_max), 0.0) / norm
-    tail = np.maximum(normal_sf(z - sigma) - normal_sf(z_max - sigma), 0.0) / norm
+    z = np.minimum(-(mu + log_gain), math.log(MAX_CONTRAST) - mu) / sigma
+    p = np.maximum(normal_sf(z) - q_max, 0.0) / norm
+    tail = np.maximum(normal_sf(z - sigma) - q_max_shift, 0.0) / norm
     mean = np.exp(mu + log_gain + 0.5 * sigma * sigma) * tail / np.maximum(p, 1e-300)
     return p, np.where(p > 1e-300, mean, 1.0)
 

@@ -128,6 +128,27 @@ def test_preintegration_first_frame_and_dt(short_flight):
     np.testing.assert_allclose(dt[1:], np.diff(short_flight.frame_ns) / 1e9, atol=1e-12)
 
 
+def test_spline_fit_is_the_dense_least_squares_solution():
+    # The banded Cholesky solve must give the dense normal equations' solution.
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(0, 20, 400))
+    y = np.stack([np.sin(t), np.cos(0.3 * t)], 1) + rng.normal(0, 1e-3, (400, 2))
+    h, smooth = 0.1, 1e-2
+    spline = sm.Spline.fit(t, y, h, smooth)
+    n_seg = int(np.ceil((t[-1] - t[0]) / h - 1e-9))
+    m = n_seg + 3
+    x = (t - t[0]) / h
+    i = np.clip(np.floor(x).astype(int), 0, n_seg - 1)
+    design = np.zeros((len(t), m))
+    u = x - i  # uniform cubic B-spline weights (de Boor)
+    weights = np.stack([(1 - u) ** 3, 3 * u**3 - 6 * u**2 + 4, -3 * u**3 + 3 * u**2 + 3 * u + 1, u**3], 1) / 6
+    for a in range(4):
+        design[np.arange(len(t)), i + a] = weights[:, a]
+    second = np.diff(np.eye(m), n=2, axis=0)
+    dense = np.linalg.solve(design.T @ design + smooth * second.T @ second, design.T @ y)
+    np.testing.assert_allclose(spline.coef, dense, atol=1e-10)
+
+
 def test_gauss_markov_variance_and_correlation():
     t = np.arange(0, 4000, 0.01)
     x = sm.gauss_markov(np.random.default_rng(0), t, 0.5, 2.0, dim=4)
