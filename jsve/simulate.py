@@ -520,7 +520,8 @@ def simulate_setting(
     deg = degradation(setting.disturbance, setting.level, config.vision, seed=seed)
     counts = extract(recording.scene, deg, config.vision, n_features=config.n_features)
     F = recording.n_frames
-    fps = float(round(1e9 / np.median(np.diff(recording.frame_ns)), 6)) if F > 1 else 20.0
+    # EuRoC's stamps alternate 50,000,128 and 49,999,872 ns: fps to the millihertz (20.0).
+    fps = float(round(1e9 / np.median(np.diff(recording.frame_ns)), 3)) if F > 1 else 20.0
     unit_info = _unit_information(recording, counts, config.tracking)
     draws = [
         _draw_run(
@@ -575,8 +576,8 @@ def simulate_setting(
             "gravity": [float(g) for g in GRAVITY],
             "frontend": FRONTEND,
             "seed": int(seed),
-            "trajectory": recording.trajectory.source,
-            "imu": recording.imu_source,
+            "trajectory": Path(recording.trajectory.source).name,  # file names: logs do not
+            "imu": Path(recording.imu_source).name,  # depend on where the data sits
         }
         out.append(
             RunLog(meta=meta, frames=frames, source=f"<simulated {recording.spec.name}/{setting.label}/{r}>")
