@@ -77,7 +77,9 @@ from .rules import rule_to_dict as rule_to_dict
 from .report import write_report as write_report
 from .schema import RunLog as RunLog
 from .simulate import simulate_run as simulate_run
+from .simulate import SimConfig as SimConfig
 from .simulate import simulate_study as simulate_study
+from .simulate import write_study as write_study
 from .sve import Combination as Combination
 from .sve import FrameFeatures as FrameFeatures
 from .sve import frame_features as frame_features
