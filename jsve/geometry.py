@@ -82,7 +82,7 @@ def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
     return quat_normalize(q)
 
 
-def yaw_rotation(yaw: Float[Array, "..."]) -> Float[Array, "... 3 3"]:
+def yaw_rotation(yaw: Float[Array, ...]) -> Float[Array, "... 3 3"]:
     """Rotation about the world z axis by `yaw` radians."""
     c, s = jnp.cos(yaw), jnp.sin(yaw)
     zero, one = jnp.zeros_like(yaw), jnp.ones_like(yaw)

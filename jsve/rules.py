@@ -51,7 +51,7 @@ class InlierRule(eqx.Module):
 
     thresholds: Thresholds
 
-    def score(self, features: FrameFeatures) -> Float[Array, "..."]:
+    def score(self, features: FrameFeatures) -> Float[Array, ...]:
         return features.n_inliers
 
 
@@ -61,7 +61,7 @@ class SVERule(eqx.Module):
     combination: Combination
     thresholds: Thresholds
 
-    def score(self, features: FrameFeatures) -> Float[Array, "..."]:
+    def score(self, features: FrameFeatures) -> Float[Array, ...]:
         return self.combination(features.inlier_ratio, features.s_b, features.s_c)
 
 

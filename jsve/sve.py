@@ -22,17 +22,17 @@ def _safe_ratio(num: Array, den: Array) -> Array:
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
-def s_a_original(n_extracted: ArrayLike, n_features: ArrayLike) -> Float[Array, "..."]:
+def s_a_original(n_extracted: ArrayLike, n_features: ArrayLike) -> Float[Array, ...]:
     """Feature quantity, Haggart's original: N_extracted / nFeatures (unclamped)."""
     return _safe_ratio(jnp.asarray(n_extracted, float), jnp.asarray(n_features, float))
 
 
-def inlier_ratio(n_inliers: ArrayLike, n_extracted: ArrayLike) -> Float[Array, "..."]:
+def inlier_ratio(n_inliers: ArrayLike, n_extracted: ArrayLike) -> Float[Array, ...]:
     """N_inliers / N_extracted, 0 when nothing was extracted; S_a before the rho scaling."""
     return _safe_ratio(jnp.asarray(n_inliers, float), jnp.asarray(n_extracted, float))
 
 
-def s_a(n_inliers: ArrayLike, n_extracted: ArrayLike, rho: ArrayLike = 0.25) -> Float[Array, "..."]:
+def s_a(n_inliers: ArrayLike, n_extracted: ArrayLike, rho: ArrayLike = 0.25) -> Float[Array, ...]:
     """Feature quantity, ORB-SLAM3 variant (Rugg-Gunn): clamp(N_inliers / (rho N_extracted), 0, 1).
 
     rho = 0.25 in the seed's final code (Option 2), 0.5 in Option 1. Zero when N_extracted = 0.
@@ -40,12 +40,12 @@ def s_a(n_inliers: ArrayLike, n_extracted: ArrayLike, rho: ArrayLike = 0.25) -> 
     return s_a_from_ratio(inlier_ratio(n_inliers, n_extracted), rho)
 
 
-def s_a_from_ratio(ratio: ArrayLike, rho: ArrayLike) -> Float[Array, "..."]:
+def s_a_from_ratio(ratio: ArrayLike, rho: ArrayLike) -> Float[Array, ...]:
     """S_a from a precomputed inlier ratio, so that rho can be swept without touching the counts."""
     return jnp.clip(_safe_ratio(jnp.asarray(ratio, float), jnp.asarray(rho, float)), 0.0, 1.0)
 
 
-def s_b(bins: ArrayLike, n_extracted: ArrayLike, clamp: bool = True) -> Float[Array, "..."]:
+def s_b(bins: ArrayLike, n_extracted: ArrayLike, clamp: bool = True) -> Float[Array, ...]:
     """Feature homogeneity over the 8 x 8 SVE bins: 1 - chi2 / chi2_w.
 
     E = N / 64 with N all extracted keypoints (also those outside the grid, as in the authors' code);
@@ -69,7 +69,7 @@ def s_b(bins: ArrayLike, n_extracted: ArrayLike, clamp: bool = True) -> Float[Ar
     return jnp.clip(value, 0.0, 1.0) if clamp else value
 
 
-def s_c(n_inliers: ArrayLike, n_frustum: ArrayLike, clamp: bool = True) -> Float[Array, "..."]:
+def s_c(n_inliers: ArrayLike, n_frustum: ArrayLike, clamp: bool = True) -> Float[Array, ...]:
     """Tracked vs expected: N_inliers / N_frustum (nToMatch), 0 when N_frustum = 0; clamped to [0, 1].
 
     Unclamped (clamp=False) it is Haggart's version, which can exceed 1.
@@ -78,7 +78,7 @@ def s_c(n_inliers: ArrayLike, n_frustum: ArrayLike, clamp: bool = True) -> Float
     return jnp.clip(value, 0.0, 1.0) if clamp else value
 
 
-def power_mean(x: Float[Array, "... k"], w: Float[Array, "k"], p: ArrayLike) -> Float[Array, "..."]:
+def power_mean(x: Float[Array, "... k"], w: Float[Array, " k"], p: ArrayLike) -> Float[Array, ...]:
     """Weighted power mean (sum_i w_i x_i^p)^(1/p) of non-negative x, weights summing to 1.
 
     p = 1 arithmetic, p -> 0 geometric (exp sum w log x), p = -1 harmonic. A zero entry with positive
@@ -191,7 +191,7 @@ class Combination(eqx.Module):
         self.q = jnp.asarray(q, float)
         self.rho = jnp.asarray(rho, float)
 
-    def __call__(self, ratio: Array, sb: Array, sc: Array) -> Float[Array, "..."]:
+    def __call__(self, ratio: Array, sb: Array, sc: Array) -> Float[Array, ...]:
         """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes)."""
         ratio, sb, sc = (jnp.asarray(x, float) for x in (ratio, sb, sc))
         return combination_from_logs(self, *feature_logs(ratio, sb, sc))
