@@ -98,7 +98,7 @@ def time_jsve(n_runs: int, n_frames: int, chunk: int, rule) -> tuple[float, floa
     compile_s = 0.0
     for i, start in enumerate(range(0, n_runs, chunk)):
         size = min(chunk, n_runs - start)
-        batch = jsve.batch.pad_runs(synthetic_chunk(size, n_frames, seed=start), chunk)
+        batch = jsve.core._batch.pad_runs(synthetic_chunk(size, n_frames, seed=start), chunk)
         features = jax.block_until_ready(jsve.batch_features(batch))
         if i == 0:
             t0 = time.perf_counter()

@@ -1,12 +1,12 @@
-"""Masked vs original APE on the simulated driving scenario (jsve.simulate_driving), Table I side by side.
+"""Masked vs original APE on the simulated driving scenario (jsve.sim._driving), Table I side by side.
 
     python analysis/masked_driving.py [--runs 20] [--frames 400] [--out docs/data/masked_driving.csv]
 
 Every run is simulated once; its original log carries the visual poses of the front-end on all keypoints,
-its masked log (jsve.masks.apply_masks over the keypoint side file and the box masks) the counts without
+its masked log (jsve.masks._masks.apply_masks over the keypoint side file and the box masks) the counts without
 the dynamic keypoints and the simulator's stand-in for a masked re-run (same draws, no dynamic features).
-Both are aligned (se3) and scored by jsve.tablei.table_one; the paired difference masked - original of
-per-run RMSE gets a percentile bootstrap 95% CI (jsve.aggregate.bootstrap_ci).
+Both are aligned (se3) and scored by jsve.masks._table_one.table_one; the paired difference masked - original of
+per-run RMSE gets a percentile bootstrap 95% CI (jsve.evaluation._aggregate.bootstrap_ci).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from jsve import schema  # noqa: E402
-from jsve.aggregate import bootstrap_ci  # noqa: E402
-from jsve.atomic import write_text  # noqa: E402
-from jsve.simulate_driving import DrivingConfig, simulate_sequence  # noqa: E402
-from jsve.simulate_motion import quat_to_matrix  # noqa: E402
-from jsve.tablei import PosePair, table_one, to_markdown  # noqa: E402
+from jsve.evaluation._aggregate import bootstrap_ci  # noqa: E402
+from jsve.io._atomic import write_text  # noqa: E402
+from jsve.masks._table_one import PosePair, table_one, to_markdown  # noqa: E402
+from jsve.sim._driving import DrivingConfig, simulate_sequence  # noqa: E402
+from jsve.sim._motion import quat_to_matrix  # noqa: E402
 
 SEQUENCES = (("DRIVE_00", 100), ("DRIVE_01", 101))
 

@@ -1,9 +1,9 @@
 """Visibility response of real EuRoC frames to every disturbance level (the seed's Figures 4 to 6, measured).
 
-Applies each registered disturbance (jsve.disturb.DISTURBANCES, plus downsampling in its calibration
+Applies each registered disturbance (jsve.image._disturb.DISTURBANCES, plus downsampling in its calibration
 mode) at every level of its grid to the frames of one EuRoC sequence, in memory, measures the
-per-frame counts with jsve.measure (ORB-SLAM3-style ORB, verified frame-to-frame inliers, frustum
-stand-in, SVE bins) and summarises the SVE metrics (jsve.sve via jsve.measure.visibility_table) per
+per-frame counts with jsve.image._measure (ORB-SLAM3-style ORB, verified frame-to-frame inliers, frustum
+stand-in, SVE bins) and summarises the SVE metrics (jsve.core._sve via jsve.image._measure.visibility_table) per
 level: mean and standard deviation over frames. Writes
 
     docs/data/real_response.csv              one row per (disturbance, parameters, level): the calibration
@@ -36,9 +36,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.disturb import DISTURBANCES, disturb_image
-from jsve.disturb_datasets import format_level
-from jsve.measure import (
+from jsve.image._datasets import format_level
+from jsve.image._disturb import DISTURBANCES, disturb_image
+from jsve.image._measure import (
     Camera,
     FrameCounts,
     measure_frames,
@@ -46,7 +46,7 @@ from jsve.measure import (
     read_sequence,
     visibility_table,
 )
-from jsve.orb import OrbSettings, extract_orb
+from jsve.image._orb import OrbSettings, extract_orb
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "euroc" / "V1_01_first95"
@@ -103,14 +103,14 @@ def _disturbed(condition: Condition, index: int) -> np.ndarray:
         condition.name,
         condition.level,
         dict(condition.parameters),
-        seed=(SEED, 0),  # as jsve.disturb's dataset writer seeds cam0
+        seed=(SEED, 0),  # as jsve.image._disturb's dataset writer seeds cam0
         frame_seed=(SEED, 0, int(_FRAMES["t_ns"][index])),
     )
 
 
 def _camera_for(image: np.ndarray, camera: Camera) -> Camera:
     """The calibration of a (possibly downsampled, calibration mode) image."""
-    from jsve.disturb import scale_intrinsics
+    from jsve.image._disturb import scale_intrinsics
 
     height, width = image.shape
     if (width, height) == (camera.width, camera.height):

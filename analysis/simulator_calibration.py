@@ -8,10 +8,10 @@ analysis/real_frame_response.py) and prints, side by side, the per-level means o
     match ratio      frame-to-frame matched-and-verified share of the keypoints (the measurement's
                      n_inliers / n_extracted; the logs' n_inliers are ORB-SLAM3 map inliers instead)
     bins occupied    SVE bins holding at least one keypoint
-    S_b              feature homogeneity (jsve.sve.s_b)
+    S_b              feature homogeneity (jsve.core._sve.s_b)
 
 and whether each is within the stated tolerance (TOLERANCE). With --fit it re-fits the model's
-parameters (jsve.simulate_vision.VisionParams) to the measurement by Nelder-Mead and prints them.
+parameters (jsve.sim._vision.VisionParams) to the measurement by Nelder-Mead and prints them.
 
     python analysis/simulator_calibration.py                 # table (markdown with --markdown)
     python analysis/simulator_calibration.py --fit           # refit, a few minutes
@@ -29,14 +29,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.simulate_vision import (
+from jsve.core._sve import s_b
+from jsve.sim._vision import (
     Scene,
     VisionParams,
     degradation,
     extract,
     make_scene,
 )
-from jsve.sve import s_b
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = REPO / "docs" / "data" / "real_response.csv"
@@ -274,13 +274,13 @@ def failure_table(
     euroc_gt=None,
 ) -> pd.DataFrame:
     """Replay the seed's rules over a simulated study: per (disturbance, level, rule) the share of
-    failed runs (jsve.evaluate's `failed`: LOST at least once, or no estimate) and the median APE RMSE
+    failed runs (jsve.evaluation._evaluate's `failed`: LOST at least once, or no estimate) and the median APE RMSE
     (m, SE3-aligned, largest segment) of the runs that did not fail. One sequence at a time, so
     memory stays bounded."""
-    from jsve.batch import buckets
-    from jsve.evaluate import evaluate
-    from jsve.rules import preset
-    from jsve.simulate import euroc_sequences, procedural_sequences, simulate_study
+    from jsve.core._rules import preset
+    from jsve.evaluation._evaluate import evaluate
+    from jsve.io._batching import buckets
+    from jsve.sim._simulate import euroc_sequences, procedural_sequences, simulate_study
 
     specs = euroc_sequences(sequences, euroc_gt) if sequences else procedural_sequences(procedural)
     tables = []

@@ -23,9 +23,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from jsve import schema
-from jsve.schema import RunLog
-from jsve.simulate_motion import matrix_to_quat, quat_normalize, quat_to_matrix
+from jsve.io import _schema as schema
+from jsve.io._schema import RunLog
+from jsve.sim._motion import matrix_to_quat, quat_normalize, quat_to_matrix
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 FPS = 20.0

@@ -9,7 +9,7 @@
 increasing int64 stamps with jitter, ORB-SLAM3 states, counts with n_inliers <= n_extracted and the
 binned keypoints <= n_extracted, unit quaternions (wxyz), IMU preintegration from the previous frame
 with frame 0 at imu_dt = 0 and identity, and optional ground truth. It is not a physical simulation
-(the simulator is jsve.simulate): positions, velocities and preintegration are not consistent with
+(the simulator is jsve.sim._simulate): positions, velocities and preintegration are not consistent with
 each other. Floats use all 17 significant digits, so round trips are a real test of exactness.
 """
 
@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve import schema
-from jsve.schema import RunLog
+from jsve.io import _schema as schema
+from jsve.io._schema import RunLog
 
 EUROC_T0_NS = 1_403_715_274_312_143_104
 """A realistic EuRoC stamp (V1_01's first ground-truth sample), ns: float64 cannot hold it exactly."""

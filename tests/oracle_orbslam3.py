@@ -1,9 +1,9 @@
 """Test oracle: ORB-SLAM3 v1.0's tracking state machine and the replay, as a plain Python loop.
 
-Written from the specification (DESIGN.md section 5 and the model stated in jsve/rules.py), not from
+Written from the specification (DESIGN.md section 5 and the model stated in jsve/core/_rules.py), not from
 jsve's code: explicit if/else on integer modes, Python floats (or numpy float32 scalars, to mirror a
 float32 replay operation by operation), numpy only for the pose algebra, with its own quaternion
-product and rotation. It must not import jsve.rules or jsve.geometry.
+product and rotation. It must not import jsve.core._rules or jsve.core._geometry.
 
 The model, per frame k at time t (s since the first frame), score s:
 

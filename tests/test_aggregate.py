@@ -1,4 +1,4 @@
-"""jsve.aggregate: per-run tables and group summaries, checked against sums computed by hand in numpy."""
+"""jsve.evaluation._aggregate: per-run tables and group summaries, checked against sums computed by hand in numpy."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jsve.aggregate import RUN_COLUMNS, aggregate, bootstrap_ci, per_run_table
-from jsve.trajectory import ErrorStats, RunError
+from jsve.core._trajectory import ErrorStats, RunError
+from jsve.evaluation._aggregate import RUN_COLUMNS, aggregate, bootstrap_ci, per_run_table
 
 
 def _run_errors(rng: np.random.Generator, n_runs: int) -> RunError:

@@ -1,4 +1,4 @@
-"""jsve.batch: LogBatch padding and masks, relative times, length buckets, chunks, padding runs."""
+"""jsve.core._batch: LogBatch padding and masks, relative times, length buckets, chunks, padding runs."""
 
 from __future__ import annotations
 
@@ -12,18 +12,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from logfactory import EUROC_T0_NS, make_run
 
-from jsve import schema
-from jsve.batch import (
+from jsve.core._batch import (
     bucket_by_length,
-    buckets,
-    from_runs,
     iter_chunks,
     pad_runs,
     runs_per_chunk_for,
     take_runs,
 )
-from jsve.replay import replay
-from jsve.rules import preset
+from jsve.core._replay import replay
+from jsve.core._rules import preset
+from jsve.io import _schema as schema
+from jsve.io._batching import buckets, from_runs
 
 
 def _runs():

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import tomllib
 
+from jsve._demo import DEMO_STUDY, DemoConfig
 from jsve.cli import SUBCOMMANDS, build_parser, main
-from jsve.demo import DEMO_STUDY, DemoConfig
-from jsve.fit_study import StudyConfig
+from jsve.fitting._study import StudyConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

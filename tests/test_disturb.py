@@ -1,4 +1,4 @@
-"""jsve.disturb: each disturbance against its definition, and the resumable dataset writer."""
+"""jsve.image._disturb: each disturbance against its definition, and the resumable dataset writer."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from jsve import disturb as d
-from jsve.measure import Camera
+from jsve.image import _datasets as datasets
+from jsve.image import _disturb as d
+from jsve.image._measure import Camera
 
 W, H = 752, 480
 
@@ -274,7 +275,7 @@ def _mtimes(folder: Path) -> dict[str, int]:
 
 def test_dataset_written_with_manifest_and_untouched_extras(source, tmp_path):
     out = tmp_path / "out"
-    results = d.disturb_datasets(
+    results = datasets.disturb_datasets(
         [source], out, ["lens_dirt", "downsample"], {"lens_dirt": [0.3], "downsample": [0.5]},
         {"downsample": {"mode": "calibration"}}, seed=4, progress=False,
     )  # fmt: skip
@@ -282,7 +283,7 @@ def test_dataset_written_with_manifest_and_untouched_extras(source, tmp_path):
     dirt, small = (r.target for r in results)
     assert dirt == out / "SEQ" / "lens_dirt-0.3" and small == out / "SEQ" / "downsample-0.5_mode=calibration"
     for cam_index, cam in enumerate(("cam0", "cam1")):
-        for t, name in d.read_frame_list(source / "mav0" / cam):
+        for t, name in datasets.read_frame_list(source / "mav0" / cam):
             original = cv2.imread(str(source / "mav0" / cam / "data" / name), cv2.IMREAD_UNCHANGED)
             written = cv2.imread(str(dirt / "mav0" / cam / "data" / name), cv2.IMREAD_UNCHANGED)
             expected = d.disturb_image(
@@ -292,14 +293,14 @@ def test_dataset_written_with_manifest_and_untouched_extras(source, tmp_path):
     for rel in ("mav0/imu0/data.csv", "mav0/state_groundtruth_estimate0/data.csv", "mav0/body.yaml",
                 "mav0/cam0/data.csv"):  # fmt: skip
         assert (dirt / rel).read_bytes() == (source / rel).read_bytes()
-    manifest = json.loads((dirt / d.MANIFEST_NAME).read_text())
+    manifest = json.loads((dirt / datasets.MANIFEST_NAME).read_text())
     assert manifest["disturbance"] == "lens_dirt" and manifest["level"] == 0.3
     assert manifest["parameters"] == {"seed": 4}
     assert manifest["source"] == str(source.resolve()) and manifest["frames"] == {
         "mav0/cam0": 3,
         "mav0/cam1": 3,
     }
-    assert (manifest["content_hash"], manifest["file_count"]) == d.content_hash(dirt)
+    assert (manifest["content_hash"], manifest["file_count"]) == datasets.content_hash(dirt)
     assert manifest["file_count"] == 2 * (3 + 2) + 3  # per camera: frames, data.csv, sensor.yaml
     camera = Camera.from_sensor_yaml(small / "mav0" / "cam0" / "sensor.yaml")
     assert (camera.width, camera.height) == (376, 240)
@@ -315,7 +316,7 @@ def test_dataset_written_with_manifest_and_untouched_extras(source, tmp_path):
 def test_rerun_resumes_after_a_crash(source, tmp_path):
     out = tmp_path / "out"
     levels = {"blur": [0, 5, 10], "occlusion": [100]}
-    first = d.disturb_datasets([source], out, ["blur", "occlusion"], levels, progress=False)
+    first = datasets.disturb_datasets([source], out, ["blur", "occlusion"], levels, progress=False)
     assert {r.status for r in first} == {"written"}
     finished = [out / "SEQ" / "blur-0", out / "SEQ" / "occlusion-100"]
     before = {f: _mtimes(f) for f in finished}
@@ -325,7 +326,7 @@ def test_rerun_resumes_after_a_crash(source, tmp_path):
     (out / "SEQ" / "blur-5.partial" / "mav0" / "cam0" / "data.csv").unlink()
     (out / "SEQ" / "blur-5.partial" / "junk.tmp").write_text("half")
     shutil.rmtree(out / "SEQ" / "blur-10")
-    again = d.disturb_datasets([source], out, ["blur", "occlusion"], levels, progress=False)
+    again = datasets.disturb_datasets([source], out, ["blur", "occlusion"], levels, progress=False)
     status = {r.target.name: r.status for r in again}
     assert status == {
         "blur-0": "skipped",
@@ -341,25 +342,25 @@ def test_rerun_resumes_after_a_crash(source, tmp_path):
 
 def test_folder_without_manifest_is_not_overwritten(source, tmp_path):
     (tmp_path / "out" / "SEQ" / "blur-5").mkdir(parents=True)
-    with pytest.raises(d.DatasetError, match="no jsve_manifest.json"):
-        d.disturb_datasets([source], tmp_path / "out", ["blur"], {"blur": [5]}, progress=False)
+    with pytest.raises(datasets.DatasetError, match="no jsve_manifest.json"):
+        datasets.disturb_datasets([source], tmp_path / "out", ["blur"], {"blur": [5]}, progress=False)
 
 
 def test_parallel_workers_write_the_same_datasets(tmp_path):
     source = _write_source(tmp_path / "SEQ", n_frames=2, stereo=False)
     levels = {"noise": [5], "haze": [1.0]}
-    serial = d.disturb_datasets(
+    serial = datasets.disturb_datasets(
         [source], tmp_path / "a", ["noise", "haze"], levels, workers=1, progress=False
     )
-    parallel = d.disturb_datasets(
+    parallel = datasets.disturb_datasets(
         [source], tmp_path / "b", ["noise", "haze"], levels, workers=2, progress=False
     )
     assert [r.manifest["content_hash"] for r in serial] == [r.manifest["content_hash"] for r in parallel]
 
 
 def test_not_a_dataset(tmp_path):
-    with pytest.raises(d.DatasetError, match="no mav0"):
-        d.make_jobs([tmp_path], tmp_path / "out")
+    with pytest.raises(datasets.DatasetError, match="no mav0"):
+        datasets.make_jobs([tmp_path], tmp_path / "out")
 
 
 def test_cli_levels_and_parameters(source, tmp_path, capsys):
@@ -373,7 +374,7 @@ def test_cli_levels_and_parameters(source, tmp_path, capsys):
     )  # fmt: skip
     assert args.func(args) == 0
     assert "1 written" in capsys.readouterr().out
-    manifest = d.read_manifest(tmp_path / "o" / "SEQ" / "motion_blur-7_angle=90")
+    manifest = datasets.read_manifest(tmp_path / "o" / "SEQ" / "motion_blur-7_angle=90")
     assert manifest["parameters"] == {"angle": 90, "seed": 0}
     bad = parser.parse_args(["disturb", str(source), "-o", str(tmp_path / "o"), "--param", "blur.angle=1"])
     assert bad.func(bad) == 2

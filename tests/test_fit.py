@@ -1,10 +1,10 @@
-"""jsve.fit, jsve.fit_search, jsve.fit_params and jsve.crossval.
+"""jsve.fitting._fit, jsve.fitting._search, jsve.fitting._space and jsve.fitting._crossval.
 
 Known answers: logs where visual tracking is catastrophic below K inliers (fitting ORB-SLAM3's thresholds
 finds K), and logs where the failures come from features concentrated in few bins (an SVE rule, fitted,
 beats the tuned inlier rule on held-out runs). Oracles: scipy's Sobol and Halton sequences,
-jsve.sve.power_mean, jsve.replay.imu_predict, jsve.objective.run_losses (replay + alignment, itself
-checked against jsve.evaluate) for the search kernel, jsve.aggregate.bootstrap_ci.
+jsve.core._sve.power_mean, jsve.core._replay.imu_predict, jsve.core._objective.run_losses (replay + alignment, itself
+checked against jsve.evaluation._evaluate) for the search kernel, jsve.evaluation._aggregate.bootstrap_ci.
 """
 
 from __future__ import annotations
@@ -15,12 +15,14 @@ import knownanswer as ka
 import numpy as np
 import pytest
 
-from jsve.aggregate import bootstrap_ci
-from jsve.batch import from_runs
-from jsve.crossval import bootstrap_weighted_mean, compare, cross_validate, kfold, leave_one_out
-from jsve.fit import FitConfig, FitData, fit, hard_objective, nelder_mead, preset_values, relaxed_fit
-from jsve.fit_params import ParamSpace, RuleParams, inlier_space, space_from_dict, sve_space
-from jsve.fit_search import (
+from jsve.core._objective import ObjectiveConfig, run_losses
+from jsve.core._replay import batch_features, imu_predict
+from jsve.core._rules import InlierRule, SVERule, preset
+from jsve.core._sve import feature_logs, power_mean, power_mean2
+from jsve.evaluation._aggregate import bootstrap_ci
+from jsve.fitting._crossval import bootstrap_weighted_mean, compare, cross_validate, kfold, leave_one_out
+from jsve.fitting._fit import FitConfig, FitData, fit, hard_objective, nelder_mead, preset_values, relaxed_fit
+from jsve.fitting._search import (
     grid_design,
     halton,
     imu_predict_columns,
@@ -30,10 +32,8 @@ from jsve.fit_search import (
     search_chunk,
     sobol,
 )
-from jsve.objective import ObjectiveConfig, run_losses
-from jsve.replay import batch_features, imu_predict
-from jsve.rules import InlierRule, SVERule, preset
-from jsve.sve import feature_logs, power_mean, power_mean2
+from jsve.fitting._space import ParamSpace, RuleParams, inlier_space, space_from_dict, sve_space
+from jsve.io._batching import from_runs
 
 K = 40
 
@@ -112,7 +112,7 @@ def test_param_space_coordinates_and_rules():
 
 
 def test_two_entry_power_mean_is_power_mean(x64):
-    """power_mean2 is jsve.sve.power_mean on two columns: to 1e-13 in float64 over exponents from -4
+    """power_mean2 is jsve.core._sve.power_mean on two columns: to 1e-13 in float64 over exponents from -4
     to 4, p near and at 0, zero entries and zero weights."""
     rng = np.random.default_rng(1)
     n = 4000
@@ -318,7 +318,7 @@ def test_nelder_mead_and_relaxed_fit_improve_a_poor_start(occlusion_data):
     values, value, steps = nelder_mead(data, space, start, max_steps=80)
     assert value < start_value - 1e-3 and steps > 0
     assert value == pytest.approx(hard_objective(data, space, values), rel=1e-6)
-    from jsve.fit import relaxed_objective
+    from jsve.fitting._fit import relaxed_objective
 
     relaxed_values, history = relaxed_fit(data, space, start, temperatures=(0.1, 0.03, 0.01), max_steps=30)
     assert history[-1]["hard"] < start_value - 1e-3, (history, start_value)
@@ -345,7 +345,7 @@ def test_folds_partition_the_runs(counts_data):
 
 
 def test_bootstrap_weighted_mean_matches_aggregate_bootstrap_ci():
-    """With unit weights and the same seed it is jsve.aggregate.bootstrap_ci of the mean, exactly."""
+    """With unit weights and the same seed it is jsve.evaluation._aggregate.bootstrap_ci of the mean, exactly."""
     x = np.random.default_rng(3).exponential(size=40)
     mean, low, high = bootstrap_weighted_mean(x, n_boot=500, seed=9)
     assert mean == pytest.approx(x.mean())

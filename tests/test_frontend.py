@@ -1,7 +1,7 @@
-"""jsve.frontend: the C++ writer jsve_log.hpp, compiled and read back by jsve.logs.
+"""jsve.frontend: the C++ writer jsve_log.hpp, compiled and read back by jsve.io._logs.
 
 The C++ programs live in tests/cpp/. They are compiled with the system compiler; without one the
-compiled tests skip, saying so. Every log is read with jsve.logs.read_log, the strict reader.
+compiled tests skip, saying so. Every log is read with jsve.io._logs.read_log, the strict reader.
 """
 
 from __future__ import annotations
@@ -22,10 +22,11 @@ import numpy as np
 import pytest
 
 import jsve.frontend
-from jsve import schema
 from jsve.cli import SUBCOMMANDS
 from jsve.cli import frontend_include as cli_frontend_include
-from jsve.logs import LogFormatError, LogIncompleteError, read_log, read_logs
+from jsve.io import _schema as schema
+from jsve.io._ingest import read_logs
+from jsve.io._logs import LogFormatError, LogIncompleteError, read_log
 
 CPP = Path(__file__).resolve().parent / "cpp"
 CXX = shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")

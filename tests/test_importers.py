@@ -1,11 +1,11 @@
-"""jsve.importers: the SVE authors' SceneVisibilityEstimation.txt and the seed's CSV."""
+"""jsve.io._importers: the SVE authors' SceneVisibilityEstimation.txt and the seed's CSV."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from jsve.importers import (
+from jsve.io._importers import (
     FORMAT_HAGGART,
     FORMAT_SEED,
     SVE_COLUMNS,
@@ -13,7 +13,7 @@ from jsve.importers import (
     read_seed_sve_csv,
     read_sve_output,
 )
-from jsve.logs import LogFormatError
+from jsve.io._logs import LogFormatError
 
 
 def _write(tmp_path, name: str, content: str | bytes):

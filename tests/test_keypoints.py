@@ -1,4 +1,4 @@
-"""Tests of jsve.keypoints: keypoint side files (format v1), round trips, every malformed case, joins."""
+"""Tests of jsve.io._keypoints: keypoint side files (format v1), round trips, every malformed case, joins."""
 
 from __future__ import annotations
 
@@ -10,10 +10,12 @@ import pandas as pd
 import pytest
 from logfactory import make_run, read_lines, write_lines
 
-from jsve import keypoints as kpio
-from jsve import logs
-from jsve.keypoints import KeypointLog
-from jsve.logs import LogFormatError, LogIncompleteError
+from jsve.io import _groundtruth as groundtruth
+from jsve.io import _ingest as ingest
+from jsve.io import _keypoints as kpio
+from jsve.io import _logs as logs
+from jsve.io._keypoints import KeypointLog
+from jsve.io._logs import LogFormatError, LogIncompleteError
 
 META = {"sequence": "SYN", "run": 3, "image_size": [752, 480], "disturbance": "none", "level": 0}
 
@@ -118,8 +120,8 @@ def test_directory_searches_skip_side_files(tmp_path):
     logs.write_log(run, tmp_path / "r3.csv")
     kpio.write_keypoints(make_keypoints(), kpio.keypoints_path(tmp_path / "r3.csv"))
     (tmp_path / "r4.keypoints.csv.partial").write_text("half")
-    assert logs.find_logs(tmp_path) == [str(tmp_path / "r3.csv")]
-    assert [r.run_id for r in logs.read_logs(tmp_path, progress=False).runs] == [run.run_id]
+    assert ingest.find_logs(tmp_path) == [str(tmp_path / "r3.csv")]
+    assert [r.run_id for r in ingest.read_logs(tmp_path, progress=False).runs] == [run.run_id]
 
 
 # --------------------------------------------------------------------------------------------------

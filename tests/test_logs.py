@@ -1,4 +1,4 @@
-"""Tests of jsve.logs: format v1 round trips, every malformed case, batch reading, Parquet, ground truth."""
+"""Tests of jsve.io._logs: format v1 round trips, every malformed case, batch reading, Parquet, ground truth."""
 
 from __future__ import annotations
 
@@ -20,9 +20,12 @@ from hypothesis import strategies as st
 from logfactory import edit_line, get_field, make_run, read_lines, set_field, write_lines
 from scipy.spatial.transform import Rotation, Slerp
 
-from jsve import logs, schema
 from jsve.cli import ingest as ingest_cli
-from jsve.logs import LogFormatError, LogIncompleteError
+from jsve.io import _groundtruth as groundtruth
+from jsve.io import _ingest as ingest
+from jsve.io import _logs as logs
+from jsve.io import _schema as schema
+from jsve.io._logs import LogFormatError, LogIncompleteError
 
 N = 20  # frames of the small logs below; frame i is on line i + 3, the end marker on line N + 3
 LAST = N + 3
@@ -565,22 +568,22 @@ def logdir(tmp_path) -> tuple[Path, list[str], list[str]]:
 
 def test_quarantine_lists_exactly_the_broken_logs(logdir):
     root, good, bad = logdir
-    result = logs.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    result = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
     assert [r.source for r in result.runs] == good
     assert [q.path for q in result.quarantined] == bad
     by_path = {q.path: q for q in result.quarantined}
     assert by_path[bad[0]].line == 9 and by_path[bad[0]].column == "imu_dt"
     assert [by_path[p].incomplete for p in bad] == [False, True, True, False]
     report = result.report()
-    assert list(report.columns) == list(logs.QUARANTINE_COLUMNS)
+    assert list(report.columns) == list(ingest.QUARANTINE_COLUMNS)
     assert report["path"].tolist() == bad
     assert report["message"].tolist() == [q.message for q in result.quarantined]
 
 
 def test_quarantine_report_csv(logdir, tmp_path):
     root, _, bad = logdir
-    result = logs.read_logs(root, on_error="quarantine", workers=1, progress=False)
-    path = logs.write_quarantine_report(result, tmp_path / "q.csv")
+    result = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    path = ingest.write_quarantine_report(result, tmp_path / "q.csv")
     back = pd.read_csv(path)
     assert back["path"].tolist() == bad
     assert back["message"].tolist() == result.report()["message"].tolist()
@@ -590,15 +593,15 @@ def test_raise_stops_at_the_first_bad_log_in_sorted_order(logdir):
     root, _, bad = logdir
     for workers in (1, 2):
         with pytest.raises(LogFormatError) as info:
-            logs.read_logs(root, workers=workers, progress=False)
+            ingest.read_logs(root, workers=workers, progress=False)
         assert info.value.path == bad[0]
         assert info.value.line == 9
 
 
 def test_parallel_read_equals_serial_read(logdir):
     root, good, _ = logdir
-    serial = logs.read_logs(root, on_error="quarantine", workers=1, progress=False)
-    parallel = logs.read_logs(root, on_error="quarantine", workers=2, progress=False)
+    serial = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    parallel = ingest.read_logs(root, on_error="quarantine", workers=2, progress=False)
     assert same_runs(serial.runs, parallel.runs)
     assert serial.quarantined == parallel.quarantined
     assert len(parallel.runs) == len(good)
@@ -606,26 +609,26 @@ def test_parallel_read_equals_serial_read(logdir):
 
 def test_sources_glob_list_and_file(logdir):
     root, good, _ = logdir
-    by_glob = logs.read_logs(str(root / "d1" / "r*.csv"), on_error="quarantine", workers=1, progress=False)
+    by_glob = ingest.read_logs(str(root / "d1" / "r*.csv"), on_error="quarantine", workers=1, progress=False)
     in_d1 = [p for p in good if "/d1/" in p]
     assert [r.source for r in by_glob.runs] == in_d1 and len(by_glob.quarantined) == 1
-    by_list = logs.read_logs(list(reversed(in_d1)), workers=1, progress=False)
+    by_list = ingest.read_logs(list(reversed(in_d1)), workers=1, progress=False)
     assert [r.source for r in by_list.runs] == in_d1
-    assert logs.find_logs(good[0]) == [good[0]]
+    assert ingest.find_logs(good[0]) == [good[0]]
     with pytest.raises(FileNotFoundError):
-        logs.find_logs(root / "nothing-here")
+        ingest.find_logs(root / "nothing-here")
     with pytest.raises(FileNotFoundError):
-        logs.find_logs(str(root / "*.nope"))
+        ingest.find_logs(str(root / "*.nope"))
 
 
 def test_duplicate_run_ids_name_both_files(tmp_path):
     a = logs.write_log(make_run(N, 1, sequence="V101"), tmp_path / "a.csv")
     b = logs.write_log(make_run(N, 1, sequence="V101"), tmp_path / "b.csv")
     with pytest.raises(LogFormatError) as info:
-        logs.read_logs(tmp_path, workers=1, progress=False)
+        ingest.read_logs(tmp_path, workers=1, progress=False)
     assert info.value.path == str(b) and str(a) in str(info.value)
     assert "duplicate run id: 'V101/none-0/1'" in str(info.value)
-    result = logs.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
+    result = ingest.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
     assert [r.source for r in result.runs] == [str(a)]
     assert [q.path for q in result.quarantined] == [str(b)]
 
@@ -633,27 +636,27 @@ def test_duplicate_run_ids_name_both_files(tmp_path):
 def test_unreadable_paths_are_quarantined_not_lost(tmp_path):
     good = logs.write_log(make_run(N, 1), tmp_path / "a.csv")
     gone = tmp_path / "gone.csv"
-    result = logs.read_logs([good, gone], on_error="quarantine", workers=1, progress=False)
+    result = ingest.read_logs([good, gone], on_error="quarantine", workers=1, progress=False)
     assert [r.source for r in result.runs] == [str(good)]
     (q,) = result.quarantined
     assert q.path == str(gone) and "cannot read the file" in q.message
-    empty = logs.ReadResult(runs=result.runs).report()
-    assert list(empty.columns) == list(logs.QUARANTINE_COLUMNS) and len(empty) == 0
+    empty = ingest.ReadResult(runs=result.runs).report()
+    assert list(empty.columns) == list(ingest.QUARANTINE_COLUMNS) and len(empty) == 0
 
 
 def test_progress_bar_goes_to_stderr(tmp_path, capsys):
     for i in range(3):
         logs.write_log(make_run(N, i), tmp_path / f"r{i}.csv")
-    logs.read_logs(tmp_path, workers=1, progress=True)
+    ingest.read_logs(tmp_path, workers=1, progress=True)
     captured = capsys.readouterr()
     assert captured.out == "" and "3/3" in captured.err
-    logs.read_logs(tmp_path, workers=1, progress=False)
+    ingest.read_logs(tmp_path, workers=1, progress=False)
     assert capsys.readouterr().err == ""
 
 
 def test_on_error_is_checked(logdir):
     with pytest.raises(ValueError, match="on_error"):
-        logs.read_logs(logdir[0], on_error="skip", progress=False)
+        ingest.read_logs(logdir[0], on_error="skip", progress=False)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -663,13 +666,13 @@ def test_on_error_is_checked(logdir):
 def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
     root, good, bad = logdir
     out = tmp_path / "study.parquet"
-    summary = logs.ingest(root, out, on_error="quarantine", workers=2, progress=False)
-    expected = logs.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    summary = ingest.ingest(root, out, on_error="quarantine", workers=2, progress=False)
+    expected = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
     assert summary.n_runs == len(good) and summary.n_frames == sum(len(r.frames) for r in expected.runs)
     assert [q.path for q in summary.quarantined] == bad
     assert summary.quarantine_report == tmp_path / "study.quarantine.csv"
     assert pd.read_csv(summary.quarantine_report)["path"].tolist() == bad
-    assert same_runs(logs.read_parquet(out), expected.runs)
+    assert same_runs(ingest.read_parquet(out), expected.runs)
     assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
 
     pf = pq.ParquetFile(out)
@@ -689,7 +692,7 @@ def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
 def test_ingest_raise_writes_nothing(logdir, tmp_path):
     out = tmp_path / "study.parquet"
     with pytest.raises(LogFormatError):
-        logs.ingest(logdir[0], out, workers=1, progress=False)
+        ingest.ingest(logdir[0], out, workers=1, progress=False)
     assert list(tmp_path.iterdir()) == [logdir[0]]
 
 
@@ -700,7 +703,7 @@ def test_ingest_without_bad_logs_writes_no_report(tmp_path):
     stale = out.with_suffix(".quarantine.csv")
     stale.parent.mkdir()
     stale.write_text("path\nold.csv\n")
-    summary = logs.ingest(tmp_path / "logs", out, on_error="quarantine", workers=1, progress=False)
+    summary = ingest.ingest(tmp_path / "logs", out, on_error="quarantine", workers=1, progress=False)
     assert summary.quarantine_report is None and summary.n_runs == 3
     assert not stale.exists()  # a report from an earlier ingest would describe other logs
 
@@ -709,7 +712,7 @@ def test_read_parquet_rejects_other_parquet(tmp_path):
     path = tmp_path / "x.parquet"
     pd.DataFrame({"a": [1, 2]}).to_parquet(path)
     with pytest.raises(LogFormatError, match="not a jsve Parquet file"):
-        logs.read_parquet(path)
+        ingest.read_parquet(path)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -733,7 +736,7 @@ def with_stamps(t_ns: np.ndarray, seed: int = 0, **meta) -> schema.RunLog:
 def test_euroc_exact_stamps_take_the_file_values(shared_data):
     path, stamps, values = euroc_gt(shared_data)
     run = with_stamps(stamps[100:400])
-    out = logs.associate_ground_truth(run, path, "euroc")
+    out = groundtruth.associate_ground_truth(run, path, "euroc")
     gt = out.frames[list(schema.GT_COLUMNS)].to_numpy()
     # Positions are the file's doubles; quaternions are normalised (the file has ~10 digits).
     np.testing.assert_allclose(gt[:, :3], values[100:400, :3], rtol=0, atol=1e-12)
@@ -747,7 +750,7 @@ def test_euroc_interpolation_midpoints(shared_data):
     path, stamps, values = euroc_gt(shared_data)
     k = np.arange(200, 500)
     t = stamps[k] + (stamps[k + 1] - stamps[k]) // 2  # half a period later
-    out = logs.associate_ground_truth(with_stamps(t), path)
+    out = groundtruth.associate_ground_truth(with_stamps(t), path)
     gt = out.frames[list(schema.GT_COLUMNS)].to_numpy()
     alpha = (t - stamps[k]) / (stamps[k + 1] - stamps[k])
     assert np.allclose(alpha, 0.5, atol=1e-8)
@@ -764,7 +767,7 @@ def test_int64_stamps_resolve_nanoseconds(shared_data):
     # 100 ns after a sample: evo's float seconds (spacing ~240 ns at 1.4e9 s) cannot tell it apart.
     path, stamps, values = euroc_gt(shared_data)
     t = stamps[300:310] + 100
-    gt = logs.associate_ground_truth(with_stamps(t), path).frames[list(schema.GT_POSITION)].to_numpy()
+    gt = groundtruth.associate_ground_truth(with_stamps(t), path).frames[list(schema.GT_POSITION)].to_numpy()
     alpha = 100 / (stamps[301:311] - stamps[300:310])
     expected = values[300:310, :3] + alpha[:, None] * (values[301:311, :3] - values[300:310, :3])
     np.testing.assert_allclose(gt, expected, rtol=0, atol=1e-12)
@@ -774,8 +777,8 @@ def test_int64_stamps_resolve_nanoseconds(shared_data):
 def test_frames_outside_the_span_are_counted_and_warned(shared_data, caplog):
     path, stamps, values = euroc_gt(shared_data)
     t = np.concatenate([stamps[0] - np.array([3, 2, 1]) * 50_000_000, stamps[:50], stamps[-1] + [1, 2]])
-    with caplog.at_level(logging.WARNING, logger="jsve.logs"):
-        out = logs.associate_ground_truth(with_stamps(t), path)
+    with caplog.at_level(logging.WARNING, logger="jsve.io._logs"):
+        out = groundtruth.associate_ground_truth(with_stamps(t), path)
     missing = out.frames["gt_px"].isna().to_numpy()
     assert missing.tolist() == [True] * 3 + [False] * 50 + [True] * 2
     assert out.frames.loc[missing, list(schema.GT_COLUMNS)].isna().all(axis=None)
@@ -786,7 +789,7 @@ def test_frames_outside_the_span_are_counted_and_warned(shared_data, caplog):
 def test_gaps_wider_than_max_gap_are_not_interpolated(shared_data):
     path, stamps, values = euroc_gt(shared_data)
     t = np.sort(np.concatenate([stamps[10:20], stamps[10:19] + 25_000_000]))
-    out = logs.associate_ground_truth(with_stamps(t), path, max_gap_ns=40_000_000)  # samples are 50 ms apart
+    out = groundtruth.associate_ground_truth(with_stamps(t), path, max_gap_ns=40_000_000)  # samples are 50 ms apart
     missing = out.frames["gt_px"].isna().to_numpy()
     assert np.array_equal(missing, ~np.isin(t, stamps))
     assert out.meta["gt_missing_frames"] == 9
@@ -795,7 +798,7 @@ def test_gaps_wider_than_max_gap_are_not_interpolated(shared_data):
 def test_nearest_sample_without_interpolation(shared_data):
     path, stamps, values = euroc_gt(shared_data)
     t = np.concatenate([stamps[40:45] + 10_000_000, stamps[45:50] + 40_000_000])
-    out = logs.associate_ground_truth(with_stamps(t), path, interpolate=False)
+    out = groundtruth.associate_ground_truth(with_stamps(t), path, interpolate=False)
     np.testing.assert_array_equal(
         out.frames[list(schema.GT_POSITION)].to_numpy(),
         np.concatenate([values[40:45, :3], values[46:51, :3]]),
@@ -811,8 +814,8 @@ def test_tum_equals_euroc(shared_data, tmp_path):
     ]
     tum.write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(lines) + "\n")
     run = with_stamps(np.concatenate([stamps[5:100], stamps[100:200] + 12_345_678]))
-    a = logs.associate_ground_truth(run, path, "euroc")
-    b = logs.associate_ground_truth(run, tum, "tum")
+    a = groundtruth.associate_ground_truth(run, path, "euroc")
+    b = groundtruth.associate_ground_truth(run, tum, "tum")
     assert same_bits(a.frames, b.frames)
 
 
@@ -820,7 +823,7 @@ def test_kitti_by_frame_index(shared_data):
     path = shared_data / "kitti" / "odometry_poses" / "04.txt"
     poses = np.loadtxt(path).reshape(-1, 3, 4)
     n = len(poses) + 3
-    out = logs.associate_ground_truth(with_stamps(np.arange(n) * 100_000_000), path, "kitti")
+    out = groundtruth.associate_ground_truth(with_stamps(np.arange(n) * 100_000_000), path, "kitti")
     gt = out.frames[list(schema.GT_COLUMNS)].to_numpy()
     np.testing.assert_array_equal(gt[: len(poses), :3], poses[:, :, 3])
     rot = Rotation.from_quat(gt[: len(poses), [4, 5, 6, 3]]).as_matrix()
@@ -835,7 +838,7 @@ def test_kitti_with_times_file(shared_data):
     t_ns = np.array([round(float(s) * 1e9) for s in times.read_text().split()], dtype=np.int64)
     poses = np.loadtxt(path).reshape(-1, 3, 4)
     run = with_stamps(np.concatenate([t_ns[10:20], (t_ns[20:30] + t_ns[21:31]) // 2]))
-    out = logs.associate_ground_truth(run, path, "kitti", kitti_times=times)
+    out = groundtruth.associate_ground_truth(run, path, "kitti", kitti_times=times)
     p = out.frames[list(schema.GT_POSITION)].to_numpy()
     np.testing.assert_array_equal(p[:10], poses[10:20, :, 3])
     np.testing.assert_allclose(p[10:], (poses[20:30, :, 3] + poses[21:31, :, 3]) / 2, atol=1e-6)
@@ -846,8 +849,8 @@ def test_ground_truth_when_reading(shared_data, tmp_path):
     plain = logs.write_log(with_stamps(stamps[:40], 1, sequence="V101"), tmp_path / "a.csv")
     own = make_run(40, 2, sequence="V101")
     logs.write_log(own, tmp_path / "b.csv")
-    spec = {"V101": logs.GroundTruth(path, "euroc")}
-    result = logs.read_logs(tmp_path, ground_truth=spec, workers=1, progress=False)
+    spec = {"V101": groundtruth.GroundTruth(path, "euroc")}
+    result = ingest.read_logs(tmp_path, ground_truth=spec, workers=1, progress=False)
     a, b = result.runs
     assert a.has_ground_truth and a.meta["gt_missing_frames"] == 0
     assert same_bits(b.frames, own.frames)  # a log's own ground truth is kept
@@ -857,11 +860,11 @@ def test_ground_truth_when_reading(shared_data, tmp_path):
 
 def test_ground_truth_arguments_are_checked(shared_data):
     with pytest.raises(ValueError, match="fmt"):
-        logs.GroundTruth("x.txt", "csv")
+        groundtruth.GroundTruth("x.txt", "csv")
     with pytest.raises(ValueError, match="kitti_times"):
-        logs.GroundTruth("x.txt", "euroc", kitti_times="t.txt")
+        groundtruth.GroundTruth("x.txt", "euroc", kitti_times="t.txt")
     with pytest.raises(FileNotFoundError):
-        logs.associate_ground_truth(make_run(5, 0), shared_data / "no-such-file.txt")
+        groundtruth.associate_ground_truth(make_run(5, 0), shared_data / "no-such-file.txt")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -897,7 +900,7 @@ def test_cli_ingest(logdir, tmp_path, capsys):
     assert cli([*argv, "--workers", "1", "--no-progress"]) == 0
     line = capsys.readouterr().out.strip()
     assert re.search(rf"ingested {len(good)} runs, \d+ frames -> .*; quarantined {len(bad)}", line)
-    assert len(logs.read_parquet(out)) == len(good) and pd.read_csv(report)["path"].tolist() == bad
+    assert len(ingest.read_parquet(out)) == len(good) and pd.read_csv(report)["path"].tolist() == bad
 
 
 def test_cli_ingest_with_ground_truth(shared_data, tmp_path, capsys):
@@ -906,7 +909,7 @@ def test_cli_ingest_with_ground_truth(shared_data, tmp_path, capsys):
     out = tmp_path / "s.parquet"
     argv = ["ingest", str(tmp_path / "logs"), "-o", str(out), "--gt", str(path), "--gt-format", "euroc"]
     assert cli([*argv, "--no-progress"]) == 0
-    (run,) = logs.read_parquet(out)
+    (run,) = ingest.read_parquet(out)
     assert run.has_ground_truth and run.meta["gt_missing_frames"] == 0
 
 
@@ -932,13 +935,13 @@ def test_cli_is_registered_with_the_dispatcher():
 def test_no_logs_is_an_error(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError):
-        logs.ingest(tmp_path / "empty", tmp_path / "s.parquet", progress=False)
+        ingest.ingest(tmp_path / "empty", tmp_path / "s.parquet", progress=False)
     assert cli(["ingest", str(tmp_path / "empty"), "-o", str(tmp_path / "s.parquet"), "--no-progress"]) == 2
 
 
 def test_partial_files_are_never_skipped(tmp_path):
     logs.write_log(make_run(N, 1), tmp_path / "a.csv")
     os.rename(logs.write_log(make_run(N, 2), tmp_path / "b.csv"), tmp_path / "b.csv.partial")
-    result = logs.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
+    result = ingest.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
     assert [q.path for q in result.quarantined] == [str(tmp_path / "b.csv.partial")]
     assert result.quarantined[0].incomplete and "incomplete" in result.quarantined[0].message

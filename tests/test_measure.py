@@ -1,4 +1,4 @@
-"""jsve.measure and jsve.orb: ORB-SLAM3-style extraction, SVE bins, and counts on real EuRoC frames."""
+"""jsve.image._measure and jsve.image._orb: ORB-SLAM3-style extraction, SVE bins, and counts on real EuRoC frames."""
 
 from __future__ import annotations
 
@@ -9,10 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jsve import disturb as d
-from jsve import measure as m
-from jsve import orb
-from jsve.schema import BIN_COLUMNS
+from jsve.image import _datasets as datasets
+from jsve.image import _disturb as d
+from jsve.image import _measure as m
+from jsve.image import _orb as orb
+from jsve.io._schema import BIN_COLUMNS
 
 SEQUENCE = "euroc/V1_01_first95"
 
@@ -214,11 +215,11 @@ def test_batch_tables_written_resumed_and_calibration_mode(shared_data, tmp_path
     cam = source / "mav0" / "cam0"
     (cam / "data").mkdir(parents=True)
     shutil.copy(shared_data / SEQUENCE / "mav0" / "cam0" / "sensor.yaml", cam / "sensor.yaml")
-    frames = d.read_frame_list(shared_data / SEQUENCE / "mav0" / "cam0")[:4]
+    frames = datasets.read_frame_list(shared_data / SEQUENCE / "mav0" / "cam0")[:4]
     for _, name in frames:
         shutil.copy(shared_data / SEQUENCE / "mav0" / "cam0" / "data" / name, cam / "data" / name)
     (cam / "data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{t},{n}\n" for t, n in frames))
-    d.disturb_datasets(
+    datasets.disturb_datasets(
         [source], tmp_path / "dist", ["downsample"], {"downsample": [1.0, 0.5]},
         {"downsample": {"mode": "calibration"}}, progress=False,
     )  # fmt: skip

@@ -1,6 +1,6 @@
-"""jsve.objective: the penalised mean ATE over runs, hard and relaxed.
+"""jsve.core._objective: the penalised mean ATE over runs, hard and relaxed.
 
-Oracles: jsve.evaluate's per-run table (replay + alignment + evo-checked statistics) for the hard
+Oracles: jsve.evaluation._evaluate's per-run table (replay + alignment + evo-checked statistics) for the hard
 objective; the hard objective itself for the relaxed one as the temperature falls; central finite
 differences for its gradient; a closed-form probability for the relaxed failure flag.
 """
@@ -17,12 +17,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jsve.batch import LogBatch, from_runs
-from jsve.evaluate import evaluate_batch
-from jsve.fit_params import RuleParams, inlier_space, sve_space
-from jsve.objective import ObjectiveConfig, group_weights, objective, run_losses, weighted_objective
-from jsve.replay import batch_features, replay
-from jsve.rules import InlierRule, SoftLogic, Thresholds, preset
+from jsve.core._batch import LogBatch
+from jsve.core._objective import ObjectiveConfig, group_weights, objective, run_losses, weighted_objective
+from jsve.core._replay import batch_features, replay
+from jsve.core._rules import InlierRule, SoftLogic, Thresholds, preset
+from jsve.evaluation._evaluate import evaluate_batch
+from jsve.fitting._space import RuleParams, inlier_space, sve_space
+from jsve.io._batching import from_runs
 
 K = 40
 # Half-integer thresholds: integer inlier counts never tie with them, so the relaxation converges.
@@ -67,7 +68,7 @@ CASES = (
 
 @pytest.mark.parametrize(("name", "align"), CASES)
 def test_hard_objective_is_the_penalised_evaluate_table(x64, counts_runs, name, align):
-    """Per run, the hard loss is jsve.evaluate's RMSE, or the penalty where evaluate says failed (to
+    """Per run, the hard loss is jsve.evaluation._evaluate's RMSE, or the penalty where evaluate says failed (to
     1e-12 m in float64: the same alignment on the same frames, summed in a different order)."""
     batch, features, _ = _batch(counts_runs, jnp.float64)
     config = ObjectiveConfig(failure_penalty=2.5, align=align)
@@ -114,7 +115,7 @@ def test_weighted_objective_and_group_weights():
     np.testing.assert_allclose(group_weights(meta, by=None), 1.0)
     with pytest.raises(ValueError, match="lacks \\['run'\\]"):
         group_weights(meta, by=["run"])
-    from jsve.objective import RunLoss
+    from jsve.core._objective import RunLoss
 
     losses = RunLoss(
         loss=jnp.asarray([1.0, 2.0, 3.0, 10.0]),
@@ -293,7 +294,7 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
         imu_init_delay=jnp.asarray([math.inf], f64),
         run_index=jnp.zeros(R, jnp.int32),
     )
-    from jsve.sve import FrameFeatures
+    from jsve.core._sve import FrameFeatures
 
     zeros = jnp.zeros((R, F), f64)
     features = FrameFeatures(
@@ -304,7 +305,7 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
     np.testing.assert_allclose(float(res.lost_any[0]), expected, rtol=1e-9)
     # the naive accumulation over per-frame LOST mass is measurably larger on these frames
     lost_mass = []
-    from jsve.rules import initial_state, machine_step
+    from jsve.core._rules import initial_state, machine_step
 
     state = initial_state(f64)
     for k in range(n):

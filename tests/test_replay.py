@@ -1,4 +1,4 @@
-"""jsve.replay against the plain-Python oracle (tests/oracle_orbslam3.py), decision for decision.
+"""jsve.core._replay against the plain-Python oracle (tests/oracle_orbslam3.py), decision for decision.
 
 Thousands of random logs are replayed in one batched, jitted call per rule and compared run by run
 with the oracle. The logs (oracle_orbslam3.random_logs) put scores at and next to the thresholds,
@@ -22,9 +22,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jsve.batch import LogBatch
-from jsve.replay import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST, batch_features, replay, replay_run
-from jsve.rules import (
+from jsve.core._batch import LogBatch
+from jsve.core._replay import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST, batch_features, replay, replay_run
+from jsve.core._rules import (
     InlierRule,
     MachineState,
     SoftLogic,
@@ -34,7 +34,7 @@ from jsve.rules import (
     machine_step,
     preset,
 )
-from jsve.sve import FrameFeatures
+from jsve.core._sve import FrameFeatures
 
 ORBSLAM3_TH = dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0)
 SVE_CODE_TH = dict(imu_init=0.06, not_init=0.2, reloc=0.2, recovery=0.04)
@@ -53,7 +53,7 @@ replay_jit = eqx.filter_jit(replay)
 
 
 def to_batch(logs: dict, dtype, with_bins: bool) -> LogBatch:
-    """LogBatch from oracle_orbslam3.random_logs arrays (cast to `dtype` like jsve.batch does)."""
+    """LogBatch from oracle_orbslam3.random_logs arrays (cast to `dtype` like jsve.core._batch does)."""
     R, F = logs["t"].shape
     f = lambda key: jnp.asarray(logs[key], dtype)  # noqa: E731
     bins = logs["bins"] if with_bins else np.zeros((R, 1, 64))
@@ -375,7 +375,7 @@ F_TARGETED = 160
 def run_modes(scores, *, fps=20.0, dt=0.05, imu=None, delay=0.0, th=None, t=None):
     """Replay one run; returns (mode letters, accepted, predicted, segment) and checks the oracle."""
     n = len(scores)
-    if t is None:  # from int64 nanoseconds, as jsve.batch does: k * 50 ms and k / 16 s are exact
+    if t is None:  # from int64 nanoseconds, as jsve.core._batch does: k * 50 ms and k / 16 s are exact
         t = (np.arange(n, dtype=np.int64) * round(dt * 1e9)) / 1e9
     imu = np.ones(n, bool) if imu is None else np.asarray(imu, bool)
     th = ORBSLAM3_TH if th is None else th

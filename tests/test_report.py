@@ -1,4 +1,4 @@
-"""jsve.fit_study and jsve.report: a small study end to end, its tables, resumption and the report
+"""jsve.fitting._study and jsve.report._report: a small study end to end, its tables, resumption and the report
 (slow: compiles every stage), and the report alone from hand-made tables (fast).
 
 The report's numbers must be the tables' numbers; the HTML must be self-contained; rendering twice gives
@@ -16,10 +16,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jsve.fit import FitConfig, FitData
-from jsve.fit_study import StudyConfig, read_table, run_study
-from jsve.objective import group_weights
-from jsve.report import markdown_table, write_report
+from jsve.core._objective import group_weights
+from jsve.fitting._fit import FitConfig, FitData
+from jsve.fitting._study import StudyConfig, read_table, run_study
+from jsve.report._report import markdown_table, write_report
 
 SMALL = StudyConfig(
     fit=FitConfig(n_search=64, n_starts=1, nm_steps=10),
@@ -96,7 +96,7 @@ def test_study_writes_every_table_as_parquet_and_csv(study):
 
 @pytest.mark.slow
 def test_fitted_objective_is_the_evaluate_tables_penalised_mean(study):
-    """The fit's recorded objective equals the group-weighted mean of jsve.evaluate's per-run table with
+    """The fit's recorded objective equals the group-weighted mean of jsve.evaluation._evaluate's per-run table with
     failed runs at the penalty (float32: 1e-5 relative)."""
     out, data, _, _, _ = study
     runs = read_table(out, "runs")
@@ -117,7 +117,7 @@ def test_rerun_skips_finished_stages_and_changes_nothing(study):
     assert time.perf_counter() - started < 0.25 * first
     assert {p.name: p.read_bytes() for p in out.glob("*.parquet")} == before
     # another configuration (or other data) starts from scratch
-    from jsve.fit_study import Stages, fingerprint
+    from jsve.fitting._study import Stages, fingerprint
 
     record = json.loads((out / "stages.json").read_text())
     assert record["key"]["config"] == fingerprint(SMALL.to_dict()) and len(record["done"]) == 8
@@ -168,7 +168,7 @@ def test_markdown_table_formats_numbers():
 
 def _fake_study(out):
     """The tables write_report reads, made by hand (two disturbances, two rules, one family)."""
-    from jsve.fit_study import write_json, write_table
+    from jsve.fitting._study import write_json, write_table
 
     write_json(
         {"n_runs": 8, "n_frames": 800, "balance_by": ["sequence"], "config": {"failure_penalty": 1.0}},

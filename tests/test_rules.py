@@ -1,4 +1,4 @@
-"""jsve.rules: presets, rule descriptions, and machine_step against the oracle's single step.
+"""jsve.core._rules: presets, rule descriptions, and machine_step against the oracle's single step.
 
 machine_step is compared with oracle_orbslam3.step on every combination of mode, score class
 (below, at and above each threshold), logged imu_init, IMU delay (before, at, after), relocalisation
@@ -18,7 +18,7 @@ import numpy as np
 import oracle_orbslam3 as oracle
 import pytest
 
-from jsve.rules import (
+from jsve.core._rules import (
     MODE_LOST,
     MODE_OK,
     MODE_RECENTLY_LOST,
@@ -37,7 +37,7 @@ from jsve.rules import (
     rule_to_dict,
     tracking_succeeds,
 )
-from jsve.sve import FrameFeatures, frame_features
+from jsve.core._sve import FrameFeatures, frame_features
 
 TH_ORDERS = {
     "orbslam3": dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0),

@@ -1,13 +1,13 @@
-"""The simulator (jsve.simulate, jsve.simulate_motion, jsve.simulate_vision) against what it must show.
+"""The simulator (jsve.sim._simulate, jsve.sim._motion, jsve.sim._vision) against what it must show.
 
-- its settings are the seed's 31 and jsve.disturb's grids;
-- its numpy rotation helpers and IMU prediction agree with jsve.geometry and jsve.replay;
+- its settings are the seed's 31 and jsve.image._disturb's grids;
+- its numpy rotation helpers and IMU prediction agree with jsve.core._geometry and jsve.core._replay;
 - the IMU it synthesises integrates back onto the trajectory, and its dead-reckoning drift is that
   of the real EuRoC V1_01 stream against ground truth (../shared/data);
 - EuRoC ground truth is read in the body frame the real IMU measures in;
 - per-level mean counts match the real-frame measurement (docs/data/real_response.csv) within the
   tolerances of analysis/simulator_calibration.py;
-- logs pass jsve.logs' validation through a write/read round trip, bit for bit, and are a
+- logs pass jsve.io._logs' validation through a write/read round trip, bit for bit, and are a
   deterministic function of the seed; write_study is resumable;
 - replaying a small study with ORB-SLAM3's own rule fails more as blur grows and always at blur 50.
 """
@@ -23,12 +23,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jsve import geometry, schema
-from jsve import simulate as sim
-from jsve import simulate_motion as sm
-from jsve import simulate_vision as sv
-from jsve.logs import read_log, write_log
-from jsve.sve import s_b
+from jsve.core import _geometry as geometry
+from jsve.core._sve import s_b
+from jsve.io import _schema as schema
+from jsve.io._logs import read_log, write_log
+from jsve.sim import _motion as sm
+from jsve.sim import _simulate as sim
+from jsve.sim import _vision as sv
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -63,7 +64,7 @@ def test_seed_settings_are_the_31():
 
 
 def test_grids_are_jsve_disturb_grids():
-    disturb = pytest.importorskip("jsve.disturb")
+    disturb = pytest.importorskip("jsve.image._disturb")
     for name, grid in sim.GRIDS.items():
         levels = tuple(float(v) for v in disturb.DISTURBANCES[name].levels)
         if name == "occlusion":  # the simulator adds the undisturbed 0 to the seed's 50..450
@@ -95,7 +96,7 @@ def test_numpy_rotations_match_jsve_geometry(x64):
 
 
 def test_imu_predict_is_the_replays(x64):
-    from jsve.replay import imu_predict
+    from jsve.core._replay import imu_predict
 
     rng = np.random.default_rng(1)
     p, v, dp, dv = (rng.normal(size=(20, 3)) for _ in range(4))
@@ -428,9 +429,9 @@ def test_cli(tmp_path, capsys):
 
 
 def test_orbslam3_fails_more_as_blur_grows():
-    from jsve.batch import buckets
-    from jsve.evaluate import evaluate
-    from jsve.rules import preset
+    from jsve.core._rules import preset
+    from jsve.evaluation._evaluate import evaluate
+    from jsve.io._batching import buckets
 
     logs = sim.simulate_study(procedural=2, disturbances="blur:0:20:35:50", runs=4, seed=0)
     table = evaluate(buckets(logs), preset("orbslam3"), rule_name="orbslam3", progress=False)

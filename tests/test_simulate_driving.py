@@ -1,14 +1,14 @@
-"""jsve.simulate_driving: determinism, readers, masks = dynamic keypoints, masking helps."""
+"""jsve.sim._driving: determinism, readers, masks = dynamic keypoints, masking helps."""
 
 import numpy as np
 import pytest
 
-from jsve import schema
-from jsve.aggregate import bootstrap_ci
-from jsve.keypoints import keypoints_path, read_keypoints, write_keypoints
-from jsve.logs import read_log, write_log
-from jsve.masks import PngMasks, apply_masks
-from jsve.simulate_driving import DrivingConfig, kitti_body_poses, simulate_sequence, write_png_masks
+from jsve.evaluation._aggregate import bootstrap_ci
+from jsve.io import _schema as schema
+from jsve.io._keypoints import keypoints_path, read_keypoints, write_keypoints
+from jsve.io._logs import read_log, write_log
+from jsve.masks._masks import PngMasks, apply_masks
+from jsve.sim._driving import DrivingConfig, kitti_body_poses, simulate_sequence, write_png_masks
 
 SMALL = DrivingConfig(n_frames=120)
 

@@ -1,4 +1,4 @@
-"""jsve.sve: S_a, S_b, S_c, the power mean and the combination family (DESIGN section 3).
+"""jsve.core._sve: S_a, S_b, S_c, the power mean and the combination family (DESIGN section 3).
 
 Expected values are worked out by hand from the authors' definitions; tolerances are float64
 rounding of a handful of operations unless stated.
@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jsve.sve import (
+from jsve.core._sve import (
     EQ1,
     OPTION1,
     OPTION2,

@@ -1,4 +1,4 @@
-"""Tests of jsve.tablei and `jsve table1`: Table I against evo on the real KITTI 00 estimate, multi-run sets
+"""Tests of jsve.masks._table_one and `jsve table1`: Table I against evo on the real KITTI 00 estimate, multi-run sets
 of different lengths against evo run by run, the numpy KDE against scipy, the report files."""
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from evo.tools import file_interface
 from scipy.spatial.transform import Rotation
 from scipy.stats import gaussian_kde as scipy_kde
 
-from jsve import tablei
 from jsve.cli import main as cli_main
-from jsve.tablei import PosePair
+from jsve.masks import _table_one as tablei
+from jsve.masks._table_one import PosePair
 
 KITTI_REF = "kitti/odometry_poses/00.txt"
 KITTI_EST = "kitti/orbslam_estimate_00.txt"

@@ -1,4 +1,4 @@
-"""jsve.trajectory and `jsve ape` against oracles we did not write: evo (alignment, APE), an independent
+"""jsve.core._trajectory and `jsve ape` against oracles we did not write: evo (alignment, APE), an independent
 yaw-only least-squares solver, finite differences, and the real KITTI 00 ORB-SLAM estimate.
 
 Tolerances: 1e-6 against evo is the project's contract (DESIGN section 6); observed differences are ~1e-12,
@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 import jsve.cli
 from jsve.cli import ape as ape_cli
-from jsve.trajectory import (
+from jsve.core._trajectory import (
     ALIGN_METHODS,
     ErrorStats,
     Transform,

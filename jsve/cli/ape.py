@@ -3,7 +3,7 @@
 An evo_ape-like command that scores every estimate in a single batched JAX computation (float64, equal to
 evo to 1e-6): files are read with evo's file_interface, associated by timestamps with evo's
 associate_trajectories (tum, euroc) or by index (kitti), padded to the longest, aligned and scored by
-`jsve.trajectory.batched_run_error`.
+`jsve.core._trajectory.batched_run_error`.
 Prints one row per estimate (APE translation part, metres) or JSON; exit code 2 when a file cannot be used.
 """
 
@@ -13,7 +13,7 @@ import argparse
 import json
 import sys
 
-ALIGN_CHOICES = ("se3", "sim3", "posyaw", "origin", "none")  # jsve.trajectory.ALIGN_METHODS, kept import-free
+ALIGN_CHOICES = ("se3", "sim3", "posyaw", "origin", "none")  # jsve.core._trajectory.ALIGN_METHODS, kept import-free
 FORMATS = ("tum", "euroc", "kitti")
 TABLE_COLUMNS = ("rmse", "mean", "median", "std", "min", "max", "sse", "count")
 
@@ -104,7 +104,7 @@ def _score(pairs, align: str, n_first: int | None):
     import jax.numpy as jnp
     import numpy as np
 
-    from jsve.trajectory import batched_run_error
+    from jsve.core._trajectory import batched_run_error
 
     n_runs, n_frames = len(pairs), max(est.num_poses for _, est in pairs)
     est_p = np.zeros((n_runs, n_frames, 3))
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
     import pandas as pd
 
-    from jsve.aggregate import per_run_table
+    from jsve.evaluation._aggregate import per_run_table
 
     if args.n_to_align == 0 or args.n_to_align < -1:
         print(

@@ -34,12 +34,12 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..fit_search import use_all_cores
+    from jsve.fitting._search import use_all_cores
 
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
     from dataclasses import replace
 
-    from ..demo import DemoConfig, run_demo
+    from jsve._demo import DemoConfig, run_demo
 
     try:
         config = DemoConfig()

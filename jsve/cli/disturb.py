@@ -1,6 +1,6 @@
 """`jsve disturb DATASET... -o OUT`: write disturbed copies of EuRoC datasets, one per (disturbance, level).
 
-A thin layer over jsve.disturb_datasets.disturb_datasets: parallel, with a progress bar, resumable (finished
+A thin layer over jsve.image._datasets.disturb_datasets: parallel, with a progress bar, resumable (finished
 datasets are skipped, stale `.partial` folders redone). `--list` shows the registered disturbances.
 """
 
@@ -100,8 +100,8 @@ def _parse_params(items: list[str]) -> dict[str, dict[str, object]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jsve.disturb import DISTURBANCES
-    from jsve.disturb_datasets import DatasetError, disturb_datasets, format_level
+    from jsve.image._datasets import DatasetError, disturb_datasets, format_level
+    from jsve.image._disturb import DISTURBANCES
 
     if args.list:
         for name, (_, levels, unit, doc) in DISTURBANCES.items():

@@ -13,9 +13,9 @@ import json
 import sys
 from pathlib import Path
 
-from .. import atomic
-from ..ingest import read_logs, read_parquet
-from ..logs import LogFormatError
+from jsve.io import _atomic as atomic
+from jsve.io._ingest import read_logs, read_parquet
+from jsve.io._logs import LogFormatError
 
 
 def register(subparsers) -> None:
@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 
 def load_rules(names: list[str] | None):
     """(name, Rule) pairs from preset names and JSON files; errors name the file."""
-    from ..rules import PRESETS, preset, rule_from_dict
+    from jsve.core._rules import PRESETS, preset, rule_from_dict
 
     pairs = []
     for name in names or list(PRESETS):
@@ -81,9 +81,9 @@ def run(args) -> int:
     import jax.numpy as jnp
     import pandas as pd
 
-    from ..aggregate import aggregate
-    from ..batch import buckets
-    from ..evaluate import evaluate
+    from jsve.evaluation._aggregate import aggregate
+    from jsve.evaluation._evaluate import evaluate
+    from jsve.io._batching import buckets
 
     try:
         rules = load_rules(args.rule)

@@ -3,7 +3,7 @@
     jsve fit study.parquet -o results/ --config sweeps/fit.toml
 
 LOGS is a folder of format-v1 logs, a log, or a Parquet file from `jsve ingest`; the logs need ground
-truth. Runs every stage of jsve.fit_study (presets, fits, cross-validation, bootstrap, heat map, SVE per
+truth. Runs every stage of jsve.fitting._study (presets, fits, cross-validation, bootstrap, heat map, SVE per
 level) into OUT, resumably, then writes OUT/report.md and OUT/report.html (`jsve report OUT` re-renders).
 """
 
@@ -47,7 +47,7 @@ def load_study_config(path: str | None, **overrides):
     """StudyConfig from a TOML file (top-level study keys, a [fit] table) with command-line overrides."""
     from dataclasses import asdict
 
-    from ..fit_study import StudyConfig
+    from jsve.fitting._study import StudyConfig
 
     spec = {}
     if path:
@@ -72,7 +72,7 @@ def load_study_config(path: str | None, **overrides):
 
 
 def run(args) -> int:
-    from ..fit_search import use_all_cores
+    from jsve.fitting._search import use_all_cores
 
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
     from .evaluate import load_runs
@@ -94,9 +94,9 @@ def run(args) -> int:
     if not runs:
         print(f"jsve fit: no valid logs in {args.logs}", file=sys.stderr)
         return 2
-    from ..fit import FitData
-    from ..fit_study import run_study
-    from ..report import write_report
+    from jsve.fitting._fit import FitData
+    from jsve.fitting._study import run_study
+    from jsve.report._report import write_report
 
     try:
         data = FitData.from_runs(runs, config.objective())

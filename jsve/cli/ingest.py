@@ -2,7 +2,7 @@
 
     jsve ingest logs/ -o study.parquet --on-error quarantine --gt V101_GT.txt --gt-format euroc
 
-A thin layer over jsve.ingest.ingest; docs/log-format.md describes the format, the errors and the output.
+A thin layer over jsve.io._ingest.ingest; docs/log-format.md describes the format, the errors and the output.
 Exit status: 0 on success (quarantined logs are listed in the summary and the report), 2 when a log is
 malformed with --on-error raise, or when there are no logs.
 """
@@ -12,8 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..groundtruth import DEFAULT_MAX_GAP_NS, GT_FORMATS, GroundTruth
-from ..ingest import ingest
+from jsve.io._groundtruth import DEFAULT_MAX_GAP_NS, GT_FORMATS, GroundTruth
+from jsve.io._ingest import ingest
 
 
 def register(subparsers) -> None:

@@ -3,7 +3,7 @@
 For each LOG, reads its keypoint side file (`<log>.keypoints.csv`, docs/masks.md), removes the keypoints
 that Algorithm 1 puts on a dynamic object of the masks, and writes the log with n_extracted, n_inliers
 and bin_0..bin_63 recomputed to OUT/<log name>, so that SVE and replay can be evaluated with and without
-dynamic features. A thin layer over jsve.masks.apply_masks. Exit code 2 when a file cannot be used.
+dynamic features. A thin layer over jsve.masks._masks.apply_masks. Exit code 2 when a file cannot be used.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jsve import masks
-    from jsve.keypoints import keypoints_path, read_keypoints
-    from jsve.logs import LogFormatError, read_log, write_log
+    from jsve.io._keypoints import keypoints_path, read_keypoints
+    from jsve.io._logs import LogFormatError, read_log, write_log
+    from jsve.masks import _masks as masks
 
     try:
         classes = None if args.classes is None else [int(c) for c in args.classes.split(",") if c.strip()]

@@ -1,6 +1,6 @@
 """`jsve measure DATASET... -o OUT`: per-frame visibility counts and SVE metrics measured on real frames.
 
-A thin layer over jsve.measure.measure_datasets: every EuRoC dataset at or below each DATASET is
+A thin layer over jsve.image._measure.measure_datasets: every EuRoC dataset at or below each DATASET is
 measured (ORB-SLAM3-style ORB, frame-to-frame verified inliers, frustum stand-in, SVE bins) in
 parallel with a progress bar, and one table per dataset is written. Existing tables are kept.
 """
@@ -50,9 +50,9 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jsve.disturb_datasets import DatasetError
-    from jsve.measure import measure_datasets
-    from jsve.orb import OrbSettings
+    from jsve.image._datasets import DatasetError
+    from jsve.image._measure import measure_datasets
+    from jsve.image._orb import OrbSettings
 
     try:
         orb = OrbSettings(extractor=args.extractor, fallback=not args.no_fallback, n_features=args.n_features)

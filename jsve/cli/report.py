@@ -21,7 +21,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..report import write_report
+    from jsve.report._report import write_report
 
     try:
         written = write_report(args.output, title=args.title)

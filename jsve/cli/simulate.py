@@ -4,7 +4,7 @@
     jsve simulate -o study/ --sequences MH_01,V1_01 --euroc-gt ../shared/data/euroc/groundtruth_left_cam
     jsve simulate -o study/ --procedural 3 --disturbances blur,occlusion --runs 5 --workers 2 --parquet
 
-A thin layer over jsve.simulate.write_study: one log per sequence x setting x run under
+A thin layer over jsve.sim._simulate.write_study: one log per sequence x setting x run under
 OUT/<sequence>/<disturbance>-<level>/run_<k>.csv, in parallel processes; a re-run skips logs that
 are already complete. docs/simulator.md describes the model.
 """
@@ -56,7 +56,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..simulate import SimConfig, settings, write_study
+    from jsve.sim._simulate import SimConfig, settings, write_study
 
     if args.sequences and not args.euroc_gt:
         print("jsve simulate: --sequences needs --euroc-gt DIR (or use --procedural N)", file=sys.stderr)

@@ -2,14 +2,15 @@
 
     jsve sve logs/MH_04-blur-15-7.csv -o sve.csv
 
-Columns: t_ns, then jsve.sve.sve_table's columns (docs/sve.md defines each one).
+Columns: t_ns, then jsve.core._sve.sve_table's columns (docs/sve.md defines each one).
 """
 
 from __future__ import annotations
 
 import sys
 
-from .. import atomic, logs
+from jsve.io import _atomic as atomic
+from jsve.io import _logs as logs
 
 
 def register(subparsers) -> None:
@@ -27,8 +28,8 @@ def run(args) -> int:
     import numpy as np
     import pandas as pd
 
-    from ..schema import BIN_COLUMNS
-    from ..sve import sve_table
+    from jsve.core._sve import sve_table
+    from jsve.io._schema import BIN_COLUMNS
 
     try:
         log = logs.read_log(args.log)

@@ -1,7 +1,7 @@
 """`jsve table1 --ref REF --original EST... --masked EST... -o DIR`: the seed's Table I, masked vs original.
 
 Reads and associates the trajectories as `jsve ape` does (evo's file_interface; by index for kitti, by
-timestamps for tum / euroc), scores them with jsve.tablei in float64 (equal to evo_ape to 1e-6) and
+timestamps for tum / euroc), scores them with jsve.masks._table_one in float64 (equal to evo_ape to 1e-6) and
 writes table1.md, table1.csv, per_run.csv, the APE-over-time, histogram and density plots, and the
 aligned estimates as KITTI pose files into DIR. Prints the Markdown table; exit code 2 when a file
 cannot be used.
@@ -76,7 +76,7 @@ def _times(path: str, n_poses: int):
 def _pairs(args, paths: list[str], ref, times):
     import numpy as np
 
-    from jsve.tablei import PosePair
+    from jsve.masks._table_one import PosePair
 
     pairs = []
     for path in paths:
@@ -92,7 +92,7 @@ def _pairs(args, paths: list[str], ref, times):
 def run(args: argparse.Namespace) -> int:
     import jax
 
-    from jsve import tablei
+    from jsve.masks import _table_one as tablei
 
     formats = tuple(f.strip() for f in args.plot_formats.split(",") if f.strip())
     bad = [f for f in formats if f not in tablei.PLOT_FORMATS]

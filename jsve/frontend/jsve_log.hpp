@@ -1,6 +1,6 @@
 // jsve_log.hpp: header-only C++17 writer of jsve tracking log format v1.
 //
-// Part of jsve (GPL-3.0-or-later). The format itself is defined in jsve/schema.py and described
+// Part of jsve (GPL-3.0-or-later). The format itself is defined in jsve/io/_schema.py and described
 // in docs/log-format.md; the hook guide for ORB-SLAM3 v1.0 is docs/frontend.md. This header has no
 // dependencies beyond the C++17 standard library, and its interface takes only plain structs and
 // arrays (no Eigen, OpenCV or Sophus types), so it drops into any front-end:
@@ -45,7 +45,7 @@
 //   validates without writing and without changing the writer. abandon() (also run by the
 //   destructor of an open writer) closes the file and leaves it as `.partial`; it never throws.
 //   open() checks the metadata the same way (required keys sequence/run/fps, the types and values
-//   jsve.logs accepts for the keys it knows) and creates no file when it is wrong; close() before
+//   jsve.io._logs accepts for the keys it knows) and creates no file when it is wrong; close() before
 //   any frame reports Status::kNoFrames, since a v1 log has at least one frame.
 //
 // Not thread-safe: use one writer per run from one thread (ORB-SLAM3's tracking thread).
@@ -641,7 +641,7 @@ private:
                 return false;
             }
         }
-        // Value rules of jsve.logs (beyond types).
+        // Value rules of jsve.io._logs (beyond types).
         std::vector<double> v;
         K k;
         meta.numbers("fps", v);

@@ -1,0 +1,150 @@
+"""LogBatch: many runs' tracking logs as one padded pytree [runs, frames, ...], plus host metadata.
+
+Runs of different lengths are padded at the end and marked by `valid`; `bucket_by_length` groups
+runs so padding stays small, and `iter_chunks` cuts a batch into fixed-size chunks of runs so that
+10,000 runs x 3,600 frames never has to sit on the device at once. Per-run metadata (sequence,
+disturbance, level, ...) lives host-side in a pandas DataFrame aligned with the runs axis; the pytree
+carries only arrays, so jit caches depend on shapes alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+
+class LogBatch(eqx.Module):
+    """Padded arrays of R runs x F frames. Times are seconds since each run's first frame.
+
+    Attributes (shapes; units; frames):
+        t: [R, F] s since the run's first frame (relative, so float32 keeps 0.1 ms over hours).
+        valid: [R, F] frame exists (False on padding).
+        state: [R, F] int8, the front-end's own logged eTrackingState.
+        imu_init: [R, F] IMU initialised in the original run.
+        n_extracted, n_inliers, n_frustum: [R, F] counts (int32).
+        bins: [R, F, 64] keypoints per SVE bin (uint16).
+        vis_p, vis_q, vis_v: [R, F, 3|4|3] visual estimate: m, wxyz, m/s; world frame.
+        imu_dt, imu_dp, imu_dv, imu_dq: preintegration from the previous frame: s, m, m/s, wxyz.
+        gt_p, gt_q: [R, F, 3|4] ground truth (NaN-free; zeros/identity where gt_valid is False).
+        gt_valid: [R, F] ground truth available.
+        fps: [R] frames per second (sets the relocalisation window).
+        gravity: [R, 3] m/s^2, world frame.
+        imu_init_delay: [R] s from the first frame to the first imu_init frame (inf if never).
+        run_index: [R] row of the run in the host metadata table; -1 for padding runs.
+    """
+
+    t: Float[Array, "R F"]
+    valid: Bool[Array, "R F"]
+    state: Int[Array, "R F"]
+    imu_init: Bool[Array, "R F"]
+    n_extracted: Int[Array, "R F"]
+    n_inliers: Int[Array, "R F"]
+    n_frustum: Int[Array, "R F"]
+    bins: Int[Array, "R F 64"]
+    vis_p: Float[Array, "R F 3"]
+    vis_q: Float[Array, "R F 4"]
+    vis_v: Float[Array, "R F 3"]
+    imu_dt: Float[Array, "R F"]
+    imu_dp: Float[Array, "R F 3"]
+    imu_dv: Float[Array, "R F 3"]
+    imu_dq: Float[Array, "R F 4"]
+    gt_p: Float[Array, "R F 3"]
+    gt_q: Float[Array, "R F 4"]
+    gt_valid: Bool[Array, "R F"]
+    fps: Float[Array, " R"]
+    gravity: Float[Array, "R 3"]
+    imu_init_delay: Float[Array, " R"]
+    run_index: Int[Array, " R"]
+
+    @property
+    def n_runs(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def n_frames(self) -> int:
+        return self.t.shape[1]
+
+
+def padded_length(n: int, multiple: int) -> int:
+    return max(multiple, int(math.ceil(n / multiple)) * multiple)
+
+
+def bucket_by_length(lengths: Sequence[int], *, max_padding: float = 0.1, pad_multiple: int = 64) -> list[np.ndarray]:
+    """Group run indices so that the padding a group adds stays within `max_padding` of its frames.
+
+    Runs are sorted by length; a group is closed when adding the next (longer) run would make the
+    padding beyond each run's own rounding to `pad_multiple` exceed `max_padding` x the group's
+    rounded frames. Runs of equal length therefore always share a group, whatever the multiple, and
+    padded lengths are multiples of `pad_multiple` so that similar buckets share a compiled shape.
+
+    Returns:
+        Index arrays into `lengths`, each sorted ascending by length, covering every run exactly once.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    if lengths.size == 0:
+        return []
+    order = np.argsort(lengths, kind="stable")
+    groups: list[list[int]] = []
+    current: list[int] = []
+    own = 0  # sum of the group's lengths, each rounded up to pad_multiple on its own
+    for idx in order:
+        rounded = padded_length(int(lengths[idx]), pad_multiple)
+        # Sorted ascending: the new run sets the group's padded length.
+        extra = rounded * (len(current) + 1) - (own + rounded)
+        if current and extra > max_padding * (own + rounded):
+            groups.append(current)
+            current, own = [], 0
+        current.append(int(idx))
+        own += rounded
+    groups.append(current)
+    return [np.asarray(g, dtype=np.int64) for g in groups]
+
+
+def take_runs(batch: LogBatch, index: np.ndarray | Array) -> LogBatch:
+    """The sub-batch of the given run indices (a gather on the leading axis of every leaf)."""
+    index = jnp.asarray(index)
+    return jax.tree.map(lambda x: x[index], batch)
+
+
+def pad_runs(batch: LogBatch, n_runs: int) -> LogBatch:
+    """Append padding runs (valid False everywhere, run_index -1) up to `n_runs` runs."""
+    extra = n_runs - batch.n_runs
+    if extra < 0:
+        raise ValueError(f"pad_runs: batch has {batch.n_runs} runs, more than n_runs={n_runs}")
+    if extra == 0:
+        return batch
+
+    def pad(x):
+        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+
+    padded = jax.tree.map(pad, batch)
+    keep = jnp.arange(n_runs) < batch.n_runs
+    return eqx.tree_at(
+        lambda b: (b.valid, b.gt_valid, b.run_index),
+        padded,
+        (padded.valid & keep[:, None], padded.gt_valid & keep[:, None], jnp.where(keep, padded.run_index, -1)),
+    )
+
+
+def iter_chunks(batch: LogBatch, runs_per_chunk: int) -> Iterator[tuple[slice, LogBatch]]:
+    """Yield (run slice, chunk) pairs; every chunk has exactly `runs_per_chunk` runs (the last is
+    padded) so one compiled function serves them all. Results for padding runs must be dropped by
+    the caller using the slice (or run_index == -1)."""
+    if runs_per_chunk < 1:
+        raise ValueError(f"iter_chunks: runs_per_chunk must be >= 1, got {runs_per_chunk}")
+    for start in range(0, batch.n_runs, runs_per_chunk):
+        stop = min(start + runs_per_chunk, batch.n_runs)
+        chunk = jax.tree.map(lambda x, a=start, b=stop: x[a:b], batch)
+        yield slice(start, stop), pad_runs(chunk, runs_per_chunk)
+
+
+def runs_per_chunk_for(n_frames: int, *, bytes_budget: float = 4e9, bytes_per_frame: int = 600) -> int:
+    """How many runs of `n_frames` fit a device-memory budget, counting inputs, replay outputs and
+    temporaries at about `bytes_per_frame` (float32; measured by analysis/bench_replay.py)."""
+    return max(1, int(bytes_budget // (bytes_per_frame * max(n_frames, 1))))

@@ -1,0 +1,234 @@
+"""Position-error objectives of a switching rule over a LogBatch, hard and relaxed.
+
+The objective is the mean over runs of a per-run loss: the run's ATE RMSE (metres, after alignment to
+ground truth) when it succeeded, and a configurable penalty when it failed. Failed runs are never
+dropped: a rule that loses tracking on a hard run must not score better than one that keeps it (evo
+issue #673). Runs can be weighted, e.g. so that every sequence, disturbance and level counts equally
+(`group_weights`), and the weighted coverage and failure rate come with every value.
+
+    loss_r = failure_penalty              if run r failed
+           = RMSE_r                       otherwise
+    J = sum_r w_r loss_r / sum_r w_r
+
+A run fails as in `jsve.evaluation._evaluate`: it reached LOST (the hard replay then starts a new, unaligned map),
+its alignment was degenerate, fewer than 3 frames were evaluated, or its coverage is below
+`min_coverage`. A run that never reached LOST has an estimate on every frame, so its RMSE is over every
+frame with ground truth and equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard objective is
+therefore exactly mean(where(failed, penalty, rmse)) of the per-run table (tests/test_objective.py).
+
+Relaxed (SoftLogic with a temperature): the replay's flags are probabilities. The loss is the expected one,
+P(ever LOST) x penalty + (1 - P) x RMSE, with the RMSE taken over frames weighted by the probability that
+they have an estimate (a weighted Umeyama alignment, a smooth statistic). As the temperature falls every
+probability tends to its hard 0/1 value and the relaxed objective to the hard one.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from jaxtyping import Array, Float
+
+from jsve.core._batch import LogBatch
+from jsve.core._replay import batch_features, replay
+from jsve.core._rules import TIME_RECENTLY_LOST_S, HardLogic, Rule
+from jsve.core._sve import FrameFeatures
+from jsve.core._trajectory import MIN_ALIGNMENT_FRAMES, align
+
+DEFAULT_FAILURE_PENALTY_M = 1.0
+"""Metres charged for a failed run. A VI-SLAM run on EuRoC-sized scenes that keeps tracking stays well
+below it (ORB-SLAM3's EuRoC ATE is centimetres); a run that reaches LOST costs more than any run that
+keeps tracking with a plausible error. Configurable: it sets the exchange rate between failures and
+metres of error, which is a choice the user owns (docs/fitting.md)."""
+
+
+class ObjectiveConfig(eqx.Module):
+    """How runs are scored (all static: a new value compiles once).
+
+    Attributes:
+        failure_penalty: metres charged for a failed run.
+        align: alignment before the RMSE: "se3" (default), "sim3", "posyaw", "origin", "none".
+        min_coverage: runs whose coverage (evaluated / ground-truth frames) is below it fail.
+        time_recently_lost: s in RECENTLY_LOST before LOST (ORB-SLAM3: 5).
+    """
+
+    failure_penalty: float = eqx.field(static=True, default=DEFAULT_FAILURE_PENALTY_M)
+    align: str = eqx.field(static=True, default="se3")
+    min_coverage: float = eqx.field(static=True, default=0.0)
+    time_recently_lost: float = eqx.field(static=True, default=TIME_RECENTLY_LOST_S)
+
+    def __check_init__(self):
+        if not (np.isfinite(self.failure_penalty) and self.failure_penalty >= 0):
+            raise ValueError(
+                f"failure_penalty must be a finite number of metres >= 0, got {self.failure_penalty}"
+            )
+        if self.align not in ("se3", "sim3", "posyaw", "origin", "none"):
+            raise ValueError(f"align must be se3, sim3, posyaw, origin or none, got {self.align!r}")
+        if not 0.0 <= self.min_coverage <= 1.0:
+            raise ValueError(f"min_coverage must lie in [0, 1], got {self.min_coverage}")
+
+
+class RunLoss(eqx.Module):
+    """Per-run loss and the facts behind it (leaves [R]; probabilities where relaxed).
+
+    Attributes:
+        loss: metres; failure_penalty where failed.
+        rmse: ATE RMSE over the evaluated frames, metres (also for failed runs, for reference).
+        failed: the run failed (bool), or its probability of failing (relaxed).
+        coverage: evaluated frames / valid frames with ground truth.
+    """
+
+    loss: Float[Array, " R"]
+    rmse: Float[Array, " R"]
+    failed: Array
+    coverage: Float[Array, " R"]
+
+
+class ObjectiveValue(eqx.Module):
+    """A weighted objective with its diagnostics (scalars).
+
+    Attributes:
+        value: sum_r w_r loss_r / sum_r w_r, metres.
+        coverage: weighted mean coverage. failure_rate: weighted mean of failed.
+        rmse_ok: weighted mean RMSE of the runs that did not fail (NaN-free: 0 when all failed).
+    """
+
+    value: Float[Array, ""]
+    coverage: Float[Array, ""]
+    failure_rate: Float[Array, ""]
+    rmse_ok: Float[Array, ""]
+
+
+def _safe_sqrt(x):
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def _safe_divide(num, den):
+    nonzero = den != 0
+    return jnp.where(nonzero, num / jnp.where(nonzero, den, 1.0), 0.0)
+
+
+def _one_run_loss(est_p, est_q, has_estimate, lost_any, gt_p, gt_q, gt_valid, valid, config, hard):
+    """Loss of one replayed run ([T, ...] arrays; has_estimate and lost_any are flags or probabilities)."""
+    dtype = est_p.dtype
+    with_gt = (gt_valid & valid).astype(dtype)
+    weight = has_estimate.astype(dtype) * with_gt
+    # Hard: a boolean mask, as jsve.evaluation._evaluate aligns; relaxed: the probability weights (weighted Umeyama).
+    mask = weight > 0.5 if hard else weight
+    aligned, _, transform = align(est_p, gt_p, mask, method=config.align, est_q=est_q, ref_q=gt_q)
+    weight = mask.astype(dtype)
+    sq = sum((aligned[:, i] - gt_p[:, i]) ** 2 for i in range(3))
+    count = jnp.sum(weight)
+    rmse = _safe_sqrt(_safe_divide(jnp.sum(weight * sq), count))
+    coverage = _safe_divide(count, jnp.sum(with_gt))
+    # Data facts, exact in both modes (their probability is 0 or 1).
+    broken = transform.degenerate | (count < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
+    if hard:
+        failed = broken | (lost_any > 0.5)
+        loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), rmse)
+    else:
+        failed = 1 - (1 - lost_any.astype(dtype)) * (1 - broken.astype(dtype))
+        loss = failed * config.failure_penalty + (1 - failed) * rmse
+    return RunLoss(loss=loss, rmse=rmse, failed=failed, coverage=coverage)
+
+
+def run_losses(
+    batch: LogBatch,
+    rule: Rule,
+    features: FrameFeatures | None = None,
+    config: ObjectiveConfig = ObjectiveConfig(),  # noqa: B008 - an immutable module of static fields
+    *,
+    logic=None,
+) -> RunLoss:
+    """Replay `rule` over every run of `batch` and score each run (jit at the call site).
+
+    Arguments:
+        batch: the logs, with ground truth. rule: any jsve rule. features: the batch's FrameFeatures
+            (computed when omitted). config: penalty, alignment, coverage floor.
+        logic: HardLogic() (default: the real machine) or SoftLogic(temperature) for the relaxation.
+    Returns:
+        RunLoss with [R] leaves (padding runs score 0 coverage and fail; give them weight 0).
+    """
+    logic = HardLogic() if logic is None else logic
+    hard = isinstance(logic, HardLogic)
+    if features is None:
+        features = batch_features(batch)
+    result = replay(batch, rule, features, logic=logic, time_recently_lost=config.time_recently_lost)
+    with_q = config.align == "origin"
+    kernel = functools.partial(_one_run_loss, config=config, hard=hard)
+    return jax.vmap(kernel)(
+        result.position,
+        result.quaternion if with_q else None,
+        result.has_estimate,
+        result.lost_any,
+        batch.gt_p,
+        batch.gt_q if with_q else None,
+        batch.gt_valid,
+        batch.valid,
+    )
+
+
+def weighted_objective(losses: RunLoss, weights: Float[Array, " R"]) -> ObjectiveValue:
+    """The weighted means of a RunLoss (weights >= 0, not all 0; padding runs get 0)."""
+    w = jnp.asarray(weights, losses.loss.dtype)
+    total = jnp.sum(w)
+    mean = lambda x: _safe_divide(jnp.sum(w * x), total)  # noqa: E731
+    failed = losses.failed.astype(w.dtype)
+    ok = w * (1 - failed)
+    return ObjectiveValue(
+        value=mean(losses.loss),
+        coverage=mean(losses.coverage),
+        failure_rate=mean(failed),
+        rmse_ok=_safe_divide(jnp.sum(ok * losses.rmse), jnp.sum(ok)),
+    )
+
+
+def objective(
+    batch: LogBatch,
+    rule: Rule,
+    weights: Float[Array, " R"],
+    features: FrameFeatures | None = None,
+    config: ObjectiveConfig = ObjectiveConfig(),  # noqa: B008
+    *,
+    logic=None,
+) -> ObjectiveValue:
+    """The weighted mean loss of `rule` over `batch` (metres), with coverage and failure rate.
+
+    Arguments:
+        weights: [R] run weights (see `group_weights`; 0 for padding or held-out runs).
+        Others as `run_losses`.
+    """
+    if weights.shape != (batch.n_runs,):
+        raise ValueError(
+            f"weights must have shape ({batch.n_runs},) (one per run), got {tuple(weights.shape)}"
+        )
+    return weighted_objective(run_losses(batch, rule, features, config, logic=logic), weights)
+
+
+def group_weights(
+    meta: pd.DataFrame, by: Sequence[str] | None = ("sequence", "disturbance", "level")
+) -> np.ndarray:
+    """Run weights under which every group of `by` counts equally (mean weight 1).
+
+    Arguments:
+        meta: one row per run (host metadata, e.g. Bucket.meta).
+        by: metadata columns defining a group; None or [] gives every run weight 1.
+    Returns:
+        float64 [R]: n_runs / (n_groups x size of the run's group).
+    """
+    n = len(meta)
+    if not by:
+        return np.ones(n)
+    missing = [k for k in by if k not in meta.columns]
+    if missing:
+        raise ValueError(f"group_weights: metadata lacks {missing}; has {list(meta.columns)}")
+    keys = meta[list(by)].astype(str).agg("\x1f".join, axis=1)
+    sizes = keys.map(keys.value_counts())
+    n_groups = keys.nunique()
+    return (n / (n_groups * sizes.to_numpy(np.float64))).astype(np.float64)

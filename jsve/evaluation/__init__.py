@@ -1,0 +1,8 @@
+"""jsve.evaluation: rules over logs at scale. Chunked replay + APE per run, tables, aggregation, CIs."""
+
+from jsve.evaluation._aggregate import aggregate as aggregate
+from jsve.evaluation._aggregate import bootstrap_ci as bootstrap_ci
+from jsve.evaluation._aggregate import per_run_table as per_run_table
+from jsve.evaluation._evaluate import Evaluation as Evaluation
+from jsve.evaluation._evaluate import evaluate as evaluate
+from jsve.evaluation._evaluate import evaluate_batch as evaluate_batch

@@ -1,0 +1,178 @@
+"""Host-side aggregation of per-run trajectory errors (pandas): per-run tables, group summaries, CIs.
+
+The JAX side (`jsve.core._trajectory.batched_run_error`) returns one `RunError` per run; these functions turn it
+into a table with one row per run and summarise groups of runs (per sequence / disturbance / level / rule)
+the way the literature reports them: mean, median, std, min and max of per-run RMSE, the failure rate next
+to them, and statistics pooled over all frames of the group. Errors are in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from jsve.core._trajectory import RunError
+
+STAT_COLUMNS: tuple[str, ...] = ("rmse", "mean", "median", "std", "min", "max", "sse", "count")
+"""APE statistics per run, as evo names them (metres; sse in square metres; count in frames)."""
+
+RUN_COLUMNS: tuple[str, ...] = STAT_COLUMNS + ("coverage", "n_segments", "failed")
+"""The columns `per_run_table` adds to the run metadata."""
+
+
+def per_run_table(run_errors: RunError, meta: pd.DataFrame) -> pd.DataFrame:
+    """One row per run: the metadata columns followed by the error statistics and the failure facts.
+
+    Arguments:
+        run_errors: a batched RunError (every leaf of shape [R], as `batched_run_error` returns it).
+        meta: R rows of run metadata (sequence, disturbance, level, rule, run, ...), in the same order.
+
+    Returns:
+        A DataFrame with meta's columns (index reset) and rmse, mean, median, std, min, max (metres),
+        sse (m^2), count (frames), coverage (fraction), n_segments, failed. The statistics of a run with
+        no evaluated frame (count 0) are NaN here, not the finite zeros of the JAX side.
+    """
+    stats = run_errors.stats
+    columns = {name: np.atleast_1d(np.asarray(getattr(stats, name))) for name in STAT_COLUMNS}
+    columns["coverage"] = np.atleast_1d(np.asarray(run_errors.coverage))
+    columns["n_segments"] = np.atleast_1d(np.asarray(run_errors.n_segments))
+    columns["failed"] = np.atleast_1d(np.asarray(run_errors.failed)).astype(bool)
+    n_runs = len(columns["rmse"])
+    if len(meta) != n_runs:
+        raise ValueError(f"meta has {len(meta)} rows but run_errors holds {n_runs} runs")
+    clash = sorted(set(meta.columns) & set(RUN_COLUMNS))
+    if clash:
+        raise ValueError(f"meta has columns that per_run_table writes: {clash}")
+
+    table = meta.reset_index(drop=True).copy()
+    empty = columns["count"] == 0
+    for name in STAT_COLUMNS:
+        values = columns[name]
+        if name == "count":
+            table[name] = values.astype(np.int64)
+        else:
+            table[name] = np.where(empty, np.nan, values.astype(np.float64))
+    for name in ("coverage", "n_segments", "failed"):
+        table[name] = columns[name]
+    return table
+
+
+def bootstrap_ci(
+    values: Sequence[float] | np.ndarray,
+    stat: Callable[..., float] = np.mean,
+    n_boot: int = 1000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile bootstrap confidence interval of `stat(values)`.
+
+    Arguments:
+        values: the sample (NaN entries are dropped first).
+        stat: the statistic; called as stat(resamples, axis=-1) when it takes an axis, else once per resample.
+        n_boot: number of resamples (with replacement, each of the sample's size).
+        level: confidence level in (0, 1).
+        seed: seed of numpy's default generator; the same seed gives the same interval.
+
+    Returns:
+        (low, high): the (1 - level) / 2 and (1 + level) / 2 percentiles of the resampled statistic;
+        (NaN, NaN) for fewer than 2 values, where a bootstrap says nothing.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must lie in (0, 1), got {level}")
+    if n_boot < 1:
+        raise ValueError(f"n_boot must be positive, got {n_boot}")
+    x = np.asarray(values, dtype=np.float64)
+    x = x[~np.isnan(x)]
+    if x.size < 2:
+        return (float("nan"), float("nan"))
+    rng = np.random.default_rng(seed)
+    resamples = x[rng.integers(0, x.size, size=(n_boot, x.size))]
+    try:
+        boot = np.asarray(stat(resamples, axis=-1), dtype=np.float64)
+    except TypeError:
+        boot = np.array([stat(r) for r in resamples], dtype=np.float64)
+    alpha = (1.0 - level) / 2.0
+    low, high = np.quantile(boot, [alpha, 1.0 - alpha])
+    return (float(low), float(high))
+
+
+def _rmse_summary(rmse: pd.Series, suffix: str) -> dict[str, float]:
+    r = rmse.dropna()
+    return {
+        f"rmse_mean_{suffix}": r.mean(),
+        f"rmse_median_{suffix}": r.median(),
+        f"rmse_std_{suffix}": r.std(ddof=1),
+        f"rmse_min_{suffix}": r.min(),
+        f"rmse_max_{suffix}": r.max(),
+    }
+
+
+def _pooled(group: pd.DataFrame, suffix: str) -> dict[str, float]:
+    count = int(group["count"].sum())
+    sse = group["sse"].sum(min_count=1)
+    weighted_mean = (group["mean"] * group["count"]).sum(min_count=1)
+    return {
+        f"pooled_rmse_{suffix}": float(np.sqrt(sse / count)) if count > 0 else np.nan,
+        f"pooled_mean_{suffix}": float(weighted_mean / count) if count > 0 else np.nan,
+        f"pooled_count_{suffix}": count,
+    }
+
+
+def aggregate(
+    table: pd.DataFrame,
+    by: Sequence[str],
+    *,
+    ci: bool = True,
+    n_boot: int = 1000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """Summarise per-run errors per group, with failure and coverage next to every error.
+
+    Arguments:
+        table: the output of `per_run_table` (or any table with its columns).
+        by: the metadata columns that define a group (e.g. ["sequence", "disturbance", "level", "rule"]);
+            an empty list summarises the whole table as one group.
+        ci: add percentile bootstrap confidence intervals of the mean per-run RMSE.
+        n_boot, level, seed: passed to `bootstrap_ci` (the same seed for every group, so results are
+            reproducible).
+
+    Returns:
+        One row per group (the `by` columns first), with
+        n_runs, n_failed, failure_rate, mean_coverage;
+        rmse_{mean,median,std,min,max}_all: over the per-run RMSE of all runs that evaluated any frame
+            (std across runs with ddof = 1);
+        rmse_{mean,median,std,min,max}_nonfailed: the same over the runs whose failed flag is False;
+        pooled_{rmse,mean,count}_{all,nonfailed}: over all frames of the runs, pooled_rmse =
+            sqrt(sum sse / sum count), pooled_mean = sum(mean * count) / sum count, pooled_count = sum count;
+        with ci: rmse_mean_{all,nonfailed}_ci_{low,high}.
+    """
+    by = list(by)
+    missing = sorted(set(by + ["rmse", "mean", "sse", "count", "coverage", "failed"]) - set(table.columns))
+    if missing:
+        raise ValueError(f"table lacks columns {missing} (expected a per_run_table result)")
+
+    rows = []
+    groups = table.groupby(by, sort=True, dropna=False) if by else [((), table)]
+    for key, group in groups:
+        key = key if isinstance(key, tuple) else (key,)
+        failed = group["failed"].astype(bool)
+        ok = group[~failed]
+        row: dict[str, object] = dict(zip(by, key, strict=True))
+        row["n_runs"] = len(group)
+        row["n_failed"] = int(failed.sum())
+        row["failure_rate"] = float(failed.mean())
+        row["mean_coverage"] = float(group["coverage"].mean())
+        row.update(_rmse_summary(group["rmse"], "all"))
+        row.update(_rmse_summary(ok["rmse"], "nonfailed"))
+        row.update(_pooled(group, "all"))
+        row.update(_pooled(ok, "nonfailed"))
+        if ci:
+            for suffix, part in (("all", group), ("nonfailed", ok)):
+                low, high = bootstrap_ci(part["rmse"].to_numpy(), np.mean, n_boot, level, seed)
+                row[f"rmse_mean_{suffix}_ci_low"] = low
+                row[f"rmse_mean_{suffix}_ci_high"] = high
+        rows.append(row)
+    return pd.DataFrame(rows)

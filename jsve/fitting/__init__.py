@@ -1,0 +1,28 @@
+"""jsve.fitting: fitting rule weights and thresholds to minimise position error.
+
+The parameter space (bounds, transforms, presets as points), space-filling designs, the fused search
+kernel (replay + alignment statistics in one scan over many settings), Nelder-Mead and relaxed BFGS
+fits (optimistix), cross-validation with bootstrap CIs, and the resumable study behind `jsve fit`.
+"""
+
+from jsve.fitting._crossval import compare as compare
+from jsve.fitting._crossval import cross_validate as cross_validate
+from jsve.fitting._crossval import kfold as kfold
+from jsve.fitting._crossval import leave_one_out as leave_one_out
+from jsve.fitting._fit import FitConfig as FitConfig
+from jsve.fitting._fit import FitData as FitData
+from jsve.fitting._fit import FitResult as FitResult
+from jsve.fitting._fit import fit as fit
+from jsve.fitting._fit import nelder_mead as nelder_mead
+from jsve.fitting._fit import relaxed_fit as relaxed_fit
+from jsve.fitting._search import design as design
+from jsve.fitting._search import grid_design as grid_design
+from jsve.fitting._search import search as search
+from jsve.fitting._search import sobol as sobol
+from jsve.fitting._search import use_all_cores as use_all_cores
+from jsve.fitting._space import ParamSpace as ParamSpace
+from jsve.fitting._space import inlier_space as inlier_space
+from jsve.fitting._space import space_from_dict as space_from_dict
+from jsve.fitting._space import sve_space as sve_space
+from jsve.fitting._study import StudyConfig as StudyConfig
+from jsve.fitting._study import run_study as run_study

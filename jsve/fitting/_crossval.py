@@ -1,0 +1,357 @@
+"""Cross-validation, held-out comparison and bootstrap confidence intervals for fitted rules.
+
+Folds are boolean masks of held-out runs: k-fold over runs, or leave-one-group-out over a metadata
+column (sequence, disturbance). For every fold each family is fitted on the other runs (jsve.fitting._fit.fit,
+reusing one batched search over all runs: a fold only reweights its per-run loss matrix) and scored on the
+held-out runs; the presets are scored on every run. Every run is held out once per fold kind, so the
+held-out table compares fitted rules and presets on the same runs, run by run.
+
+Confidence intervals are percentile bootstraps over runs (resampled with replacement, the run weights
+kept): for each rule's weighted mean held-out loss, for paired differences against a baseline (the same
+resampled runs for both rules), and for the fitted parameters (refitting on each resample; to make that
+affordable the refit is the best setting of a dense design around the fit, see `parameter_bootstrap`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from jsve.core._rules import PRESETS, preset
+from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, search_design
+from jsve.fitting._search import SearchResult, search, sobol
+from jsve.fitting._space import ParamSpace, inlier_space, sve_space
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One split: `test` marks the held-out runs ([R] bool, data order)."""
+
+    kind: str
+    name: str
+    test: np.ndarray
+
+
+def kfold(n_runs: int, k: int, *, seed: int = 0) -> list[Fold]:
+    """k folds of (nearly) equal size over randomly permuted runs (deterministic under the seed)."""
+    if not 2 <= k <= n_runs:
+        raise ValueError(f"k-fold needs 2 <= k <= number of runs ({n_runs}), got k={k}")
+    order = np.random.default_rng(seed).permutation(n_runs)
+    folds = []
+    for i, held in enumerate(np.array_split(order, k)):
+        test = np.zeros(n_runs, bool)
+        test[held] = True
+        folds.append(Fold("kfold", f"fold {i + 1}/{k}", test))
+    return folds
+
+
+def leave_one_out(meta: pd.DataFrame, column: str) -> list[Fold]:
+    """One fold per value of a metadata column (leave-one-sequence-out, leave-one-disturbance-out)."""
+    if column not in meta.columns:
+        raise ValueError(f"leave_one_out: metadata has no column {column!r}; has {list(meta.columns)}")
+    values = meta[column].astype(str).to_numpy()
+    groups = sorted(set(values))
+    if len(groups) < 2:
+        raise ValueError(f"leave-one-{column}-out needs at least 2 values of {column!r}, got {groups}")
+    return [Fold(f"leave-one-{column}-out", g, values == g) for g in groups]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Bootstrap
+
+
+def bootstrap_weighted_mean(
+    values,
+    weights=None,
+    *,
+    n_boot: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+    index: np.ndarray | None = None,
+) -> tuple[float, float, float]:
+    """Weighted mean of `values` and its percentile bootstrap interval over resampled runs.
+
+    Arguments:
+        values: [R] per-run values (NaN not allowed: failed runs carry their penalty).
+        weights: [R] run weights (default 1).
+        index: [n_boot, R] resampled run indices to use (paired comparisons share them); drawn from the
+            seed when None.
+    Returns:
+        (mean, low, high); low = high = NaN for fewer than 2 runs.
+    """
+    x = np.asarray(values, np.float64)
+    w = np.ones_like(x) if weights is None else np.asarray(weights, np.float64)
+    if np.isnan(x).any():
+        raise ValueError("bootstrap_weighted_mean: values contain NaN")
+    mean = float(np.sum(w * x) / np.sum(w))
+    if x.size < 2:
+        return mean, float("nan"), float("nan")
+    if index is None:
+        index = np.random.default_rng(seed).integers(0, x.size, size=(n_boot, x.size))
+    ws = w[index]
+    boot = np.sum(ws * x[index], axis=1) / np.maximum(np.sum(ws, axis=1), 1e-300)
+    alpha = (1 - level) / 2
+    low, high = np.quantile(boot, [alpha, 1 - alpha])
+    return mean, float(low), float(high)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Cross-validation
+
+
+@dataclass
+class CrossValidation:
+    """Held-out results.
+
+    Attributes:
+        heldout: one row per (fold kind, run, rule): run metadata, fold_kind, fold, rule, weight, loss,
+            rmse (NaN where failed), failed, coverage. Fitted rules are named "fitted-<family>".
+        params: one row per (fold kind, fold, family): the fitted parameter values and training objective.
+    """
+
+    heldout: pd.DataFrame
+    params: pd.DataFrame
+
+
+def preset_space(name: str) -> ParamSpace:
+    """The full space of a preset's family (all parameters free)."""
+    return inlier_space() if name == "orbslam3" else sve_space()
+
+
+def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
+    """Per-run results of one setting (free values in `space`) on every run: [1, R] matrices."""
+    return search(
+        data.parts,
+        space,
+        np.asarray(values, np.float64)[None],
+        data.config,
+        run_counts=data.run_counts,
+        progress=False,
+    )
+
+
+def cross_validate(
+    data: FitData,
+    spaces: Mapping[str, ParamSpace],
+    folds: Sequence[Fold],
+    weights=None,
+    config: FitConfig = FitConfig(),  # noqa: B008
+    *,
+    presets: Sequence[str] = PRESETS,
+    searches: Mapping[str, SearchResult] | None = None,
+    progress: bool = True,
+) -> CrossValidation:
+    """Fit every family on each fold's training runs and score it, and the presets, on its held-out runs.
+
+    Arguments:
+        spaces: family name -> ParamSpace (e.g. {"sve": sve_space(), "inliers": inlier_space()}).
+        folds: from `kfold` / `leave_one_out` (any mix of kinds).
+        weights: [R] run weights (default 1); training uses them, the held-out table carries them.
+        searches: batched searches over all runs already done (by family name), reused.
+    """
+    w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
+    meta = data.meta.reset_index(drop=True)
+    searches = dict(searches or {})
+    for name, space in spaces.items():
+        if name not in searches:
+            searches[name] = search(
+                data.parts,
+                space,
+                search_design(space, config),
+                data.config,
+                run_counts=data.run_counts,
+                progress=progress,
+                desc=f"search {name}",
+            )
+    per_rule = {
+        name: rule_results(data, preset_space(name), preset_space(name).values_of(preset(name)))
+        for name in presets
+    }
+
+    rows, params = [], []
+    for fold in tqdm(folds, desc="cross-validation", unit="fold", disable=not progress):
+        train = w * ~fold.test
+        if not np.any(train > 0):
+            raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
+        fitted = {}
+        for name, space in spaces.items():
+            result = fit(data, space, train, config, search_result=searches[name], progress=False)
+            fitted[f"fitted-{name}"] = rule_results(data, space, result.values)
+            params.append(
+                {
+                    "fold_kind": fold.kind,
+                    "fold": fold.name,
+                    "family": name,
+                    "train_objective": result.objective,
+                    **result.params(),
+                }
+            )
+        for rule, res in {**fitted, **per_rule}.items():
+            held = np.flatnonzero(fold.test)
+            table = meta.iloc[held].copy()
+            table.insert(0, "run_index", held)
+            table["fold_kind"], table["fold"], table["rule"] = fold.kind, fold.name, rule
+            table["weight"] = w[held]
+            for key in ("loss", "rmse", "failed", "coverage"):
+                table[key] = getattr(res, key)[0, held]
+            rows.append(table)
+    return CrossValidation(heldout=pd.concat(rows, ignore_index=True), params=pd.DataFrame(params))
+
+
+def compare(
+    heldout: pd.DataFrame,
+    *,
+    baselines: Sequence[str] = ("orbslam3", "sve-option2"),
+    n_boot: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """Held-out comparison per fold kind: every rule's weighted mean loss with a bootstrap CI, its failure
+    rate and coverage, and its paired difference to each baseline (negative: better than the baseline).
+
+    The bootstrap resamples runs (one set of resamples per fold kind, shared by all rules: paired).
+    """
+    out = []
+    for kind, part in heldout.groupby("fold_kind", sort=False):
+        wide = part.pivot_table(index="run_index", columns="rule", values="loss", aggfunc="first")
+        fail = part.pivot_table(index="run_index", columns="rule", values="failed", aggfunc="first")
+        cov = part.pivot_table(index="run_index", columns="rule", values="coverage", aggfunc="first")
+        wide = wide.dropna(axis=0)  # runs every rule was scored on
+        weight = part.groupby("run_index")["weight"].first().reindex(wide.index).to_numpy()
+        index = np.random.default_rng(seed).integers(0, len(wide), size=(n_boot, len(wide)))
+        for rule in wide.columns:
+            x = wide[rule].to_numpy()
+            mean, low, high = bootstrap_weighted_mean(x, weight, index=index, level=level)
+            row = {
+                "fold_kind": kind,
+                "rule": rule,
+                "n_runs": len(x),
+                "mean_loss": mean,
+                "ci_low": low,
+                "ci_high": high,
+                "failure_rate": float(
+                    np.sum(weight * fail.loc[wide.index, rule].to_numpy()) / np.sum(weight)
+                ),
+                "coverage": float(np.sum(weight * cov.loc[wide.index, rule].to_numpy()) / np.sum(weight)),
+            }
+            for base in baselines:
+                if base in wide.columns and base != rule:
+                    d, dl, dh = bootstrap_weighted_mean(
+                        x - wide[base].to_numpy(), weight, index=index, level=level
+                    )
+                    row[f"diff_vs_{base}"], row[f"diff_vs_{base}_ci_low"], row[f"diff_vs_{base}_ci_high"] = (
+                        d,
+                        dl,
+                        dh,
+                    )
+            out.append(row)
+    return pd.DataFrame(out)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Parameters
+
+
+def local_design(space: ParamSpace, center, n: int, *, fraction: float = 0.15, seed: int = 0) -> np.ndarray:
+    """n Sobol points in the box of half-width `fraction` x each parameter's range around `center`,
+    clipped to the space's box."""
+    lo, hi = np.asarray(space.lo), np.asarray(space.hi)
+    half = fraction * (hi - lo)
+    a = np.maximum(lo, np.asarray(center) - half)
+    b = np.minimum(hi, np.asarray(center) + half)
+    return a + (b - a) * sobol(n, space.dim, seed=seed)
+
+
+def parameter_bootstrap(
+    data: FitData,
+    space: ParamSpace,
+    result: FitResult,
+    weights=None,
+    *,
+    n_local: int = 1024,
+    fraction: float = 0.15,
+    n_boot: int = 500,
+    level: float = 0.95,
+    seed: int = 0,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Bootstrap confidence intervals of the fitted parameters.
+
+    Each resample of runs (with replacement, weights kept) is refitted by taking the best setting, under
+    the resample's weights, of the fit's own search design plus a dense local design around the fit and
+    the fit itself: a refit that costs a matrix-vector product. Its resolution is the local design's
+    (n_local points in a box of +-fraction of each range).
+
+    Returns:
+        One row per free parameter: parameter, value (the fit), ci_low, ci_high, boot_std, plus the same for
+        the derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
+    """
+    w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
+    local = np.concatenate(
+        [local_design(space, result.values, n_local, fraction=fraction, seed=seed), result.values[None]]
+    )
+    res = search(
+        data.parts,
+        space,
+        local,
+        data.config,
+        run_counts=data.run_counts,
+        progress=progress,
+        desc=f"bootstrap design {space.kind}",
+    )
+    if result.search is not None:
+        res = result.search.concat(res)
+    rng = np.random.default_rng(seed)
+    n = data.n_runs
+    counts = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(n_boot)]).astype(
+        np.float64
+    )
+    objective = res.objective(counts * w[None])  # [n_boot, S]
+    picks = res.values[np.argmin(objective, axis=1)]  # [n_boot, d]
+    names, fitted = list(space.names), list(result.values)
+    if space.kind == "sve" and {"w_a", "u_b"} <= set(names):
+        ia, iu = names.index("w_a"), names.index("u_b")
+
+        def simplex(v):
+            return np.stack(
+                [v[..., ia], (1 - v[..., ia]) * v[..., iu], (1 - v[..., ia]) * (1 - v[..., iu])], -1
+            )
+
+        picks = np.concatenate([picks, simplex(picks)], axis=1)
+        fitted += list(simplex(np.asarray(result.values)))
+        names += ["weight_a", "weight_b", "weight_c"]
+    alpha = (1 - level) / 2
+    low, high = np.quantile(picks, [alpha, 1 - alpha], axis=0)
+    return pd.DataFrame(
+        {
+            "family": space.kind,
+            "parameter": names,
+            "value": fitted,
+            "ci_low": low,
+            "ci_high": high,
+            "boot_std": picks.std(axis=0),
+            "n_boot": n_boot,
+        }
+    )
+
+
+__all__ = [
+    "Fold",
+    "kfold",
+    "leave_one_out",
+    "bootstrap_weighted_mean",
+    "CrossValidation",
+    "cross_validate",
+    "compare",
+    "local_design",
+    "parameter_bootstrap",
+    "rule_results",
+    "preset_space",
+]

@@ -1,0 +1,510 @@
+"""Fit a switching rule's weights and thresholds to minimise position error over many logs.
+
+Three stages, all on the same replay (docs/fitting.md):
+
+1. Batched search (jsve.fitting._search): a quasi-random design of thousands of settings (Sobol by default,
+   the seed's presets added) evaluated on every run at once; the per-run loss matrix is kept, so that
+   cross-validation folds and bootstrap resamples reweight it instead of replaying again.
+2. optimistix Nelder-Mead on the exact (hard) objective, started from the best searched points, in the
+   unconstrained coordinates of jsve.fitting._space (so every iterate is a valid rule).
+3. Optionally, optimistix BFGS on the relaxed objective (SoftLogic with a temperature, annealed towards
+   0; jsve.core._objective), whose result is kept only when the hard objective agrees it is better.
+
+    data = FitData.from_runs(runs)
+    result = fit(data, sve_space(), group_weights(data.meta))
+    result.rule            # an SVERule; jsve.core._rules.rule_to_dict(result.rule) for JSON
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pandas as pd
+
+from jsve.core._batch import LogBatch, bucket_by_length, iter_chunks
+from jsve.core._objective import ObjectiveConfig, run_losses
+from jsve.core._replay import batch_features
+from jsve.core._rules import PRESETS, SoftLogic, preset
+from jsve.core._sve import FrameFeatures
+from jsve.fitting._search import SearchBatch, SearchResult, design, prepare, search, search_chunk
+from jsve.fitting._space import ParamSpace
+from jsve.io._batching import Bucket, from_runs
+from jsve.io._schema import RunLog
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TEMPERATURES = (0.1, 0.03, 0.01, 0.003)
+"""Annealing schedule of the relaxed fit, in SVE units (x250 for inlier thresholds). It starts broad:
+at a temperature much below the distance of most scores from the thresholds every sigmoid saturates
+and the relaxed objective is flat (no gradient) far from the optimum."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# Data
+
+
+@dataclass
+class FitData:
+    """Logs prepared once for fitting: batches, features and the search kernel's layout.
+
+    Attributes:
+        batches: LogBatch per part of runs (keypoint bins dropped: the features hold what rules need).
+        features: FrameFeatures per part.
+        parts: SearchBatch per part (jsve.fitting._search.prepare).
+        run_counts: real runs per part (parts may end in padding runs).
+        meta: one row per real run, in part order (the order of every [R] array of this module).
+        config: how runs are scored.
+        buckets: the full buckets (with keypoint bins) the data came from, for jsve.evaluation._evaluate; their
+            runs, concatenated, are the runs of `meta`.
+    """
+
+    batches: list[LogBatch]
+    features: list[FrameFeatures]
+    parts: list[SearchBatch]
+    run_counts: list[int]
+    meta: pd.DataFrame
+    config: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    buckets: list[Bucket] = field(default_factory=list)
+
+    @property
+    def n_runs(self) -> int:
+        return int(sum(self.run_counts))
+
+    @property
+    def n_frames(self) -> int:
+        """Valid frames over all runs."""
+        return int(sum(float(jnp.sum(b.valid)) for b in self.batches))
+
+    @classmethod
+    def from_buckets(
+        cls, groups: Sequence[Bucket], config: ObjectiveConfig | None = None, *, runs_per_part: int = 4096
+    ) -> FitData:
+        """FitData of length buckets (jsve.io._batching.buckets); buckets with more than `runs_per_part` runs
+        are cut into parts of that many runs (the last padded)."""
+        batches, features, parts, counts, metas = [], [], [], [], []
+        for bucket in groups:
+            n = bucket.batch.n_runs
+            size = min(n, runs_per_part)
+            for runs, chunk in iter_chunks(bucket.batch, size):
+                feats = batch_features(chunk)
+                slim = eqx.tree_at(
+                    lambda b: b.bins, chunk, jnp.zeros((chunk.n_runs, 1, 64), chunk.bins.dtype)
+                )
+                batches.append(slim)
+                features.append(feats)
+                parts.append(prepare(slim, feats))
+                counts.append(runs.stop - runs.start)
+                metas.append(bucket.meta.iloc[runs.start : runs.stop])
+        meta = pd.concat(metas, ignore_index=True)
+        return cls(batches, features, parts, counts, meta, config or ObjectiveConfig(), list(groups))
+
+    @classmethod
+    def from_runs(
+        cls,
+        runs: Sequence[RunLog],
+        config: ObjectiveConfig | None = None,
+        *,
+        dtype=jnp.float32,
+        max_padding: float = 0.1,
+    ) -> FitData:
+        """FitData of parsed runs (bucketed by length, float32 by default)."""
+        if not runs:
+            raise ValueError("FitData.from_runs: no runs")
+        missing = [r.source for r in runs if not r.has_ground_truth]
+        if missing:
+            raise ValueError(
+                f"FitData.from_runs: {len(missing)} runs have no ground truth (first: {missing[0]})"
+            )
+        # jsve.core._batch groups by padding; groups that pad to the same length (e.g. equal-length runs) are
+        # merged here, since for fitting every extra shape is another compilation.
+        lengths = [len(r.frames) for r in runs]
+        groups: list[list[int]] = []
+        for group in bucket_by_length(lengths, max_padding=max_padding):
+            padded = _padded(max(lengths[i] for i in group))
+            if groups and _padded(max(lengths[i] for i in groups[-1])) == padded:
+                groups[-1].extend(int(i) for i in group)
+            else:
+                groups.append([int(i) for i in group])
+        return cls.from_buckets([from_runs([runs[i] for i in g], dtype=dtype) for g in groups], config)
+
+    def split_weights(self, weights) -> list[jax.Array]:
+        """Per-part weight arrays (padding runs 0) of [R] run weights."""
+        w = np.asarray(weights, np.float64)
+        if w.shape != (self.n_runs,):
+            raise ValueError(f"weights must have shape ({self.n_runs},) (one per run), got {w.shape}")
+        out, start = [], 0
+        for part, n in zip(self.parts, self.run_counts, strict=True):
+            chunk = np.zeros(part.n_runs)
+            chunk[:n] = w[start : start + n]
+            out.append(jnp.asarray(chunk, part.t.dtype))
+            start += n
+        return out
+
+
+def _padded(n: int, multiple: int = 64) -> int:
+    """jsve.core._batch's padded length of a run of n frames."""
+    return max(multiple, -(-n // multiple) * multiple)
+
+
+def _default_weights(data: FitData, weights) -> np.ndarray:
+    w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
+    if w.shape != (data.n_runs,) or np.any(w < 0) or not np.any(w > 0):
+        raise ValueError(f"weights must be {data.n_runs} non-negative numbers, not all 0")
+    return w
+
+
+# ---------------------------------------------------------------------------------------------------
+# Objectives of one setting
+
+
+def _hard_value(z, parts, weights, space: ParamSpace, config: ObjectiveConfig):
+    """Weighted mean hard loss of the setting with unconstrained coordinates z (the search kernel, S = 1)."""
+    rule = space.rule(space.values_from_z(z)[None])
+    total = sum(
+        jnp.sum(w * search_chunk(sb, rule, config).loss[0]) for sb, w in zip(parts, weights, strict=True)
+    )
+    return total / sum(jnp.sum(w) for w in weights)
+
+
+def _relaxed_value(z, batches, features, weights, temperature, space: ParamSpace, config: ObjectiveConfig):
+    """Weighted mean relaxed loss (SoftLogic(temperature x score scale)); differentiable in z."""
+    rule = space.rule(space.values_from_z(z))
+    logic = SoftLogic(temperature * space.score_scale)
+    total = sum(
+        jnp.sum(w * run_losses(b, rule, f, config, logic=logic).loss)
+        for b, f, w in zip(batches, features, weights, strict=True)
+    )
+    return total / sum(jnp.sum(w) for w in weights)
+
+
+def hard_objective(data: FitData, space: ParamSpace, values, weights=None) -> float:
+    """The hard objective (metres) of one setting's free values."""
+    w = data.split_weights(_default_weights(data, weights))
+    return float(
+        _hard_jit(
+            space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype)), data.parts, w, space, data.config
+        )
+    )
+
+
+def relaxed_objective(data: FitData, space: ParamSpace, values, temperature: float, weights=None) -> float:
+    """The relaxed objective (metres) of one setting at a temperature in SVE units."""
+    w = data.split_weights(_default_weights(data, weights))
+    z = space.z_from_values(jnp.asarray(values, data.batches[0].t.dtype))
+    return float(
+        _relaxed_jit(z, data.batches, data.features, w, jnp.asarray(temperature, z.dtype), space, data.config)
+    )
+
+
+_hard_jit = eqx.filter_jit(_hard_value)
+_relaxed_jit = eqx.filter_jit(_relaxed_value)
+_relaxed_grad = eqx.filter_jit(jax.value_and_grad(_relaxed_value))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Optimisers
+
+
+@eqx.filter_jit
+def _nelder_mead(z0, parts, weights, space, config, max_steps, adelta, rtol, atol):
+    def fn(z, args):
+        return _hard_value(z, args[0], args[1], space, config)
+
+    solver = optx.NelderMead(rtol=rtol, atol=atol, rdelta=0.0, adelta=adelta)
+    sol = optx.minimise(fn, solver, z0, args=(parts, weights), max_steps=max_steps, throw=False)
+    return sol.value, sol.stats["num_steps"]
+
+
+@eqx.filter_jit
+def _bfgs(z0, batches, features, weights, temperature, space, config, max_steps, rtol, atol):
+    def fn(z, args):
+        return _relaxed_value(z, args[0], args[1], args[2], args[3], space, config)
+
+    solver = optx.BFGS(rtol=rtol, atol=atol)
+    sol = optx.minimise(
+        fn, solver, z0, args=(batches, features, weights, temperature), max_steps=max_steps, throw=False
+    )
+    return sol.value, sol.stats["num_steps"]
+
+
+def nelder_mead(
+    data: FitData,
+    space: ParamSpace,
+    start,
+    weights=None,
+    *,
+    max_steps: int = 200,
+    step: float = 0.5,
+    rtol: float = 1e-4,
+    atol: float = 1e-4,
+) -> tuple[np.ndarray, float, int]:
+    """optimistix Nelder-Mead on the hard objective from `start` (free values).
+
+    The simplex starts at the start's unconstrained coordinates z plus `step` along each axis (a step
+    of 0.5 in z moves a value at mid-box by ~12 % of its box). The hard objective is piecewise constant
+    in the thresholds (finitely many frames), which a simplex method handles where gradients cannot.
+
+    Returns:
+        (values [d], hard objective at them, steps taken).
+    """
+    w = data.split_weights(_default_weights(data, weights))
+    z0 = space.z_from_values(jnp.asarray(start, data.parts[0].t.dtype))
+    z, steps = _nelder_mead(
+        z0, data.parts, w, space, data.config, int(max_steps), float(step), float(rtol), float(atol)
+    )
+    values = np.asarray(space.values_from_z(z), np.float64)
+    return values, float(_hard_jit(z, data.parts, w, space, data.config)), int(steps)
+
+
+def relaxed_fit(
+    data: FitData,
+    space: ParamSpace,
+    start,
+    weights=None,
+    *,
+    temperatures: Sequence[float] = DEFAULT_TEMPERATURES,
+    max_steps: int = 60,
+    rtol: float = 1e-4,
+    atol: float = 1e-5,
+) -> tuple[np.ndarray, list[dict]]:
+    """optimistix BFGS on the relaxed objective, annealing the temperature (SVE units) from high to low.
+
+    Returns:
+        (values [d] after the last temperature, one dict per temperature: temperature, relaxed value,
+        hard value, steps).
+    """
+    w = data.split_weights(_default_weights(data, weights))
+    dtype = data.batches[0].t.dtype
+    z = space.z_from_values(jnp.asarray(start, dtype))
+    history = []
+    for temperature in temperatures:
+        tau = jnp.asarray(temperature, dtype)
+        z, steps = _bfgs(
+            z,
+            data.batches,
+            data.features,
+            w,
+            tau,
+            space,
+            data.config,
+            int(max_steps),
+            float(rtol),
+            float(atol),
+        )
+        relaxed = float(_relaxed_jit(z, data.batches, data.features, w, tau, space, data.config))
+        hard = float(_hard_jit(z, data.parts, w, space, data.config))
+        history.append(
+            {"temperature": float(temperature), "relaxed": relaxed, "hard": hard, "steps": int(steps)}
+        )
+        log.info(
+            "relaxed fit T=%g: relaxed %.5f m, hard %.5f m (%d steps)", temperature, relaxed, hard, steps
+        )
+    return np.asarray(space.values_from_z(z), np.float64), history
+
+
+# ---------------------------------------------------------------------------------------------------
+# The whole fit
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """How `fit` searches and optimises.
+
+    Attributes:
+        design: "sobol", "halton" or "random"; n_search: its number of settings; seed: its seed.
+        include_presets: add the family's presets (and `starts`) to the design.
+        n_starts: Nelder-Mead runs, from the best searched settings; nm_steps: their step limit;
+            nm_step: initial simplex size in unconstrained coordinates.
+        relaxed: also run the annealed BFGS on the relaxed objective from the best point so far.
+        temperatures, bfgs_steps: its schedule (SVE units) and step limit per temperature.
+    """
+
+    design: str = "sobol"
+    n_search: int = 2048
+    seed: int = 0
+    include_presets: bool = True
+    n_starts: int = 2
+    nm_steps: int = 200
+    nm_step: float = 0.5
+    relaxed: bool = False
+    temperatures: tuple[float, ...] = DEFAULT_TEMPERATURES
+    bfgs_steps: int = 40
+
+
+@dataclass
+class FitResult:
+    """A fitted rule and how it was found.
+
+    Attributes:
+        space: the ParamSpace. values: [d] fitted free values. rule: the fitted rule.
+        objective: hard objective (metres) on the fitting weights; failure_rate, coverage: weighted.
+        stages: one dict per stage (search, nelder_mead, relaxed) with its objective and values.
+        search: the batched search (per-run matrices), for reuse.
+    """
+
+    space: ParamSpace
+    values: np.ndarray
+    objective: float
+    failure_rate: float
+    coverage: float
+    stages: list[dict]
+    search: SearchResult | None = None
+
+    @property
+    def rule(self):
+        return self.space.rule(jnp.asarray(self.values))
+
+    def params(self) -> dict[str, float]:
+        """Every parameter of the rule by name (free and fixed)."""
+        out = dict(self.space.fixed)
+        out.update({k: float(v) for k, v in zip(self.space.names, self.values, strict=True)})
+        return out
+
+
+def _all_params(rule) -> dict[str, float]:
+    out = {k: float(getattr(rule.thresholds, k)) for k in ("imu_init", "not_init", "reloc", "recovery")}
+    if hasattr(rule, "combination"):
+        out.update({k: float(getattr(rule.combination, k)) for k in ("w_a", "u_b", "p", "q", "rho")})
+    return out
+
+
+def preset_values(space: ParamSpace) -> dict[str, np.ndarray]:
+    """The presets of the space's family that lie inside its box and agree with its fixed values."""
+    out = {}
+    for name in PRESETS:
+        if (space.kind == "inliers") != (name == "orbslam3"):
+            continue
+        rule = preset(name)
+        params = _all_params(rule)
+        values = space.values_of(rule)
+        if all(np.isclose(params[k], v) for k, v in space.fixed) and space.contains(values):
+            out[name] = values
+    return out
+
+
+def search_design(space: ParamSpace, config: FitConfig, starts: Sequence[np.ndarray] = ()) -> np.ndarray:
+    """The fit's design: config.n_search points of the named design, plus presets and given starts."""
+    values = np.asarray(
+        space.values_from_unit(design(config.design, config.n_search, space.dim, seed=config.seed))
+    )
+    extra = list(preset_values(space).values()) if config.include_presets else []
+    extra += [np.asarray(s, np.float64) for s in starts]
+    if extra:
+        values = np.concatenate([values, np.stack(extra)])
+    return values
+
+
+def fit(
+    data: FitData,
+    space: ParamSpace,
+    weights=None,
+    config: FitConfig = FitConfig(),  # noqa: B008
+    *,
+    search_result: SearchResult | None = None,
+    progress: bool = True,
+) -> FitResult:
+    """Fit the free parameters of `space` to minimise the weighted hard objective over `data`.
+
+    Arguments:
+        weights: [R] run weights (jsve.core._objective.group_weights; 0 excludes a run, e.g. a held-out fold).
+        search_result: a search already run on these data (cross-validation reuses one for all folds).
+    Returns:
+        FitResult; its stages record the objective after the search, Nelder-Mead and the relaxed fit.
+    """
+    w = _default_weights(data, weights)
+    stages = []
+    t0 = time.perf_counter()
+    if search_result is None:
+        search_result = search(
+            data.parts,
+            space,
+            search_design(space, config),
+            data.config,
+            run_counts=data.run_counts,
+            progress=progress,
+            desc=f"search {space.kind}",
+        )
+    obj = search_result.objective(w)
+    order = np.argsort(obj, kind="stable")
+    best_values, best = search_result.values[order[0]], float(obj[order[0]])
+    stages.append(
+        {
+            "stage": "search",
+            "objective": best,
+            "values": best_values.tolist(),
+            "settings": int(len(obj)),
+            "seconds": time.perf_counter() - t0,
+        }
+    )
+    log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
+
+    starts = [search_result.values[i] for i in order[: max(config.n_starts, 0)]]
+    for i, start in enumerate(starts):
+        t1 = time.perf_counter()
+        values, value, steps = nelder_mead(
+            data, space, start, w, max_steps=config.nm_steps, step=config.nm_step
+        )
+        stages.append(
+            {
+                "stage": f"nelder_mead_{i}",
+                "objective": value,
+                "values": values.tolist(),
+                "steps": steps,
+                "seconds": time.perf_counter() - t1,
+            }
+        )
+        log.info("%s Nelder-Mead from start %d: %.5f m (%d steps)", space.kind, i, value, steps)
+        if value < best:
+            best, best_values = value, values
+    if config.relaxed:
+        t1 = time.perf_counter()
+        values, history = relaxed_fit(
+            data, space, best_values, w, temperatures=config.temperatures, max_steps=config.bfgs_steps
+        )
+        value = history[-1]["hard"] if history else float("inf")
+        stages.append(
+            {
+                "stage": "relaxed",
+                "objective": value,
+                "values": values.tolist(),
+                "history": history,
+                "seconds": time.perf_counter() - t1,
+            }
+        )
+        if value < best:
+            best, best_values = value, values
+    final = search(
+        data.parts, space, best_values[None], data.config, run_counts=data.run_counts, progress=False
+    )
+    return FitResult(
+        space=space,
+        values=np.asarray(best_values, np.float64),
+        objective=float(final.objective(w)[0]),
+        failure_rate=float(final.failure_rate(w)[0]),
+        coverage=float(final.coverage_mean(w)[0]),
+        stages=stages,
+        search=search_result,
+    )
+
+
+__all__ = [
+    "FitData",
+    "FitConfig",
+    "FitResult",
+    "fit",
+    "nelder_mead",
+    "relaxed_fit",
+    "hard_objective",
+    "relaxed_objective",
+    "preset_values",
+    "search_design",
+    "DEFAULT_TEMPERATURES",
+]

@@ -1,0 +1,438 @@
+"""A whole fitting study over a set of logs, written to one output folder, stage by stage.
+
+    evaluate the presets -> fit each family on all runs -> evaluate the fitted rules -> cross-validate
+    (k-fold, leave-one-sequence-out, leave-one-disturbance-out) -> bootstrap the fitted parameters ->
+    objective over the two main thresholds -> SVE per level -> (jsve.report._report renders it all)
+
+Every stage writes its tables atomically (a temporary name, then a rename) as Parquet and CSV, and
+records itself in `stages.json` with a fingerprint of the configuration it ran under; a rerun with the
+same configuration skips finished stages, so an interrupted study resumes where it stopped. `jsve fit`
+and `jsve demo` are thin layers over `run_study`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig, group_weights
+from jsve.core._rules import PRESETS, preset, rule_to_dict
+from jsve.core._sve import EQ1, OPTION1, OPTION2, Combination
+from jsve.evaluation._aggregate import aggregate
+from jsve.evaluation._evaluate import evaluate
+from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
+from jsve.fitting._fit import FitConfig, FitData, FitResult, fit
+from jsve.fitting._search import SearchResult, grid_design, search
+from jsve.fitting._space import ParamSpace, inlier_space, space_from_dict, sve_space
+from jsve.io import _atomic as atomic
+
+log = logging.getLogger(__name__)
+
+GROUP_COLUMNS = ("sequence", "disturbance", "level")
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """Everything a study's results depend on besides the logs (a sweep's TOML file sets it).
+
+    Attributes:
+        families: the rule families to fit ("sve", "inliers"); spaces: their ParamSpace descriptions
+            (None: the defaults of jsve.fitting._space).
+        balance_by: metadata columns whose groups count equally in the objective ([]: every run 1).
+        failure_penalty, align, min_coverage: the objective (jsve.core._objective.ObjectiveConfig).
+        fit: jsve.fitting._fit.FitConfig.
+        kfold: folds of the k-fold cross-validation (0: none); leave_one_out: metadata columns to leave
+            out one value at a time (skipped when a column has a single value).
+        n_boot: bootstrap resamples for every CI; level: their confidence level.
+        n_local, local_fraction: the local design of the parameter bootstrap.
+        heatmap: (x, y, n): the two thresholds of the heat map and its points per axis.
+        seed: seeds folds and bootstraps.
+    """
+
+    families: tuple[str, ...] = ("sve", "inliers")
+    spaces: dict = field(default_factory=dict)
+    balance_by: tuple[str, ...] = GROUP_COLUMNS
+    failure_penalty: float = DEFAULT_FAILURE_PENALTY_M
+    align: str = "se3"
+    min_coverage: float = 0.0
+    fit: FitConfig = FitConfig()
+    kfold: int = 5
+    leave_one_out: tuple[str, ...] = ("sequence", "disturbance")
+    n_boot: int = 2000
+    level: float = 0.95
+    n_local: int = 1024
+    local_fraction: float = 0.15
+    heatmap: tuple = ("imu_init", "recovery", 25)
+    seed: int = 0
+
+    def objective(self) -> ObjectiveConfig:
+        return ObjectiveConfig(
+            failure_penalty=self.failure_penalty, align=self.align, min_coverage=self.min_coverage
+        )
+
+    def space(self, family: str) -> ParamSpace:
+        if family in self.spaces:
+            return space_from_dict({"kind": family, **self.spaces[family]})
+        if family == "sve":
+            return sve_space()
+        if family == "inliers":
+            return inlier_space()
+        raise ValueError(f"unknown family {family!r}: choose sve or inliers")
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out["fit"] = asdict(self.fit)
+        return out
+
+    @classmethod
+    def from_dict(cls, spec: dict, source: str = "<config>") -> StudyConfig:
+        """From a parsed TOML/JSON table: top-level keys as the attributes, `[fit]` a sub-table."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(spec) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown study settings {unknown}; known: {sorted(known)}")
+        spec = dict(spec)
+        if "fit" in spec:
+            fit_known = {f.name for f in fields(FitConfig)}
+            bad = sorted(set(spec["fit"]) - fit_known)
+            if bad:
+                raise ValueError(f"{source}: unknown [fit] settings {bad}; known: {sorted(fit_known)}")
+            fit_spec = dict(spec["fit"])
+            if "temperatures" in fit_spec:
+                fit_spec["temperatures"] = tuple(fit_spec["temperatures"])
+            spec["fit"] = FitConfig(**fit_spec)
+        for key in ("families", "balance_by", "leave_one_out", "heatmap"):
+            if key in spec:
+                spec[key] = tuple(spec[key])
+        return cls(**spec)
+
+
+def fingerprint(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Atomic outputs
+
+
+def write_table(table: pd.DataFrame, out: Path, name: str) -> None:
+    """`name`.parquet and `name`.csv, each written under a temporary name and renamed."""
+    for suffix in (".parquet", ".csv"):
+        atomic.write_table(table, Path(out) / f"{name}{suffix}")
+
+
+def read_table(out: Path, name: str) -> pd.DataFrame:
+    return pd.read_parquet(Path(out) / f"{name}.parquet")
+
+
+def write_json(obj, path: Path) -> None:
+    atomic.write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+class Stages:
+    """stages.json: which stages finished under which configuration fingerprint."""
+
+    def __init__(self, out: Path, config_fp: str, data_fp: str):
+        self.path = out / "stages.json"
+        self.key = {"config": config_fp, "data": data_fp}
+        self.done = {}
+        if self.path.is_file():
+            record = json.loads(self.path.read_text())
+            if record.get("key") == self.key:
+                self.done = record.get("done", {})
+            else:
+                log.info("%s: configuration or data changed, every stage runs again", self.path)
+
+    def run(self, name: str, fn: Callable[[], dict | None], outputs: Sequence[Path]) -> dict:
+        if name in self.done and all(p.exists() for p in outputs):
+            log.info("stage %s: done already, skipped", name)
+            return self.done[name]
+        started = time.perf_counter()
+        info = fn() or {}
+        info["seconds"] = time.perf_counter() - started
+        self.done[name] = info
+        write_json({"key": self.key, "done": self.done}, self.path)
+        return info
+
+
+# ---------------------------------------------------------------------------------------------------
+# Tables of the study
+
+
+def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.DataFrame:
+    """Per (disturbance, level, combination): mean and std of the SVE score over all valid frames, and
+    of S_a (at the combination's rho), S_b and S_c (seed Figs 4-6)."""
+    rows = []
+    meta = data.meta
+    for name, combo in combinations.items():
+        sums = []
+        for feats, batch, n_real in zip(data.features, data.batches, data.run_counts, strict=True):
+            valid = np.asarray(batch.valid[:n_real], np.float64)
+            values = {
+                "sve": combo(feats.inlier_ratio, feats.s_b, feats.s_c),
+                "s_a": jnp.clip(feats.inlier_ratio / combo.rho, 0.0, 1.0),
+                "s_b": feats.s_b,
+                "s_c": feats.s_c,
+            }
+            part = {"count": valid.sum(1)}
+            for key, v in values.items():
+                x = np.asarray(v[:n_real], np.float64)
+                part[f"{key}_sum"] = (x * valid).sum(1)
+                part[f"{key}_sq"] = (x * x * valid).sum(1)
+            sums.append(pd.DataFrame(part))
+        per_run = pd.concat(sums, ignore_index=True)
+        per_run["disturbance"] = meta["disturbance"].to_numpy()
+        per_run["level"] = meta["level"].to_numpy()
+        grouped = per_run.groupby(["disturbance", "level"], sort=True).sum(numeric_only=True)
+        for (dist, level), g in grouped.iterrows():
+            row = {"disturbance": dist, "level": level, "combination": name, "frames": int(g["count"])}
+            for key in ("sve", "s_a", "s_b", "s_c"):
+                mean = g[f"{key}_sum"] / g["count"]
+                row[f"{key}_mean"] = mean
+                row[f"{key}_std"] = float(np.sqrt(max(g[f"{key}_sq"] / g["count"] - mean * mean, 0.0)))
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def heatmap_table(data: FitData, space: ParamSpace, values, weights, x: str, y: str, n: int) -> pd.DataFrame:
+    """The objective over a grid of two free parameters (the others at `values`), with failure rate."""
+    if x not in space.names or y not in space.names:
+        raise ValueError(f"heat map axes {x!r}, {y!r} must be free parameters of {space.names}")
+    ix, iy = space.names.index(x), space.names.index(y)
+    unit = grid_design([n, n])
+    grid = np.repeat(np.asarray(values, np.float64)[None], len(unit), axis=0)
+    grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
+    grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
+    res = search(data.parts, space, grid, data.config, run_counts=data.run_counts, progress=False)
+    return pd.DataFrame(
+        {
+            "family": space.kind,
+            "x_name": x,
+            "y_name": y,
+            "x": grid[:, ix],
+            "y": grid[:, iy],
+            "objective": res.objective(weights),
+            "failure_rate": res.failure_rate(weights),
+        }
+    )
+
+
+def _fit_record(name: str, result: FitResult) -> dict:
+    return {
+        "family": name,
+        "space": result.space.describe(),
+        "values": result.values.tolist(),
+        "params": result.params(),
+        "rule": rule_to_dict(result.rule),
+        "objective": result.objective,
+        "failure_rate": result.failure_rate,
+        "coverage": result.coverage,
+        "stages": result.stages,
+    }
+
+
+def _save_search(result: SearchResult, path: Path) -> None:
+    tmp = path.with_name(path.name + ".partial.npz")
+    np.savez_compressed(
+        tmp,
+        values=result.values,
+        loss=result.loss,
+        failed=result.failed,
+        rmse=result.rmse,
+        coverage=result.coverage,
+    )
+    os.replace(tmp, path)
+
+
+def _load_search(path: Path) -> SearchResult:
+    with np.load(path) as z:
+        return SearchResult(
+            values=z["values"], loss=z["loss"], failed=z["failed"], rmse=z["rmse"], coverage=z["coverage"]
+        )
+
+
+def _folds(meta: pd.DataFrame, config: StudyConfig):
+    folds = []
+    if config.kfold:
+        folds += kfold(len(meta), min(config.kfold, len(meta)), seed=config.seed)
+    for column in config.leave_one_out:
+        if column in meta.columns and meta[column].astype(str).nunique() >= 2:
+            folds += leave_one_out(meta, column)
+        else:
+            log.info("leave-one-%s-out skipped: fewer than 2 values", column)
+    return folds
+
+
+def run_study(
+    data: FitData,
+    out_dir: str | os.PathLike,
+    config: StudyConfig = StudyConfig(),
+    *,  # noqa: B008
+    progress: bool = True,
+    data_description: dict | None = None,
+) -> dict:
+    """Run every stage of a fitting study on `data` and write its tables to `out_dir`.
+
+    Arguments:
+        data: FitData (with its buckets, for jsve.evaluation._evaluate); its objective config must be config's.
+        data_description: JSON-ready facts about the data (source, simulator settings) for the report.
+    Returns:
+        The stage records (seconds and key results per stage).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if data.config != config.objective():
+        data = replace(data, config=config.objective())
+    meta = data.meta
+    data_fp = fingerprint(
+        {"runs": meta.get("run_id", meta.index).astype(str).tolist(), "frames": data.n_frames}
+    )
+    stages = Stages(out, fingerprint(config.to_dict()), data_fp)
+    by = [c for c in config.balance_by if c in meta.columns]
+    weights = group_weights(meta, by)
+    write_json(
+        {
+            "config": config.to_dict(),
+            "data": data_description or {},
+            "n_runs": data.n_runs,
+            "n_frames": data.n_frames,
+            "balance_by": by,
+        },
+        out / "study.json",
+    )
+    spaces = {f: config.space(f) for f in config.families}
+    eval_kwargs = dict(align=config.align, min_coverage=config.min_coverage, progress=progress)
+
+    def evaluate_presets():
+        tables = [evaluate(data.buckets, preset(name), rule_name=name, **eval_kwargs) for name in PRESETS]
+        write_table(pd.concat(tables, ignore_index=True), out, "runs_presets")
+
+    stages.run("evaluate_presets", evaluate_presets, [out / "runs_presets.parquet"])
+
+    fits: dict[str, FitResult] = {}
+    for family, space in spaces.items():
+        json_path, search_path = out / f"fitted_{family}.json", out / f"search_{family}.npz"
+
+        def do_fit(family=family, space=space, json_path=json_path, search_path=search_path):
+            result = fit(data, space, weights, config.fit, progress=progress)
+            _save_search(result.search, search_path)
+            write_json(_fit_record(family, result), json_path)
+            return {"objective": result.objective, "values": result.values.tolist()}
+
+        stages.run(f"fit_{family}", do_fit, [json_path, search_path])
+        record = json.loads(json_path.read_text())
+        fits[family] = FitResult(
+            space=space,
+            values=np.asarray(record["values"]),
+            objective=record["objective"],
+            failure_rate=record["failure_rate"],
+            coverage=record["coverage"],
+            stages=record["stages"],
+            search=_load_search(search_path),
+        )
+
+    def evaluate_fitted():
+        tables = [
+            evaluate(data.buckets, r.rule, rule_name=f"fitted-{f}", **eval_kwargs) for f, r in fits.items()
+        ]
+        per_run = pd.concat([read_table(out, "runs_presets")] + tables, ignore_index=True)
+        write_table(per_run, out, "runs")
+        group = [c for c in ("disturbance", "level") if c in per_run.columns]
+        write_table(
+            aggregate(per_run, group + ["rule"], n_boot=config.n_boot, level=config.level, seed=config.seed),
+            out,
+            "summary",
+        )
+
+    stages.run("evaluate_fitted", evaluate_fitted, [out / "runs.parquet", out / "summary.parquet"])
+
+    def crossvalidate():
+        folds = _folds(meta, config)
+        if not folds:
+            return {"folds": 0}
+        cv = cross_validate(
+            data,
+            spaces,
+            folds,
+            weights,
+            config.fit,
+            searches={f: r.search for f, r in fits.items()},
+            progress=progress,
+        )
+        write_table(cv.heldout, out, "heldout")
+        write_table(cv.params, out, "cv_params")
+        write_table(
+            compare(cv.heldout, n_boot=config.n_boot, level=config.level, seed=config.seed),
+            out,
+            "heldout_summary",
+        )
+        return {"folds": len(folds)}
+
+    stages.run("cross_validation", crossvalidate, [out / "heldout_summary.parquet"])
+
+    def bootstrap():
+        tables = [
+            parameter_bootstrap(
+                data,
+                spaces[f],
+                r,
+                weights,
+                n_local=config.n_local,
+                fraction=config.local_fraction,
+                n_boot=config.n_boot,
+                level=config.level,
+                seed=config.seed,
+                progress=progress,
+            )
+            for f, r in fits.items()
+        ]
+        write_table(pd.concat(tables, ignore_index=True), out, "params")
+
+    stages.run("parameter_bootstrap", bootstrap, [out / "params.parquet"])
+
+    def heatmap():
+        x, y, n = config.heatmap
+        tables = [
+            heatmap_table(data, spaces[f], r.values, weights, x, y, int(n))
+            for f, r in fits.items()
+            if x in spaces[f].names and y in spaces[f].names
+        ]
+        if tables:
+            write_table(pd.concat(tables, ignore_index=True), out, "heatmap")
+
+    stages.run("heatmap", heatmap, [out / "heatmap.parquet"] if config.heatmap else [])
+
+    def sve_levels():
+        combos = {
+            "sve-eq1": Combination(**EQ1),
+            "sve-option1": Combination(**OPTION1),
+            "sve-option2": Combination(**OPTION2),
+        }
+        if "sve" in fits:
+            combos["fitted-sve"] = fits["sve"].rule.combination
+        if {"disturbance", "level"} <= set(meta.columns):
+            write_table(sve_level_table(data, combos), out, "sve_levels")
+
+    stages.run("sve_levels", sve_levels, [out / "sve_levels.parquet"])
+    return stages.done
+
+
+__all__ = ["StudyConfig", "run_study", "sve_level_table", "heatmap_table", "write_table", "read_table"]

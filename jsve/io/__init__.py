@@ -1,0 +1,32 @@
+"""jsve.io: the file edge. Tracking logs (format v1), ground truth, Parquet, importers, side files.
+
+Every reader raises `LogFormatError` naming file, line, column and value; every writer writes to a
+temporary name and renames, so no half-written output is ever left under the final name.
+"""
+
+from jsve.io import _schema as schema
+from jsve.io._batching import Bucket as Bucket
+from jsve.io._batching import buckets as buckets
+from jsve.io._batching import from_runs as from_runs
+from jsve.io._errors import LogFormatError as LogFormatError
+from jsve.io._errors import LogIncompleteError as LogIncompleteError
+from jsve.io._groundtruth import DEFAULT_MAX_GAP_NS as DEFAULT_MAX_GAP_NS
+from jsve.io._groundtruth import GT_FORMATS as GT_FORMATS
+from jsve.io._groundtruth import GroundTruth as GroundTruth
+from jsve.io._groundtruth import associate_ground_truth as associate_ground_truth
+from jsve.io._importers import read_haggart_sve as read_haggart_sve
+from jsve.io._importers import read_seed_sve_csv as read_seed_sve_csv
+from jsve.io._importers import read_sve_output as read_sve_output
+from jsve.io._ingest import ReadResult as ReadResult
+from jsve.io._ingest import ingest as ingest
+from jsve.io._ingest import read_logs as read_logs
+from jsve.io._ingest import read_parquet as read_parquet
+from jsve.io._ingest import write_quarantine_report as write_quarantine_report
+from jsve.io._keypoints import KeypointLog as KeypointLog
+from jsve.io._keypoints import keypoints_path as keypoints_path
+from jsve.io._keypoints import read_keypoints as read_keypoints
+from jsve.io._keypoints import write_keypoints as write_keypoints
+from jsve.io._logs import read_log as read_log
+from jsve.io._logs import validate_run as validate_run
+from jsve.io._logs import write_log as write_log
+from jsve.io._schema import RunLog as RunLog

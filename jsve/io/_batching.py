@@ -1,0 +1,134 @@
+"""Parsed logs (RunLog) -> LogBatch: stacking runs into padded arrays, with host-side metadata.
+
+The LogBatch pytree and its pure array helpers live in jsve.core; this module is the I/O edge that
+fills it from format-v1 runs (pandas frames) and keeps per-run metadata in a DataFrame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from jsve.core._batch import LogBatch, bucket_by_length, padded_length
+from jsve.io import _schema as schema
+from jsve.io._schema import RunLog
+
+
+@dataclass(frozen=True)
+class Bucket:
+    """A LogBatch with its host-side metadata: `meta.iloc[i]` describes run `batch.run_index == i`."""
+
+    batch: LogBatch
+    meta: pd.DataFrame
+
+
+def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
+    """One row per run: run_id, source, n_frames, t0_ns and every metadata key (missing -> NA)."""
+    rows = []
+    for run in runs:
+        row = {"run_id": run.run_id, "source": run.source, "n_frames": len(run.frames)}
+        row["t0_ns"] = int(run.frames["t_ns"].iloc[0]) if len(run.frames) else 0
+        for key, value in run.meta.items():
+            row[key] = json_cell(value)
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    for key in ("disturbance",):
+        if key in table:
+            table[key] = table[key].fillna("none")
+    return table
+
+
+def json_cell(value):
+    """Metadata values as table cells: lists become tuples (hashable, groupable)."""
+    return tuple(value) if isinstance(value, list) else value
+
+
+def from_runs(
+    runs: Sequence[RunLog], *, n_frames: int | None = None, dtype=jnp.float32, pad_multiple: int = 64
+) -> Bucket:
+    """Stack runs into one padded LogBatch.
+
+    Arguments:
+        runs: parsed logs (validated by jsve.io._logs).
+        n_frames: padded length; default: the longest run rounded up to `pad_multiple`.
+        dtype: float dtype of the arrays (float64 needs jax_enable_x64).
+    Returns:
+        Bucket(batch, meta) with meta from `run_meta_table`.
+    """
+    if not runs:
+        raise ValueError("from_runs: no runs given")
+    lengths = [len(r.frames) for r in runs]
+    if min(lengths) < 1:
+        empty = [r.source for r in runs if len(r.frames) == 0]
+        raise ValueError(f"from_runs: runs without frames: {empty[:5]}")
+    F = n_frames if n_frames is not None else padded_length(max(lengths), pad_multiple)
+    if F < max(lengths):
+        raise ValueError(f"from_runs: n_frames={F} is shorter than the longest run ({max(lengths)} frames)")
+    R = len(runs)
+    fdt = np.dtype(jnp.dtype(dtype).name)
+
+    def alloc(shape, dt, fill=0):
+        return np.full((R, F) + shape, fill, dtype=dt)
+
+    t, valid = alloc((), fdt), alloc((), bool, False)
+    state, imu_init = alloc((), np.int8), alloc((), bool, False)
+    n_ext, n_inl, n_fru = alloc((), np.int32), alloc((), np.int32), alloc((), np.int32)
+    bins = alloc((schema.N_BINS,), np.uint16)
+    vis_p, vis_v, imu_dp, imu_dv, gt_p = (alloc((3,), fdt) for _ in range(5))
+    vis_q, imu_dq, gt_q = (alloc((4,), fdt) for _ in range(3))
+    for q in (vis_q, imu_dq, gt_q):
+        q[..., 0] = 1.0
+    imu_dt, gt_valid = alloc((), fdt), alloc((), bool, False)
+    fps = np.zeros(R, fdt)
+    gravity = np.zeros((R, 3), fdt)
+    delay = np.zeros(R, fdt)
+    for i, run in enumerate(runs):
+        f = run.frames
+        n = len(f)
+        stamps = f["t_ns"].to_numpy(np.int64)
+        t[i, :n] = (stamps - stamps[0]) / 1e9  # int64 difference first: exact, then to seconds
+        valid[i, :n] = True
+        state[i, :n] = f["state"].to_numpy()
+        init = f["imu_init"].to_numpy() != 0
+        imu_init[i, :n] = init
+        delay[i] = t[i, int(np.argmax(init))] if init.any() else np.inf
+        n_ext[i, :n] = f["n_extracted"].to_numpy()
+        n_inl[i, :n] = f["n_inliers"].to_numpy()
+        n_fru[i, :n] = f["n_frustum"].to_numpy()
+        bins[i, :n] = f[list(schema.BIN_COLUMNS)].to_numpy()
+        vis_p[i, :n] = f[list(schema.VIS_POSITION)].to_numpy()
+        vis_q[i, :n] = f[list(schema.VIS_QUATERNION)].to_numpy()
+        vis_v[i, :n] = f[list(schema.VIS_VELOCITY)].to_numpy()
+        imu_dt[i, :n] = f["imu_dt"].to_numpy()
+        imu_dp[i, :n] = f[list(schema.IMU_DP)].to_numpy()
+        imu_dv[i, :n] = f[list(schema.IMU_DV)].to_numpy()
+        imu_dq[i, :n] = f[list(schema.IMU_DQ)].to_numpy()
+        if run.has_ground_truth:
+            gp = f[list(schema.GT_POSITION)].to_numpy()
+            gq = f[list(schema.GT_QUATERNION)].to_numpy()
+            ok = np.isfinite(gp).all(1) & np.isfinite(gq).all(1)
+            gt_p[i, :n][ok] = gp[ok]
+            gt_q[i, :n][ok] = gq[ok]
+            gt_valid[i, :n] = ok
+        fps[i] = float(run.meta["fps"])
+        gravity[i] = run.meta.get("gravity", schema.DEFAULT_GRAVITY)
+    batch = LogBatch(
+        t=jnp.asarray(t), valid=jnp.asarray(valid), state=jnp.asarray(state), imu_init=jnp.asarray(imu_init),
+        n_extracted=jnp.asarray(n_ext), n_inliers=jnp.asarray(n_inl), n_frustum=jnp.asarray(n_fru),
+        bins=jnp.asarray(bins), vis_p=jnp.asarray(vis_p), vis_q=jnp.asarray(vis_q), vis_v=jnp.asarray(vis_v),
+        imu_dt=jnp.asarray(imu_dt), imu_dp=jnp.asarray(imu_dp), imu_dv=jnp.asarray(imu_dv),
+        imu_dq=jnp.asarray(imu_dq), gt_p=jnp.asarray(gt_p), gt_q=jnp.asarray(gt_q),
+        gt_valid=jnp.asarray(gt_valid), fps=jnp.asarray(fps), gravity=jnp.asarray(gravity),
+        imu_init_delay=jnp.asarray(delay), run_index=jnp.arange(R, dtype=jnp.int32),
+    )  # fmt: skip
+    return Bucket(batch=batch, meta=run_meta_table(runs).reset_index(drop=True))
+
+
+def buckets(runs: Sequence[RunLog], *, max_padding: float = 0.1, dtype=jnp.float32) -> list[Bucket]:
+    """Split runs into length buckets (see `bucket_by_length`) and stack each into a Bucket."""
+    groups = bucket_by_length([len(r.frames) for r in runs], max_padding=max_padding)
+    return [from_runs([runs[i] for i in g], dtype=dtype) for g in groups]

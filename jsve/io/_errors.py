@@ -1,0 +1,77 @@
+"""The domain errors of jsve's file readers: one exception type naming file, line, column and value."""
+
+from __future__ import annotations
+
+import os
+
+MAX_SHOWN = 80
+"""Characters of an offending value shown in a message; longer values are cut with '...'."""
+
+
+def shorten(text: str) -> str:
+    """`text` cut to MAX_SHOWN characters for an error message."""
+    return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 3] + "..."
+
+
+
+class LogFormatError(ValueError):
+    """A tracking log (or jsve Parquet file) that does not follow format v1.
+
+    The message reads `path:line: column 'name' = 'value': reason`; parts that do not apply are left
+    out (`path: reason` when the problem has no line, e.g. a `.partial` file).
+
+    Attributes:
+        path: the file, as given to the reader.
+        line: 1-based line number in the file, or None (in-memory runs report `frame` instead).
+        column: the column (or metadata key, or column range such as 'vis_qw..vis_qz'), or None.
+        value: the offending value as written in the file, or None.
+        reason: what is wrong, in words.
+        frame: 0-based frame index, for runs validated in memory (`validate_run`, `write_log`).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        line: int | None,
+        reason: str,
+        *,
+        column: str | None = None,
+        value: str | None = None,
+        what: str = "column",
+        frame: int | None = None,
+    ):
+        self.path = os.fspath(path)
+        self.line = line
+        self.reason = reason
+        self.column = column
+        self.value = value
+        self.what = what
+        self.frame = frame
+        super().__init__(self._message())
+
+    def _message(self) -> str:
+        loc = self.path
+        if self.line is not None:
+            loc = f"{loc}:{self.line}"
+        elif self.frame is not None:
+            loc = f"{loc}: frame {self.frame}"
+        if self.column is None:
+            return f"{loc}: {self.reason}"
+        if self.value is None:
+            return f"{loc}: {self.what} '{self.column}': {self.reason}"
+        return f"{loc}: {self.what} '{self.column}' = '{shorten(self.value)}': {self.reason}"
+
+    def __reduce__(self):
+        # Exceptions pickle through self.args by default, which does not fit this signature; worker
+        # processes send these back to the parent.
+        kwargs = dict(column=self.column, value=self.value, what=self.what, frame=self.frame)
+        return (_rebuild_error, (type(self), self.path, self.line, self.reason, kwargs))
+
+
+class LogIncompleteError(LogFormatError):
+    """A log whose writer did not finish: no end marker, a frame count that disagrees with the rows,
+    an empty file, or a `.partial` file. The message always says that the log is incomplete."""
+
+
+def _rebuild_error(cls, path, line, reason, kwargs):
+    return cls(path, line, reason, **kwargs)

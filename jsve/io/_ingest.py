@@ -1,0 +1,538 @@
+"""Many tracking logs at once: find, read in parallel with quarantine, and consolidate into Parquet.
+
+    find_logs(source)                    the sorted log files of a directory, glob or list
+    read_logs(source)                    many logs, in parallel, sorted, raise or quarantine
+    write_quarantine_report(result, p)   the logs set aside, as CSV
+    ingest(source, out)                  many logs -> one Parquet file;  read_parquet(out) -> RunLogs
+
+Each log is read and validated by `jsve.io._logs.read_log` (in worker processes for large batches);
+docs/log-format.md describes the batch behaviour, the quarantine report and the Parquet layout.
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures as cf
+import glob as globlib
+import json
+import logging
+import math
+import multiprocessing
+import os
+import sys
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+from tqdm.auto import tqdm
+
+from jsve.io import _schema as schema
+from jsve.io._groundtruth import GroundTruthSpec
+from jsve.io._logs import PARTIAL_SUFFIX, LogFormatError, LogIncompleteError, read_log
+from jsve.io._schema import RunLog
+
+# The log reader's logger: read_log's warnings in worker processes are collected from it (_read_chunk)
+# and re-logged here, and users configure one name for all of them.
+logger = logging.getLogger(__name__)
+
+QUARANTINE_COLUMNS = ("path", "line", "column", "reason", "message", "incomplete")
+"""Columns of the quarantine report (`ReadResult.report()`, `write_quarantine_report`)."""
+
+PARQUET_RUNS_KEY = b"jsve.runs"
+"""Parquet key-value metadata key: a JSON list of {run_id, source, meta, n_frames, has_ground_truth}."""
+
+PARQUET_FORMAT_KEY = b"jsve.format"
+
+_NOT_LOGS = tuple(s + p for s in (".quarantine.csv", ".keypoints.csv") for p in ("", PARTIAL_SUFFIX))
+"""CSV files a directory search skips: quarantine reports and keypoint side files (jsve.io._keypoints)."""
+
+_ROW_GROUP_ROWS = 262_144  # Parquet row group target: ~70 runs of 3,600 frames, ~200 MB in memory
+_MIN_LOGS_PER_WORKER = 8  # below 16 logs in all, starting processes (~1 s) costs more than it saves
+_MAX_WORKER_WARNINGS = 20  # warnings from worker processes re-emitted per batch, then one summary line
+
+OnError = Literal["raise", "quarantine"]
+
+
+# --------------------------------------------------------------------------------------------------
+# Many logs
+
+
+@dataclass(frozen=True)
+class Quarantined:
+    """A log that was set aside, with why.
+
+    Attributes:
+        path: the file.
+        line: 1-based line of the defect, or None.
+        column: column / metadata key / column range, or None.
+        reason: what is wrong.
+        message: the full LogFormatError message.
+        incomplete: True when the log is incomplete (its writer did not finish).
+    """
+
+    path: str
+    line: int | None
+    column: str | None
+    reason: str
+    message: str
+    incomplete: bool = False
+
+    @classmethod
+    def from_error(cls, err: LogFormatError) -> Quarantined:
+        return cls(err.path, err.line, err.column, err.reason, str(err), isinstance(err, LogIncompleteError))
+
+
+@dataclass
+class ReadResult:
+    """What `read_logs` returns: the valid runs in sorted path order, and every log set aside."""
+
+    runs: list[RunLog]
+    quarantined: list[Quarantined] = field(default_factory=list)
+
+    def report(self) -> pd.DataFrame:
+        """One row per quarantined log; columns QUARANTINE_COLUMNS (line as nullable Int64)."""
+        df = pd.DataFrame(
+            [[getattr(q, c) for c in QUARANTINE_COLUMNS] for q in self.quarantined],
+            columns=list(QUARANTINE_COLUMNS),
+        )
+        return df.astype({"line": "Int64", "incomplete": bool})
+
+
+def write_quarantine_report(result: ReadResult | Sequence[Quarantined], path: str | os.PathLike) -> Path:
+    """Write the quarantine report (one row per quarantined log) as CSV, atomically.
+
+    Arguments:
+        result: a ReadResult, or the list of Quarantined entries.
+        path: destination CSV.
+    """
+    if not isinstance(result, ReadResult):
+        result = ReadResult(runs=[], quarantined=list(result))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + PARTIAL_SUFFIX)
+    try:
+        result.report().to_csv(tmp, index=False)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:
+    """The log files of `source`, sorted.
+
+    Arguments:
+        source: a directory (searched recursively for `*.csv` and `*.csv.partial`, skipping jsve's own
+            `*.quarantine.csv` reports and `*.keypoints.csv` side files), a single file, a glob pattern
+            ('**' recursive), or a list of paths (taken as given).
+
+    Raises:
+        FileNotFoundError: the path does not exist or the pattern matches nothing.
+    """
+    if isinstance(source, (str, os.PathLike)):
+        text = os.fspath(source)
+        path = Path(text)
+        if path.is_dir():
+            files = [
+                os.fspath(p)
+                for p in path.rglob("*")
+                if p.is_file()
+                and (p.name.endswith(".csv") or p.name.endswith(".csv" + PARTIAL_SUFFIX))
+                and not p.name.endswith(_NOT_LOGS)
+            ]
+        elif path.exists():
+            files = [text]
+        elif any(ch in text for ch in "*?["):
+            files = [p for p in globlib.glob(text, recursive=True) if os.path.isfile(p)]
+            if not files:
+                raise FileNotFoundError(f"no files match {text!r}")
+        else:
+            raise FileNotFoundError(f"no such file or directory: {text!r}")
+    else:
+        files = [os.fspath(p) for p in source]
+    return sorted(set(files))
+
+
+def _read_one(path: str, ground_truth) -> RunLog | LogFormatError:
+    try:
+        return read_log(path, ground_truth=ground_truth)
+    except LogFormatError as e:
+        return e
+    except OSError as e:
+        return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
+
+
+class _Collect(logging.Handler):
+    def __init__(self, records: list):
+        super().__init__(logging.WARNING)
+        self.records = records
+
+    def emit(self, record: logging.LogRecord) -> None:
+        record.msg, record.args, record.exc_info = record.getMessage(), None, None
+        self.records.append(record)
+
+
+def _read_chunk(paths: list[str], ground_truth, stop_on_error: bool):
+    """Worker: read a chunk of logs; warnings are returned to the parent to be logged there."""
+    records: list = []
+    handler = _Collect(records)
+    logger.addHandler(handler)
+    propagate, logger.propagate = logger.propagate, False
+    try:
+        out = []
+        for p in paths:
+            result = _read_one(p, ground_truth)
+            out.append((p, result))
+            if stop_on_error and isinstance(result, LogFormatError):
+                break
+        return out, records
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
+def _mp_context():
+    # Not fork: the parent may hold JAX's (or Arrow's) threads, and fork with threads can deadlock.
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["jsve.io._ingest"])
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_truth, stop_on_error: bool):
+    """(path, RunLog | LogFormatError) in the order of `paths`, read in parallel chunks."""
+    workers = (os.cpu_count() or 1) if workers is None else int(workers)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    bar = tqdm(total=len(paths), disable=not progress, file=sys.stderr, unit="log", desc="reading logs")
+    try:
+        if workers == 1 or len(paths) < _MIN_LOGS_PER_WORKER * 2:
+            for p in paths:
+                result = _read_one(p, ground_truth)
+                bar.update(1)
+                yield p, result
+            return
+        chunk = max(1, min(16, math.ceil(len(paths) / (4 * workers))))
+        chunks = iter([paths[i : i + chunk] for i in range(0, len(paths), chunk)])
+        executor = cf.ProcessPoolExecutor(max_workers=min(workers, len(paths)), mp_context=_mp_context())
+        try:
+            pending = collections.deque()
+            # A bounded window of chunks in flight keeps memory flat however many logs there are.
+            for c in chunks:
+                pending.append(executor.submit(_read_chunk, c, ground_truth, stop_on_error))
+                if len(pending) >= 2 * workers:
+                    break
+            n_warnings = 0
+            while pending:
+                out, records = pending.popleft().result()
+                for record in records:
+                    n_warnings += 1
+                    if n_warnings <= _MAX_WORKER_WARNINGS:
+                        logger.handle(record)
+                nxt = next(chunks, None)
+                if nxt is not None:
+                    pending.append(executor.submit(_read_chunk, nxt, ground_truth, stop_on_error))
+                for p, result in out:
+                    bar.update(1)
+                    yield p, result
+            if n_warnings > _MAX_WORKER_WARNINGS:
+                logger.warning("... and %d more warnings like these", n_warnings - _MAX_WORKER_WARNINGS)
+        finally:
+            executor.shutdown(wait=True, cancel_futures=True)
+    finally:
+        bar.close()
+
+
+def _good_runs(
+    paths, *, on_error: OnError, workers, progress, ground_truth, quarantined: list
+) -> Iterator[RunLog]:
+    """Valid runs in path order; bad logs raise (on_error='raise') or go to `quarantined`."""
+    if on_error not in ("raise", "quarantine"):
+        raise ValueError(f"on_error must be 'raise' or 'quarantine', got {on_error!r}")
+    seen: dict[str, str] = {}
+    results = _iter_read(
+        paths,
+        workers=workers,
+        progress=progress,
+        ground_truth=ground_truth,
+        stop_on_error=on_error == "raise",
+    )
+    for path, result in results:
+        if isinstance(result, RunLog) and result.run_id in seen:
+            result = LogFormatError(
+                path,
+                1,
+                f"duplicate run id: '{result.run_id}' is also the run id of {seen[result.run_id]} "
+                "(sequence/disturbance-level/run must be unique)",
+            )
+        if isinstance(result, LogFormatError):
+            if on_error == "raise":
+                results.close()
+                raise result
+            quarantined.append(Quarantined.from_error(result))
+            continue
+        seen[result.run_id] = path
+        yield result
+
+
+def read_logs(
+    source: str | os.PathLike | Sequence[str | os.PathLike],
+    *,
+    on_error: OnError = "raise",
+    workers: int | None = None,
+    progress: bool = True,
+    ground_truth: GroundTruthSpec | None = None,
+) -> ReadResult:
+    """Read and validate many logs in parallel.
+
+    Arguments:
+        source: a directory (recursive `*.csv` and `*.csv.partial`), a glob, a file or a list of paths
+            (see `find_logs`). `.partial` files are always reported as incomplete, never skipped.
+        on_error: "raise" stops at the first bad log in sorted path order with its LogFormatError;
+            "quarantine" sets bad logs aside in ReadResult.quarantined (nothing is dropped silently).
+        workers: processes (default os.cpu_count()); 1, or fewer than 16 logs, reads in this process.
+            Processes start with multiprocessing's "forkserver" method (not fork: the caller may hold
+            JAX's threads), so a script that calls this needs the usual `if __name__ == "__main__":`.
+        progress: tqdm progress bar on stderr.
+        ground_truth: associated with logs that carry none (see `read_log`); must be picklable.
+
+    Returns:
+        ReadResult(runs in sorted path order, quarantined). A run id (RunLog.run_id) met a second time
+        is an error naming both files (the later file is the one raised or quarantined).
+    """
+    paths = find_logs(source)
+    quarantined: list[Quarantined] = []
+    runs = list(
+        _good_runs(
+            paths,
+            on_error=on_error,
+            workers=workers,
+            progress=progress,
+            ground_truth=ground_truth,
+            quarantined=quarantined,
+        )
+    )
+    return ReadResult(runs=runs, quarantined=quarantined)
+
+
+# --------------------------------------------------------------------------------------------------
+# Parquet
+
+
+PARQUET_SCHEMA = pa.schema(
+    [
+        pa.field("run_id", pa.dictionary(pa.int32(), pa.string()), nullable=False),
+        pa.field("frame", pa.int32(), False),
+    ]
+    + [pa.field(c, pa.int64(), nullable=False) for c in schema.INT_COLUMNS]
+    + [pa.field(c, pa.float64(), nullable=False) for c in schema.FLOAT_COLUMNS]
+    + [pa.field(c, pa.float64(), nullable=True) for c in schema.GT_COLUMNS]
+)
+"""Layout of the consolidated Parquet file: one row per frame, runs contiguous in sorted path order.
+gt_* are null for runs without ground truth, NaN for frames without it in runs that have it."""
+
+
+@dataclass(frozen=True)
+class IngestSummary:
+    """What `ingest` did.
+
+    Attributes:
+        out_path: the Parquet file written.
+        n_runs: runs written.
+        n_frames: frames (rows) written.
+        quarantined: logs set aside (on_error='quarantine').
+        quarantine_report: the CSV report written, or None when nothing was quarantined.
+    """
+
+    out_path: Path
+    n_runs: int
+    n_frames: int
+    quarantined: list[Quarantined]
+    quarantine_report: Path | None
+
+    def line(self) -> str:
+        """A one-line summary for people."""
+        text = (
+            f"ingested {self.n_runs} runs, {self.n_frames} frames -> {self.out_path}; "
+            f"quarantined {len(self.quarantined)}"
+        )
+        if self.quarantine_report is not None:
+            text += f" (report: {self.quarantine_report})"
+        return text
+
+
+def _runs_to_table(runs: list[RunLog]) -> pa.Table:
+    lengths = np.array([len(r.frames) for r in runs])
+    run_ids = pa.DictionaryArray.from_arrays(
+        pa.array(np.repeat(np.arange(len(runs), dtype=np.int32), lengths)),
+        pa.array([r.run_id for r in runs], pa.string()),
+    )
+    frame = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
+    arrays = [run_ids, pa.array(frame)]
+    for c in schema.REQUIRED_COLUMNS:
+        arrays.append(pa.array(np.concatenate([r.frames[c].to_numpy() for r in runs])))
+    no_gt = np.repeat([not r.has_ground_truth for r in runs], lengths)
+    for c in schema.GT_COLUMNS:
+        values = np.concatenate(
+            [r.frames[c].to_numpy() if r.has_ground_truth else np.full(len(r.frames), np.nan) for r in runs]
+        )
+        # NaN stays NaN (a frame without ground truth); null marks a run without gt columns.
+        arrays.append(pa.array(values, mask=no_gt if no_gt.any() else None))
+    return pa.Table.from_arrays(arrays, schema=PARQUET_SCHEMA)
+
+
+def default_quarantine_report_path(out_path: str | os.PathLike) -> Path:
+    """`OUT.quarantine.csv` beside `OUT.parquet`."""
+    return Path(out_path).with_suffix(".quarantine.csv")
+
+
+def ingest(
+    source: str | os.PathLike | Sequence[str | os.PathLike],
+    out_path: str | os.PathLike,
+    *,
+    on_error: OnError = "raise",
+    workers: int | None = None,
+    progress: bool = True,
+    ground_truth: GroundTruthSpec | None = None,
+    quarantine_report: str | os.PathLike | None = None,
+) -> IngestSummary:
+    """Validate many logs (optionally associating ground truth) and consolidate them into one Parquet file.
+
+    The file (layout PARQUET_SCHEMA) holds one row per frame: `run_id` (dictionary-encoded string),
+    `frame` (int32, 0-based), then the v1 columns; runs are contiguous, in sorted path order. The
+    schema's key-value metadata holds b'jsve.runs': a JSON list of {run_id, source, meta, n_frames,
+    has_ground_truth}, one per run in file order. Logs are streamed (row groups of ~260k frames), so
+    memory stays flat. The file is written as `<out>.partial` and renamed when complete.
+
+    Arguments:
+        source: logs (see `find_logs`).
+        out_path: the Parquet file.
+        on_error, workers, progress, ground_truth: as in `read_logs`.
+        quarantine_report: CSV path for the report of quarantined logs; default `OUT.quarantine.csv`
+            beside the output. Written only when logs were quarantined (a stale report at the default
+            path is removed).
+
+    Returns:
+        IngestSummary.
+
+    Raises:
+        LogFormatError: the first bad log, with on_error='raise' (nothing is written).
+        FileNotFoundError: no logs in `source`.
+    """
+    paths = find_logs(source)
+    if not paths:
+        raise FileNotFoundError(f"no tracking logs (*.csv, *.csv.partial) in {os.fspath(source)!r}")
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + PARTIAL_SUFFIX)
+    quarantined: list[Quarantined] = []
+    entries = []
+    n_frames = 0
+    writer = pq.ParquetWriter(tmp, PARQUET_SCHEMA, compression="zstd")
+    try:
+        batch: list[RunLog] = []
+        batch_rows = 0
+        runs = _good_runs(
+            paths,
+            on_error=on_error,
+            workers=workers,
+            progress=progress,
+            ground_truth=ground_truth,
+            quarantined=quarantined,
+        )
+        for run in runs:
+            entries.append(
+                {
+                    "run_id": run.run_id,
+                    "source": run.source,
+                    "meta": run.meta,
+                    "n_frames": len(run.frames),
+                    "has_ground_truth": run.has_ground_truth,
+                }
+            )
+            n_frames += len(run.frames)
+            batch.append(run)
+            batch_rows += len(run.frames)
+            if batch_rows >= _ROW_GROUP_ROWS:
+                writer.write_table(_runs_to_table(batch))
+                batch, batch_rows = [], 0
+        if batch:
+            writer.write_table(_runs_to_table(batch))
+        writer.add_key_value_metadata(
+            {
+                PARQUET_RUNS_KEY: json.dumps(entries, allow_nan=False),
+                PARQUET_FORMAT_KEY: str(schema.FORMAT_VERSION),
+            }
+        )
+        writer.close()
+        os.replace(tmp, out)
+    except BaseException:
+        writer.close()
+        tmp.unlink(missing_ok=True)
+        raise
+
+    default_report = default_quarantine_report_path(out)
+    report = Path(quarantine_report) if quarantine_report is not None else default_report
+    if quarantined:
+        write_quarantine_report(quarantined, report)
+        logger.warning("%d logs quarantined; see %s", len(quarantined), report)
+    else:
+        if quarantine_report is None and default_report.exists():
+            logger.info("removing the stale quarantine report %s", default_report)
+            default_report.unlink()
+        report = None
+    return IngestSummary(out, len(entries), n_frames, quarantined, report)
+
+
+def read_parquet(path: str | os.PathLike) -> list[RunLog]:
+    """Restore the runs of a Parquet file written by `ingest`, exactly (ints exact, floats bitwise).
+
+    Returns:
+        RunLogs in file order, with the metadata and source recorded at ingest; runs ingested without
+        ground truth have no gt_* columns.
+
+    Raises:
+        LogFormatError: not a jsve Parquet file, or its rows disagree with its run list.
+    """
+    source = os.fspath(path)
+    pf = pq.ParquetFile(source)
+    kv = pf.metadata.metadata or {}
+    if PARQUET_RUNS_KEY not in kv:
+        raise LogFormatError(
+            source, None, f"not a jsve Parquet file: no {PARQUET_RUNS_KEY.decode()!r} metadata"
+        )
+    entries = json.loads(kv[PARQUET_RUNS_KEY])
+    table = pf.read()
+    lengths = np.array([e["n_frames"] for e in entries], dtype=np.int64)
+    if table.num_rows != lengths.sum():
+        raise LogFormatError(
+            source, None, f"has {table.num_rows} rows but its run list accounts for {int(lengths.sum())}"
+        )
+    index = {e["run_id"]: i for i, e in enumerate(entries)}
+    ids = []
+    for chunk in table.column("run_id").chunks:
+        lut = np.array([index.get(s, -1) for s in chunk.dictionary.to_pylist()] or [-1], dtype=np.int64)
+        ids.append(lut[chunk.indices.to_numpy(zero_copy_only=False)])
+    ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+    offsets = np.concatenate([[0], np.cumsum(lengths)])
+    expected_frame = np.arange(table.num_rows) - np.repeat(offsets[:-1], lengths)
+    frame = table.column("frame").to_numpy()
+    if not (
+        np.array_equal(ids, np.repeat(np.arange(len(entries)), lengths))
+        and np.array_equal(frame, expected_frame)
+    ):
+        raise LogFormatError(source, None, "rows are not grouped by run in the order of its run list")
+    columns = {c: table.column(c).to_numpy() for c in schema.COLUMNS}
+    runs = []
+    for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
+        names = schema.COLUMNS if e["has_ground_truth"] else schema.REQUIRED_COLUMNS
+        frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
+        runs.append(RunLog(meta=e["meta"], frames=frames, source=e["source"]))
+    return runs

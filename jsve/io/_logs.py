@@ -1,0 +1,688 @@
+"""Tracking logs, format v1: write, read and validate one log.
+
+The I/O edge of jsve (docs/log-format.md describes the format for people; jsve.io._schema is the one
+home of its names). Everything downstream receives `RunLog`s whose frames have been validated here:
+
+    write_log(run, path)                 one run -> one CSV log, atomically (`<path>.partial`, then rename)
+    read_log(path)                       one CSV log -> RunLog, strict; any defect raises LogFormatError
+    parse_log(data), validate_run(run)   the same rules on bytes, and on an in-memory run
+
+Two modules build on this one: jsve.io._groundtruth (`associate_ground_truth`, `GroundTruth`: gt_* columns
+from an EuRoC / TUM / KITTI trajectory) and jsve.io._ingest (`read_logs`: many logs in parallel, raise or
+quarantine; `ingest` / `read_parquet`: one Parquet file). Their public names can also be imported from
+here, as before they had homes of their own.
+
+Errors name the file, the 1-based line, the column and the value as written in the file, e.g.
+`logs/r7.csv:1288: column 'imu_dt' = '-0.05': must be >= 0`.
+
+Parsing uses Arrow's CSV reader with one explicit type per column: int64 columns (t_ns above all)
+never pass through float, and floats are parsed correctly rounded, so a log written by `write_log`
+(shortest round-trip decimal representation, as Python's repr) reads back bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.csv as pacsv
+
+from jsve.io import _atomic as atomic
+from jsve.io import _schema as schema
+from jsve.io._errors import LogFormatError, LogIncompleteError, shorten
+from jsve.io._groundtruth import GroundTruthSpec, apply_ground_truth
+from jsve.io._schema import RunLog
+
+PARTIAL_SUFFIX = atomic.PARTIAL_SUFFIX
+"""A file whose name ends in this is a log (or Parquet file) that its writer has not finished."""
+
+GT_METADATA = {"gt_missing_frames": int, "gt_source": str}
+"""Metadata keys written by `associate_ground_truth`: frames left without ground truth (count) and
+the ground-truth file used."""
+
+_INT_SET = frozenset(schema.INT_COLUMNS)
+_GT_SET = frozenset(schema.GT_COLUMNS)
+
+
+# --------------------------------------------------------------------------------------------------
+# Metadata
+
+
+def _json_default(obj):
+    """json.dumps fallback for numpy scalars and arrays in metadata."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"metadata value {obj!r} of type {type(obj).__name__} is not JSON serialisable")
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not valid JSON (metadata values must be finite)")
+
+
+def _is_type(value, types) -> bool:
+    types = types if isinstance(types, tuple) else (types,)
+    if isinstance(value, bool) and bool not in types:
+        return False  # JSON true/false are not numbers
+    return isinstance(value, types)
+
+
+def _type_name(types) -> str:
+    types = types if isinstance(types, tuple) else (types,)
+    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object"}
+    return " or ".join(names.get(t, t.__name__) for t in types)
+
+
+_MISSING = object()  # a metadata key that is absent
+
+
+def _check_meta(meta, source: str, line: int | None) -> None:
+    """Validate a metadata object against schema.REQUIRED_METADATA / OPTIONAL_METADATA / GT_METADATA."""
+
+    def fail(key, reason, value=None):
+        shown = None if value is _MISSING else json.dumps(value, default=repr)
+        raise LogFormatError(source, line, reason, column=key, value=shown, what="metadata key")
+
+    if not isinstance(meta, dict):
+        raise LogFormatError(source, line, f"metadata must be a JSON object, got {type(meta).__name__}")
+    required = ", ".join(schema.REQUIRED_METADATA)
+    for key, types in schema.REQUIRED_METADATA.items():
+        if key not in meta:
+            fail(key, f"required key missing (v1 requires {required})", _MISSING)
+        if not _is_type(meta[key], types):
+            fail(key, f"must be {_type_name(types)}, got {type(meta[key]).__name__}", meta[key])
+    if not (math.isfinite(meta["fps"]) and meta["fps"] > 0):
+        fail("fps", "must be a positive number of frames per second", meta["fps"])
+    for key, types in {**schema.OPTIONAL_METADATA, **GT_METADATA}.items():
+        if key in meta and not _is_type(meta[key], types):
+            fail(key, f"must be {_type_name(types)}, got {type(meta[key]).__name__}", meta[key])
+    gravity = meta.get("gravity")
+    if gravity is not None and (len(gravity) != 3 or not all(_is_type(g, (int, float)) for g in gravity)):
+        fail("gravity", "must be a list of 3 numbers (world gravity, m/s^2)", gravity)
+    size = meta.get("image_size")
+    if size is not None and (len(size) != 2 or not all(_is_type(s, int) and s > 0 for s in size)):
+        fail("image_size", "must be [width, height] in pixels", size)
+    grid = meta.get("grid")
+    if grid is not None and list(grid) != [8, 8]:
+        fail("grid", "must be [8, 8] in format v1 (SVE bins, cols x rows)", grid)
+    missing = meta.get("gt_missing_frames")
+    if missing is not None and missing < 0:
+        fail("gt_missing_frames", "must be >= 0", missing)
+
+
+def _parse_meta_line(raw: bytes, source: str) -> dict:
+    try:
+        text = raw.decode("utf-8").rstrip("\r")
+    except UnicodeDecodeError as e:
+        raise LogFormatError(source, 1, f"not a jsve v1 log: line 1 is not UTF-8 text ({e.reason})") from None
+    if not text.startswith(schema.MAGIC):
+        version = re.match(r"# jsve-log (v\S+)", text)
+        if version and version.group(1) != f"v{schema.FORMAT_VERSION}":
+            reason = (
+                f"unsupported format version '{version.group(1)}' "
+                f"(this reader reads v{schema.FORMAT_VERSION})"
+            )
+        else:
+            reason = (
+                f"not a jsve v1 log: line 1 must start with '{schema.MAGIC}' followed by the JSON metadata, "
+                f"found '{shorten(text)}'"
+            )
+        raise LogFormatError(source, 1, reason)
+    try:
+        meta = json.loads(text[len(schema.MAGIC) :], parse_constant=_reject_constant)
+    except ValueError as e:
+        raise LogFormatError(source, 1, f"metadata is not valid JSON: {e}") from None
+    _check_meta(meta, source, 1)
+    return meta
+
+
+# --------------------------------------------------------------------------------------------------
+# Header
+
+
+def _check_header(names: list[str], source: str, line: int | None) -> list[str]:
+    """The v1 column list `names` must be; raises naming missing, unexpected or misplaced columns."""
+
+    def fail(reason, column=None):
+        raise LogFormatError(source, line, reason, column=column, what="column")
+
+    seen = set()
+    for name in names:
+        if name in seen:
+            fail("appears more than once in the header", name)
+        seen.add(name)
+    gt_present = [c for c in schema.GT_COLUMNS if c in seen]
+    if 0 < len(gt_present) < len(schema.GT_COLUMNS):
+        lacking = [c for c in schema.GT_COLUMNS if c not in seen]
+        fail(
+            f"ground-truth columns partially present: has {_quote(gt_present)}, lacks {_quote(lacking)} "
+            "(give all seven gt_* columns or none)",
+            lacking[0],
+        )
+    expected = list(schema.COLUMNS if gt_present else schema.REQUIRED_COLUMNS)
+    missing = [c for c in expected if c not in seen]
+    unexpected = [c for c in names if c not in set(schema.COLUMNS)]
+    if missing or unexpected:
+        parts = []
+        if missing:
+            parts.append(f"missing column{'s' * (len(missing) > 1)} {_quote(missing)}")
+        if unexpected:
+            parts.append(f"unexpected column{'s' * (len(unexpected) > 1)} {_quote(unexpected)}")
+        fail("wrong header: " + "; ".join(parts), (missing or unexpected)[0])
+    if names != expected:
+        k = next(i for i, (a, b) in enumerate(zip(names, expected, strict=True)) if a != b)
+        fail(
+            f"wrong column order: header position {k + 1} holds '{names[k]}', v1 expects '{expected[k]}' "
+            f"there (order: {expected[0]}, {expected[1]}, ..., see docs/log-format.md)",
+            names[k],
+        )
+    return expected
+
+
+def _quote(names: Sequence[str], limit: int = 8) -> str:
+    shown = ", ".join(f"'{n}'" for n in names[:limit])
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+# --------------------------------------------------------------------------------------------------
+# Row validation (vectorised; shared by the reader and the in-memory validator)
+
+
+@dataclass
+class _Problem:
+    """The first defect found in the frames; turned into a LogFormatError by the caller."""
+
+    row: int  # 0-based frame
+    order: int  # column position used to pick the first defect of a row
+    column: str
+    reason: str  # may contain '{ref}', replaced by 'line N' or 'frame N' of ref_row
+    value_cols: tuple[str, ...] = ()  # columns whose values make up the value shown
+    value: str | None = None  # explicit value, when it is not a field of the row
+    what: str = "column"
+    ref_row: int | None = None
+
+
+def _find_problem(cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None) -> _Problem | None:
+    """First (lowest row, then leftmost column) violation of the v1 value rules, or None.
+
+    Arguments:
+        cols: column name -> values [frames], in v1 order; ints int64, floats float64, gt_* NaN where
+            missing.
+        gt_missing: bool [frames, 7], True where a gt value is absent (an empty field in a file; NaN in
+            memory), or None when there are no gt columns.
+    """
+    pos = {c: i for i, c in enumerate(cols)}
+    n_frames = len(cols["t_ns"])
+
+    def block(names: Sequence[str]) -> np.ndarray:
+        return np.stack([cols[c] for c in names], axis=1)
+
+    found: list[_Problem] = []
+
+    def first_cell(bad: np.ndarray) -> tuple[int, int] | None:
+        """(row, column index) of the first True of bad [frames, k] (or [frames]), or None."""
+        bad2 = bad if bad.ndim == 2 else bad[:, None]
+        rows = bad2.any(axis=1)
+        if not rows.any():
+            return None
+        r = int(np.argmax(rows))
+        return r, int(np.argmax(bad2[r]))
+
+    def per_cell(bad: np.ndarray, names: Sequence[str], reason) -> None:
+        """One-field rule: reason is a string, or a function of the row."""
+        hit = first_cell(bad)
+        if hit is not None:
+            r, k = hit
+            c = names[k]
+            text = reason(r) if callable(reason) else reason
+            found.append(_Problem(r, pos[c], c, text, (c,)))
+
+    ints = cols
+    float_names = list(schema.FLOAT_COLUMNS)
+    floats = block(float_names)
+
+    # NaN / inf anywhere (an empty gt_* field is a missing value, not NaN).
+    per_cell(~np.isfinite(floats), float_names, "NaN or inf is not allowed")
+    if gt_missing is not None:
+        gt = block(schema.GT_COLUMNS)
+        per_cell(
+            ~np.isfinite(gt) & ~gt_missing,
+            schema.GT_COLUMNS,
+            "NaN or inf is not allowed (leave all seven gt_* fields empty for a frame without ground truth)",
+        )
+        n_missing = gt_missing.sum(axis=1)
+        partial = (n_missing > 0) & (n_missing < len(schema.GT_COLUMNS))
+        hit = first_cell(gt_missing & partial[:, None])
+        if hit is not None:
+            r, k = hit
+            c = schema.GT_COLUMNS[k]
+            present = len(schema.GT_COLUMNS) - int(n_missing[r])
+            found.append(
+                _Problem(
+                    r,
+                    pos[c],
+                    c,
+                    f"missing while {present} other gt_* values of this frame are present "
+                    "(a frame has all seven gt_* values or none)",
+                    value="",
+                )
+            )
+
+    # Timestamps strictly increasing.
+    t = ints["t_ns"]
+    if len(t) > 1:
+        bad = np.diff(t) <= 0
+        if bad.any():
+            r = int(np.argmax(bad)) + 1
+            if t[r] == t[r - 1]:
+                reason = "duplicate timestamp: the same as {ref} (t_ns must be strictly increasing)"
+            else:
+                reason = (
+                    f"t_ns must be strictly increasing: {int(t[r - 1]) - int(t[r])} ns earlier than {{ref}} "
+                    f"({int(t[r - 1])}; rows unsorted)"
+                )
+            found.append(_Problem(r, pos["t_ns"], "t_ns", reason, ("t_ns",), ref_row=r - 1))
+
+    states = ", ".join(map(str, schema.VALID_STATES))
+    per_cell(
+        ~np.isin(ints["state"], schema.VALID_STATES),
+        ("state",),
+        f"must be one of {states} (ORB-SLAM3 eTrackingState)",
+    )
+    imu_init = ints["imu_init"]
+    per_cell((imu_init != 0) & (imu_init != 1), ("imu_init",), "must be 0 or 1")
+
+    count_names = schema.COUNT_COLUMNS + schema.BIN_COLUMNS
+    counts = block(count_names)
+    per_cell(counts < 0, count_names, "must be >= 0 (a count)")
+
+    n_ext, n_inl = ints["n_extracted"], ints["n_inliers"]
+    per_cell(n_inl > n_ext, ("n_inliers",), lambda r: f"must be <= n_extracted ({int(n_ext[r])})")
+    bin_sum = counts[:, len(schema.COUNT_COLUMNS) :].sum(axis=1)
+    hit = first_cell(bin_sum > n_ext)
+    if hit is not None:
+        r = hit[0]
+        found.append(
+            _Problem(
+                r,
+                pos[schema.BIN_COLUMNS[-1]],  # after the single-field rules of the same row
+                f"{schema.BIN_COLUMNS[0]}..{schema.BIN_COLUMNS[-1]}",
+                f"the binned keypoints (sum {int(bin_sum[r])}) must not exceed n_extracted ({int(n_ext[r])})",
+                value=str(int(bin_sum[r])),
+                what="columns",
+            )
+        )
+
+    tol = schema.UNIT_QUATERNION_TOLERANCE
+    for names in schema.QUATERNION_GROUPS.values():
+        if names[0] not in pos:
+            continue
+        q = block(names)
+        norm = np.sqrt(np.sum(q * q, axis=1))
+        hit = first_cell(np.abs(norm - 1.0) > tol)  # NaN rows compare False: reported above, or missing gt
+        if hit is not None:
+            r = hit[0]
+            found.append(
+                _Problem(
+                    r,
+                    pos[names[-1]],
+                    f"{names[0]}..{names[-1]}",
+                    f"not a unit quaternion: |q| = {norm[r]:.12g} (tolerance {tol:g})",
+                    tuple(names),
+                    what="columns",
+                )
+            )
+
+    per_cell(cols["imu_dt"] < 0, ("imu_dt",), "must be >= 0 (seconds since the previous frame)")
+
+    # First frame: nothing to preintegrate from (docs/log-format.md, "First frame").
+    if n_frames:
+        first_reason = "must be {} on the first frame (no previous frame to preintegrate from)"
+        for c in ("imu_dt",) + schema.IMU_DP + schema.IMU_DV:
+            if cols[c][0] != 0.0:
+                found.append(_Problem(0, pos[c], c, first_reason.format(0), (c,)))
+        if not np.array_equal([cols[c][0] for c in schema.IMU_DQ], [1.0, 0.0, 0.0, 0.0]):
+            found.append(
+                _Problem(
+                    0,
+                    pos[schema.IMU_DQ[-1]],
+                    f"{schema.IMU_DQ[0]}..{schema.IMU_DQ[-1]}",
+                    first_reason.format("the identity (1, 0, 0, 0)"),
+                    schema.IMU_DQ,
+                    what="columns",
+                )
+            )
+    return min(found, key=lambda p: (p.row, p.order)) if found else None
+
+
+# --------------------------------------------------------------------------------------------------
+# In-memory validation and writing
+
+
+def validate_run(run: RunLog) -> RunLog:
+    """Check an in-memory run against format v1 and return it in canonical form.
+
+    Canonical form: columns in v1 order (schema.REQUIRED_COLUMNS, then GT_COLUMNS when present), int
+    columns int64, float columns float64, a RangeIndex, metadata as it reads back from JSON (tuples
+    become lists, numpy scalars Python numbers). gt_* NaN marks a frame without ground truth.
+
+    Raises:
+        LogFormatError: with `frame` (0-based) instead of a line, e.g.
+            `<memory>: frame 12: column 'imu_dt' = '-0.05': must be >= 0 (...)`.
+    """
+    source = run.source
+    try:
+        text = json.dumps(run.meta, default=_json_default, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise LogFormatError(source, None, f"metadata cannot be written as JSON: {e}") from None
+    meta = json.loads(text)
+    _check_meta(meta, source, None)
+
+    frames = run.frames
+    has_gt = any(c in frames.columns for c in schema.GT_COLUMNS)
+    names = [str(c) for c in frames.columns]
+    order = schema.COLUMNS if has_gt else schema.REQUIRED_COLUMNS
+    # In memory the order is free; the file order is fixed by the writer.
+    _check_header(sorted(names, key=lambda c: order.index(c) if c in order else len(order)), source, None)
+    if len(frames) == 0:
+        raise LogFormatError(source, None, "the run has no frames")
+    columns = {}
+    for c in order:
+        values = frames[c].to_numpy()
+        if c in _INT_SET:
+            if not np.issubdtype(values.dtype, np.integer):
+                raise LogFormatError(
+                    source, None, f"has dtype {values.dtype}; integer columns need an integer dtype", column=c
+                )
+            columns[c] = values.astype(np.int64, copy=False)
+        else:
+            if not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
+                raise LogFormatError(source, None, f"has dtype {values.dtype}; expected float64", column=c)
+            columns[c] = values.astype(np.float64, copy=False)
+    gt_missing = np.stack([np.isnan(columns[c]) for c in schema.GT_COLUMNS], axis=1) if has_gt else None
+    problem = _find_problem(columns, gt_missing)
+    if problem is not None:
+        raise _memory_error(problem, columns, source)
+    if (
+        frames.columns.tolist() == list(order)
+        and isinstance(frames.index, pd.RangeIndex)
+        and all(frames[c].dtype == columns[c].dtype for c in order)
+    ):
+        canonical = frames  # already canonical: no copy
+    else:
+        canonical = pd.DataFrame(columns, columns=list(order))
+    return RunLog(meta=meta, frames=canonical, source=source)
+
+
+def _memory_error(p: _Problem, cols: Mapping[str, np.ndarray], source: str) -> LogFormatError:
+    if p.value is not None:
+        value = p.value
+    else:
+        value = ",".join(_format_value(cols[c][p.row]) for c in p.value_cols)
+    reason = p.reason.replace("{ref}", f"frame {p.ref_row}")
+    return LogFormatError(source, None, reason, column=p.column, value=value, what=p.what, frame=p.row)
+
+
+def _format_value(x) -> str:
+    if isinstance(x, (np.integer, int)):
+        return str(int(x))
+    return repr(float(x))
+
+
+def write_log(run: RunLog, path: str | os.PathLike) -> Path:
+    """Write one run as a format-v1 CSV log, atomically.
+
+    Line 1 is MAGIC + the metadata as JSON, line 2 the header (schema.REQUIRED_COLUMNS, plus
+    GT_COLUMNS when the frames have them), then one row per frame and last the end marker with the
+    frame count. Integers are written exactly; floats in the shortest decimal form that reads back to
+    the same double (as Python's repr), so `read_log` returns the frames bit for bit. A frame without
+    ground truth has its seven gt_* fields empty.
+
+    The file is written as `<path>.partial` and renamed to `path` when complete, so a reader never
+    sees a half-written log under the final name. (No fsync: this guards against the writer dying,
+    not against the machine losing power.)
+
+    Arguments:
+        run: a valid run (see `validate_run`; invalid runs raise LogFormatError and nothing is written).
+        path: destination, conventionally `*.csv`; parent folders are created.
+
+    Returns:
+        The path written.
+    """
+    run = validate_run(run)
+    path = Path(path)
+    frames = run.frames
+    arrays = []
+    for c in frames.columns:
+        values = frames[c].to_numpy()
+        # Only gt_* may be missing: NaN there becomes an empty field (Arrow writes nulls as "").
+        arrays.append(pa.array(values, from_pandas=c in _GT_SET))
+    table = pa.Table.from_arrays(arrays, names=list(frames.columns))
+    sink = pa.BufferOutputStream()
+    pacsv.write_csv(table, sink, pacsv.WriteOptions(include_header=False, quoting_style="none"))
+    head = (
+        schema.MAGIC + json.dumps(run.meta, allow_nan=False) + "\n" + ",".join(frames.columns) + "\n"
+    ).encode("utf-8")
+    tail = f"{schema.END_MARKER}{len(frames)}\n".encode("ascii")
+
+    return atomic.write_bytes(path, head, sink.getvalue(), tail)
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading one log
+
+
+def read_log(path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = None) -> RunLog:
+    """Read and validate one format-v1 log.
+
+    Arguments:
+        path: the CSV log. A name ending in `.partial` is an unfinished log and is reported as such.
+        ground_truth: optionally a `GroundTruth` (or a path: EuRoC with defaults), or a mapping from
+            metadata `sequence` to one, associated when the log carries no ground truth of its own
+            (see `associate_ground_truth`).
+
+    Returns:
+        The run: frames with int64 / float64 columns in v1 order, gt_* NaN where a frame has none;
+        `source` is `path` as given.
+
+    Raises:
+        LogIncompleteError: empty file, no end marker, a frame count that disagrees with the rows, or
+            a `.partial` name (the writer died mid-run or is still running).
+        LogFormatError: any other defect, naming file, line, column and value.
+        OSError: the file cannot be read.
+    """
+    source = os.fspath(path)
+    if source.endswith(PARTIAL_SUFFIX):
+        raise LogIncompleteError(
+            source,
+            None,
+            "the log is incomplete: a '.partial' file is a log whose writer has not finished "
+            "(it is still running, or it died mid-run)",
+        )
+    with open(path, "rb") as f:
+        data = f.read()
+    run = parse_log(data, source)
+    if ground_truth is not None:
+        run = apply_ground_truth(run, ground_truth)
+    return run
+
+
+def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
+    """Parse and validate the bytes of a format-v1 log (what `read_log` does after reading the file).
+
+    Arguments:
+        data: the whole file.
+        source: the name used in messages and stored in RunLog.source.
+    """
+    if not data:
+        raise LogIncompleteError(
+            source, 1, "empty file (0 bytes): the log is incomplete (its writer wrote nothing)"
+        )
+    nl1 = data.find(b"\n")
+    meta = _parse_meta_line(data if nl1 < 0 else data[:nl1], source)
+
+    # The last non-blank line must be the end marker; without it the writer stopped mid-run.
+    body_end = len(data.rstrip())
+    last_nl = data.rfind(b"\n", 0, body_end)
+    n_lines = data.count(b"\n", 0, body_end) + 1
+    last = data[last_nl + 1 : body_end].decode("utf-8", errors="replace").rstrip("\r")
+    if last_nl < 0 or not last.startswith(schema.END_MARKER):
+        raise LogIncompleteError(
+            source,
+            n_lines,
+            f"the log is incomplete: the file ends at line {n_lines} without the end marker "
+            f"'{schema.END_MARKER}N' (its writer stopped before the end of the run)",
+        )
+    count_text = last[len(schema.END_MARKER) :].strip()
+    if not re.fullmatch(r"[0-9]+", count_text):
+        raise LogFormatError(
+            source,
+            n_lines,
+            f"end marker frame count must be a non-negative integer, found '{shorten(count_text)}'",
+        )
+    count = int(count_text)
+
+    if last_nl == nl1:
+        raise LogFormatError(source, 2, "missing header line: line 2 is the end marker")
+    nl2 = data.find(b"\n", nl1 + 1)
+    try:
+        header = data[nl1 + 1 : nl2].decode("utf-8").rstrip("\r")
+    except UnicodeDecodeError:
+        raise LogFormatError(source, 2, "header line is not UTF-8 text") from None
+    columns = _check_header(header.split(","), source, 2)
+
+    region = data[nl2 + 1 : last_nl + 1]  # the rows, each ending in "\n"
+    if not region:
+        if count == 0:
+            raise LogFormatError(source, n_lines, "the log has no frames")
+        raise LogIncompleteError(
+            source,
+            n_lines,
+            f"the log is incomplete: the end marker says {count} frames but the file has no rows",
+        )
+    table = _parse_rows(region, columns, source)
+    if table.num_rows != count:
+        raise LogIncompleteError(
+            source,
+            n_lines,
+            f"the log is incomplete: the end marker says {count} frames "
+            f"but the file has {table.num_rows} rows",
+        )
+
+    # Empty fields: allowed only in gt_* (a frame without ground truth); checked on Arrow's null masks
+    # before conversion, since pandas would silently turn an int column with a null into floats.
+    first_empty = None
+    for c in columns:
+        col = table.column(c)
+        if col.null_count and c not in _GT_SET:
+            r = int(np.argmax(np.asarray(col.is_null())))
+            if first_empty is None or r < first_empty[0]:
+                first_empty = (r, c)
+    if first_empty is not None:
+        r, c = first_empty
+        raw = _raw_line(region, r)
+        if not raw.strip():
+            raise LogFormatError(
+                source, r + 3, f"empty line (a row has {len(columns)} comma-separated fields)"
+            )
+        raise LogFormatError(
+            source,
+            r + 3,
+            "empty value (only gt_* fields may be empty)",
+            column=c,
+            value=_raw_field(raw, columns.index(c)),
+        )
+    gt_missing = None
+    if columns[-1] in _GT_SET:
+        gt_missing = np.stack([np.asarray(table.column(c).is_null()) for c in schema.GT_COLUMNS], axis=1)
+    problem = _find_problem({c: table.column(c).to_numpy() for c in columns}, gt_missing)
+    if problem is not None:
+        raise _file_error(problem, region, columns, source)
+    return RunLog(meta=meta, frames=table.to_pandas(), source=source)
+
+
+def _parse_rows(region: bytes, columns: list[str], source: str) -> pa.Table:
+    types = {c: (pa.int64() if c in _INT_SET else pa.float64()) for c in columns}
+    try:
+        return pacsv.read_csv(
+            pa.py_buffer(region),
+            read_options=pacsv.ReadOptions(column_names=columns, use_threads=False),
+            parse_options=pacsv.ParseOptions(ignore_empty_lines=False),
+            convert_options=pacsv.ConvertOptions(
+                column_types=types,
+                null_values=[""],
+                strings_can_be_null=False,
+                quoted_strings_can_be_null=False,
+            ),
+        )
+    except pa.ArrowInvalid as e:
+        raise _locate_parse_error(region, columns, source, str(e)) from None
+
+
+def _locate_parse_error(region: bytes, columns: list[str], source: str, arrow_message: str) -> LogFormatError:
+    """Turn an Arrow parse failure into a message with line, column and value (cheap scan of the rows)."""
+    lines = region.split(b"\n")[:-1]
+    n_cols = len(columns)
+    for i, raw in enumerate(lines):
+        n = raw.count(b",") + 1
+        if n == n_cols:
+            continue
+        if not raw.strip(b"\r \t"):
+            return LogFormatError(source, i + 3, f"empty line (a row has {n_cols} comma-separated fields)")
+        if n < n_cols:
+            return LogFormatError(
+                source,
+                i + 3,
+                f"missing: the row has {n} of {n_cols} fields (truncated row)",
+                column=columns[n],
+            )
+        return LogFormatError(
+            source,
+            i + 3,
+            f"too many fields: the row has {n}, v1 expects {n_cols} (last column '{columns[-1]}')",
+        )
+    # Rectangular, so a field did not convert. Arrow names the column and the value; find its line.
+    m = re.search(r"column #(\d+).*?CSV conversion error to (\w+): invalid value '(.*)'", arrow_message, re.S)
+    if m:
+        k, value = int(m.group(1)), m.group(3)
+        c = columns[k]
+        reason = "not an integer" if c in _INT_SET else "not a number"
+        for i, raw in enumerate(lines):
+            field_text = _raw_field(raw, k)
+            if field_text == value or field_text.strip().strip('"') == value:
+                return LogFormatError(source, i + 3, reason, column=c, value=field_text)
+        row = re.search(r"Row #(\d+)", arrow_message)
+        return LogFormatError(source, int(row.group(1)) + 2 if row else None, reason, column=c, value=value)
+    return LogFormatError(source, None, f"cannot parse the rows: {arrow_message}")
+
+
+def _raw_line(region: bytes, row: int) -> bytes:
+    start = 0
+    for _ in range(row):
+        start = region.index(b"\n", start) + 1
+    end = region.find(b"\n", start)
+    return region[start : end if end >= 0 else len(region)].rstrip(b"\r")
+
+
+def _raw_field(raw: bytes, k: int) -> str:
+    fields = raw.rstrip(b"\r").split(b",")
+    return fields[k].decode("utf-8", errors="replace") if k < len(fields) else ""
+
+
+def _file_error(p: _Problem, region: bytes, columns: list[str], source: str) -> LogFormatError:
+    if p.value is not None:
+        value = p.value
+    else:
+        raw = _raw_line(region, p.row)
+        value = ",".join(_raw_field(raw, columns.index(c)) for c in p.value_cols)
+    reason = p.reason.replace("{ref}", f"line {p.ref_row + 3}") if p.ref_row is not None else p.reason
+    return LogFormatError(source, p.row + 3, reason, column=p.column, value=value, what=p.what)

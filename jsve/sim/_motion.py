@@ -1,0 +1,864 @@
+"""Simulator, motion side: trajectories, IMU synthesis and per-frame preintegration (host numpy, float64).
+
+Part of the stand-in front-end (jsve.sim._simulate; docs/simulator.md). Everything here is plain numpy in
+float64: the simulator runs in worker processes without JAX, and IMU deltas need double precision.
+The rotation helpers mirror jsve.core._geometry (wxyz, Hamilton, active) and are tested against it.
+
+    Trajectory                 a smooth continuous-time body trajectory (uniform cubic B-splines fitted
+                               to poses): position, velocity, acceleration, orientation, body rates
+    load_euroc_trajectory      EuRoC left-camera ground truth -> body frame (T_wb = T_wc inv(T_BS))
+    procedural_trajectory      an EuRoC-like flight (quadrotor attitude from thrust, 20 fps stamps)
+    synthesize_imu             200 Hz gyro/accel from a trajectory with the ADIS16448 noise model
+    read_imu_stream            a real EuRoC imu0 stream (t[ns], w, a)
+    frame_substeps             IMU samples between consecutive frames, ORB-SLAM3's midpoint averaging
+    preintegrate               dP, dV, dR per frame (ORB-SLAM3 IntegrateNewMeasurement), bias-corrected
+    trailing_bias              the bias a sliding-window estimator would hold (oracle + lag)
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+"""World gravity, m/s^2 (EuRoC world frame, z up; jsve.io._schema.DEFAULT_GRAVITY)."""
+
+IMU_RATE_HZ = 200.0
+"""ADIS16448 sampling rate in EuRoC."""
+
+# EuRoC imu0 sensor.yaml (ADIS16448), as ORB-SLAM3's EuRoC Monocular-Inertial.yaml rounds them.
+GYRO_NOISE_DENSITY = 1.7e-4  # rad/s/sqrt(Hz)
+ACCEL_NOISE_DENSITY = 2.0e-3  # m/s^2/sqrt(Hz)
+GYRO_RANDOM_WALK = 1.9e-5  # rad/s^2/sqrt(Hz)
+ACCEL_RANDOM_WALK = 3.0e-3  # m/s^3/sqrt(Hz)
+
+EUROC_CAM0_T_BS = np.array(
+    [
+        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+"""EuRoC cam0 extrinsics T_BS (body <- camera), from mav0/cam0/sensor.yaml of every EuRoC sequence."""
+
+EUROC_SEQUENCES = {
+    "MH_01": "MH01", "MH_02": "MH02", "MH_03": "MH03", "MH_04": "MH04", "MH_05": "MH05",
+    "V1_01": "V101", "V1_02": "V102", "V1_03": "V103", "V2_01": "V201", "V2_02": "V202", "V2_03": "V203",
+}  # fmt: skip
+"""EuRoC sequence name -> the short name of ORB-SLAM3's files (MH01_GT.txt, timestamps/MH01.txt)."""
+
+
+# --------------------------------------------------------------------------------------------------
+# Rotations (numpy float64 mirrors of jsve.core._geometry; wxyz, Hamilton, active)
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b (as jsve.core._geometry.quat_mul)."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conj(q: np.ndarray) -> np.ndarray:
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion with w >= 0."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w >= 0) of rotation matrices; Shepperd's method (as jsve.core._geometry)."""
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
+    s01, d01 = m[..., 0, 1] + m[..., 1, 0], m[..., 1, 0] - m[..., 0, 1]
+    s02, d02 = m[..., 0, 2] + m[..., 2, 0], m[..., 0, 2] - m[..., 2, 0]
+    s12, d12 = m[..., 1, 2] + m[..., 2, 1], m[..., 2, 1] - m[..., 1, 2]
+    cands = np.stack(
+        [
+            np.stack([1 + trace, d12, d02, d01], -1),
+            np.stack([d12, 1 + m00 - m11 - m22, s01, s02], -1),
+            np.stack([d02, s01, 1 - m00 + m11 - m22, s12], -1),
+            np.stack([d01, s02, s12, 1 - m00 - m11 + m22], -1),
+        ],
+        axis=-2,
+    )
+    lead = np.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    best = np.argmax(lead, axis=-1)
+    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
+    return quat_normalize(q)
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """R(q) v without forming the matrix."""
+    w, u = q[..., :1], q[..., 1:]
+    uv = np.cross(u, v)
+    return v + 2.0 * (w * uv + np.cross(u, uv))
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrices Exp(phi) of rotation vectors phi [..., 3] (Rodrigues; exact near 0)."""
+    theta2 = np.sum(phi * phi, axis=-1)[..., None, None]
+    theta = np.sqrt(theta2)
+    small = theta2 < 1e-12
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    k = skew(phi)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def quat_exp(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternion of the rotation vector phi [..., 3]."""
+    theta = np.linalg.norm(phi, axis=-1, keepdims=True)
+    half = 0.5 * theta
+    small = theta < 1e-8
+    scale = np.where(small, 0.5 - theta * theta / 48.0, np.sin(half) / np.where(small, 1.0, theta))
+    return np.concatenate([np.cos(half), scale * phi], axis=-1)
+
+
+def quat_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector of unit quaternions (the shorter rotation)."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    small = s < 1e-12
+    return np.where(small, 2.0 * v, v * angle / np.where(small, 1.0, s))
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    z = np.zeros_like(v[..., 0])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Uniform cubic B-splines
+
+
+def _bspline_weights(u: np.ndarray, order: int) -> np.ndarray:
+    """Weights of the 4 control points of a uniform cubic B-spline segment at u in [0, 1): [N, 4]."""
+    if order == 0:
+        return (
+            np.stack([(1 - u) ** 3, 3 * u**3 - 6 * u**2 + 4, -3 * u**3 + 3 * u**2 + 3 * u + 1, u**3], -1) / 6
+        )
+    if order == 1:
+        return np.stack([-((1 - u) ** 2), 3 * u**2 - 4 * u, -3 * u**2 + 2 * u + 1, u**2], -1) / 2
+    if order == 2:
+        return np.stack([1 - u, 3 * u - 2, -3 * u + 1, u], -1)
+    raise ValueError(f"B-spline derivative order must be 0, 1 or 2; got {order}")
+
+
+def _solve_banded_spd(band: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve S x = rhs for a symmetric positive definite S given in lower band form
+    (band[k, r] = S[r, r - k]), by banded Cholesky S = L L^T (Golub & Van Loan, algorithm 4.3.5)."""
+    p, m = band.shape[0] - 1, band.shape[1]
+    low = np.zeros_like(band)  # low[k, r] = L[r, r - k]
+    b = [list(row) for row in band]
+    lo = [[0.0] * m for _ in range(p + 1)]
+    for r in range(m):
+        for k in range(min(p, r), 0, -1):
+            c = r - k
+            acc = b[k][r]
+            for j in range(1, p - k + 1):
+                if c - j < 0:
+                    break
+                acc -= lo[k + j][r] * lo[j][c]
+            lo[k][r] = acc / lo[0][c]
+        acc = b[0][r] - sum(lo[k][r] ** 2 for k in range(1, min(p, r) + 1))
+        lo[0][r] = math.sqrt(acc)
+    low[:] = np.array(lo)
+    x = np.array(rhs, float)
+    for r in range(m):  # L z = rhs
+        for k in range(1, min(p, r) + 1):
+            x[r] -= low[k, r] * x[r - k]
+        x[r] /= low[0, r]
+    for r in range(m - 1, -1, -1):  # L^T x = z
+        for k in range(1, min(p, m - 1 - r) + 1):
+            x[r] -= low[k, r + k] * x[r + k]
+        x[r] /= low[0, r]
+    return x
+
+
+@dataclass(frozen=True)
+class Spline:
+    """A uniform cubic B-spline in time: control points [M, D], knot spacing h (s), start t0 (s).
+
+    Segment i covers [t0 + i h, t0 + (i + 1) h) and uses control points i..i+3.
+    """
+
+    coef: np.ndarray
+    h: float
+    t0: float
+
+    @property
+    def t_end(self) -> float:
+        return self.t0 + (len(self.coef) - 3) * self.h
+
+    def _locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = (np.asarray(t, float) - self.t0) / self.h
+        i = np.clip(np.floor(x).astype(np.int64), 0, len(self.coef) - 4)
+        return i, x - i
+
+    def __call__(self, t: np.ndarray, order: int = 0) -> np.ndarray:
+        """Value (order 0) or time derivative (1, 2) at times t [N] -> [N, D]."""
+        i, u = self._locate(t)
+        w = _bspline_weights(u, order) / self.h**order
+        idx = i[:, None] + np.arange(4)
+        return np.einsum("nk,nkd->nd", w, self.coef[idx])
+
+    @staticmethod
+    def fit(t: np.ndarray, y: np.ndarray, h: float, smooth: float = 1e-3) -> Spline:
+        """Least-squares fit to samples y [N, D] at times t [N] (s), with a curvature penalty.
+
+        smooth weighs the squared second differences of the control points (units of y^2 per knot),
+        which damps ground-truth measurement noise before it is differentiated twice.
+        """
+        t = np.asarray(t, float)
+        t0, t1 = float(t[0]), float(t[-1])
+        n_seg = max(1, int(math.ceil((t1 - t0) / h - 1e-9)))
+        m = n_seg + 3
+        x = (t - t0) / h
+        i = np.clip(np.floor(x).astype(np.int64), 0, n_seg - 1)
+        w = _bspline_weights(x - i, 0)
+        # Normal equations in lower band form: band[k, r] = (A^T A + smooth D^T D)[r, r - k], k = 0..3.
+        band = np.zeros((4, m))
+        aty = np.zeros((m, y.shape[1]))
+        for a in range(4):
+            aty += np.stack(
+                [np.bincount(i + a, weights=w[:, a] * y[:, d], minlength=m) for d in range(y.shape[1])], 1
+            )
+            for b in range(a + 1):
+                band[a - b] += np.bincount(i + a, weights=w[:, a] * w[:, b], minlength=m)
+        # D^T D of second differences (rows r, r+1, r+2 with 1, -2, 1).
+        stencil = np.array([1.0, -2.0, 1.0])
+        for a in range(3):
+            for b in range(a + 1):
+                np.add.at(band[a - b], np.arange(m - 2) + a, smooth * stencil[a] * stencil[b])
+        coef = _solve_banded_spd(band, aty)
+        return Spline(coef=coef, h=h, t0=t0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Trajectories
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A smooth body trajectory T_wb(t) and the frame stamps it is observed at.
+
+    Attributes:
+        name: sequence name (log metadata `sequence`).
+        frame_ns: [F] int64 frame timestamps, ns.
+        position: spline of the body position (m, world frame) in s since frame_ns[0].
+        quaternion: spline of the (unnormalised, sign-continuous) body-to-world quaternion wxyz.
+        source: where the poses came from (a path, or "procedural seed=...").
+    """
+
+    name: str
+    frame_ns: np.ndarray
+    position: Spline
+    quaternion: Spline
+    source: str
+
+    @property
+    def t0_ns(self) -> int:
+        return int(self.frame_ns[0])
+
+    def seconds(self, t_ns: np.ndarray) -> np.ndarray:
+        """s since the first frame (int64 difference first, then float: exact to the ns)."""
+        return (np.asarray(t_ns, np.int64) - self.t0_ns) / 1e9
+
+    def pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(position [N, 3] m, unit quaternion [N, 4] wxyz) at t (s since the first frame)."""
+        return self.position(t), quat_normalize(self.quaternion(t))
+
+    def velocity(self, t: np.ndarray) -> np.ndarray:
+        """m/s, world frame."""
+        return self.position(t, 1)
+
+    def acceleration(self, t: np.ndarray) -> np.ndarray:
+        """m/s^2, world frame (kinematic; gravity not included)."""
+        return self.position(t, 2)
+
+    def angular_velocity(self, t: np.ndarray) -> np.ndarray:
+        """Body angular rate (rad/s, body frame): omega = 2 vec(q^* dq/dt) with q = u / |u|."""
+        u = self.quaternion(t)
+        du = self.quaternion(t, 1)
+        norm = np.linalg.norm(u, axis=-1, keepdims=True)
+        q = u / norm
+        dq = (du - q * np.sum(q * du, axis=-1, keepdims=True)) / norm
+        return 2.0 * quat_mul(quat_conj(q), dq)[..., 1:]
+
+    def specific_force(self, t: np.ndarray, gravity: np.ndarray = GRAVITY) -> np.ndarray:
+        """What an ideal accelerometer reads: R^T (a - g), m/s^2, body frame."""
+        _, q = self.pose(t)
+        return quat_rotate(quat_conj(q), self.acceleration(t) - gravity)
+
+
+def _continuous_sign(q: np.ndarray) -> np.ndarray:
+    """Flip quaternion signs so consecutive samples lie in the same hemisphere (q and -q are equal)."""
+    q = q.copy()
+    flips = np.sum(q[1:] * q[:-1], axis=-1) < 0
+    sign = np.concatenate([[1.0], np.where(np.cumsum(flips) % 2 == 1, -1.0, 1.0)])
+    return q * sign[:, None]
+
+
+def trajectory_from_poses(
+    name: str,
+    t_ns: np.ndarray,
+    p: np.ndarray,
+    q: np.ndarray,
+    *,
+    frame_ns: np.ndarray | None = None,
+    knot_s: float = 0.1,
+    smooth: float = 1e-3,
+    source: str = "<memory>",
+) -> Trajectory:
+    """Fit smooth splines to sampled body poses.
+
+    Arguments:
+        t_ns: [N] int64 pose stamps. p: [N, 3] m. q: [N, 4] wxyz body-to-world.
+        frame_ns: stamps of the frames to simulate (default t_ns); must lie within t_ns.
+        knot_s: knot spacing, s (0.1: resolves motion up to about 5 Hz).
+        smooth: curvature penalty (see Spline.fit).
+    """
+    t_ns = np.asarray(t_ns, np.int64)
+    frame_ns = t_ns if frame_ns is None else np.asarray(frame_ns, np.int64)
+    if frame_ns[0] < t_ns[0] or frame_ns[-1] > t_ns[-1]:
+        raise ValueError(f"{name}: frame stamps reach beyond the poses ({source})")
+    t = (t_ns - frame_ns[0]) / 1e9
+    q = _continuous_sign(quat_normalize(np.asarray(q, float)))
+    return Trajectory(
+        name=name,
+        frame_ns=frame_ns,
+        position=Spline.fit(t, np.asarray(p, float), knot_s, smooth),
+        quaternion=Spline.fit(t, q, knot_s, smooth),
+        source=source,
+    )
+
+
+def read_yaml_matrix(path: str | os.PathLike, key: str = "T_BS") -> np.ndarray:
+    """A 4 x 4 `key: {rows, cols, data: [...]}` matrix from a EuRoC sensor.yaml."""
+    text = Path(path).read_text()
+    start = text.find(key + ":")
+    if start < 0:
+        raise ValueError(f"{path}: no '{key}' entry")
+    open_b = text.find("[", start)
+    close_b = text.find("]", open_b)
+    values = [float(v) for v in text[open_b + 1 : close_b].replace("\n", " ").split(",") if v.strip()]
+    if len(values) != 16:
+        raise ValueError(f"{path}: '{key}' has {len(values)} values, expected 16")
+    return np.array(values).reshape(4, 4)
+
+
+def _read_stamped_rows(path: str | os.PathLike, n_values: int) -> tuple[np.ndarray, np.ndarray]:
+    """(int64 ns stamps, float values [N, n_values]) of a CSV with '#' comments; stamps may carry a
+    decimal fraction ('1403715274312143104.0000000000'), read exactly as integers."""
+    stamps, rows = [], []
+    with open(path) as f:
+        for line_no, line in enumerate(f, 1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.split(",")
+            if len(fields) != n_values + 1:
+                raise ValueError(f"{path}:{line_no}: expected {n_values + 1} fields, found {len(fields)}")
+            stamps.append(int(fields[0].split(".")[0]))
+            rows.append(fields[1:])
+    return np.array(stamps, np.int64), np.array(rows, float)
+
+
+def euroc_file_stem(sequence: str) -> str:
+    """'MH_01' or 'MH01' -> 'MH01' (the stem of ORB-SLAM3's EuRoC files)."""
+    if sequence in EUROC_SEQUENCES:
+        return EUROC_SEQUENCES[sequence]
+    if sequence in EUROC_SEQUENCES.values():
+        return sequence
+    raise ValueError(f"unknown EuRoC sequence {sequence!r}; known: {', '.join(EUROC_SEQUENCES)}")
+
+
+def load_euroc_trajectory(
+    sequence: str,
+    gt_dir: str | os.PathLike,
+    *,
+    timestamps_dir: str | os.PathLike | None = None,
+    t_bs: np.ndarray = EUROC_CAM0_T_BS,
+    knot_s: float = 0.1,
+    smooth: float = 1e-3,
+) -> Trajectory:
+    """A EuRoC sequence from ORB-SLAM3's left-camera ground truth (`<gt_dir>/MH01_GT.txt`, ...).
+
+    The file holds T_wc (camera cam0 in the world) at the camera stamps; the body (IMU) pose is
+    T_wb = T_wc inv(T_BS), T_BS being body <- camera. Frames are the ground-truth stamps, restricted to
+    the image stamps of `<timestamps_dir>/MH01.txt` when that is given (ORB-SLAM3's frame list).
+
+    Arguments:
+        sequence: 'MH_01' ... 'V2_03' (or 'MH01').
+        gt_dir: folder of the *_GT.txt files. timestamps_dir: optional folder of frame stamp lists.
+        t_bs: 4 x 4 body <- camera (default EuRoC cam0's; see read_yaml_matrix).
+    """
+    stem = euroc_file_stem(sequence)
+    path = Path(gt_dir) / f"{stem}_GT.txt"
+    t_ns, values = _read_stamped_rows(path, 7)
+    # The files store the camera centre p_wc with the conjugate of q_wc (i.e. q_cw) despite their
+    # 'q_RS' header: conjugating reproduces T_wb T_BS from EuRoC's body ground truth to 1e-7 and the
+    # real gyro's rates (docs/simulator.md, "Ground truth"); positions are unaffected.
+    p_wc, q_wc = values[:, :3], quat_conj(quat_normalize(values[:, 3:7]))
+    r_cb = t_bs[:3, :3].T
+    p_cb = -r_cb @ t_bs[:3, 3]
+    q_cb = matrix_to_quat(r_cb)
+    p_wb = p_wc + quat_rotate(q_wc, np.broadcast_to(p_cb, p_wc.shape))
+    q_wb = quat_normalize(quat_mul(q_wc, np.broadcast_to(q_cb, q_wc.shape)))
+    frame_ns = t_ns
+    if timestamps_dir is not None:
+        stamps_path = Path(timestamps_dir) / f"{stem}.txt"
+        if stamps_path.is_file():
+            stamps = np.loadtxt(stamps_path, dtype=np.int64, ndmin=1)
+            frame_ns = t_ns[np.isin(t_ns, stamps)]
+    name = (
+        sequence if sequence in EUROC_SEQUENCES else next(k for k, v in EUROC_SEQUENCES.items() if v == stem)
+    )
+    return trajectory_from_poses(name, t_ns, p_wb, q_wb, frame_ns=frame_ns, knot_s=knot_s, smooth=smooth,
+                                 source=str(path))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FlightProfile:
+    """Ranges of the procedural flights (EuRoC-like; docs/simulator.md compares them with EuRoC).
+
+    Attributes:
+        duration_s: flight length range, s. mean_speed: target mean speed range, m/s.
+        room: half extents of the flight volume, m (x, y, z). fps: frame rate.
+        yaw_rate: typical yaw rate scale, rad/s. camera_pitch_deg: camera tilt below the horizon.
+        periods_s: range of the periods of the path's sinusoids, s.
+    """
+
+    duration_s: tuple[float, float] = (80.0, 180.0)
+    mean_speed: tuple[float, float] = (0.3, 1.0)
+    room: tuple[float, float, float] = (4.0, 4.0, 1.0)
+    fps: float = 20.0
+    yaw_rate: float = 0.6
+    periods_s: tuple[float, float] = (2.0, 60.0)
+    camera_pitch_deg: tuple[float, float] = (5.0, 30.0)
+
+
+PROCEDURAL_T0_NS = 1_600_000_000_000_000_000
+"""Start stamp of procedural flights (an arbitrary epoch in 2020, far from EuRoC's 2014 stamps)."""
+
+
+def procedural_trajectory(
+    name: str, rng: np.random.Generator, profile: FlightProfile = FlightProfile()
+) -> Trajectory:
+    """An EuRoC-like flight: smooth 3D path in a room, quadrotor attitude, frames at profile.fps.
+
+    The path is a sum of random sinusoids per axis (periods 10 to 60 s) scaled to fill the room and
+    re-timed to the drawn mean speed; the body's x axis follows the thrust direction a - g (a
+    quadrotor's attitude, as on the EuRoC MAV whose IMU x axis points up), the heading wanders with
+    a slow random yaw, and the camera (body z) looks ahead, tilted down.
+    """
+    duration = rng.uniform(*profile.duration_s)
+    target_speed = rng.uniform(*profile.mean_speed)
+    n_terms = 6
+    fine_dt = 0.01
+    t_fine = np.arange(0.0, duration + 2 * fine_dt, fine_dt)
+    # Periods log-uniform in profile.periods_s; amplitudes in proportion to the period, so that slow
+    # terms carry the MAV across the room and fast ones make its manoeuvres and wobble.
+    period = np.exp(rng.uniform(*np.log(profile.periods_s), size=(3, n_terms)))
+    freq = 1.0 / period
+    phase = rng.uniform(0, 2 * np.pi, size=(3, n_terms))
+    amp = rng.uniform(0.5, 1.0, size=(3, n_terms)) * period
+    amp /= amp.sum(axis=1, keepdims=True)
+    amp *= np.asarray(profile.room)[:, None]
+
+    omega = 2 * np.pi * freq
+
+    def path(time_scale, order=0):
+        w = omega[None] * time_scale
+        arg = w * t_fine[:, None, None] + phase[None]
+        wave = (np.sin, np.cos, lambda x: -np.sin(x))[order](arg)
+        return np.sum(amp[None] * w**order * wave, axis=-1)
+
+    # Re-time so that the mean speed matches the target (speed scales linearly with time_scale).
+    scale = target_speed / np.mean(np.linalg.norm(path(1.0, 1), axis=1))
+    p = path(scale)
+    p[:, 2] += profile.room[2] + 0.5  # fly above the floor
+    a = path(scale, 2)
+    # Heading: slow random yaw (sum of sinusoids) around the direction of travel's mean.
+    yaw_freq = rng.uniform(1 / 40, 1 / 4, size=3)
+    yaw_phase = rng.uniform(0, 2 * np.pi, size=3)
+    yaw_amp = profile.yaw_rate / (2 * np.pi * yaw_freq) / 3
+    yaw = rng.uniform(-np.pi, np.pi) + np.sum(
+        yaw_amp * np.sin(2 * np.pi * yaw_freq * t_fine[:, None] + yaw_phase), 1
+    )
+    up = a - GRAVITY  # thrust direction
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    forward = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], 1)
+    pitch = np.deg2rad(rng.uniform(*profile.camera_pitch_deg))
+    # Camera axis: forward tilted down, made orthogonal to the thrust axis.
+    look = np.cos(pitch) * forward - np.sin(pitch) * np.array([0.0, 0.0, 1.0])
+    z_b = look - up * np.sum(look * up, axis=1, keepdims=True)
+    z_b /= np.linalg.norm(z_b, axis=1, keepdims=True)
+    x_b = up
+    y_b = np.cross(z_b, x_b)
+    r_wb = np.stack([x_b, y_b, z_b], axis=-1)  # columns: body axes in the world
+    q = matrix_to_quat(r_wb)
+
+    period_ns = int(round(1e9 / profile.fps))
+    n_frames = int(duration * profile.fps)
+    frame_ns = PROCEDURAL_T0_NS + period_ns * np.arange(n_frames, dtype=np.int64)
+    pose_ns = PROCEDURAL_T0_NS + np.round(t_fine * 1e9).astype(np.int64)
+    return trajectory_from_poses(name, pose_ns, p, q, frame_ns=frame_ns, knot_s=0.05, smooth=1e-6,
+                                 source=f"procedural {name}")  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------------
+# IMU
+
+
+@dataclass(frozen=True)
+class ImuStream:
+    """IMU samples: t_ns [S] int64; gyro [S, 3] rad/s and accel [S, 3] m/s^2 in the body frame.
+
+    bias_gyro, bias_accel: [S, 3] the true biases where known (synthetic streams), else None.
+    """
+
+    t_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    bias_gyro: np.ndarray | None = None
+    bias_accel: np.ndarray | None = None
+    source: str = "<memory>"
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """IMU error model: the ADIS16448 datasheet noise plus correlated in-flight errors.
+
+    The datasheet terms (white noise and bias random walk, EuRoC's imu0 sensor.yaml) describe the
+    sensor at rest. On the flying MAV the real EuRoC streams also carry errors correlated over
+    seconds (vibration rectification, scale-factor and axis-misalignment errors under the flight's
+    accelerations, and ground-truth attitude error when integrated against ground truth); they are
+    modelled as first-order Gauss-Markov processes, the usual model of such errors, with the
+    variance and correlation time that make dead reckoning drift as the real V1_01 stream drifts
+    against its ground truth (analysis/imu_drift.py; docs/simulator.md, "IMU"). `datasheet()`
+    leaves them out.
+
+    Attributes:
+        gyro_density, accel_density: white noise, rad/s/sqrt(Hz) and m/s^2/sqrt(Hz).
+        gyro_walk, accel_walk: bias random walk, rad/s^2/sqrt(Hz) and m/s^3/sqrt(Hz).
+        gyro_bias0, accel_bias0: standard deviation of the initial bias per axis, rad/s and m/s^2
+            (EuRoC's estimated biases reach 0.08 rad/s and 0.55 m/s^2).
+        gyro_gm, accel_gm: stationary standard deviation of the Gauss-Markov errors per axis.
+        gyro_gm_tau, accel_gm_tau: their correlation times, s.
+    """
+
+    gyro_density: float = GYRO_NOISE_DENSITY
+    accel_density: float = ACCEL_NOISE_DENSITY
+    gyro_walk: float = GYRO_RANDOM_WALK
+    accel_walk: float = ACCEL_RANDOM_WALK
+    gyro_bias0: float = 0.03
+    accel_bias0: float = 0.1
+    gyro_gm: float = 0.006
+    gyro_gm_tau: float = 10.0
+    accel_gm: float = 0.07
+    accel_gm_tau: float = 5.0
+
+    @classmethod
+    def datasheet(cls) -> ImuNoise:
+        """Only the ADIS16448 datasheet terms (no in-flight correlated errors)."""
+        return cls(gyro_gm=0.0, accel_gm=0.0)
+
+
+def gauss_markov(
+    rng: np.random.Generator, t: np.ndarray, sigma: float, tau: float, dim: int = 3
+) -> np.ndarray:
+    """A stationary first-order Gauss-Markov (Ornstein-Uhlenbeck) process sampled at times t (s).
+
+    x_i = a_i x_(i-1) + sigma sqrt(1 - a_i^2) n_i with a_i = exp(-(t_i - t_(i-1)) / tau): exact for any
+    spacing. Solved in closed form in blocks (no Python loop over samples).
+    """
+    n = len(t)
+    out = np.zeros((n, dim))
+    if sigma == 0.0 or n == 0:
+        return out
+    dt = np.diff(t, prepend=t[0])
+    a = np.exp(-dt / tau)
+    z = rng.normal(0.0, 1.0, (n, dim)) * (sigma * np.sqrt(1.0 - a * a))[:, None]
+    z[0] = rng.normal(0.0, sigma, dim)
+    block = max(1, int(tau / max(np.median(dt[1:]) if n > 1 else tau, 1e-9)))  # a^-block stays ~e^1
+    carry = np.zeros(dim)
+    for start in range(0, n, block):
+        sl = slice(start, min(n, start + block))
+        # x_i = A_i (carry + sum_{j<=i} z_j / A_j), A_i = prod_{j<=i} a_j within the block
+        log_a = np.cumsum(np.log(a[sl]))
+        A = np.exp(log_a)[:, None]
+        out[sl] = A * (carry + np.cumsum(z[sl] / A, axis=0))
+        carry = out[sl.stop - 1]
+    return out
+
+
+def imu_sample_times(frame_ns: np.ndarray, rate_hz: float = IMU_RATE_HZ) -> np.ndarray:
+    """IMU stamps: every frame interval cut into round(dt rate) equal steps (frame stamps included).
+
+    EuRoC's camera is triggered by the IMU clock, so its frames fall on IMU samples; a dropped frame
+    (a 100 ms interval) simply holds 20 samples.
+    """
+    frame_ns = np.asarray(frame_ns, np.int64)
+    gaps = np.diff(frame_ns)
+    steps = np.maximum(1, np.round(gaps * rate_hz / 1e9).astype(np.int64))
+    offsets = np.concatenate([[0], np.cumsum(steps)])
+    k = np.arange(offsets[-1])
+    interval = np.searchsorted(offsets, k, side="right") - 1
+    within = k - offsets[interval]
+    t = frame_ns[interval] + (gaps[interval] * within) // steps[interval]
+    return np.concatenate([t, frame_ns[-1:]])
+
+
+def synthesize_imu(
+    trajectory: Trajectory,
+    rng: np.random.Generator,
+    noise: ImuNoise | None = ImuNoise(),
+    rate_hz: float = IMU_RATE_HZ,
+    gravity: np.ndarray = GRAVITY,
+) -> ImuStream:
+    """Gyro and accelerometer samples of the trajectory under the ImuNoise model.
+
+    The ideal readings are the spline's body rate and specific force R^T (a - g). Discrete noise per
+    sample: density / sqrt(dt); bias increments: walk sqrt(dt) (Brownian motion sampled at the IMU
+    rate); then the Gauss-Markov in-flight errors. The stream's bias_* hold the random-walk biases
+    (the Gauss-Markov part is not a bias an estimator could know). noise=None gives the ideal
+    readings with zero bias.
+    """
+    t_ns = imu_sample_times(trajectory.frame_ns, rate_hz)
+    t = trajectory.seconds(t_ns)
+    gyro = trajectory.angular_velocity(t)
+    accel = trajectory.specific_force(t, gravity)
+    if noise is None:
+        zero = np.zeros_like(gyro)
+        return ImuStream(t_ns, gyro, accel, zero, zero.copy(), source=f"ideal {trajectory.name}")
+    dt = np.diff(t, prepend=t[0] - 1.0 / rate_hz)
+    dt_nominal = 1.0 / rate_hz
+    n = len(t)
+    bg = rng.normal(0, noise.gyro_bias0, 3) + np.cumsum(
+        rng.normal(0, 1, (n, 3)) * noise.gyro_walk * np.sqrt(dt)[:, None], axis=0
+    )
+    ba = rng.normal(0, noise.accel_bias0, 3) + np.cumsum(
+        rng.normal(0, 1, (n, 3)) * noise.accel_walk * np.sqrt(dt)[:, None], axis=0
+    )
+    gyro = gyro + bg + rng.normal(0, noise.gyro_density / math.sqrt(dt_nominal), (n, 3))
+    accel = accel + ba + rng.normal(0, noise.accel_density / math.sqrt(dt_nominal), (n, 3))
+    gyro += gauss_markov(rng, t, noise.gyro_gm, noise.gyro_gm_tau)
+    accel += gauss_markov(rng, t, noise.accel_gm, noise.accel_gm_tau)
+    return ImuStream(t_ns, gyro, accel, bg, ba, source=f"synthetic {trajectory.name}")
+
+
+def read_imu_stream(path: str | os.PathLike) -> ImuStream:
+    """A EuRoC imu0 CSV (t[ns], wx, wy, wz [rad/s], ax, ay, az [m/s^2]), one header line."""
+    t_ns, rows = _read_stamped_rows(path, 6)
+    return ImuStream(t_ns, rows[:, :3], rows[:, 3:], source=os.fspath(path))
+
+
+@dataclass(frozen=True)
+class Substeps:
+    """IMU integration steps of every frame interval, padded: arrays [F, S] (frame 0 has none).
+
+    dt: s (0 on padding). gyro, accel: [F, S, 3] midpoint readings (ORB-SLAM3 averages the two
+    samples bounding each step). t_mid: [F, S] s since the first frame, at each step's midpoint.
+    """
+
+    dt: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    t_mid: np.ndarray
+
+
+def frame_substeps(imu: ImuStream, frame_ns: np.ndarray) -> Substeps:
+    """Cut an IMU stream into the steps between consecutive frames, as Tracking::PreintegrateIMU.
+
+    Samples inside [t_{k-1}, t_k] are used; where a frame stamp falls between two samples the
+    reading there is linearly interpolated (ORB-SLAM3's first/last-step interpolation). Each step
+    integrates the mean of the readings at its two ends.
+    """
+    frame_ns = np.asarray(frame_ns, np.int64)
+    if imu.t_ns[0] > frame_ns[0] or imu.t_ns[-1] < frame_ns[-1]:
+        raise ValueError(f"IMU stream {imu.source} does not cover the frames")
+    t_all = np.union1d(imu.t_ns[(imu.t_ns >= frame_ns[0]) & (imu.t_ns <= frame_ns[-1])], frame_ns)
+    rel = (imu.t_ns - frame_ns[0]) / 1e9
+    x = (t_all - frame_ns[0]) / 1e9
+    gyro = np.stack([np.interp(x, rel, imu.gyro[:, j]) for j in range(3)], -1)
+    accel = np.stack([np.interp(x, rel, imu.accel[:, j]) for j in range(3)], -1)
+    frame_of_step = np.searchsorted(frame_ns, t_all[:-1], side="right")  # step [t_i, t_i+1] -> frame k
+    counts = np.bincount(frame_of_step, minlength=len(frame_ns))
+    n_sub = int(counts.max())
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(len(frame_of_step)) - start[frame_of_step]
+    F = len(frame_ns)
+    dt = np.zeros((F, n_sub))
+    g = np.zeros((F, n_sub, 3))
+    a = np.zeros((F, n_sub, 3))
+    tm = np.zeros((F, n_sub))
+    dt[frame_of_step, slot] = np.diff(x)
+    g[frame_of_step, slot] = 0.5 * (gyro[:-1] + gyro[1:])
+    a[frame_of_step, slot] = 0.5 * (accel[:-1] + accel[1:])
+    tm[frame_of_step, slot] = 0.5 * (x[:-1] + x[1:])
+    return Substeps(dt=dt, gyro=g, accel=a, t_mid=tm)
+
+
+def preintegrate(steps: Substeps, bias_gyro: np.ndarray, bias_accel: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-frame preintegration, ORB-SLAM3 v1.0 IMU::Preintegrated::IntegrateNewMeasurement.
+
+    For each step (midpoint readings minus the bias estimate): dP += dV dt + 0.5 dR a dt^2;
+    dV += dR a dt; dR = dR Exp(w dt). Expressed in the previous frame's body frame.
+
+    Arguments:
+        steps: from frame_substeps. bias_gyro, bias_accel: [F, 3] (or [3]) the estimate used for the
+            interval ending at each frame (rad/s, m/s^2).
+    Returns:
+        (dt [F] s, dp [F, 3] m, dv [F, 3] m/s, dq [F, 4] wxyz); frame 0 is (0, 0, 0, identity).
+    """
+    F, S = steps.dt.shape
+    bg = np.broadcast_to(bias_gyro, (F, 3))
+    ba = np.broadcast_to(bias_accel, (F, 3))
+    dp = np.zeros((F, 3))
+    dv = np.zeros((F, 3))
+    dr = np.broadcast_to(np.eye(3), (F, 3, 3)).copy()
+    for s in range(S):
+        h = steps.dt[:, s, None]
+        acc = steps.accel[:, s] - ba
+        w = steps.gyro[:, s] - bg
+        ra = np.einsum("fij,fj->fi", dr, acc)
+        dp += dv * h + 0.5 * ra * h * h
+        dv += ra * h
+        dr = dr @ so3_exp(w * h)
+    dq = matrix_to_quat(dr)
+    dq[0] = (1.0, 0.0, 0.0, 0.0)
+    dp[0] = 0.0
+    dv[0] = 0.0
+    return steps.dt.sum(axis=1), dp, dv, dq
+
+
+def trailing_bias(
+    imu: ImuStream, trajectory: Trajectory, window_s: float = 10.0, gravity: np.ndarray = GRAVITY
+) -> tuple[np.ndarray, np.ndarray]:
+    """The biases a sliding-window estimator with perfect motion knowledge would hold at each sample.
+
+    Mean of (measurement - ideal reading) over the trailing window [t - window_s, t] (the first
+    window_s seconds use the first window). Works the same on real and synthetic streams, so
+    the two are compared on equal terms (analysis/imu_drift.py).
+
+    Returns:
+        (bias_gyro, bias_accel), [S, 3] each.
+    """
+    t = trajectory.seconds(imu.t_ns)
+    inside = (t >= 0) & (t <= trajectory.position.t_end)
+    tt = np.clip(t, 0.0, trajectory.position.t_end)
+    res_g = np.where(inside[:, None], imu.gyro - trajectory.angular_velocity(tt), 0.0)
+    res_a = np.where(inside[:, None], imu.accel - trajectory.specific_force(tt, gravity), 0.0)
+    csum_g = np.concatenate([np.zeros((1, 3)), np.cumsum(res_g, axis=0)])
+    csum_a = np.concatenate([np.zeros((1, 3)), np.cumsum(res_a, axis=0)])
+    cnt = np.concatenate([[0], np.cumsum(inside)])
+    t_first = t[inside][0]
+    hi = np.searchsorted(t, t, side="right")
+    lo = np.searchsorted(t, np.maximum(t - window_s, t_first), side="left")
+    short = t < t_first + window_s
+    hi = np.where(short, np.searchsorted(t, t_first + window_s, side="right"), hi)
+    lo = np.where(short, np.searchsorted(t, t_first, side="left"), lo)
+    n = np.maximum(cnt[hi] - cnt[lo], 1)[:, None]
+    return (csum_g[hi] - csum_g[lo]) / n, (csum_a[hi] - csum_a[lo]) / n
+
+
+def frame_bias_estimate(
+    imu: ImuStream, trajectory: Trajectory, *, window_s: float = 10.0, t_init_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The bias estimate each frame's preintegration is corrected with, [F, 3] gyro and accel.
+
+    ORB-SLAM3 preintegrates the interval ending at frame k with the estimate held at frame k - 1;
+    that estimate is modelled as `trailing_bias` (a sliding-window estimator) sampled at frame
+    k - 1, and zero before the IMU is initialised at t_init_s (ORB-SLAM3 starts from zero biases).
+    """
+    bg, ba = trailing_bias(imu, trajectory, window_s)
+    idx = np.clip(np.searchsorted(imu.t_ns, trajectory.frame_ns), 0, len(imu.t_ns) - 1)
+    held = np.concatenate([[0], np.arange(len(idx) - 1)])  # frame k uses frame k - 1's estimate
+    t_prev = trajectory.seconds(trajectory.frame_ns)[held]
+    ready = (t_prev >= t_init_s)[:, None]
+    return np.where(ready, bg[idx[held]], 0.0), np.where(ready, ba[idx[held]], 0.0)
+
+
+def imu_predict(p, v, q, dt, dp, dv, dq, gravity=GRAVITY):
+    """ORB-SLAM3 PredictStateIMU in numpy float64, the same equations as jsve.core._replay.imu_predict:
+    R2 = R1 dR; v2 = v1 + g dt + R1 dV; p2 = p1 + v1 dt + 0.5 g dt^2 + R1 dP."""
+    dt = np.asarray(dt)[..., None]
+    return (p + v * dt + 0.5 * gravity * dt * dt + quat_rotate(q, dp), v + gravity * dt + quat_rotate(q, dv),
+            quat_mul(q, dq))  # fmt: skip
+
+
+def dead_reckoning_drift(
+    trajectory: Trajectory,
+    preintegration: tuple[np.ndarray, ...],
+    *,
+    horizons_s=(1.0, 2.0, 5.0),
+    start_every_s: float = 1.0,
+    skip_s: float = 10.0,
+    gravity: np.ndarray = GRAVITY,
+) -> dict[float, np.ndarray]:
+    """Position error of IMU-only prediction from the true state, per start and horizon.
+
+    From every start frame (every start_every_s after skip_s) the true position, velocity and
+    orientation are propagated with the per-frame preintegration (dt, dp, dv, dq) alone, as the
+    replay does in RECENTLY_LOST, and compared with the true position after each horizon.
+
+    Returns:
+        horizon (s) -> [starts] position errors, m.
+    """
+    dt, dp, dv, dq = preintegration
+    t = trajectory.seconds(trajectory.frame_ns)
+    p_true, q_true = trajectory.pose(t)
+    v_true = trajectory.velocity(t)
+    longest = max(horizons_s)
+    last = np.searchsorted(t, t[-1] - longest, side="right")
+    first = np.searchsorted(t, skip_s)
+    starts = np.unique(np.searchsorted(t, np.arange(t[first], t[max(first, last - 1)] + 1e-9, start_every_s)))
+    p, v, q = p_true[starts], v_true[starts], q_true[starts]
+    k = starts.copy()
+    out = {}
+    for horizon in sorted(horizons_s):
+        target = t[starts] + horizon
+        while True:
+            move = (k + 1 < len(t)) & (t[np.minimum(k + 1, len(t) - 1)] <= target + 1e-6)
+            if not move.any():
+                break
+            kk = np.where(move, k + 1, k)
+            p2, v2, q2 = imu_predict(p, v, q, dt[kk], dp[kk], dv[kk], dq[kk], gravity)
+            m = move[:, None]
+            p, v, q, k = np.where(m, p2, p), np.where(m, v2, v), np.where(m, q2, q), kk
+        out[horizon] = np.linalg.norm(p - p_true[k], axis=1)
+    return out

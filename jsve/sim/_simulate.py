@@ -1,0 +1,863 @@
+"""The simulator: a stand-in front-end that writes format-v1 tracking logs as ORB-SLAM3 + logger would.
+
+For any set of sequences x disturbance settings x runs, deterministically under a seed:
+
+    recording   per sequence: a smooth true trajectory (EuRoC ground truth, or a procedural flight),
+                the IMU stream it implies (ADIS16448 noise model, or the real EuRoC stream), the
+                per-frame preintegration and the scene-texture process        (jsve.sim._motion)
+    setting     per (sequence, disturbance, level): ORB extraction counts and SVE bins on the
+                degraded images, matching and localisation quality             (jsve.sim._vision)
+    run         per run: map inliers and frustum counts, the visual pose error (information matrix of
+                the inliers' geometry, drift, gross jumps when tracking is weak), IMU initialisation,
+                and ORB-SLAM3's own state (its rule replayed by jsve.core._rules.machine_step)
+
+Nothing is defined through the SVE formulas; docs/simulator.md describes the model, its parameters,
+its calibration against real frames and its limits.
+
+    simulate_run(sequence, "blur", 25, run=3)              one RunLog
+    simulate_study(sequences=..., disturbances="seed")     RunLogs in memory
+    write_study("out/", ...)                               logs on disk, parallel and resumable
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import functools
+import logging
+import math
+import multiprocessing
+import os
+import time
+import zlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from jsve.io import _schema as schema
+from jsve.io._schema import RunLog
+from jsve.sim._motion import (
+    EUROC_CAM0_T_BS,
+    EUROC_SEQUENCES,
+    GRAVITY,
+    FlightProfile,
+    ImuNoise,
+    Trajectory,
+    euroc_file_stem,
+    frame_bias_estimate,
+    frame_substeps,
+    gauss_markov,
+    load_euroc_trajectory,
+    preintegrate,
+    procedural_trajectory,
+    quat_exp,
+    quat_mul,
+    quat_to_matrix,
+    read_imu_stream,
+    synthesize_imu,
+)
+from jsve.sim._vision import (
+    EUROC_CAM0,
+    N_FEATURES,
+    SEED_GRIDS,
+    Counts,
+    SceneProfile,
+    VisionParams,
+    bin_geometry,
+    degradation,
+    extract,
+    make_scene,
+)
+
+logger = logging.getLogger(__name__)
+
+FRONTEND = "jsve simulator 1"
+"""Value of the `frontend` metadata key of simulated logs (the model version)."""
+
+EXTRA_GRIDS = {
+    "noise": (0, 2, 5, 10, 15, 20, 30, 40),
+    "low_light": (1.0, 0.5, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03),
+    "motion_blur": (0, 5, 10, 15, 20, 30, 40, 50),
+    "haze": (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0),
+    "lens_dirt": (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),
+}
+"""Level grids of jsve.image._disturb's further disturbances (the same as jsve.image._disturb.DISTURBANCES; a test
+checks), so that the simulator needs neither OpenCV nor images."""
+
+GRIDS = {**SEED_GRIDS, **EXTRA_GRIDS}
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One disturbance at one level (`none` at 0 is the undisturbed camera)."""
+
+    disturbance: str
+    level: float
+
+    @property
+    def label(self) -> str:
+        return f"{self.disturbance}-{_format_level(self.level)}"
+
+
+def _format_level(level: float) -> str:
+    return str(int(level)) if float(level).is_integer() else f"{level:g}"
+
+
+def settings(spec: str | Iterable[str] = "seed") -> list[Setting]:
+    """Disturbance settings from a spec.
+
+    "seed": the seed paper's 31 (blur 0, 5, ..., 50: 11; downsample 1.0, 0.9, ..., 0.1: 10;
+    occlusion 0, 50, ..., 450: 10; three of them, blur 0, downsample 1.0 and occlusion 0, are the
+    undisturbed camera, run separately as each of the paper's figures starts from its own). "all":
+    those and every level of the five further disturbances (72). Otherwise a comma-separated list of
+    names, each optionally with levels: "blur,occlusion" or "blur:0:25:50,noise".
+    """
+    items = [spec] if isinstance(spec, str) else list(spec)
+    names: list[str] = []
+    for item in items:
+        names.extend(part.strip() for part in item.split(",") if part.strip())
+    out: list[Setting] = []
+    for name in names:
+        if name == "seed":
+            out.extend(Setting(d, float(lv)) for d in SEED_GRIDS for lv in SEED_GRIDS[d])
+            continue
+        if name == "all":
+            out.extend(Setting(d, float(lv)) for d in GRIDS for lv in GRIDS[d])
+            continue
+        base, _, levels = name.partition(":")
+        if base == "none":
+            out.append(Setting("none", 0.0))
+            continue
+        if base not in GRIDS:
+            raise ValueError(f"unknown disturbance {base!r}; choose seed, all, none or {', '.join(GRIDS)}")
+        grid = [float(v) for v in levels.split(":")] if levels else [float(v) for v in GRIDS[base]]
+        out.extend(Setting(base, lv) for lv in grid)
+    seen, unique = set(), []
+    for s in out:
+        if (s.disturbance, s.level) not in seen:
+            seen.add((s.disturbance, s.level))
+            unique.append(s)
+    return unique
+
+
+# --------------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """Run-level tracking model: map inliers, frustum counts, visual pose error, IMU initialisation.
+
+    Attributes:
+        map_fraction: share of frame-to-frame matchable keypoints that carry a local-map point.
+        run_sigma, run_tau: log spread and correlation time (s) of a run's map quality (ORB-SLAM3's
+            runs differ through threading and RANSAC).
+        frustum_window_s: s; n_frustum counts the local map's points in view, built from the
+            keypoints of about the last second (ORB-SLAM3's covisible keyframes).
+        frustum_ratio: local-map points in view per keypoint of that window (1: the real-frame
+            stand-in's ratio).
+        depth_spread: coefficient of variation of the scene depth about its median (breaks the
+            translation-rotation ambiguity of a narrow view).
+        prior_position, prior_rotation: m, rad: the motion-model prior of the pose optimisation.
+        drift_per_sqrt_m, yaw_drift_per_sqrt_m: m, rad per sqrt(m travelled): the map's slow drift
+            (visual-inertial: position and yaw unobservable).
+        jitter_to_drift: share of each frame's error that stays in the map.
+        outlier_rate, outlier_inliers: a gross jump happens on a frame with probability
+            outlier_rate exp(-inliers / outlier_inliers).
+        outlier_position, outlier_rotation: m, rad: standard deviation of a jump per axis.
+        recovery_s: s, time for strong tracking (many inliers) to pull an excursion back; weak
+            tracking holds it (recovery slows as inliers / (inliers + recovery_inliers) falls).
+        velocity_tau: s, smoothing of the visual velocity (the visual-inertial window).
+        imu_init_s: (min, max) s after the first frame at which ORB-SLAM3 initialises the IMU.
+    """
+
+    map_fraction: float = 0.46
+    run_sigma: float = 0.1
+    run_tau: float = 5.0
+    frustum_window_s: float = 1.0
+    frustum_ratio: float = 1.0
+    depth_spread: float = 0.3
+    prior_position: float = 0.3
+    prior_rotation: float = 0.1
+    drift_per_sqrt_m: float = 0.006
+    yaw_drift_per_sqrt_m: float = 0.001
+    jitter_to_drift: float = 0.1
+    outlier_rate: float = 0.5
+    outlier_inliers: float = 8.0
+    outlier_position: float = 0.25
+    outlier_rotation: float = 0.05
+    recovery_s: float = 0.2
+    recovery_inliers: float = 30.0
+    velocity_tau: float = 0.25
+    imu_init_s: tuple[float, float] = (2.0, 3.5)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything the simulator's output depends on besides sequence, setting, run and seed."""
+
+    vision: VisionParams = VisionParams()
+    tracking: TrackingParams = TrackingParams()
+    scene: SceneProfile = SceneProfile()
+    imu: ImuNoise = ImuNoise()
+    flight: FlightProfile = FlightProfile()
+    imu_source: str = "synthetic"  # "synthetic" or "real" (EuRoC imu0 stream where available)
+    bias_window_s: float = 10.0
+    n_features: int = N_FEATURES
+
+
+# --------------------------------------------------------------------------------------------------
+# Sequences and recordings
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """A sequence to simulate: a procedural flight, or a EuRoC sequence from ORB-SLAM3's files.
+
+    Attributes:
+        name: metadata `sequence` ("MH_01", "proc_03").
+        euroc_gt: folder of ORB-SLAM3's left-camera ground truth (MH01_GT.txt, ...), for EuRoC.
+        timestamps: folder of frame stamp lists (MH01.txt), optional. imu: folder of real imu0
+            streams (V101.txt), optional (used with SimConfig.imu_source = "real").
+    """
+
+    name: str
+    euroc_gt: str | None = None
+    timestamps: str | None = None
+    imu: str | None = None
+
+    @property
+    def procedural(self) -> bool:
+        return self.euroc_gt is None
+
+
+def procedural_sequences(n: int) -> list[SequenceSpec]:
+    """n procedural flights named proc_00, proc_01, ..."""
+    return [SequenceSpec(f"proc_{i:02d}") for i in range(n)]
+
+
+def euroc_sequences(names: Sequence[str], euroc_gt: str | os.PathLike) -> list[SequenceSpec]:
+    """EuRoC sequences from `euroc_gt` (ORB-SLAM3's EuRoC_left_cam folder); the sibling folders
+    `timestamps/` and `imu/` are used where they exist (the layout of ../shared/data/euroc)."""
+    gt = Path(euroc_gt)
+    if not gt.is_dir():
+        raise FileNotFoundError(f"--euroc-gt {gt}: not a folder")
+    ts = gt.parent / "timestamps"
+    imu = gt.parent / "imu"
+    out = []
+    for name in names:
+        stem = euroc_file_stem(name)
+        if not (gt / f"{stem}_GT.txt").is_file():
+            raise FileNotFoundError(f"{gt / f'{stem}_GT.txt'}: no ground truth for sequence {name}")
+        canonical = next(k for k, v in EUROC_SEQUENCES.items() if v == stem)
+        out.append(
+            SequenceSpec(
+                canonical, str(gt), str(ts) if ts.is_dir() else None, str(imu) if imu.is_dir() else None
+            )
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class Recording:
+    """What a sequence gives every run and setting: truth, IMU, preintegration and scene.
+
+    Attributes (F frames):
+        spec: the sequence. trajectory: the smooth true trajectory. frame_ns: [F] int64.
+        t: [F] s since the first frame. p, q, v: [F, 3|4|3] true body pose and velocity (world).
+        omega: [F, 3] true body rates, rad/s. r_wc: [F, 3, 3] camera-to-world rotation.
+        preint_zero, preint_est: (dt, dp, dv, dq) with zero biases (before IMU initialisation) and
+            with the estimator's biases (after). scene: the texture process. travelled: [F] m.
+        imu_source: where the IMU came from.
+    """
+
+    spec: SequenceSpec
+    trajectory: Trajectory
+    frame_ns: np.ndarray
+    t: np.ndarray
+    p: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    omega: np.ndarray
+    r_wc: np.ndarray
+    preint_zero: tuple
+    preint_est: tuple
+    scene: object
+    travelled: np.ndarray
+    imu_source: str
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_ns)
+
+
+def _key(*parts) -> list[int]:
+    """A stable integer seed sequence from strings and numbers (crc32; Python's hash() is salted)."""
+    out = []
+    for part in parts:
+        if isinstance(part, str):
+            out.append(zlib.crc32(part.encode()))
+        elif isinstance(part, float):
+            out.append(zlib.crc32(repr(part).encode()))
+        else:
+            out.append(int(part))
+    return out
+
+
+def make_recording(spec: SequenceSpec, seed: int = 0, config: SimConfig = SimConfig()) -> Recording:
+    """Build a sequence's recording (deterministic in seed and name)."""
+    rng = np.random.default_rng(_key(seed, "recording", spec.name))
+    if spec.procedural:
+        trajectory = procedural_trajectory(spec.name, rng, config.flight)
+    else:
+        trajectory = load_euroc_trajectory(spec.name, spec.euroc_gt, timestamps_dir=spec.timestamps)
+    imu_rng = np.random.default_rng(_key(seed, "imu", spec.name))
+    imu = None
+    if config.imu_source == "real" and spec.imu is not None:
+        path = Path(spec.imu) / f"{euroc_file_stem(spec.name)}.txt"
+        if path.is_file():
+            imu = read_imu_stream(path)
+    if imu is None:
+        imu = synthesize_imu(trajectory, imu_rng, config.imu)
+    steps = frame_substeps(imu, trajectory.frame_ns)
+    bg, ba = frame_bias_estimate(imu, trajectory, window_s=config.bias_window_s)
+    t = trajectory.seconds(trajectory.frame_ns)
+    p, q = trajectory.pose(t)
+    v = trajectory.velocity(t)
+    omega = trajectory.angular_velocity(t)
+    r_wc = quat_to_matrix(q) @ EUROC_CAM0_T_BS[:3, :3]
+    scene = make_scene(np.random.default_rng(_key(seed, "scene", spec.name)), t, omega, config.scene)
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    return Recording(
+        spec=spec,
+        trajectory=trajectory,
+        frame_ns=trajectory.frame_ns,
+        t=t,
+        p=p,
+        q=q,
+        v=v,
+        omega=omega,
+        r_wc=r_wc,
+        preint_zero=preintegrate(steps, np.zeros(3), np.zeros(3)),
+        preint_est=preintegrate(steps, bg, ba),
+        scene=scene,
+        travelled=travelled,
+        imu_source=imu.source,
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_recording(spec: SequenceSpec, seed: int, config: SimConfig) -> Recording:
+    return make_recording(spec, seed, config)
+
+
+# --------------------------------------------------------------------------------------------------
+# Runs
+
+
+def _linear_recurrence(a: np.ndarray, u: np.ndarray, block: int = 32) -> np.ndarray:
+    """x_k = a_k x_(k-1) + u_k with x_(-1) = 0, for a [F] in (0, 1] and u [F, D]; closed form in blocks."""
+    F = len(a)
+    out = np.empty_like(u)
+    carry = np.zeros(u.shape[1:])
+    log_a = np.log(np.maximum(a, 1e-300))
+    for start in range(0, F, block):
+        sl = slice(start, min(F, start + block))
+        cum = np.exp(np.cumsum(log_a[sl]))[:, None]
+        out[sl] = cum * (carry + np.cumsum(u[sl] / cum, axis=0))
+        carry = out[sl.stop - 1]
+    return out
+
+
+def _unit_information(recording: Recording, counts: Counts, tracking: TrackingParams) -> np.ndarray:
+    """[F, 6, 6] pose information (camera translation, rotation; camera frame) if every extracted
+    keypoint were an inlier: sum over bins of keypoints x the bin's mean J^T J (jsve.sim._vision.
+    BinGeometry) at the scene depth, over the localisation variance (px^2 -> normalised by f^2).
+    A run's information is its inlier probability times this, plus the motion-model prior."""
+    geo = bin_geometry()
+    depth = recording.scene.depth
+    inv_z = 1.0 / depth
+    inv_z2 = (1.0 + tracking.depth_spread**2) / depth**2
+    blocks = np.concatenate(
+        [geo.info_t.reshape(64, 36), geo.info_m.reshape(64, 36), geo.info_r.reshape(64, 36)], 1
+    )
+    per_frame = counts.bins.astype(float) @ blocks  # [F, 108]
+    info = per_frame[:, :36] * inv_z2[:, None] + per_frame[:, 36:72] * inv_z[:, None] + per_frame[:, 72:]
+    return info.reshape(-1, 6, 6) * ((EUROC_CAM0.fx / counts.sigma_loc) ** 2)[:, None, None]
+
+
+def _draw_run(
+    recording: Recording, counts: Counts, unit_info: np.ndarray, rng: np.random.Generator, config: SimConfig
+) -> dict:
+    """Per-frame columns of one run (everything that varies between runs of one setting)."""
+    tr = config.tracking
+    F = recording.n_frames
+    t = recording.t
+    dt = np.diff(t, prepend=t[0] - (t[1] - t[0] if F > 1 else 0.05))
+    # Map quality of this run: a slow multiplicative process on the inlier probability.
+    quality = np.exp(gauss_markov(rng, t, tr.run_sigma, tr.run_tau, 1)[:, 0] - 0.5 * tr.run_sigma**2)
+    p_inlier = np.clip(counts.match_prob * tr.map_fraction * counts.gate * quality, 0.0, 1.0)
+    n_inliers = rng.binomial(counts.n_extracted, p_inlier)
+    # Local-map points in view: the keypoints of about the last second.
+    window = max(1, int(round(tr.frustum_window_s / max(float(np.median(dt)), 1e-3))))
+    csum = np.concatenate([[0.0], np.cumsum(counts.n_extracted)])
+    k = np.arange(F)
+    lo = np.maximum(k - window + 1, 0)
+    recent = (csum[k + 1] - csum[lo]) / (k + 1 - lo)
+    n_frustum = rng.poisson(np.maximum(recent * tr.frustum_ratio, 0.0))
+    # Visual pose error: per-frame jitter from the inliers' information, slow drift, gross jumps.
+    share = n_inliers / np.maximum(counts.n_extracted, 1)
+    prior = np.diag([tr.prior_position**-2] * 3 + [tr.prior_rotation**-2] * 3)
+    cov = np.linalg.inv(unit_info * share[:, None, None] + prior)
+    chol = np.linalg.cholesky(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+    xi = np.einsum("fij,fj->fi", chol, rng.normal(size=(F, 6)))
+    r_wc = recording.r_wc
+    jitter = np.concatenate(
+        [np.einsum("fij,fj->fi", r_wc, xi[:, :3]), np.einsum("fij,fj->fi", r_wc, xi[:, 3:])], 1
+    )
+    step = np.diff(recording.travelled, prepend=0.0)
+    drift_inc = np.zeros((F, 6))
+    drift_inc[:, :3] = rng.normal(size=(F, 3)) * (tr.drift_per_sqrt_m * np.sqrt(step))[:, None]
+    drift_inc[:, 5] = rng.normal(size=F) * tr.yaw_drift_per_sqrt_m * np.sqrt(step)
+    drift = np.cumsum(drift_inc + tr.jitter_to_drift * jitter, axis=0)
+    jump_prob = tr.outlier_rate * np.exp(-n_inliers / tr.outlier_inliers)
+    jumps = (rng.uniform(size=F) < jump_prob)[:, None] * np.concatenate(
+        [rng.normal(0, tr.outlier_position, (F, 3)), rng.normal(0, tr.outlier_rotation, (F, 3))], axis=1
+    )
+    strength = n_inliers / (n_inliers + tr.recovery_inliers)
+    excursion = _linear_recurrence(np.exp(-dt * strength / tr.recovery_s), jumps)
+    error = drift + excursion + jitter
+    error[0] = 0.0  # the map is anchored at the first frame
+    # The visual-inertial velocity follows the smooth part of the pose error (low-passed over velocity_tau).
+    keep = np.exp(-dt / tr.velocity_tau)
+    smooth = _linear_recurrence(keep, (drift[:, :3] + excursion[:, :3]) * (1.0 - keep)[:, None])
+    vel_err = np.diff(smooth, axis=0, prepend=smooth[:1]) / dt[:, None]
+    vis_p = recording.p + error[:, :3]
+    vis_q = quat_mul(quat_exp(error[:, 3:]), recording.q)
+    vis_q = vis_q / np.linalg.norm(vis_q, axis=1, keepdims=True)
+    vis_v = recording.v + vel_err
+    t_init = rng.uniform(*tr.imu_init_s)
+    return dict(
+        n_inliers=n_inliers, n_frustum=n_frustum, vis_p=vis_p, vis_q=vis_q, vis_v=vis_v, t_init=t_init
+    )
+
+
+def _orbslam3_states(n_inliers: np.ndarray, t: np.ndarray, imu_init: np.ndarray, fps: float) -> np.ndarray:
+    """ORB-SLAM3's logged eTrackingState per frame [R, F] under its own rule (15/50/50/10), from
+    jsve.core._rules.machine_step: OK 2, RECENTLY_LOST 3, LOST 4 on the frame tracking is lost and
+    NOT_INITIALIZED 1 while a new map waits to start."""
+    import jax.numpy as jnp
+
+    from jsve.core._rules import MODE_LOST, preset
+
+    R, F = n_inliers.shape
+    padded = max(1024, int(math.ceil(F / 1024)) * 1024)  # few distinct shapes: few compilations
+    pad = padded - F
+    score = np.pad(n_inliers.astype(np.float32), ((0, 0), (0, pad)))
+    tt = np.pad(t.astype(np.float32), (0, pad), mode="edge")
+    init = np.pad(imu_init.astype(np.float32), ((0, 0), (0, pad)), mode="edge")
+    delay = np.array([t[np.argmax(i)] if i.any() else np.inf for i in imu_init], np.float32)
+    modes = np.asarray(
+        _machine_modes(
+            jnp.asarray(score),
+            jnp.asarray(tt),
+            jnp.asarray(init),
+            jnp.float32(fps),
+            jnp.asarray(delay),
+            preset("orbslam3").thresholds,
+        )
+    )[:, :F]
+    state = np.where(
+        modes == 0, schema.STATE_OK, np.where(modes == 1, schema.STATE_RECENTLY_LOST, schema.STATE_LOST)
+    )
+    was_lost = np.concatenate([np.zeros((R, 1), bool), modes[:, :-1] == MODE_LOST], axis=1)
+    state = np.where((modes == MODE_LOST) & was_lost, schema.STATE_NOT_INITIALIZED, state)
+    return state.astype(np.int64)
+
+
+@functools.cache
+def _machine_fn():
+    import jax
+    import jax.numpy as jnp
+
+    from jsve.core._rules import HardLogic, initial_state, machine_step
+
+    def one(score, t, init, fps, delay, thresholds):
+        k = jnp.arange(t.shape[0], dtype=t.dtype)
+
+        def step(state, x):
+            sc, tt, kk, ii = x
+            state, _ = machine_step(HardLogic(), state, sc, tt, kk, ii, thresholds, fps, delay)
+            modes = jnp.stack([state.ok, state.recently_lost, state.lost])
+            return state, jnp.argmax(modes).astype(jnp.int8)
+
+        _, modes = jax.lax.scan(step, initial_state(t.dtype), (score, t, k, init))
+        return modes
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None, 0, None, 0, None)))
+
+
+def _machine_modes(score, t, init, fps, delay, thresholds):
+    return _machine_fn()(score, t, init, fps, delay, thresholds)
+
+
+def _round(x: np.ndarray, decimals: int) -> np.ndarray:
+    # Fixed decimals keep the CSV short (shortest round-trip form of a rounded double); far below
+    # every error the simulator models (um, nm/s, 1e-9 of a unit quaternion).
+    return np.round(x, decimals)
+
+
+def simulate_setting(
+    recording: Recording,
+    setting: Setting,
+    runs: Sequence[int],
+    seed: int = 0,
+    config: SimConfig = SimConfig(),
+) -> list[RunLog]:
+    """All runs of one (sequence, setting): extraction once, then each run's tracking draws."""
+    deg = degradation(setting.disturbance, setting.level, config.vision, seed=seed)
+    counts = extract(recording.scene, deg, config.vision, n_features=config.n_features)
+    F = recording.n_frames
+    # EuRoC's stamps alternate 50,000,128 and 49,999,872 ns: fps to the millihertz (20.0).
+    fps = float(round(1e9 / np.median(np.diff(recording.frame_ns)), 3)) if F > 1 else 20.0
+    unit_info = _unit_information(recording, counts, config.tracking)
+    draws = [
+        _draw_run(
+            recording,
+            counts,
+            unit_info,
+            np.random.default_rng(
+                _key(seed, "run", recording.spec.name, setting.disturbance, float(setting.level), int(r))
+            ),
+            config,
+        )
+        for r in runs
+    ]
+    imu_init = np.stack([recording.t >= d["t_init"] for d in draws])
+    states = _orbslam3_states(np.stack([d["n_inliers"] for d in draws]), recording.t, imu_init, fps)
+    out = []
+    dt0, dp0, dv0, dq0 = recording.preint_zero
+    dt1, dp1, dv1, dq1 = recording.preint_est
+    bins = counts.bins
+    for i, (r, d) in enumerate(zip(runs, draws, strict=True)):
+        # The interval ending at frame k is corrected with the biases held at frame k - 1.
+        ready = np.concatenate([[False], imu_init[i, :-1]])[:, None]
+        columns = {
+            "t_ns": recording.frame_ns,
+            "state": states[i],
+            "imu_init": imu_init[i].astype(np.int64),
+            "n_extracted": counts.n_extracted,
+            "n_inliers": d["n_inliers"],
+            "n_frustum": d["n_frustum"],
+        }
+        columns.update({c: bins[:, k] for k, c in enumerate(schema.BIN_COLUMNS)})
+        columns.update(_split(schema.VIS_POSITION, _round(d["vis_p"], 6)))
+        columns.update(_split(schema.VIS_QUATERNION, _round(d["vis_q"], 9)))
+        columns.update(_split(schema.VIS_VELOCITY, _round(d["vis_v"], 6)))
+        columns["imu_dt"] = dt1
+        columns.update(_split(schema.IMU_DP, _round(np.where(ready, dp1, dp0), 9)))
+        columns.update(_split(schema.IMU_DV, _round(np.where(ready, dv1, dv0), 9)))
+        columns.update(_split(schema.IMU_DQ, _round(np.where(ready, dq1, dq0), 9)))
+        columns.update(_split(schema.GT_POSITION, _round(recording.p, 6)))
+        columns.update(_split(schema.GT_QUATERNION, _round(recording.q, 9)))
+        frames = pd.DataFrame(columns, columns=list(schema.COLUMNS))
+        meta = {
+            "sequence": recording.spec.name,
+            "disturbance": setting.disturbance,
+            "level": _meta_level(setting.level),
+            "run": int(r),
+            "sensor": "imu_monocular",
+            "n_features": config.n_features,
+            "image_size": [EUROC_CAM0.width, EUROC_CAM0.height],
+            "grid": [8, 8],
+            "fps": fps,
+            "gravity": [float(g) for g in GRAVITY],
+            "frontend": FRONTEND,
+            "seed": int(seed),
+            "trajectory": Path(recording.trajectory.source).name,  # file names: logs do not
+            "imu": Path(recording.imu_source).name,  # depend on where the data sits
+        }
+        out.append(
+            RunLog(meta=meta, frames=frames, source=f"<simulated {recording.spec.name}/{setting.label}/{r}>")
+        )
+    return out
+
+
+def _meta_level(level: float):
+    return int(level) if float(level).is_integer() else float(level)
+
+
+def _split(names: Sequence[str], values: np.ndarray) -> dict:
+    return {n: values[:, j] for j, n in enumerate(names)}
+
+
+# --------------------------------------------------------------------------------------------------
+# Public API
+
+
+def _as_specs(sequences, euroc_gt, procedural) -> list[SequenceSpec]:
+    if (
+        sequences is not None
+        and not isinstance(sequences, str)
+        and sequences
+        and isinstance(sequences[0], SequenceSpec)
+    ):
+        return list(sequences)
+    if isinstance(sequences, str):
+        sequences = [s.strip() for s in sequences.split(",") if s.strip()]
+    if sequences:
+        if euroc_gt is None:
+            raise ValueError(
+                "EuRoC sequences need euroc_gt (the folder of ORB-SLAM3's *_GT.txt files); "
+                "without it use procedural=N"
+            )
+        return euroc_sequences(sequences, euroc_gt)
+    return procedural_sequences(11 if procedural is None else int(procedural))
+
+
+def simulate_run(
+    sequence: str | SequenceSpec = "proc_00",
+    disturbance: str = "none",
+    level: float = 0.0,
+    run: int = 0,
+    *,
+    seed: int = 0,
+    euroc_gt: str | os.PathLike | None = None,
+    config: SimConfig = SimConfig(),
+) -> RunLog:
+    """Simulate one run's tracking log.
+
+    Arguments:
+        sequence: a procedural name ("proc_03": any name gives a flight) or a EuRoC name with euroc_gt.
+        disturbance, level: one setting (see `settings`; "none" for the undisturbed camera).
+        run: run index (a different run draws new tracking noise on the same recording).
+        seed: study seed; everything is a deterministic function of (seed, sequence, setting, run).
+    Returns:
+        A RunLog (validated by jsve.io._logs when written or read).
+    """
+    spec = (
+        sequence
+        if isinstance(sequence, SequenceSpec)
+        else (euroc_sequences([sequence], euroc_gt)[0] if euroc_gt is not None else SequenceSpec(sequence))
+    )
+    recording = _cached_recording(spec, seed, config)
+    return simulate_setting(recording, Setting(disturbance, float(level)), [run], seed, config)[0]
+
+
+def simulate_study(
+    sequences: Sequence[str] | str | None = None,
+    *,
+    procedural: int | None = None,
+    euroc_gt: str | os.PathLike | None = None,
+    disturbances: str | Iterable[str] = "seed",
+    runs: int | Sequence[int] = 10,
+    seed: int = 0,
+    config: SimConfig = SimConfig(),
+    progress: bool = False,
+) -> list[RunLog]:
+    """Simulate a study in memory: every sequence x setting x run, as RunLogs.
+
+    Arguments:
+        sequences: EuRoC names (with euroc_gt) or SequenceSpecs; default `procedural` flights.
+        procedural: number of procedural flights when no sequences are given (default 11).
+        disturbances: a settings spec (see `settings`): "seed" (31), "all", "blur,occlusion", ...
+        runs: number of runs per setting, or the run indices.
+    """
+    from tqdm.auto import tqdm
+
+    specs = _as_specs(sequences, euroc_gt, procedural)
+    grid = settings(disturbances)
+    run_ids = list(range(runs)) if isinstance(runs, int) else list(runs)
+    out: list[RunLog] = []
+    with tqdm(total=len(specs) * len(grid), desc="simulate", unit="setting", disable=not progress) as bar:
+        for spec in specs:
+            recording = make_recording(spec, seed, config)
+            for setting in grid:
+                out.extend(simulate_setting(recording, setting, run_ids, seed, config))
+                bar.update()
+    return out
+
+
+def log_path(out_dir: str | os.PathLike, sequence: str, setting: Setting, run: int) -> Path:
+    """Where write_study puts a log: OUT/<sequence>/<disturbance>-<level>/run_<k>.csv."""
+    return Path(out_dir) / sequence / setting.label / f"run_{run:03d}.csv"
+
+
+@dataclass
+class StudyResult:
+    """What write_study did: logs written and skipped (already complete), seconds, and timing parts."""
+
+    written: int = 0
+    skipped: int = 0
+    seconds: float = 0.0
+    simulate_s: float = 0.0
+    write_s: float = 0.0
+    paths: list[Path] = field(default_factory=list)
+    parquet: Path | None = None
+
+
+@dataclass(frozen=True)
+class _Job:
+    spec: SequenceSpec
+    todo: tuple[tuple[Setting, tuple[int, ...]], ...]  # (setting, runs still to write)
+    out_dir: str
+    seed: int
+    config: SimConfig
+
+
+def _is_complete(path: Path) -> bool:
+    """A log is complete when its last line is the end marker (write_log's rename makes a finished
+    file appear whole; checking the tail also rejects a file truncated by other means)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - 64))
+            tail = f.read().rstrip().rsplit(b"\n", 1)[-1]
+        return tail.startswith(schema.END_MARKER.encode())
+    except OSError:
+        return False
+
+
+def _run_job(job: _Job) -> tuple[int, float, float, list[str]]:
+    """All pending logs of one sequence: its recording is built once, in one process."""
+    from jsve.io._logs import write_log
+
+    simulate_s = write_s = 0.0
+    started = time.perf_counter()
+    recording = make_recording(job.spec, job.seed, job.config)
+    simulate_s += time.perf_counter() - started
+    paths = []
+    for setting, runs in job.todo:
+        started = time.perf_counter()
+        logs = simulate_setting(recording, setting, runs, job.seed, job.config)
+        simulated = time.perf_counter()
+        for run in logs:
+            path = log_path(job.out_dir, job.spec.name, setting, run.meta["run"])
+            write_log(run, path)
+            paths.append(str(path))
+        simulate_s += simulated - started
+        write_s += time.perf_counter() - simulated
+    return len(paths), simulate_s, write_s, paths
+
+
+def _init_worker() -> None:
+    # Workers run the small state-machine scan only: keep them off any accelerator (one process per
+    # core would otherwise each claim the GPU's memory).
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+
+def _sequence_size(spec: SequenceSpec) -> float:
+    """Frames of a sequence, for scheduling: the ground-truth file's lines, or a procedural flight's
+    expected length."""
+    if spec.procedural:
+        return 130.0 * 20.0
+    stem = euroc_file_stem(spec.name)
+    try:
+        with open(Path(spec.euroc_gt) / f"{stem}_GT.txt", "rb") as f:
+            return float(sum(1 for _ in f))
+    except OSError:
+        return 0.0
+
+
+def write_study(
+    out_dir: str | os.PathLike,
+    sequences: Sequence[str] | str | None = None,
+    *,
+    procedural: int | None = None,
+    euroc_gt: str | os.PathLike | None = None,
+    disturbances: str | Iterable[str] = "seed",
+    runs: int | Sequence[int] = 10,
+    seed: int = 0,
+    workers: int | None = None,
+    config: SimConfig = SimConfig(),
+    progress: bool = True,
+    parquet: bool = False,
+) -> StudyResult:
+    """Simulate a study and write one format-v1 log per run under out_dir (see log_path).
+
+    Resumable: logs already complete are skipped (a re-run after an interruption finishes the rest;
+    jsve.io._logs.write_log writes `.partial` files and renames them, and stale ones are removed).
+    Parallel: one job per sequence (its recording built once) in `workers` processes (default: all
+    cores), longest first; the progress bar advances as sequences finish. parquet=True then consolidates
+    all logs into out_dir/study.parquet with jsve.io._logs.ingest.
+    """
+    from tqdm.auto import tqdm
+
+    started = time.perf_counter()
+    out_dir = Path(out_dir)
+    specs = _as_specs(sequences, euroc_gt, procedural)
+    grid = settings(disturbances)
+    run_ids = list(range(runs)) if isinstance(runs, int) else list(runs)
+    for stale in out_dir.rglob("*.partial") if out_dir.is_dir() else ():
+        stale.unlink(missing_ok=True)
+    result = StudyResult()
+    jobs = []
+    for spec in specs:
+        todo = []
+        for setting in grid:
+            runs_left = tuple(
+                r for r in run_ids if not _is_complete(log_path(out_dir, spec.name, setting, r))
+            )
+            result.skipped += len(run_ids) - len(runs_left)
+            if runs_left:
+                todo.append((setting, runs_left))
+        if todo:
+            jobs.append(_Job(spec, tuple(todo), str(out_dir), int(seed), config))
+    # One job per sequence (each recording built once), the biggest first so that the processes
+    # finish together (longest-processing-time-first scheduling).
+    jobs.sort(key=lambda j: -sum(len(r) for _, r in j.todo) * _sequence_size(j.spec))
+    workers = workers or os.cpu_count() or 1
+    total = sum(len(r) for j in jobs for _, r in j.todo)
+    with tqdm(total=total, desc="simulate", unit="log", disable=not progress) as bar:
+        if workers <= 1 or len(jobs) <= 1:
+            outcomes = []
+            for job in jobs:
+                outcomes.append(_run_job(job))
+                bar.update(outcomes[-1][0])
+        else:
+            context = multiprocessing.get_context("spawn")
+            with concurrent.futures.ProcessPoolExecutor(
+                workers, mp_context=context, initializer=_init_worker
+            ) as pool:
+                futures = [pool.submit(_run_job, job) for job in jobs]
+                outcomes = []
+                for future in concurrent.futures.as_completed(futures):
+                    outcomes.append(future.result())
+                    bar.update(outcomes[-1][0])
+    for n, sim_s, write_s, paths in outcomes:
+        result.written += n
+        result.simulate_s += sim_s
+        result.write_s += write_s
+        result.paths.extend(Path(p) for p in paths)
+    if parquet:
+        from jsve.io._ingest import ingest
+
+        result.parquet = out_dir / "study.parquet"
+        ingest(str(out_dir), result.parquet, workers=workers, progress=progress)
+    result.seconds = time.perf_counter() - started
+    return result
+
+
+__all__ = [
+    "FRONTEND",
+    "GRIDS",
+    "EXTRA_GRIDS",
+    "Setting",
+    "settings",
+    "TrackingParams",
+    "SimConfig",
+    "SequenceSpec",
+    "procedural_sequences",
+    "euroc_sequences",
+    "Recording",
+    "make_recording",
+    "simulate_setting",
+    "simulate_run",
+    "simulate_study",
+    "write_study",
+    "log_path",
+    "StudyResult",
+]
