@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from jsve import schema  # noqa: E402
+from jsve.io import _schema as schema  # noqa: E402
 from jsve.evaluation._aggregate import bootstrap_ci  # noqa: E402
 from jsve.io._atomic import write_text  # noqa: E402
 from jsve.masks._table_one import PosePair, table_one, to_markdown  # noqa: E402

@@ -34,7 +34,7 @@ def runs():
 def _one_run_oracle(run, rule, align="se3"):
     """Replay a one-run batch and score it with run_error directly (no chunking, no buckets)."""
     batch = jsve.from_runs([run], dtype=jnp.float32).batch
-    result = jax.jit(jsve.core._replay)(batch, rule)
+    result = jax.jit(jsve.replay)(batch, rule)
     n = len(run.frames)
     err = jsve.run_error(
         result.position[0], result.quaternion[0], result.has_estimate[0], result.segment[0],
@@ -46,7 +46,7 @@ def _one_run_oracle(run, rule, align="se3"):
 @pytest.mark.parametrize("rule_name", ["orbslam3", "sve-option2"])
 def test_evaluate_equals_per_run_composition(runs, rule_name):
     rule = jsve.preset(rule_name)
-    table = jsve.evaluation._evaluate(jsve.buckets(runs), rule, rule_name=rule_name, runs_per_chunk=2, progress=False)
+    table = jsve.evaluate(jsve.buckets(runs), rule, rule_name=rule_name, runs_per_chunk=2, progress=False)
     assert sorted(table["run_id"]) == sorted(r.run_id for r in runs)  # every run, exactly once
     by_id = table.set_index("run_id")
     for run in runs:
@@ -66,8 +66,8 @@ def test_evaluate_equals_per_run_composition(runs, rule_name):
 def test_chunk_size_does_not_change_results(runs):
     rule = jsve.preset("orbslam3")
     groups = jsve.buckets(runs)
-    a = jsve.evaluation._evaluate(groups, rule, runs_per_chunk=1, progress=False)
-    b = jsve.evaluation._evaluate(groups, rule, runs_per_chunk=64, progress=False)
+    a = jsve.evaluate(groups, rule, runs_per_chunk=1, progress=False)
+    b = jsve.evaluate(groups, rule, runs_per_chunk=64, progress=False)
     pd.testing.assert_frame_equal(a, b)
 
 
@@ -75,7 +75,7 @@ def test_accept_all_rule_scores_the_visual_estimate(runs):
     """With thresholds that accept every frame the replay is the logged visual trajectory, so the
     APE must equal evo-style scoring of vis_* against gt_* (here: jsve.align + ape_statistics)."""
     rule = jsve.InlierRule(jsve.Thresholds(imu_init=-1, not_init=-1, reloc=-1, recovery=-1))
-    table = jsve.evaluation._evaluate(jsve.buckets(runs), rule, progress=False).set_index("run_id")
+    table = jsve.evaluate(jsve.buckets(runs), rule, progress=False).set_index("run_id")
     for run in runs:
         f = run.frames
         est = jnp.asarray(f[["vis_px", "vis_py", "vis_pz"]].to_numpy(), jnp.float32)
@@ -105,7 +105,7 @@ def test_cli_evaluate_writes_tables_matching_the_library(runs, log_dir, tmp_path
     summary = pd.read_csv(out / "summary.csv")
     assert len(per_run) == 2 * len(runs)
     assert set(summary["rule"]) == {"orbslam3", "sve-option2"}
-    lib = jsve.evaluation._evaluate(jsve.buckets(runs), jsve.preset("orbslam3"), rule_name="orbslam3", progress=False)
+    lib = jsve.evaluate(jsve.buckets(runs), jsve.preset("orbslam3"), rule_name="orbslam3", progress=False)
     cli = per_run[per_run["rule"] == "orbslam3"].set_index("run_id").loc[lib["run_id"]]
     np.testing.assert_allclose(cli["rmse"].to_numpy(), lib["rmse"].to_numpy(), rtol=1e-6)
     # The on-screen summary lists every (disturbance, rule) group.
@@ -121,7 +121,7 @@ def test_cli_evaluate_rule_file_round_trip(runs, log_dir, tmp_path):
     out = tmp_path / "o"
     assert jsve_main(["evaluate", str(log_dir), "--rule", str(path), "-o", str(out), "--no-progress"]) == 0
     from_file = pd.read_csv(out / "runs.csv").set_index("run_id")
-    lib = jsve.evaluation._evaluate(jsve.buckets(runs), rule, progress=False).set_index("run_id")
+    lib = jsve.evaluate(jsve.buckets(runs), rule, progress=False).set_index("run_id")
     np.testing.assert_allclose(from_file.loc[lib.index, "rmse"], lib["rmse"], rtol=1e-6)
     assert set(from_file["rule"]) == {"eq1"}
 
