@@ -25,3 +25,26 @@ def x64():
     jax.config.update("jax_enable_x64", True)
     yield
     jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.fixture
+def mixed_runs():
+    """Three runs a LogBatch must hold together: 100, 130 and 65 frames; 20 and 10 fps; ground truth
+    complete, 20 % missing and absent; gravity along -z and along -y (test_batch.py, test_batching.py)."""
+    from logfactory import make_run
+
+    return [
+        make_run(100, seed=1, sequence="MH_04", disturbance="blur", level=15),
+        make_run(130, seed=2, gt_missing=0.2, fps=10),
+        make_run(65, seed=3, with_gt=False, gravity=[0.0, -9.81, 0.0]),
+    ]
+
+
+@pytest.fixture(scope="module")
+def first_frames(shared_data):
+    """The first six cam0 frames of the real EuRoC V1_01 (uint8 images), its Camera and their stamps
+    (int64 ns), from ../shared/data/euroc/V1_01_first95 (test_orb.py, test_measure.py)."""
+    from jsve.image import read_image, read_sequence
+
+    sequence = read_sequence(shared_data / "euroc" / "V1_01_first95")
+    return [read_image(p) for p in sequence.paths[:6]], sequence.camera, sequence.t_ns[:6]

@@ -1,121 +1,19 @@
-"""jsve.core._batch: LogBatch padding and masks, relative times, length buckets, chunks, padding runs."""
+"""jsve.core._batch: length buckets, taking and padding runs, chunks of a LogBatch."""
 
 from __future__ import annotations
 
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from logfactory import EUROC_T0_NS, make_run
+from logfactory import make_run
 
-from jsve.core._batch import (
-    bucket_by_length,
-    iter_chunks,
-    pad_runs,
-    runs_per_chunk_for,
-    take_runs,
-)
-from jsve.core._replay import replay
-from jsve.core._rules import preset
-from jsve.io import _schema as schema
-from jsve.io._batching import buckets, from_runs
-
-
-def _runs():
-    return [
-        make_run(100, seed=1, sequence="MH_04", disturbance="blur", level=15),
-        make_run(130, seed=2, gt_missing=0.2, fps=10),
-        make_run(65, seed=3, with_gt=False, gravity=[0.0, -9.81, 0.0]),
-    ]
-
-
-def test_from_runs_pads_and_masks(x64):
-    runs = _runs()
-    bucket = from_runs(runs, dtype=jnp.float64)
-    b = bucket.batch
-    assert (b.n_runs, b.n_frames) == (3, 192)  # the longest run (130) rounded up to 64
-    for i, run in enumerate(runs):
-        n = len(run.frames)
-        f = run.frames
-        assert np.asarray(b.valid[i, :n]).all() and not np.asarray(b.valid[i, n:]).any()
-        # the frames are the run's, bit for bit (float64 batch)
-        assert np.array_equal(np.asarray(b.n_inliers[i, :n]), f["n_inliers"].to_numpy())
-        assert np.array_equal(np.asarray(b.bins[i, :n]), f[list(schema.BIN_COLUMNS)].to_numpy())
-        assert np.array_equal(np.asarray(b.vis_p[i, :n]), f[list(schema.VIS_POSITION)].to_numpy())
-        assert np.array_equal(np.asarray(b.imu_dq[i, :n]), f[list(schema.IMU_DQ)].to_numpy())
-        assert np.array_equal(np.asarray(b.imu_init[i, :n]), f["imu_init"].to_numpy() != 0)
-        # padding is inert: zero counts and deltas, identity rotations
-        assert not np.asarray(b.n_extracted[i, n:]).any() and not np.asarray(b.imu_dt[i, n:]).any()
-        for q in (b.vis_q, b.imu_dq, b.gt_q):
-            assert np.array_equal(np.asarray(q[i, n:]), np.tile([1.0, 0, 0, 0], (192 - n, 1)))
-    assert np.array_equal(np.asarray(b.fps), [20.0, 10.0, 20.0])
-    assert np.array_equal(np.asarray(b.gravity[2]), [0.0, -9.81, 0.0])
-    assert np.array_equal(np.asarray(b.run_index), [0, 1, 2])
-    assert list(bucket.meta["n_frames"]) == [100, 130, 65]
-    assert bucket.meta.loc[0, "run_id"] == "MH_04/blur-15/1"
-    assert bucket.meta.loc[0, "image_size"] == (752, 480)  # lists become hashable tuples
-
-
-def test_ground_truth_masks(x64):
-    runs = _runs()
-    b = from_runs(runs, dtype=jnp.float64).batch
-    gp = runs[1].frames[list(schema.GT_POSITION)].to_numpy()
-    present = np.isfinite(gp).all(axis=1)
-    assert 0 < present.sum() < len(present)
-    assert np.array_equal(np.asarray(b.gt_valid[1, :130]), present)
-    assert np.array_equal(np.asarray(b.gt_p[1, :130][present]), gp[present])
-    assert not np.asarray(b.gt_p[1, :130][~present]).any()  # NaN never enters the batch
-    assert np.isfinite(np.asarray(b.gt_q)).all()
-    assert not np.asarray(b.gt_valid[2]).any()  # a run logged without ground truth
-
-
-def test_relative_times_are_exact(x64):
-    """t = (t_ns - t_ns[0]) / 1e9 with the int64 difference first: the float64 result is the
-    correctly rounded quotient. Converting absolute EuRoC stamps (1.4e18 ns) to float64 first would
-    not be: their spacing there is 256 ns."""
-    run = make_run(500, seed=4, t0_ns=EUROC_T0_NS)
-    stamps = run.frames["t_ns"].to_numpy()
-    b = from_runs([run], dtype=jnp.float64).batch
-    expected = np.array([int(s - stamps[0]) / 1e9 for s in stamps])  # Python ints: exact differences
-    assert np.array_equal(np.asarray(b.t[0, :500]), expected)
-    naive = (stamps.astype(np.float64) - float(stamps[0])) / 1e9
-    assert not np.array_equal(naive, expected)  # the trap the int64 difference avoids
-    # float32 batches hold the float64 value rounded once
-    b32 = from_runs([run]).batch
-    assert b32.t.dtype == jnp.float32
-    assert np.array_equal(np.asarray(b32.t[0, :500]), expected.astype(np.float32))
-
-
-def test_imu_init_delay(x64):
-    run = make_run(200, seed=5)
-    init = run.frames["imu_init"].to_numpy().copy()
-    init[:] = 0
-    init[57:] = 1
-    init[120] = 0  # a later flicker does not move the first initialisation
-    run.frames["imu_init"] = init
-    never = make_run(80, seed=6)
-    never.frames["imu_init"] = 0
-    b = from_runs([run, never], dtype=jnp.float64).batch
-    assert float(b.imu_init_delay[0]) == float(b.t[0, 57])
-    assert math.isinf(float(b.imu_init_delay[1]))
-
-
-def test_from_runs_errors():
-    runs = _runs()
-    with pytest.raises(ValueError, match="no runs"):
-        from_runs([])
-    with pytest.raises(ValueError, match=r"n_frames=100 is shorter than the longest run \(130 frames\)"):
-        from_runs(runs, n_frames=100)
-    empty = make_run(5, seed=7)
-    empty = type(empty)(meta=empty.meta, frames=empty.frames.iloc[:0], source="empty.csv")
-    with pytest.raises(ValueError, match="empty.csv"):
-        from_runs([runs[0], empty])
-    assert from_runs(runs, n_frames=130).batch.n_frames == 130
-
+from jsve.core import bucket_by_length, iter_chunks, pad_runs, preset, replay, take_runs
+from jsve.core._batch import runs_per_chunk_for
+from jsve.io import from_runs
 
 # ------------------------------------------------------------------------------------------------
 # Buckets
@@ -127,6 +25,7 @@ def _check_buckets(lengths, groups, max_padding, pad_multiple):
     for g in groups:
         lens = np.asarray(lengths)[g]
         assert np.all(np.diff(lens) >= 0)  # ascending by length
+
         def rounded(n):
             return max(pad_multiple, math.ceil(n / pad_multiple) * pad_multiple)
 
@@ -162,36 +61,20 @@ def test_bucket_by_length_groups_similar_lengths():
     assert len(groups) <= 4  # two clusters and a straggler, not one bucket per run
 
 
-def test_buckets_stack_each_group(x64):
-    runs = [make_run(n, seed=i) for i, n in enumerate([300, 70, 310, 65, 290])]
-    out = buckets(runs, dtype=jnp.float64)
-    seen = []
-    for bucket in out:
-        b = bucket.batch
-        for i in range(b.n_runs):
-            row = bucket.meta.iloc[int(b.run_index[i])]
-            seen.append(row["run"])
-            n = row["n_frames"]
-            assert int(np.asarray(b.valid[i]).sum()) == n
-            source = runs[row["run"]].frames
-            assert np.array_equal(np.asarray(b.n_inliers[i, :n]), source["n_inliers"].to_numpy())
-    assert sorted(seen) == list(range(5))
-
-
 # ------------------------------------------------------------------------------------------------
 # take_runs, pad_runs, iter_chunks
 
 
-def test_take_runs():
-    b = from_runs(_runs()).batch
+def test_take_runs(mixed_runs):
+    b = from_runs(mixed_runs).batch
     sub = take_runs(b, np.array([2, 0]))
     assert np.array_equal(np.asarray(sub.run_index), [2, 0])
     for a, c in zip(jax.tree.leaves(sub), jax.tree.leaves(b), strict=True):
         assert np.array_equal(np.asarray(a), np.asarray(c)[[2, 0]])
 
 
-def test_pad_runs():
-    b = from_runs(_runs()).batch
+def test_pad_runs(mixed_runs):
+    b = from_runs(mixed_runs).batch
     assert pad_runs(b, 3) is b
     padded = pad_runs(b, 5)
     assert padded.n_runs == 5

@@ -24,9 +24,10 @@ import pytest
 import jsve.frontend
 from jsve.cli import SUBCOMMANDS
 from jsve.cli import frontend_include as cli_frontend_include
+from jsve.io import LogFormatError, LogIncompleteError
 from jsve.io import _schema as schema
 from jsve.io._ingest import read_logs
-from jsve.io._logs import LogFormatError, LogIncompleteError, read_log
+from jsve.io._logs import read_log
 
 CPP = Path(__file__).resolve().parent / "cpp"
 CXX = shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")

@@ -1,5 +1,5 @@
-"""Tests of jsve.masks._masks: Algorithm 1 and the grid binning against plain-Python loops, KITTI MOTS decoding
-against pycocotools on real annotations, PNG masks, masked runs end to end, malformed MOTS lines."""
+"""Tests of jsve.masks._masks: Algorithm 1 and the grid binning against plain-Python loops, KITTI MOTS
+decoding against pycocotools on real annotations, PNG masks, masked runs end to end, malformed MOTS lines."""
 
 from __future__ import annotations
 
@@ -16,11 +16,11 @@ from logfactory import make_run
 from pycocotools import mask as mask_util
 
 from jsve.cli import main as cli_main
+from jsve.io import LogFormatError
 from jsve.io import _keypoints as kpio
 from jsve.io import _logs as logs
 from jsve.io import _schema as schema
 from jsve.io._keypoints import KeypointLog
-from jsve.io._logs import LogFormatError
 from jsve.masks import _masks as masks
 from jsve.masks._masks import MotsMasks, PngMasks, dynamic_keypoints, frame_counts, sve_bin_index
 

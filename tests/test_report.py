@@ -1,5 +1,5 @@
-"""jsve.fitting._study and jsve.report._report: a small study end to end, its tables, resumption and the report
-(slow: compiles every stage), and the report alone from hand-made tables (fast).
+"""jsve.fitting._study and jsve.report._report: a small study end to end, its tables, resumption and the
+report (slow: compiles every stage), and the report alone from hand-made tables (fast).
 
 The report's numbers must be the tables' numbers; the HTML must be self-contained; rendering twice gives
 the same bytes; a rerun with the same configuration skips finished stages and changes nothing.
@@ -96,8 +96,8 @@ def test_study_writes_every_table_as_parquet_and_csv(study):
 
 @pytest.mark.slow
 def test_fitted_objective_is_the_evaluate_tables_penalised_mean(study):
-    """The fit's recorded objective equals the group-weighted mean of jsve.evaluation._evaluate's per-run table with
-    failed runs at the penalty (float32: 1e-5 relative)."""
+    """The fit's recorded objective equals the group-weighted mean of jsve.evaluation._evaluate's per-run
+    table with failed runs at the penalty (float32: 1e-5 relative)."""
     out, data, _, _, _ = study
     runs = read_table(out, "runs")
     w = group_weights(data.meta)

@@ -3,11 +3,10 @@
 import numpy as np
 import pytest
 
-from jsve.evaluation._aggregate import bootstrap_ci
+from jsve.evaluation import bootstrap_ci
 from jsve.io import _schema as schema
-from jsve.io._keypoints import keypoints_path, read_keypoints, write_keypoints
-from jsve.io._logs import read_log, write_log
-from jsve.masks._masks import PngMasks, apply_masks
+from jsve.io import keypoints_path, read_keypoints, read_log, write_keypoints, write_log
+from jsve.masks import PngMasks, apply_masks
 from jsve.sim._driving import DrivingConfig, kitti_body_poses, simulate_sequence, write_png_masks
 
 SMALL = DrivingConfig(n_frames=120)
