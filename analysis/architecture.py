@@ -248,15 +248,20 @@ def third_party_in(imports: Iterable[Import], layer: str, allowed: frozenset[str
     ]
 
 
-def import_cycles(imports: Iterable[Import]) -> list[list[str]]:
+def import_cycles(imports: Iterable[Import], module_level_only: bool = True) -> list[list[str]]:
     """Cycles among jsve modules through module-level imports: one cycle per strongly connected component.
+
+    Arguments:
+        imports: the imports of the package (`import_graph`).
+        module_level_only: False counts imports inside functions and under TYPE_CHECKING too: the cycles
+            that deferring an import only hides.
 
     Returns:
         Each cycle as the list of modules along it, the first repeated at the end (`[a, b, a]`).
     """
     graph: dict[str, set[str]] = {}
     for imp in imports:
-        if imp.internal and imp.module_level:
+        if imp.internal and (imp.module_level or not module_level_only):
             graph.setdefault(imp.importer, set()).add(imp.target)
             graph.setdefault(imp.target, set())
     # Tarjan (1972), iteratively: strongly connected components.
@@ -562,6 +567,10 @@ def report(root: Path, help_runs: int = 5) -> str:
         ("names re-exported by the root", str(len(root_api(root)))),
         ("root names that fail to resolve", _listing(sorted(unresolved_root_names(root)))),
         ("import cycles (module-level)", _listing([" -> ".join(c) for c in import_cycles(imports)])),
+        (
+            "import cycles (function-level imports too)",
+            _listing([" -> ".join(c) for c in import_cycles(imports, module_level_only=False)]),
+        ),
         (
             "modules shadowed by a same-named attribute",
             _listing([f"{b.package}.{b.name}" for b in shadowed_modules(modules)]),

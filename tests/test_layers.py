@@ -194,6 +194,8 @@ def test_cycle_checker_finds_module_level_cycles_only(tmp_path):
         ["jsve.io._a", "jsve.io._b", "jsve.io._c", "jsve.io._a"],
         ["jsve.sim", "jsve.sim._f", "jsve.sim"],
     ]
+    deferred = arch.import_cycles(imports, module_level_only=False)
+    assert ["jsve.core._d", "jsve.core._e", "jsve.core._d"] in deferred
 
 
 def test_private_name_checker(tmp_path):
