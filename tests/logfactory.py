@@ -179,3 +179,14 @@ def get_field(path: str | os.PathLike, line: int, column: str) -> str:
     """The text of one field of a data row."""
     lines = read_lines(path)
     return lines[line - 1].split(",")[lines[1].split(",").index(column)]
+
+
+def same_bits(a: pd.DataFrame, b: pd.DataFrame) -> bool:
+    """Same columns, dtypes and bit patterns (so NaN == NaN and -0.0 != 0.0): an exact round trip."""
+    if list(a.columns) != list(b.columns) or len(a) != len(b):
+        return False
+    return all(
+        a[c].dtype == b[c].dtype
+        and np.array_equal(a[c].to_numpy().view(np.int64), b[c].to_numpy().view(np.int64))
+        for c in a.columns
+    )

@@ -8,9 +8,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from logfactory import make_run, read_lines, write_lines
+from logfactory import make_run, read_lines, same_bits, write_lines
 
-from jsve.io import _groundtruth as groundtruth
 from jsve.io import _ingest as ingest
 from jsve.io import _keypoints as kpio
 from jsve.io import _logs as logs
@@ -39,14 +38,6 @@ def make_keypoints(n: int = 30, seed: int = 0, t0: int = 1_403_715_274_312_143_1
         }
     )
     return KeypointLog({**META, **meta}, frames)
-
-
-def same_bits(a: pd.DataFrame, b: pd.DataFrame) -> bool:
-    return list(a.columns) == list(b.columns) and all(
-        a[c].dtype == b[c].dtype
-        and np.array_equal(a[c].to_numpy().view(np.int64), b[c].to_numpy().view(np.int64))
-        for c in a.columns
-    )
 
 
 @pytest.fixture

@@ -1,8 +1,15 @@
 """The `jsve` command: a thin dispatcher over one module per subcommand.
 
-Each module in this package named in SUBCOMMANDS defines `register(subparsers)`, which adds its
-parser and sets `func=callable(args) -> int`. Modules are imported lazily by name so that a slow
-import (JAX, OpenCV) only happens for the command that needs it.
+Each subcommand NAME lives in the module jsve.cli.<NAME with '_' for '-'>, which defines
+
+    HELP                  its one-line summary, for `jsve --help` and its own parser
+    register(subparsers)  adds its parser, with `func=callable(args) -> int` as a default
+    run(args)             the command itself, a thin layer over jsve's public functions
+
+Subcommand modules import only the standard library and jsve.cli._common at top level; library code
+(JAX, pandas, OpenCV) is imported inside `register` (for the choices of an option) or `run`. `main`
+builds the full parser of the chosen subcommand only, so `jsve --help` lists every subcommand without
+importing any library, and a command pays for the imports it needs.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ import argparse
 import importlib
 import logging
 import sys
+from collections.abc import Iterable, Sequence
 
 SUBCOMMANDS: tuple[str, ...] = (
     "ingest",
@@ -21,29 +29,52 @@ SUBCOMMANDS: tuple[str, ...] = (
     "disturb",
     "measure",
     "table1",
-    "masks",
+    "mask-logs",
     "simulate",
     "fit",
     "report",
     "demo",
 )
-"""Module names under jsve.cli, in the order `jsve --help` lists them."""
+"""The subcommands, in the order `jsve --help` lists them."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _module(name: str):
+    return importlib.import_module(f"jsve.cli.{name.replace('-', '_')}")
+
+
+def build_parser(full: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The `jsve` parser.
+
+    Arguments:
+        full: the subcommands whose parser is built in full (their `register` runs); the others are
+            listed by their HELP only. None: every subcommand in full.
+    """
     parser = argparse.ArgumentParser(
         prog="jsve",
         description="Scene-visibility-based switching for VI-SLAM: replay, evaluate and fit switching rules.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details to stderr")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    full = set(SUBCOMMANDS if full is None else full)
     for name in SUBCOMMANDS:
-        importlib.import_module(f"jsve.cli.{name.replace('-', '_')}").register(sub)
+        module = _module(name)
+        if name in full:
+            module.register(sub)
+        else:
+            sub.add_parser(name, help=module.HELP)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def _command(argv: Sequence[str]) -> str | None:
+    """The subcommand named on the command line: its first argument that is not an option (`jsve` itself
+    takes no option with a value)."""
+    return next((arg for arg in argv if not arg.startswith("-")), None)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command(argv)
+    parser = build_parser(full=[command] if command in SUBCOMMANDS else [])
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="jsve: %(levelname)s: %(message)s"

@@ -8,16 +8,19 @@ Needs nothing outside the package (procedural EuRoC-like flights); resumable (re
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import tomllib
+
+from jsve.cli import _common as common
+
+HELP = "simulate a study, fit the rules, cross-validate and write the threshold report"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "demo",
-        help="simulate a study, fit the rules, cross-validate and write the threshold report",
+        help=HELP,
         description="Simulate EuRoC-like flights under the seed paper's 31 disturbance settings, evaluate "
         "the presets, fit SVE and ORB-SLAM3 thresholds, cross-validate, and write OUT/report.html.",
     )
@@ -57,8 +60,7 @@ def run(args) -> int:
         }
         config = replace(config, **changes)
     except (ValueError, TypeError) as err:
-        print(f"jsve demo: {err}", file=sys.stderr)
-        return 2
+        return common.fail("demo", err)
     timings = run_demo(args.output, config, progress=not args.no_progress, workers=args.workers)
     out = Path(args.output)
     print(f"jsve demo: report in {out / 'report.html'} ({timings['total']:.0f} s)")

@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
+
+from jsve.cli import _common as common
+
+HELP = "write disturbed copies of EuRoC datasets (blur, downsample, occlusion, noise, ...)"
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "disturb",
-        help="write disturbed copies of EuRoC datasets (blur, downsample, occlusion, noise, ...)",
+        help=HELP,
         description=(
             "Write one disturbed copy of each EuRoC DATASET (a folder holding mav0/) per disturbance and "
             "level, as OUT/<dataset>/<disturbance>-<level>/ with a manifest. Camera images (cam0, cam1) are "
@@ -108,8 +111,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name:12s} [{unit}] {', '.join(format_level(v) for v in levels)}\n{'':12s} {doc}")
         return 0
     if not args.datasets or not args.out:
-        print("jsve disturb: need DATASET(s) and -o OUT (or --list)", file=sys.stderr)
-        return 2
+        return common.fail("disturb", "need DATASET(s) and -o OUT (or --list)")
     names = [n.strip() for n in args.disturbance.split(",")] if args.disturbance else list(DISTURBANCES)
     try:
         levels = _parse_levels(args.levels, names)
@@ -127,8 +129,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
         )
     except (ValueError, DatasetError) as error:
-        print(f"jsve disturb: {error}", file=sys.stderr)
-        return 2
+        return common.fail("disturb", error)
     counts = {s: sum(r.status == s for r in results) for s in ("written", "redone", "skipped")}
     print(
         f"{len(results)} datasets in {args.out}: {counts['written']} written, {counts['redone']} redone "

@@ -10,16 +10,19 @@ level) into OUT, resumably, then writes OUT/report.md and OUT/report.html (`jsve
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 
 import tomllib
+
+from jsve.cli import _common as common
+
+HELP = "fit SVE weights and thresholds (and ORB-SLAM3's) to minimise position error"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "fit",
-        help="fit SVE weights and thresholds (and ORB-SLAM3's) to minimise position error",
+        help=HELP,
         description="Search, Nelder-Mead and (optionally) relaxed BFGS fits of each rule family, with "
         "k-fold and leave-one-group-out cross-validation against the presets, bootstrap confidence intervals "
         "and a report.",
@@ -36,7 +39,7 @@ def register(subparsers) -> None:
     p.add_argument("--failure-penalty", type=float, metavar="M", help="metres charged for a failed run")
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument("--seed", type=int, help="seed of designs, folds and bootstraps")
-    p.add_argument("--on-error", choices=("raise", "quarantine"), default="raise")
+    p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
     p.add_argument("--workers", type=int, metavar="N")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--no-report", action="store_true", help="write the tables only")
@@ -75,8 +78,6 @@ def run(args) -> int:
     from jsve.fitting._search import use_all_cores
 
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
-    from .evaluate import load_runs
-
     try:
         config = load_study_config(
             args.config,
@@ -85,15 +86,13 @@ def run(args) -> int:
             relaxed=args.relaxed or None,
             seed=args.seed,
         )
-        runs = load_runs(
-            args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress
+        runs = common.load_runs(
+            "fit", args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress
         )
-    except (ValueError, OSError) as err:
-        print(f"jsve fit: {err}", file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as err:  # LogFormatError is a ValueError
+        return common.fail("fit", err)
     if not runs:
-        print(f"jsve fit: no valid logs in {args.logs}", file=sys.stderr)
-        return 2
+        return common.fail("fit", f"no valid logs in {args.logs}")
     from jsve.fitting._fit import FitData
     from jsve.fitting._study import run_study
     from jsve.report._report import write_report
@@ -101,8 +100,7 @@ def run(args) -> int:
     try:
         data = FitData.from_runs(runs, config.objective())
     except ValueError as err:
-        print(f"jsve fit: {err}", file=sys.stderr)
-        return 2
+        return common.fail("fit", err)
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
     run_study(
         data, args.output, config, progress=not args.no_progress, data_description={"source": str(args.logs)}

@@ -10,17 +10,19 @@ malformed with --on-error raise, or when there are no logs.
 from __future__ import annotations
 
 import argparse
-import sys
 
-from jsve.io._groundtruth import DEFAULT_MAX_GAP_NS, GT_FORMATS, GroundTruth
-from jsve.io._ingest import ingest
+from jsve.cli import _common as common
+
+HELP = "validate tracking logs and consolidate them into one Parquet file"
 
 
 def register(subparsers) -> None:
     """Add the `ingest` subcommand to the `jsve` parser."""
+    from jsve.io._groundtruth import DEFAULT_MAX_GAP_NS, GT_FORMATS
+
     p = subparsers.add_parser(
         "ingest",
-        help="validate tracking logs and consolidate them into one Parquet file",
+        help=HELP,
         description=(
             "Read every format-v1 tracking log under LOGDIR (*.csv, recursively; *.csv.partial files are "
             "reported as incomplete), validate it strictly, optionally associate ground truth, and write "
@@ -33,7 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT.parquet", help="the Parquet file to write")
     p.add_argument(
         "--on-error",
-        choices=("raise", "quarantine"),
+        choices=common.on_error_choices(),
         default="raise",
         help="raise: stop at the first bad log (exit 2); quarantine: set bad logs aside and report them "
         "(default: raise)",
@@ -66,6 +68,9 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run `jsve ingest`; returns the exit status."""
+    from jsve.io._groundtruth import GroundTruth
+    from jsve.io._ingest import ingest
+
     parser = args._parser
     if args.quarantine_report and args.on_error != "quarantine":
         parser.error("--quarantine-report needs --on-error quarantine")
@@ -95,7 +100,6 @@ def run(args: argparse.Namespace) -> int:
             quarantine_report=args.quarantine_report,
         )
     except (ValueError, FileNotFoundError) as e:  # LogFormatError is a ValueError
-        print(f"jsve ingest: {e}", file=sys.stderr)
-        return 2
+        return common.fail("ingest", e)
     print(summary.line())
     return 0

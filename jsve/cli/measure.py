@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
+
+from jsve.cli import _common as common
+
+HELP = "measure per-frame visibility (ORB counts, inliers, SVE metrics) on EuRoC image folders"
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "measure",
-        help="measure per-frame visibility (ORB counts, inliers, SVE metrics) on EuRoC image folders",
+        help=HELP,
         description=(
             "Measure every EuRoC dataset at or below each DATASET (e.g. the output of `jsve disturb`) and "
             "write one table per dataset to OUT/<DATASET name>/<relative path>.<format>: t_ns, n_extracted, "
@@ -68,7 +71,6 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
         )
     except (ValueError, DatasetError) as error:
-        print(f"jsve measure: {error}", file=sys.stderr)
-        return 2
+        return common.fail("measure", error)
     print(f"{len(tables)} tables in {args.out}")
     return 0

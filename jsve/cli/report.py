@@ -5,13 +5,15 @@ The folder is what `jsve fit` or `jsve demo` wrote; every number of the report c
 
 from __future__ import annotations
 
-import sys
+from jsve.cli import _common as common
+
+HELP = "render the threshold report of a `jsve fit` / `jsve demo` folder"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "report",
-        help="render the threshold report of a `jsve fit` / `jsve demo` folder",
+        help=HELP,
         description="Write OUT/report.md, OUT/report.html (figures embedded) and OUT/figures/*.png from the "
         "study's tables. Deterministic: the same tables give the same files.",
     )
@@ -26,8 +28,7 @@ def run(args) -> int:
     try:
         written = write_report(args.output, title=args.title)
     except (FileNotFoundError, ValueError) as err:
-        print(f"jsve report: {err}", file=sys.stderr)
-        return 2
+        return common.fail("report", err)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0

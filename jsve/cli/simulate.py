@@ -13,13 +13,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
+
+from jsve.cli import _common as common
+
+HELP = "write simulated tracking logs (sequences x disturbances x levels x runs)"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "simulate",
-        help="write simulated tracking logs (sequences x disturbances x levels x runs)",
+        help=HELP,
         description="Simulate ORB-SLAM3 + logger on EuRoC ground-truth trajectories or procedural flights, "
         "under the seed paper's disturbances (or more), and write one format-v1 log per run. Deterministic "
         "under --seed; resumable (complete logs are skipped). See docs/simulator.md.",
@@ -59,11 +62,9 @@ def run(args: argparse.Namespace) -> int:
     from jsve.sim._simulate import SimConfig, settings, write_study
 
     if args.sequences and not args.euroc_gt:
-        print("jsve simulate: --sequences needs --euroc-gt DIR (or use --procedural N)", file=sys.stderr)
-        return 2
+        return common.fail("simulate", "--sequences needs --euroc-gt DIR (or use --procedural N)")
     if args.runs < 1:
-        print("jsve simulate: --runs must be >= 1", file=sys.stderr)
-        return 2
+        return common.fail("simulate", "--runs must be >= 1")
     try:
         grid = settings(args.disturbances)
         result = write_study(
@@ -80,8 +81,7 @@ def run(args: argparse.Namespace) -> int:
             parquet=args.parquet,
         )
     except (ValueError, FileNotFoundError) as err:
-        print(f"jsve simulate: {err}", file=sys.stderr)
-        return 2
+        return common.fail("simulate", err)
     print(
         f"{result.written} logs written, {result.skipped} already complete, to {args.out} "
         f"in {result.seconds:.1f} s"

@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import sys
 
-from jsve.io import _atomic as atomic
-from jsve.io import _logs as logs
+from jsve.cli import _common as common
+
+HELP = "per-frame SVE metrics and combinations of one log (CSV)"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "sve", help="per-frame SVE metrics and combinations of one log (CSV)",
-        description="Compute S_a (original and ORB-SLAM3 variants), S_b and S_c (clamped and unclamped) and the "
-        "Eq.1 / Option 1 / Option 2 combinations for every frame of a format-v1 log.",
-    )  # fmt: skip
+        "sve",
+        help=HELP,
+        description="Compute S_a (original and ORB-SLAM3 variants), S_b and S_c (clamped and unclamped) and "
+        "the Eq.1 / Option 1 / Option 2 combinations for every frame of a format-v1 log.",
+    )
     p.add_argument("log", metavar="LOG", help="a format-v1 tracking log")
     p.add_argument("-o", "--output", metavar="OUT.csv", help="write here (default: standard output)")
     p.set_defaults(func=run)
@@ -29,18 +31,23 @@ def run(args) -> int:
     import pandas as pd
 
     from jsve.core._sve import sve_table
+    from jsve.io import _atomic as atomic
+    from jsve.io._errors import LogFormatError
+    from jsve.io._logs import read_log
     from jsve.io._schema import BIN_COLUMNS
 
     try:
-        log = logs.read_log(args.log)
-    except (logs.LogFormatError, OSError) as err:
-        print(f"jsve sve: {err}", file=sys.stderr)
-        return 2
+        log = read_log(args.log)
+    except (LogFormatError, OSError) as err:
+        return common.fail("sve", err)
     f = log.frames
     columns = sve_table(
-        f["n_extracted"].to_numpy(), f["n_inliers"].to_numpy(), f["n_frustum"].to_numpy(),
-        f[list(BIN_COLUMNS)].to_numpy(), n_features=log.meta.get("n_features", 1000),
-    )  # fmt: skip
+        f["n_extracted"].to_numpy(),
+        f["n_inliers"].to_numpy(),
+        f["n_frustum"].to_numpy(),
+        f[list(BIN_COLUMNS)].to_numpy(),
+        n_features=log.meta.get("n_features", 1000),
+    )
     table = pd.DataFrame({"t_ns": f["t_ns"].to_numpy()} | {k: np.asarray(v) for k, v in columns.items()})
     if args.output:
         atomic.write_table(table, args.output, float_format="%.9g")

@@ -1,9 +1,9 @@
 """Host-side aggregation of per-run trajectory errors (pandas): per-run tables, group summaries, CIs.
 
-The JAX side (`jsve.core._trajectory.batched_run_error`) returns one `RunError` per run; these functions turn it
-into a table with one row per run and summarise groups of runs (per sequence / disturbance / level / rule)
-the way the literature reports them: mean, median, std, min and max of per-run RMSE, the failure rate next
-to them, and statistics pooled over all frames of the group. Errors are in metres.
+The JAX side (`jsve.core._trajectory.batched_run_error`) returns one `RunError` per run; these functions
+turn it into a table with one row per run and summarise groups of runs (per sequence / disturbance / level /
+rule) the way the literature reports them: mean, median, std, min and max of per-run RMSE, the failure
+rate next to them, and statistics pooled over all frames of the group. Errors are in metres.
 """
 
 from __future__ import annotations

@@ -136,15 +136,7 @@ def read_table(out: Path, name: str) -> pd.DataFrame:
 
 
 def write_json(obj, path: Path) -> None:
-    atomic.write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
-
-
-def _json_default(x):
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+    atomic.write_json(path, obj)
 
 
 class Stages:
@@ -250,16 +242,16 @@ def _fit_record(name: str, result: FitResult) -> dict:
 
 
 def _save_search(result: SearchResult, path: Path) -> None:
-    tmp = path.with_name(path.name + ".partial.npz")
-    np.savez_compressed(
-        tmp,
-        values=result.values,
-        loss=result.loss,
-        failed=result.failed,
-        rmse=result.rmse,
-        coverage=result.coverage,
-    )
-    os.replace(tmp, path)
+    # A file object, so that numpy does not append ".npz" to the temporary name.
+    with atomic.atomic_path(path) as partial, open(partial, "wb") as f:
+        np.savez_compressed(
+            f,
+            values=result.values,
+            loss=result.loss,
+            failed=result.failed,
+            rmse=result.rmse,
+            coverage=result.coverage,
+        )
 
 
 def _load_search(path: Path) -> SearchResult:

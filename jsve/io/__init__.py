@@ -1,15 +1,17 @@
-"""jsve.io: the file edge. Tracking logs (format v1), ground truth, Parquet, importers, side files.
+"""jsve.io: the file edge. Tracking logs (format v1), ground truth, trajectory files, Parquet, importers,
+side files.
 
 Every reader raises `LogFormatError` naming file, line, column and value; every writer writes to a
 temporary name and renames, so no half-written output is ever left under the final name.
 """
 
-from jsve.io import _schema as schema
+from jsve.io import _schema as schema  # noqa: F401  (jsve.io.schema: the v1 names)
 from jsve.io._batching import Bucket as Bucket
 from jsve.io._batching import buckets as buckets
 from jsve.io._batching import from_runs as from_runs
 from jsve.io._errors import LogFormatError as LogFormatError
 from jsve.io._errors import LogIncompleteError as LogIncompleteError
+from jsve.io._errors import TrajectoryFileError as TrajectoryFileError
 from jsve.io._groundtruth import DEFAULT_MAX_GAP_NS as DEFAULT_MAX_GAP_NS
 from jsve.io._groundtruth import GT_FORMATS as GT_FORMATS
 from jsve.io._groundtruth import GroundTruth as GroundTruth
@@ -19,6 +21,7 @@ from jsve.io._importers import read_seed_sve_csv as read_seed_sve_csv
 from jsve.io._importers import read_sve_output as read_sve_output
 from jsve.io._ingest import ReadResult as ReadResult
 from jsve.io._ingest import ingest as ingest
+from jsve.io._ingest import load_runs as load_runs
 from jsve.io._ingest import read_logs as read_logs
 from jsve.io._ingest import read_parquet as read_parquet
 from jsve.io._ingest import write_quarantine_report as write_quarantine_report
@@ -30,3 +33,8 @@ from jsve.io._logs import read_log as read_log
 from jsve.io._logs import validate_run as validate_run
 from jsve.io._logs import write_log as write_log
 from jsve.io._schema import RunLog as RunLog
+from jsve.io._trajectories import TRAJECTORY_FORMATS as TRAJECTORY_FORMATS
+from jsve.io._trajectories import PosePair as PosePair
+from jsve.io._trajectories import read_pose_pairs as read_pose_pairs
+from jsve.io._trajectories import read_trajectory as read_trajectory
+from jsve.io._trajectories import stack_pose_pairs as stack_pose_pairs

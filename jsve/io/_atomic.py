@@ -1,17 +1,25 @@
 """Atomic file output: write under `<name>.partial`, rename into place only when complete.
 
-The one home of jsve's "never leave a half-written output" rule: a crash leaves at most a
-`.partial` file, which readers report as incomplete and re-runs redo.
+The one home of jsve's "never leave a half-written output" rule, and of writing result tables: a crash
+leaves at most a `.partial` file, which readers report as incomplete and re-runs redo.
+
+    atomic_path(path)             a context: the temporary name to write, renamed on success
+    write_bytes / write_text      bytes or UTF-8 text
+    write_json(path, obj)         indented, sorted keys, numpy values as numbers
+    write_table(table, path)      a DataFrame as Parquet (`.parquet`) or CSV (any other suffix)
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 from collections.abc import Iterator
 from pathlib import Path
 
 import pandas as pd
+
+from jsve.io._text import json_default
 
 PARTIAL_SUFFIX = ".partial"
 
@@ -43,8 +51,23 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
+def write_json(path: str | os.PathLike, obj) -> Path:
+    """Write `obj` as JSON (2-space indent, sorted keys, a final newline; numpy scalars and arrays as
+    numbers and lists) to `path` atomically."""
+    return write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=json_default) + "\n")
+
+
 def write_table(table: pd.DataFrame, path: str | os.PathLike, **csv_options) -> Path:
-    """Write a table as Parquet (`.parquet`) or CSV (any other suffix) atomically, without the index."""
+    """Write a table as Parquet (`.parquet`) or CSV (any other suffix) atomically, without the index.
+
+    Arguments:
+        table: the rows; its index is not written.
+        path: destination; parent folders are created.
+        csv_options: passed to DataFrame.to_csv (e.g. float_format="%.9g"); CSV only.
+
+    Returns:
+        The path written.
+    """
     with atomic_path(path) as partial:
         if Path(path).suffix == ".parquet":
             table.to_parquet(partial, index=False)

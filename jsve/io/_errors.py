@@ -1,4 +1,5 @@
-"""The domain errors of jsve's file readers: one exception type naming file, line, column and value."""
+"""The domain errors of jsve's file readers: one exception type naming file, line, column and value for
+jsve's own formats, one naming the file for trajectory files read through evo."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ MAX_SHOWN = 80
 def shorten(text: str) -> str:
     """`text` cut to MAX_SHOWN characters for an error message."""
     return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 3] + "..."
-
 
 
 class LogFormatError(ValueError):
@@ -75,3 +75,9 @@ class LogIncompleteError(LogFormatError):
 
 def _rebuild_error(cls, path, line, reason, kwargs):
     return cls(path, line, reason, **kwargs)
+
+
+class TrajectoryFileError(ValueError):
+    """A trajectory file (TUM, EuRoC, KITTI) that cannot be read, or an estimate that cannot be matched
+    with its reference. evo's readers report no line, so the message names the file(s) and the cause:
+    `cannot read est.txt as kitti: ...`, `b.tum holds no poses`."""

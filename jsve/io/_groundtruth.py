@@ -1,9 +1,9 @@
 """Ground truth for tracking logs: read a trajectory file, associate its poses with a run's frames.
 
-EuRoC, TUM and KITTI files are read with evo's file_interface; their stamps are parsed from the text
-as exact int64 nanoseconds. A frame takes the pose at its t_ns, interpolated (linear in position,
-slerp in rotation) between samples less than `max_gap_ns` apart; frames left without ground truth get
-NaN in all seven gt_* columns (docs/log-format.md, "Ground truth").
+EuRoC, TUM and KITTI files are read with evo's file_interface (through jsve.io._trajectories); their
+stamps are parsed from the text as exact int64 nanoseconds. A frame takes the pose at its t_ns,
+interpolated (linear in position, slerp in rotation) between samples less than `max_gap_ns` apart; frames
+left without ground truth get NaN in all seven gt_* columns (docs/log-format.md, "Ground truth").
 
     load_ground_truth(file, fmt)         stamps, positions, quaternions of a file (cached per file version)
     associate_ground_truth(run, file)    gt_* columns of a run from a file
@@ -25,13 +25,14 @@ import pandas as pd
 from jsve.io import _schema as schema
 from jsve.io._errors import shorten
 from jsve.io._schema import RunLog
+from jsve.io._trajectories import TRAJECTORY_FORMATS, evo_reader
 
 # The log reader's logger: users configure one name for the warnings of reading logs, and the worker
 # processes of jsve.io._ingest forward what is logged there.
 logger = logging.getLogger(__name__)
 
-GT_FORMATS = ("euroc", "tum", "kitti")
-"""Ground-truth file formats accepted by `associate_ground_truth`."""
+GT_FORMATS = TRAJECTORY_FORMATS
+"""Ground-truth file formats accepted by `associate_ground_truth`: the trajectory formats."""
 
 DEFAULT_MAX_GAP_NS = 200_000_000
 """Default largest gap (ns) between two ground-truth samples that a frame may be interpolated across.
@@ -153,13 +154,8 @@ def load_ground_truth(
 def _load_cached(gt_path, fmt, kitti_times, _key, _times_key) -> _Trajectory:
     from evo.tools import file_interface  # 0.4 s import; only when ground truth is used
 
-    readers = {
-        "euroc": file_interface.read_euroc_csv_trajectory,
-        "tum": file_interface.read_tum_trajectory_file,
-        "kitti": file_interface.read_kitti_poses_file,
-    }
     try:
-        evo_traj = readers[fmt](gt_path)
+        evo_traj = evo_reader(fmt)(gt_path)
     except file_interface.FileInterfaceException as e:
         raise ValueError(f"{gt_path}: not a readable {fmt} ground-truth file: {e}") from None
     if fmt == "euroc":

@@ -25,6 +25,7 @@ from decimal import ROUND_HALF_EVEN, Decimal
 import numpy as np
 import pandas as pd
 
+from jsve.io import _text as text
 from jsve.io._errors import LogFormatError, shorten
 
 SVE_COLUMNS = ("t_ns", "sve", "s_a", "s_b", "s_c")
@@ -39,11 +40,8 @@ SEED_HEADER = ("Time", "SVE", "SVE_a", "SVE_b", "SVE_c")
 FORMAT_HAGGART = "haggart_txt"
 FORMAT_SEED = "seed_csv"
 
-_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
-"""A plain decimal number: no nan/inf, no underscores, no hex (all of which float() accepts)."""
-_INTEGER_NS = re.compile(r"[+-]?\d+(?:\.0*)?")
+_INTEGER_NS = re.compile(r"[+-]?[0-9]+(?:\.0*)?")
 """Integer nanoseconds; a fractional part of zeros ('1403636579763555584.000') is accepted."""
-_INT64 = (-(2**63), 2**63 - 1)
 _NS_PER_S = Decimal(10) ** 9
 
 
@@ -69,8 +67,8 @@ def read_haggart_sve(path: str | os.PathLike) -> pd.DataFrame:
     """
     source = os.fspath(path)
     rows = []
-    for lineno, text in _lines(source):
-        fields = text.split()
+    for lineno, line in _lines(source):
+        fields = line.split()
         _check_count(fields, HAGGART_FIELDS, source, lineno, "separated by whitespace")
         t_ns = _seconds_to_ns(fields[0], source, lineno)
         values = [
@@ -105,15 +103,15 @@ def read_seed_sve_csv(path: str | os.PathLike) -> pd.DataFrame:
     header = next(lines, None)
     if header is None:
         raise LogFormatError(source, None, "empty file: no header and no rows")
-    lineno, text = header
-    names = tuple(f.strip() for f in text.split(","))
+    lineno, line = header
+    names = tuple(f.strip() for f in line.split(","))
     if names != SEED_HEADER:
         raise LogFormatError(
-            source, lineno, f"the header must be '{','.join(SEED_HEADER)}', found '{shorten(text)}'"
+            source, lineno, f"the header must be '{','.join(SEED_HEADER)}', found '{shorten(line)}'"
         )
     rows = []
-    for lineno, text in lines:
-        fields = [f.strip() for f in text.split(",")]
+    for lineno, line in lines:
+        fields = [f.strip() for f in line.split(",")]
         _check_count(fields, SEED_HEADER, source, lineno, "separated by commas")
         t_ns = _integer_ns(fields[0], source, lineno)
         values = [
@@ -147,12 +145,12 @@ def _lines(source: str):
     for i, raw in enumerate(raw_lines):
         lineno = i + 1
         try:
-            text = raw.decode("utf-8-sig" if i == 0 else "utf-8").rstrip("\r")
+            line = raw.decode("utf-8-sig" if i == 0 else "utf-8").rstrip("\r")
         except UnicodeDecodeError as e:
             raise LogFormatError(source, lineno, f"not UTF-8 text ({e.reason})") from None
-        if not text.strip():
+        if not line.strip():
             raise LogFormatError(source, lineno, "empty line (one line per frame, none blank)")
-        yield lineno, text
+        yield lineno, line
 
 
 def _check_count(fields: list[str], names: tuple[str, ...], source: str, lineno: int, how: str) -> None:
@@ -176,46 +174,45 @@ def _check_count(fields: list[str], names: tuple[str, ...], source: str, lineno:
         )
 
 
-def _finite(text: str, name: str, source: str, lineno: int) -> float:
-    if _NUMBER.fullmatch(text):
-        value = float(text)
+def _finite(field: str, name: str, source: str, lineno: int) -> float:
+    if text.DECIMAL.fullmatch(field):
+        value = float(field)
         if math.isfinite(value):
             return value
         raise LogFormatError(
-            source, lineno, "not a finite number (overflows a double)", column=name, value=text, what="field"
+            source, lineno, "not a finite number (overflows a double)", column=name, value=field, what="field"
         )
-    lowered = text.lower().lstrip("+-")
-    reason = "not a finite number" if lowered in ("nan", "inf", "infinity") else "not a number"
-    raise LogFormatError(source, lineno, reason, column=name, value=text, what="field")
+    reason = "not a finite number" if text.is_non_finite_word(field) else "not a number"
+    raise LogFormatError(source, lineno, reason, column=name, value=field, what="field")
 
 
-def _seconds_to_ns(text: str, source: str, lineno: int) -> int:
-    if not _NUMBER.fullmatch(text):
-        _finite(text, HAGGART_FIELDS[0], source, lineno)  # raises with the right reason
-    ns = int((Decimal(text) * _NS_PER_S).to_integral_value(rounding=ROUND_HALF_EVEN))
-    return _in_int64(ns, text, HAGGART_FIELDS[0], source, lineno)
+def _seconds_to_ns(field: str, source: str, lineno: int) -> int:
+    if not text.DECIMAL.fullmatch(field):
+        _finite(field, HAGGART_FIELDS[0], source, lineno)  # raises with the right reason
+    ns = int((Decimal(field) * _NS_PER_S).to_integral_value(rounding=ROUND_HALF_EVEN))
+    return _in_int64(ns, field, HAGGART_FIELDS[0], source, lineno)
 
 
-def _integer_ns(text: str, source: str, lineno: int) -> int:
+def _integer_ns(field: str, source: str, lineno: int) -> int:
     name = SEED_HEADER[0]
-    if not _INTEGER_NS.fullmatch(text):
-        if _NUMBER.fullmatch(text):
+    if not _INTEGER_NS.fullmatch(field):
+        if text.DECIMAL.fullmatch(field):
             raise LogFormatError(
                 source,
                 lineno,
                 "must be integer nanoseconds (a fraction or exponent notation loses nanoseconds)",
                 column=name,
-                value=text,
+                value=field,
                 what="field",
             )
-        _finite(text, name, source, lineno)  # raises: not a (finite) number
-    return _in_int64(int(Decimal(text)), text, name, source, lineno)
+        _finite(field, name, source, lineno)  # raises: not a (finite) number
+    return _in_int64(int(Decimal(field)), field, name, source, lineno)
 
 
-def _in_int64(ns: int, text: str, name: str, source: str, lineno: int) -> int:
-    if not _INT64[0] <= ns <= _INT64[1]:
+def _in_int64(ns: int, field: str, name: str, source: str, lineno: int) -> int:
+    if not text.in_int64(ns):
         raise LogFormatError(
-            source, lineno, "out of the int64 nanosecond range", column=name, value=text, what="field"
+            source, lineno, "out of the int64 nanosecond range", column=name, value=field, what="field"
         )
     return ns
 
@@ -243,5 +240,3 @@ def _frame(rows: list, source: str, fmt: str, time_name: str) -> pd.DataFrame:
     frame.attrs["source"] = source
     frame.attrs["format"] = fmt
     return frame
-
-

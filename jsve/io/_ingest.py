@@ -4,6 +4,7 @@
     read_logs(source)                    many logs, in parallel, sorted, raise or quarantine
     write_quarantine_report(result, p)   the logs set aside, as CSV
     ingest(source, out)                  many logs -> one Parquet file;  read_parquet(out) -> RunLogs
+    load_runs(source)                    a Parquet file from `ingest`, or logs as read_logs takes them
 
 Each log is read and validated by `jsve.io._logs.read_log` (in worker processes for large batches);
 docs/log-format.md describes the batch behaviour, the quarantine report and the Parquet layout.
@@ -31,6 +32,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm.auto import tqdm
 
+from jsve.io import _atomic as atomic
 from jsve.io import _schema as schema
 from jsve.io._groundtruth import GroundTruthSpec
 from jsve.io._logs import PARTIAL_SUFFIX, LogFormatError, LogIncompleteError, read_log
@@ -112,16 +114,7 @@ def write_quarantine_report(result: ReadResult | Sequence[Quarantined], path: st
     """
     if not isinstance(result, ReadResult):
         result = ReadResult(runs=[], quarantined=list(result))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + PARTIAL_SUFFIX)
-    try:
-        result.report().to_csv(tmp, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return atomic.write_table(result.report(), path)
 
 
 def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:
@@ -322,6 +315,30 @@ def read_logs(
     return ReadResult(runs=runs, quarantined=quarantined)
 
 
+def load_runs(
+    source: str | os.PathLike | Sequence[str | os.PathLike],
+    *,
+    on_error: OnError = "raise",
+    workers: int | None = None,
+    progress: bool = True,
+    ground_truth: GroundTruthSpec | None = None,
+) -> ReadResult:
+    """The runs of a Parquet file written by `ingest`, or of logs on disk: what `jsve evaluate` and
+    `jsve fit` accept as LOGS.
+
+    Arguments:
+        source: a `.parquet` file (read with `read_parquet`), else logs as `read_logs` takes them.
+        on_error, workers, progress, ground_truth: as in `read_logs`; unused for a Parquet file, whose
+            runs were validated (and given their ground truth) when it was written.
+
+    Returns:
+        ReadResult; nothing is quarantined from a Parquet file.
+    """
+    if isinstance(source, (str, os.PathLike)) and os.fspath(source).endswith(".parquet"):
+        return ReadResult(runs=read_parquet(source))
+    return read_logs(source, on_error=on_error, workers=workers, progress=progress, ground_truth=ground_truth)
+
+
 # --------------------------------------------------------------------------------------------------
 # Parquet
 
@@ -430,13 +447,10 @@ def ingest(
     if not paths:
         raise FileNotFoundError(f"no tracking logs (*.csv, *.csv.partial) in {os.fspath(source)!r}")
     out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + PARTIAL_SUFFIX)
     quarantined: list[Quarantined] = []
     entries = []
     n_frames = 0
-    writer = pq.ParquetWriter(tmp, PARQUET_SCHEMA, compression="zstd")
-    try:
+    with atomic.atomic_path(out) as tmp, pq.ParquetWriter(tmp, PARQUET_SCHEMA, compression="zstd") as writer:
         batch: list[RunLog] = []
         batch_rows = 0
         runs = _good_runs(
@@ -471,12 +485,6 @@ def ingest(
                 PARQUET_FORMAT_KEY: str(schema.FORMAT_VERSION),
             }
         )
-        writer.close()
-        os.replace(tmp, out)
-    except BaseException:
-        writer.close()
-        tmp.unlink(missing_ok=True)
-        raise
 
     default_report = default_quarantine_report_path(out)
     report = Path(quarantine_report) if quarantine_report is not None else default_report

@@ -26,11 +26,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-import pyarrow.csv as pacsv
 
 from jsve.io import _atomic as atomic
+from jsve.io import _text as text
 from jsve.io._errors import LogFormatError, LogIncompleteError, shorten
-from jsve.io._logs import PARTIAL_SUFFIX
 from jsve.io._schema import RunLog
 
 MAGIC = "# jsve-keypoints v1 "
@@ -61,8 +60,7 @@ OPTIONAL_METADATA = {"disturbance": str, "level": (int, float), "image_bounds": 
 MATCHED_METADATA = ("sequence", "disturbance", "level", "run")
 """Keys that must agree between a side file and its log (the run id), defaults as in RunLog.run_id."""
 
-_INT_TEXT = re.compile(r"-?[0-9]+")
-_FLOAT_TEXT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INT_SET = frozenset(INT_COLUMNS)
 
 
 @dataclass(frozen=True)
@@ -108,15 +106,8 @@ def keypoints_path(log_path: str | os.PathLike) -> Path:
 # Metadata
 
 
-
-
-def _is_type(value, types) -> bool:
-    types = types if isinstance(types, tuple) else (types,)
-    return not (isinstance(value, bool) and bool not in types) and isinstance(value, types)
-
-
 def _is_number(value) -> bool:
-    return _is_type(value, (int, float)) and math.isfinite(value)
+    return text.is_type(value, (int, float)) and math.isfinite(value)
 
 
 def _check_meta(meta, source: str, line: int | None) -> None:
@@ -130,12 +121,10 @@ def _check_meta(meta, source: str, line: int | None) -> None:
         if key not in meta:
             fail(key, f"required key missing (keypoint files require {', '.join(REQUIRED_METADATA)})")
     for key, types in {**REQUIRED_METADATA, **OPTIONAL_METADATA}.items():
-        if key in meta and not _is_type(meta[key], types):
-            names = {int: "an integer", float: "a number", str: "a string", list: "a list"}
-            wanted = " or ".join(names[t] for t in (types if isinstance(types, tuple) else (types,)))
-            fail(key, f"must be {wanted}, got {type(meta[key]).__name__}")
+        if key in meta and not text.is_type(meta[key], types):
+            fail(key, f"must be {text.type_name(types)}, got {type(meta[key]).__name__}")
     size = meta["image_size"]
-    if len(size) != 2 or not all(_is_type(s, int) and s > 0 for s in size):
+    if len(size) != 2 or not all(text.is_type(s, int) and s > 0 for s in size):
         fail("image_size", "must be [width, height] in pixels")
     bounds = meta.get("image_bounds")
     if bounds is not None and (
@@ -148,29 +137,22 @@ def _check_meta(meta, source: str, line: int | None) -> None:
 
 def _parse_meta_line(raw: bytes, source: str) -> dict:
     try:
-        text = raw.decode("utf-8").rstrip("\r")
+        line = raw.decode("utf-8").rstrip("\r")
     except UnicodeDecodeError as e:
         raise LogFormatError(source, 1, f"line 1 is not UTF-8 text ({e.reason})") from None
-    if not text.startswith(MAGIC):
-        version = re.match(r"# jsve-keypoints (v\S+)", text)
+    if not line.startswith(MAGIC):
+        version = re.match(r"# jsve-keypoints (v\S+)", line)
         if version:
             reason = f"unsupported keypoint format version '{version.group(1)}' (this reader reads v1)"
         else:
             reason = (
                 f"not a jsve keypoint file: line 1 must start with '{MAGIC}' followed by the JSON "
-                f"metadata, found '{shorten(text)}'"
+                f"metadata, found '{shorten(line)}'"
             )
         raise LogFormatError(source, 1, reason)
-    try:
-        meta = json.loads(text[len(MAGIC) :], parse_constant=_reject_constant)
-    except ValueError as e:
-        raise LogFormatError(source, 1, f"metadata is not valid JSON: {e}") from None
+    meta = text.load_meta(line[len(MAGIC) :], source)
     _check_meta(meta, source, 1)
     return meta
-
-
-def _reject_constant(name: str):
-    raise ValueError(f"{name} is not valid JSON (metadata values must be finite)")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -183,10 +165,10 @@ def _scan_fields(lines: list[bytes], source: str) -> LogFormatError | None:
     n_cols = len(COLUMNS)
     for i, raw in enumerate(lines):
         line = i + 3
-        text = raw.decode("utf-8", errors="replace").rstrip("\r")
-        if not text.strip():
+        row = raw.decode("utf-8", errors="replace").rstrip("\r")
+        if not row.strip():
             return LogFormatError(source, line, f"empty line (a row has {n_cols} comma-separated fields)")
-        fields = text.split(",")
+        fields = row.split(",")
         if len(fields) < n_cols:
             return LogFormatError(
                 source,
@@ -204,32 +186,20 @@ def _scan_fields(lines: list[bytes], source: str) -> LogFormatError | None:
             if field == "":
                 return LogFormatError(source, line, "empty value", column=name, value=field)
             if name in INT_COLUMNS:
-                if not _INT_TEXT.fullmatch(field):
+                if not text.INT64_TEXT.fullmatch(field):
                     return LogFormatError(source, line, "not an integer", column=name, value=field)
-                if not -(2**63) <= int(field) < 2**63:
+                if not text.in_int64(int(field)):
                     return LogFormatError(source, line, "out of the int64 range", column=name, value=field)
-            elif not _FLOAT_TEXT.fullmatch(field) and field.lower().lstrip("+-") not in (
-                "nan",
-                "inf",
-                "infinity",
-            ):
+            elif not (text.DECIMAL.fullmatch(field) or text.is_non_finite_word(field)):
                 return LogFormatError(source, line, "not a number", column=name, value=field)
     return None
 
 
 def _parse_rows(region: bytes, source: str) -> pd.DataFrame:
-    types = {c: (pa.int64() if c in INT_COLUMNS else pa.float64()) for c in COLUMNS}
     if not region:
         return pd.DataFrame({c: np.zeros(0, np.int64 if c in INT_COLUMNS else np.float64) for c in COLUMNS})
     try:
-        table = pacsv.read_csv(
-            pa.py_buffer(region),
-            read_options=pacsv.ReadOptions(column_names=list(COLUMNS), use_threads=False),
-            parse_options=pacsv.ParseOptions(ignore_empty_lines=False),
-            convert_options=pacsv.ConvertOptions(
-                column_types=types, null_values=[""], strings_can_be_null=False
-            ),
-        )
+        table = text.read_rows(region, COLUMNS, _INT_SET)
     except pa.ArrowInvalid as e:
         error = _scan_fields(region.split(b"\n")[:-1], source)
         raise (error or LogFormatError(source, None, f"cannot parse the rows: {e}")) from None
@@ -270,10 +240,6 @@ def _first_problem(kp: pd.DataFrame) -> tuple[int, str, str] | None:
     return r, column, reason
 
 
-def _format_value(x) -> str:
-    return str(int(x)) if isinstance(x, (np.integer, int)) else repr(float(x))
-
-
 # --------------------------------------------------------------------------------------------------
 # Reading and writing
 
@@ -287,31 +253,27 @@ def parse_keypoints(data: bytes, source: str = "<memory>") -> KeypointLog:
     """
     if not data:
         raise LogIncompleteError(source, 1, "empty file (0 bytes): the keypoint file is incomplete")
-    nl1 = data.find(b"\n")
-    meta = _parse_meta_line(data if nl1 < 0 else data[:nl1], source)
+    parts = text.cut(data)
+    meta = _parse_meta_line(parts.first, source)
 
-    body_end = len(data.rstrip())
-    last_nl = data.rfind(b"\n", 0, body_end)
-    n_lines = data.count(b"\n", 0, body_end) + 1
-    last = data[last_nl + 1 : body_end].decode("utf-8", errors="replace").rstrip("\r")
-    if last_nl < 0 or not last.startswith(END_MARKER):
+    n_lines = parts.n_lines
+    count_text = text.end_count(parts.last, END_MARKER)
+    if count_text is None:
         raise LogIncompleteError(
             source,
             n_lines,
             f"the keypoint file is incomplete: it ends at line {n_lines} without the end marker "
             f"'{END_MARKER}N' (its writer stopped before the end of the run)",
         )
-    count_text = last[len(END_MARKER) :].strip()
-    if not re.fullmatch(r"[0-9]+", count_text):
+    if not text.is_count(count_text):
         raise LogFormatError(
             source,
             n_lines,
             f"end marker keypoint count must be a non-negative integer, found '{shorten(count_text)}'",
         )
-    if last_nl == nl1:
+    if parts.header is None:
         raise LogFormatError(source, 2, "missing header line: line 2 is the end marker")
-    nl2 = data.find(b"\n", nl1 + 1)
-    header = data[nl1 + 1 : nl2].decode("utf-8", errors="replace").rstrip("\r").split(",")
+    header = parts.header.decode("utf-8", errors="replace").split(",")
     if header != list(COLUMNS):
         k = next(
             (i for i, (a, b) in enumerate(zip(header, COLUMNS, strict=False)) if a != b),
@@ -322,7 +284,7 @@ def parse_keypoints(data: bytes, source: str = "<memory>") -> KeypointLog:
             source, 2, f"wrong header: expected '{','.join(COLUMNS)}'", column=shown, what="column"
         )
 
-    region = data[nl2 + 1 : last_nl + 1]
+    region = parts.rows
     kp = _parse_rows(region, source)
     if len(kp) != int(count_text):
         raise LogIncompleteError(
@@ -334,8 +296,7 @@ def parse_keypoints(data: bytes, source: str = "<memory>") -> KeypointLog:
     problem = _first_problem(kp)
     if problem is not None:
         r, column, reason = problem
-        raw = region.split(b"\n")[r].decode("utf-8", errors="replace").rstrip("\r")
-        value = raw.split(",")[COLUMNS.index(column)]
+        value = text.raw_field(text.raw_line(region, r), COLUMNS.index(column))
         raise LogFormatError(source, r + 3, reason, column=column, value=value)
     return KeypointLog(meta=meta, keypoints=kp, source=source)
 
@@ -352,7 +313,7 @@ def read_keypoints(path: str | os.PathLike) -> KeypointLog:
         OSError: the file cannot be read.
     """
     source = os.fspath(path)
-    if source.endswith(PARTIAL_SUFFIX):
+    if source.endswith(atomic.PARTIAL_SUFFIX):
         raise LogIncompleteError(
             source, None, "the keypoint file is incomplete: a '.partial' file's writer has not finished"
         )
@@ -368,10 +329,7 @@ def validate_keypoints(kp: KeypointLog) -> KeypointLog:
         LogFormatError: `<memory>: column 'inlier' = '2': must be 0 or 1 (keypoint row 12)` (0-based).
     """
     source = kp.source
-    try:
-        meta = json.loads(json.dumps(kp.meta, allow_nan=False, default=_json_default))
-    except (TypeError, ValueError) as e:
-        raise LogFormatError(source, None, f"metadata cannot be written as JSON: {e}") from None
+    meta = text.canonical_meta(kp.meta, source)
     _check_meta(meta, source, None)
     missing = [c for c in COLUMNS if c not in kp.keypoints.columns]
     extra = [c for c in kp.keypoints.columns if c not in COLUMNS]
@@ -398,17 +356,9 @@ def validate_keypoints(kp: KeypointLog) -> KeypointLog:
             None,
             f"{reason} (keypoint row {r})",
             column=column,
-            value=_format_value(frame[column].iloc[r]),
+            value=text.format_value(frame[column].iloc[r]),
         )
     return KeypointLog(meta=meta, keypoints=frame, source=source)
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"metadata value {obj!r} of type {type(obj).__name__} is not JSON serialisable")
 
 
 def write_keypoints(kp: KeypointLog, path: str | os.PathLike) -> Path:
@@ -422,14 +372,12 @@ def write_keypoints(kp: KeypointLog, path: str | os.PathLike) -> Path:
         path: destination, conventionally `keypoints_path(log)`; parent folders are created.
     """
     kp = validate_keypoints(kp)
-    path = Path(path)
-    table = pa.Table.from_pandas(kp.keypoints, preserve_index=False)
-    sink = pa.BufferOutputStream()
-    if len(kp.keypoints):
-        pacsv.write_csv(table, sink, pacsv.WriteOptions(include_header=False, quoting_style="none"))
-    head = (MAGIC + json.dumps(kp.meta, allow_nan=False) + "\n" + ",".join(COLUMNS) + "\n").encode("utf-8")
-    tail = f"{END_MARKER}{len(kp.keypoints)}\n".encode("ascii")
-    return atomic.write_bytes(path, head, sink.getvalue(), tail)
+    return atomic.write_bytes(
+        path,
+        text.head(MAGIC, kp.meta, COLUMNS),
+        text.write_rows(pa.Table.from_pandas(kp.keypoints, preserve_index=False)),
+        text.tail(END_MARKER, len(kp.keypoints)),
+    )
 
 
 # --------------------------------------------------------------------------------------------------

@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-import pyarrow.csv as pacsv
 
 from jsve.io import _atomic as atomic
 from jsve.io import _schema as schema
+from jsve.io import _text as text
 from jsve.io._errors import LogFormatError, LogIncompleteError, shorten
 from jsve.io._groundtruth import GroundTruthSpec, apply_ground_truth
 from jsve.io._schema import RunLog
@@ -56,32 +56,6 @@ _GT_SET = frozenset(schema.GT_COLUMNS)
 # Metadata
 
 
-def _json_default(obj):
-    """json.dumps fallback for numpy scalars and arrays in metadata."""
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"metadata value {obj!r} of type {type(obj).__name__} is not JSON serialisable")
-
-
-def _reject_constant(name: str):
-    raise ValueError(f"{name} is not valid JSON (metadata values must be finite)")
-
-
-def _is_type(value, types) -> bool:
-    types = types if isinstance(types, tuple) else (types,)
-    if isinstance(value, bool) and bool not in types:
-        return False  # JSON true/false are not numbers
-    return isinstance(value, types)
-
-
-def _type_name(types) -> str:
-    types = types if isinstance(types, tuple) else (types,)
-    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object"}
-    return " or ".join(names.get(t, t.__name__) for t in types)
-
-
 _MISSING = object()  # a metadata key that is absent
 
 
@@ -98,18 +72,18 @@ def _check_meta(meta, source: str, line: int | None) -> None:
     for key, types in schema.REQUIRED_METADATA.items():
         if key not in meta:
             fail(key, f"required key missing (v1 requires {required})", _MISSING)
-        if not _is_type(meta[key], types):
-            fail(key, f"must be {_type_name(types)}, got {type(meta[key]).__name__}", meta[key])
+        if not text.is_type(meta[key], types):
+            fail(key, f"must be {text.type_name(types)}, got {type(meta[key]).__name__}", meta[key])
     if not (math.isfinite(meta["fps"]) and meta["fps"] > 0):
         fail("fps", "must be a positive number of frames per second", meta["fps"])
     for key, types in {**schema.OPTIONAL_METADATA, **GT_METADATA}.items():
-        if key in meta and not _is_type(meta[key], types):
-            fail(key, f"must be {_type_name(types)}, got {type(meta[key]).__name__}", meta[key])
+        if key in meta and not text.is_type(meta[key], types):
+            fail(key, f"must be {text.type_name(types)}, got {type(meta[key]).__name__}", meta[key])
     gravity = meta.get("gravity")
-    if gravity is not None and (len(gravity) != 3 or not all(_is_type(g, (int, float)) for g in gravity)):
+    if gravity is not None and (len(gravity) != 3 or not all(text.is_type(g, (int, float)) for g in gravity)):
         fail("gravity", "must be a list of 3 numbers (world gravity, m/s^2)", gravity)
     size = meta.get("image_size")
-    if size is not None and (len(size) != 2 or not all(_is_type(s, int) and s > 0 for s in size)):
+    if size is not None and (len(size) != 2 or not all(text.is_type(s, int) and s > 0 for s in size)):
         fail("image_size", "must be [width, height] in pixels", size)
     grid = meta.get("grid")
     if grid is not None and list(grid) != [8, 8]:
@@ -121,11 +95,11 @@ def _check_meta(meta, source: str, line: int | None) -> None:
 
 def _parse_meta_line(raw: bytes, source: str) -> dict:
     try:
-        text = raw.decode("utf-8").rstrip("\r")
+        line = raw.decode("utf-8").rstrip("\r")
     except UnicodeDecodeError as e:
         raise LogFormatError(source, 1, f"not a jsve v1 log: line 1 is not UTF-8 text ({e.reason})") from None
-    if not text.startswith(schema.MAGIC):
-        version = re.match(r"# jsve-log (v\S+)", text)
+    if not line.startswith(schema.MAGIC):
+        version = re.match(r"# jsve-log (v\S+)", line)
         if version and version.group(1) != f"v{schema.FORMAT_VERSION}":
             reason = (
                 f"unsupported format version '{version.group(1)}' "
@@ -134,13 +108,10 @@ def _parse_meta_line(raw: bytes, source: str) -> dict:
         else:
             reason = (
                 f"not a jsve v1 log: line 1 must start with '{schema.MAGIC}' followed by the JSON metadata, "
-                f"found '{shorten(text)}'"
+                f"found '{shorten(line)}'"
             )
         raise LogFormatError(source, 1, reason)
-    try:
-        meta = json.loads(text[len(schema.MAGIC) :], parse_constant=_reject_constant)
-    except ValueError as e:
-        raise LogFormatError(source, 1, f"metadata is not valid JSON: {e}") from None
+    meta = text.load_meta(line[len(schema.MAGIC) :], source)
     _check_meta(meta, source, 1)
     return meta
 
@@ -380,11 +351,7 @@ def validate_run(run: RunLog) -> RunLog:
             `<memory>: frame 12: column 'imu_dt' = '-0.05': must be >= 0 (...)`.
     """
     source = run.source
-    try:
-        text = json.dumps(run.meta, default=_json_default, allow_nan=False)
-    except (TypeError, ValueError) as e:
-        raise LogFormatError(source, None, f"metadata cannot be written as JSON: {e}") from None
-    meta = json.loads(text)
+    meta = text.canonical_meta(run.meta, source)
     _check_meta(meta, source, None)
 
     frames = run.frames
@@ -427,15 +394,9 @@ def _memory_error(p: _Problem, cols: Mapping[str, np.ndarray], source: str) -> L
     if p.value is not None:
         value = p.value
     else:
-        value = ",".join(_format_value(cols[c][p.row]) for c in p.value_cols)
+        value = ",".join(text.format_value(cols[c][p.row]) for c in p.value_cols)
     reason = p.reason.replace("{ref}", f"frame {p.ref_row}")
     return LogFormatError(source, None, reason, column=p.column, value=value, what=p.what, frame=p.row)
-
-
-def _format_value(x) -> str:
-    if isinstance(x, (np.integer, int)):
-        return str(int(x))
-    return repr(float(x))
 
 
 def write_log(run: RunLog, path: str | os.PathLike) -> Path:
@@ -467,14 +428,12 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
         # Only gt_* may be missing: NaN there becomes an empty field (Arrow writes nulls as "").
         arrays.append(pa.array(values, from_pandas=c in _GT_SET))
     table = pa.Table.from_arrays(arrays, names=list(frames.columns))
-    sink = pa.BufferOutputStream()
-    pacsv.write_csv(table, sink, pacsv.WriteOptions(include_header=False, quoting_style="none"))
-    head = (
-        schema.MAGIC + json.dumps(run.meta, allow_nan=False) + "\n" + ",".join(frames.columns) + "\n"
-    ).encode("utf-8")
-    tail = f"{schema.END_MARKER}{len(frames)}\n".encode("ascii")
-
-    return atomic.write_bytes(path, head, sink.getvalue(), tail)
+    return atomic.write_bytes(
+        path,
+        text.head(schema.MAGIC, run.meta, frames.columns),
+        text.write_rows(table),
+        text.tail(schema.END_MARKER, len(frames)),
+    )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -527,23 +486,20 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
         raise LogIncompleteError(
             source, 1, "empty file (0 bytes): the log is incomplete (its writer wrote nothing)"
         )
-    nl1 = data.find(b"\n")
-    meta = _parse_meta_line(data if nl1 < 0 else data[:nl1], source)
+    parts = text.cut(data)
+    meta = _parse_meta_line(parts.first, source)
 
     # The last non-blank line must be the end marker; without it the writer stopped mid-run.
-    body_end = len(data.rstrip())
-    last_nl = data.rfind(b"\n", 0, body_end)
-    n_lines = data.count(b"\n", 0, body_end) + 1
-    last = data[last_nl + 1 : body_end].decode("utf-8", errors="replace").rstrip("\r")
-    if last_nl < 0 or not last.startswith(schema.END_MARKER):
+    n_lines = parts.n_lines
+    count_text = text.end_count(parts.last, schema.END_MARKER)
+    if count_text is None:
         raise LogIncompleteError(
             source,
             n_lines,
             f"the log is incomplete: the file ends at line {n_lines} without the end marker "
             f"'{schema.END_MARKER}N' (its writer stopped before the end of the run)",
         )
-    count_text = last[len(schema.END_MARKER) :].strip()
-    if not re.fullmatch(r"[0-9]+", count_text):
+    if not text.is_count(count_text):
         raise LogFormatError(
             source,
             n_lines,
@@ -551,16 +507,15 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
         )
     count = int(count_text)
 
-    if last_nl == nl1:
+    if parts.header is None:
         raise LogFormatError(source, 2, "missing header line: line 2 is the end marker")
-    nl2 = data.find(b"\n", nl1 + 1)
     try:
-        header = data[nl1 + 1 : nl2].decode("utf-8").rstrip("\r")
+        header = parts.header.decode("utf-8")
     except UnicodeDecodeError:
         raise LogFormatError(source, 2, "header line is not UTF-8 text") from None
     columns = _check_header(header.split(","), source, 2)
 
-    region = data[nl2 + 1 : last_nl + 1]  # the rows, each ending in "\n"
+    region = parts.rows
     if not region:
         if count == 0:
             raise LogFormatError(source, n_lines, "the log has no frames")
@@ -589,7 +544,7 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
                 first_empty = (r, c)
     if first_empty is not None:
         r, c = first_empty
-        raw = _raw_line(region, r)
+        raw = text.raw_line(region, r)
         if not raw.strip():
             raise LogFormatError(
                 source, r + 3, f"empty line (a row has {len(columns)} comma-separated fields)"
@@ -599,7 +554,7 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
             r + 3,
             "empty value (only gt_* fields may be empty)",
             column=c,
-            value=_raw_field(raw, columns.index(c)),
+            value=text.raw_field(raw, columns.index(c)),
         )
     gt_missing = None
     if columns[-1] in _GT_SET:
@@ -611,19 +566,8 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
 
 
 def _parse_rows(region: bytes, columns: list[str], source: str) -> pa.Table:
-    types = {c: (pa.int64() if c in _INT_SET else pa.float64()) for c in columns}
     try:
-        return pacsv.read_csv(
-            pa.py_buffer(region),
-            read_options=pacsv.ReadOptions(column_names=columns, use_threads=False),
-            parse_options=pacsv.ParseOptions(ignore_empty_lines=False),
-            convert_options=pacsv.ConvertOptions(
-                column_types=types,
-                null_values=[""],
-                strings_can_be_null=False,
-                quoted_strings_can_be_null=False,
-            ),
-        )
+        return text.read_rows(region, columns, _INT_SET)
     except pa.ArrowInvalid as e:
         raise _locate_parse_error(region, columns, source, str(e)) from None
 
@@ -657,7 +601,7 @@ def _locate_parse_error(region: bytes, columns: list[str], source: str, arrow_me
         c = columns[k]
         reason = "not an integer" if c in _INT_SET else "not a number"
         for i, raw in enumerate(lines):
-            field_text = _raw_field(raw, k)
+            field_text = text.raw_field(raw, k)
             if field_text == value or field_text.strip().strip('"') == value:
                 return LogFormatError(source, i + 3, reason, column=c, value=field_text)
         row = re.search(r"Row #(\d+)", arrow_message)
@@ -665,24 +609,11 @@ def _locate_parse_error(region: bytes, columns: list[str], source: str, arrow_me
     return LogFormatError(source, None, f"cannot parse the rows: {arrow_message}")
 
 
-def _raw_line(region: bytes, row: int) -> bytes:
-    start = 0
-    for _ in range(row):
-        start = region.index(b"\n", start) + 1
-    end = region.find(b"\n", start)
-    return region[start : end if end >= 0 else len(region)].rstrip(b"\r")
-
-
-def _raw_field(raw: bytes, k: int) -> str:
-    fields = raw.rstrip(b"\r").split(b",")
-    return fields[k].decode("utf-8", errors="replace") if k < len(fields) else ""
-
-
 def _file_error(p: _Problem, region: bytes, columns: list[str], source: str) -> LogFormatError:
     if p.value is not None:
         value = p.value
     else:
-        raw = _raw_line(region, p.row)
-        value = ",".join(_raw_field(raw, columns.index(c)) for c in p.value_cols)
+        raw = text.raw_line(region, p.row)
+        value = ",".join(text.raw_field(raw, columns.index(c)) for c in p.value_cols)
     reason = p.reason.replace("{ref}", f"line {p.ref_row + 3}") if p.ref_row is not None else p.reason
     return LogFormatError(source, p.row + 3, reason, column=p.column, value=value, what=p.what)

@@ -55,9 +55,7 @@ GT_COLUMNS = GT_POSITION + GT_QUATERNION
 COUNT_COLUMNS = ("n_extracted", "n_inliers", "n_frustum")
 
 INT_COLUMNS = ("t_ns", "state", "imu_init") + COUNT_COLUMNS + BIN_COLUMNS
-FLOAT_COLUMNS = (
-    VIS_POSITION + VIS_QUATERNION + VIS_VELOCITY + ("imu_dt",) + IMU_DP + IMU_DV + IMU_DQ
-)
+FLOAT_COLUMNS = VIS_POSITION + VIS_QUATERNION + VIS_VELOCITY + ("imu_dt",) + IMU_DP + IMU_DV + IMU_DQ
 
 REQUIRED_COLUMNS = INT_COLUMNS + FLOAT_COLUMNS
 """Columns every v1 log has, in this order."""

@@ -4,19 +4,20 @@ The seed (Masked ORB-SLAM3 on KITTI odometry) reports APE RMSE, mean, median, st
 the masked and the original system, an APE-over-time plot and the error distribution. This module makes
 that report for any sets of estimates against their references:
 
-    pairs = {"original": [PosePair(...)], "masked": [PosePair(...)]}
+    pairs = {"original": read_pose_pairs(ref, originals, "kitti"), "masked": [PosePair(...), ...]}
     table = table_one(pairs, align="se3")          # statistics: jsve.core._trajectory (evo's definitions)
     write_report(table, "out/")                    # Markdown + CSV, PNG/SVG plots, aligned KITTI poses
 
-Alignment and statistics come from jsve.core._trajectory (`align`, then `ape_statistics`, vmapped over the runs
-padded to one length: one compiled kernel per table); per-run tables from jsve.evaluation._aggregate. Compute in float64
-(`jax_enable_x64`) to match evo to 1e-6; `jsve table1` does. Plots use matplotlib without pyplot (Agg
-for PNG); the density is a Gaussian KDE written in numpy (Scott's bandwidth, as scipy's default).
+Pose pairs are read and padded by jsve.io._trajectories and scored by
+jsve.core._pose_error.batched_pose_error (as `jsve ape` scores them: one compiled kernel per table);
+per-run tables from jsve.evaluation._aggregate.
+Compute in float64 (`jax_enable_x64`) to match evo to 1e-6; `jsve table1` does. Plots use matplotlib
+without pyplot (Agg for PNG); the density is a Gaussian KDE written in numpy (Scott's bandwidth, as
+scipy's default). Files are written atomically (jsve.io._atomic).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -24,20 +25,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from jsve.core._geometry import matrix_to_quat
-from jsve.core._trajectory import (
-    MIN_ALIGNMENT_FRAMES,
-    AlignMethod,
-    RunError,
-    Transform,
-    align,
-    ape_statistics,
-)
+from jsve.core._pose_error import batched_pose_error
+from jsve.core._trajectory import AlignMethod, Transform
 from jsve.evaluation._aggregate import per_run_table
+from jsve.io import _atomic as atomic
+from jsve.io._trajectories import PosePair, stack_pose_pairs
 
 STATISTICS: tuple[str, ...] = ("rmse", "mean", "median", "std", "min", "max", "sse")
 """The rows of Table I, in the seed's order (metres; sse in square metres)."""
@@ -55,36 +50,6 @@ STAT_LABELS = {
 PLOT_FORMATS: tuple[str, ...] = ("png", "svg")
 
 _KDE_CHUNK = 1 << 22  # samples x points evaluated at once (32 MiB of float64)
-
-
-@dataclass(frozen=True)
-class PosePair:
-    """One estimate and its reference, associated pose by pose.
-
-    Attributes:
-        name: a label (the estimate's file name).
-        ref: [T, 4, 4] reference poses T_wb (rotation, translation in metres), reference world frame.
-        est: [T, 4, 4] estimated poses of the same frames, estimate world frame.
-        t: [T] seconds since the first reference pose, or None (poses are then plotted by index).
-    """
-
-    name: str
-    ref: np.ndarray
-    est: np.ndarray
-    t: np.ndarray | None = None
-
-    def __post_init__(self):
-        ref, est = np.asarray(self.ref, np.float64), np.asarray(self.est, np.float64)
-        if ref.ndim != 3 or ref.shape[1:] != (4, 4) or est.shape != ref.shape:
-            raise ValueError(
-                f"{self.name}: ref and est must both have shape (T, 4, 4), got {ref.shape} and {est.shape}"
-            )
-        if len(ref) == 0:
-            raise ValueError(f"{self.name}: no poses")
-        if self.t is not None and np.shape(self.t) != (len(ref),):
-            raise ValueError(f"{self.name}: t must have shape ({len(ref)},), got {np.shape(self.t)}")
-        object.__setattr__(self, "ref", ref)
-        object.__setattr__(self, "est", est)
 
 
 @dataclass(frozen=True)
@@ -136,61 +101,7 @@ class TableOne:
 
 
 # --------------------------------------------------------------------------------------------------
-# Scoring
-
-
-@functools.partial(jax.jit, static_argnames=("method", "n_first"))
-def _align_and_score(est_p, ref_p, valid, est_q, ref_q, *, method, n_first):
-    """Over a leading runs axis: each run aligned on its valid poses and scored on them (one compile)."""
-
-    def one(e, r, m, eq, rq):
-        aligned_p, _, transform = align(e, r, m, method=method, est_q=eq, ref_q=rq, n_first=n_first)
-        return transform, ape_statistics(aligned_p, r, m & ~transform.degenerate)
-
-    return jax.vmap(one)(est_p, ref_p, valid, est_q, ref_q)
-
-
-def _score(pairs: Sequence[PosePair], method: str, n_first: int | None):
-    """(RunError with leaves [R], aligned poses [T_i, 4, 4] per run, transforms with leaves [R]).
-
-    The runs are padded to the longest (padding masked out), so that one compiled kernel scores them all.
-    """
-    n_runs, n_frames = len(pairs), max(len(p.est) for p in pairs)
-    eye = np.broadcast_to(np.eye(4), (n_runs, n_frames, 4, 4))
-    est, ref = eye.copy(), eye.copy()
-    valid = np.zeros((n_runs, n_frames), bool)
-    for i, pair in enumerate(pairs):
-        est[i, : len(pair.est)], ref[i, : len(pair.ref)] = pair.est, pair.ref
-        valid[i, : len(pair.est)] = True
-    transforms, stats = _align_and_score(
-        jnp.asarray(est[..., :3, 3]),
-        jnp.asarray(ref[..., :3, 3]),
-        jnp.asarray(valid),
-        matrix_to_quat(jnp.asarray(est[..., :3, :3])),
-        matrix_to_quat(jnp.asarray(ref[..., :3, :3])),
-        method=method,
-        n_first=n_first,
-    )
-    # The facts run_error reports next to every error, for a run that is one segment with every pose.
-    failed = transforms.degenerate | (stats.count < MIN_ALIGNMENT_FRAMES)
-    errors = RunError(
-        stats=stats,
-        coverage=stats.count / jnp.asarray(valid.sum(axis=1)),
-        n_segments=jnp.ones(n_runs, jnp.int32),
-        failed=failed,
-        segment=jnp.zeros(n_runs, jnp.int32),
-    )
-    rotation = np.asarray(transforms.rotation, np.float64)
-    translation = np.asarray(transforms.translation, np.float64)
-    scale = np.asarray(transforms.scale, np.float64)
-    aligned = []
-    for i, pair in enumerate(pairs):
-        poses = pair.est.copy()
-        # As evo's PosePath3D.align: positions s R p + t, orientations R R_i.
-        poses[:, :3, :3] = rotation[i] @ pair.est[:, :3, :3]
-        poses[:, :3, 3] = scale[i] * pair.est[:, :3, 3] @ rotation[i].T + translation[i]
-        aligned.append(poses)
-    return errors, aligned, transforms
+# Table I
 
 
 def table_one(
@@ -213,7 +124,10 @@ def table_one(
     if not groups or any(len(pairs) == 0 for pairs in groups.values()):
         raise ValueError("every group needs at least one estimate")
     labelled = [(group, pair) for group, pairs in groups.items() for pair in pairs]
-    errors, aligned, transforms = _score([pair for _, pair in labelled], align, n_first)
+    errors, transforms = batched_pose_error(
+        *stack_pose_pairs([pair for _, pair in labelled]), align=align, n_first=n_first
+    )
+    aligned = _aligned_poses([pair for _, pair in labelled], transforms)
     runs = []
     for i, ((group, pair), poses) in enumerate(zip(labelled, aligned, strict=True)):
         timed = pair.t is not None
@@ -225,6 +139,21 @@ def table_one(
     per_run = per_run_table(errors, meta)
     per_run["scale"] = np.asarray(transforms.scale, np.float64)
     return TableOne(tuple(groups), align, per_run, summary_table(per_run, tuple(groups)), runs)
+
+
+def _aligned_poses(pairs: Sequence[PosePair], transforms: Transform) -> list[np.ndarray]:
+    """[T_i, 4, 4] per pair: the estimated poses mapped into the reference frame by their transform."""
+    rotation = np.asarray(transforms.rotation, np.float64)
+    translation = np.asarray(transforms.translation, np.float64)
+    scale = np.asarray(transforms.scale, np.float64)
+    aligned = []
+    for i, pair in enumerate(pairs):
+        poses = pair.est.copy()
+        # As evo's PosePath3D.align: positions s R p + t, orientations R R_i.
+        poses[:, :3, :3] = rotation[i] @ pair.est[:, :3, :3]
+        poses[:, :3, 3] = scale[i] * pair.est[:, :3, 3] @ rotation[i].T + translation[i]
+        aligned.append(poses)
+    return aligned
 
 
 def summary_table(per_run: pd.DataFrame, groups: Sequence[str]) -> pd.DataFrame:
@@ -352,11 +281,10 @@ def _save(fig, stem: Path, formats: Sequence[str]) -> list[Path]:
         if fmt not in PLOT_FORMATS:
             raise ValueError(f"plot formats must be among {PLOT_FORMATS}, got {fmt!r}")
         path = stem.with_name(f"{stem.name}.{fmt}")
-        partial = path.with_name(path.name + ".partial")
         # Without a date, the same table gives the same SVG.
         metadata = {"Date": None} if fmt == "svg" else None
-        fig.savefig(partial, format=fmt, dpi=150, metadata=metadata)
-        os.replace(partial, path)
+        with atomic.atomic_path(path) as partial:
+            fig.savefig(partial, format=fmt, dpi=150, metadata=metadata)
         paths.append(path)
     return paths
 
@@ -453,24 +381,8 @@ def write_kitti_poses(path: str | os.PathLike, poses: np.ndarray) -> Path:
     from evo.tools import file_interface
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    try:
-        with open(partial, "w") as f:
-            file_interface.write_kitti_poses_file(
-                f, PosePath3D(poses_se3=list(np.asarray(poses, np.float64)))
-            )
-        os.replace(partial, path)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _write_text(path: Path, text: str) -> Path:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(text, encoding="utf-8")
-    os.replace(partial, path)
+    with atomic.atomic_path(path) as partial, open(partial, "w") as f:
+        file_interface.write_kitti_poses_file(f, PosePath3D(poses_se3=list(np.asarray(poses, np.float64))))
     return path
 
 
@@ -501,9 +413,9 @@ def write_report(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = [
-        _write_text(out / "table1.md", to_markdown(table)),
-        _write_text(out / "table1.csv", table.summary.to_csv(index=False)),
-        _write_text(out / "per_run.csv", table.per_run.to_csv(index=False)),
+        atomic.write_text(out / "table1.md", to_markdown(table)),
+        atomic.write_table(table.summary, out / "table1.csv"),
+        atomic.write_table(table.per_run, out / "per_run.csv"),
     ]
     if plots:
         written += plot_ape_over_time(table, out / "ape_over_time", formats)

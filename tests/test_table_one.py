@@ -1,5 +1,5 @@
-"""Tests of jsve.masks._table_one and `jsve table1`: Table I against evo on the real KITTI 00 estimate, multi-run sets
-of different lengths against evo run by run, the numpy KDE against scipy, the report files."""
+"""jsve.masks._table_one and `jsve table1`: Table I against evo on the real KITTI 00 estimate, multi-run
+sets of different lengths against evo run by run, the numpy KDE against scipy, the report files."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import gaussian_kde as scipy_kde
 
 from jsve.cli import main as cli_main
+from jsve.io._trajectories import PosePair
 from jsve.masks import _table_one as tablei
-from jsve.masks._table_one import PosePair
 
 KITTI_REF = "kitti/odometry_poses/00.txt"
 KITTI_EST = "kitti/orbslam_estimate_00.txt"

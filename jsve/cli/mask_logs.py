@@ -9,14 +9,17 @@ dynamic features. A thin layer over jsve.masks._masks.apply_masks. Exit code 2 w
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+
+from jsve.cli import _common as common
+
+HELP = "remove keypoints on dynamic objects (KITTI MOTS / PNG masks) from logs with keypoint files"
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "mask-logs",
-        help="remove keypoints on dynamic objects (KITTI MOTS / PNG masks) from logs with keypoint files",
+        help=HELP,
         description=(
             "Apply dynamic-object masks to tracking logs through their keypoint side files "
             "(<log>.keypoints.csv): a keypoint is removed when the mask is set at any of its four integer "
@@ -70,11 +73,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             source = masks.PngMasks(args.png, classes, missing="empty" if args.missing_empty else "error")
     except ValueError as error:  # LogFormatError is a ValueError too
-        print(f"jsve mask-logs: {error}", file=sys.stderr)
-        return 2
+        return common.fail("mask-logs", error)
     except OSError as error:
-        print(f"jsve mask-logs: cannot read the masks: {error}", file=sys.stderr)
-        return 2
+        return common.fail("mask-logs", f"cannot read the masks: {error}")
 
     out = Path(args.output)
     for path in args.logs:
@@ -91,8 +92,7 @@ def run(args: argparse.Namespace) -> int:
             )
             target = write_log(result.log, out / Path(path).name)
         except (LogFormatError, ValueError, OSError) as error:
-            print(f"jsve mask-logs: {error}", file=sys.stderr)
-            return 2
+            return common.fail("mask-logs", error)
         n_kp = len(keypoints.keypoints)
         share = result.removed.sum() / n_kp if n_kp else 0.0
         print(

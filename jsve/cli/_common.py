@@ -1,0 +1,106 @@
+"""What the subcommands share: options whose choices come from the library, reading runs, errors.
+
+Subcommand modules use this module, never each other. Like them, it imports library code only inside
+functions, so that `jsve --help` stays free of JAX and pandas: a `register()` that calls an `add_*`
+helper pays for the import of the constants its choices come from, and only when its command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def fail(command: str, message) -> int:
+    """Print `jsve COMMAND: message` to stderr; returns 2, the exit status of an unusable input."""
+    print(f"jsve {command}: {message}", file=sys.stderr)
+    return 2
+
+
+# --------------------------------------------------------------------------------------------------
+# Options
+
+
+def add_align_option(parser: argparse.ArgumentParser, help: str | None = None) -> None:
+    """--align, its choices jsve.core's alignment methods (default se3)."""
+    from jsve.core import ALIGN_METHODS
+
+    parser.add_argument("--align", choices=tuple(ALIGN_METHODS), default="se3", help=help)
+
+
+def add_segments_option(parser: argparse.ArgumentParser) -> None:
+    """--segments: which map segment of a run is scored (jsve.core._trajectory.run_error)."""
+    from jsve.core._trajectory import SEGMENT_MODES
+
+    parser.add_argument(
+        "--segments",
+        default="largest",
+        choices=SEGMENT_MODES,
+        help="which map segment of a run is scored (default: largest)",
+    )
+
+
+def on_error_choices() -> tuple[str, ...]:
+    """What a batch read does with a bad log: jsve.io's OnError ("raise", "quarantine")."""
+    from typing import get_args
+
+    from jsve.io._ingest import OnError
+
+    return get_args(OnError)
+
+
+def add_trajectory_options(parser: argparse.ArgumentParser, *, default_format: str) -> None:
+    """--format, --n-to-align and --t-max-diff: how trajectory files are read and paired
+    (jsve.io._trajectories)."""
+    from jsve.io._trajectories import TRAJECTORY_FORMATS
+
+    parser.add_argument(
+        "--format",
+        choices=TRAJECTORY_FORMATS,
+        default=default_format,
+        help=f"file format (default: {default_format})",
+    )
+    parser.add_argument(
+        "--n-to-align",
+        type=int,
+        default=-1,
+        metavar="N",
+        help="align on the first N associated poses only (default -1: all)",
+    )
+    parser.add_argument(
+        "--t-max-diff",
+        type=float,
+        default=0.01,
+        metavar="S",
+        help="largest time difference in seconds for associating poses (tum, euroc; default 0.01)",
+    )
+
+
+def n_first(n_to_align: int) -> int | None:
+    """--n-to-align as `n_first` of jsve's alignment: None for -1 (all poses).
+
+    Raises:
+        ValueError: 0 or below -1.
+    """
+    if n_to_align == 0 or n_to_align < -1:
+        raise ValueError(f"--n-to-align must be a positive number or -1 (all), got {n_to_align}")
+    return None if n_to_align == -1 else n_to_align
+
+
+# --------------------------------------------------------------------------------------------------
+# Inputs
+
+
+def load_runs(command: str, source: str, *, on_error: str, workers: int | None, progress: bool):
+    """The runs of LOGS (a Parquet file from `jsve ingest`, or logs on disk), each quarantined log
+    reported on stderr as `jsve COMMAND: quarantined <message>`.
+
+    Raises:
+        LogFormatError, OSError: as jsve.io.load_runs.
+    """
+    from jsve.io._ingest import load_runs as read
+
+    result = read(source, on_error=on_error, workers=workers, progress=progress)
+    for q in result.quarantined:
+        print(f"jsve {command}: quarantined {q.message}", file=sys.stderr)
+    return result.runs

@@ -1,0 +1,227 @@
+"""The text-format helpers of jsve's files: numbers, metadata JSON, and the magic-line CSV layout.
+
+Tracking logs (jsve.io._logs) and keypoint side files (jsve.io._keypoints) share one layout:
+
+    <MAGIC>{"sequence": "MH_04", ...}      line 1: a magic prefix, then the metadata as one JSON object
+    t_ns,...                               line 2: the CSV header
+    1403636579763555584,...                one row per record
+    <END_MARKER>3600                       last line: the end marker and the number of rows
+
+This module is the one home of what that layout needs (cutting a file into its sections, reading the
+end marker's count, writing the head and tail, strict JSON metadata, Arrow's typed CSV for the rows) and
+of the number grammar and formatting that every text reader of jsve uses (the importers of the SVE
+authors' files too). The messages of each format stay in its own module; the rules live here.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+
+from jsve.io._errors import LogFormatError
+
+# --------------------------------------------------------------------------------------------------
+# Numbers
+
+DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+"""A plain decimal number: ASCII digits, an optional point and exponent; no nan/inf, no underscores,
+no hex (all of which Python's float() accepts)."""
+
+INT64_TEXT = re.compile(r"-?[0-9]+")
+"""An integer as Arrow's int64 CSV parser reads it (no '+', no fraction)."""
+
+INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
+"""The int64 range (nanosecond stamps, counts)."""
+
+NON_FINITE_WORDS = ("nan", "inf", "infinity")
+"""Words (any case, optionally signed) that parse as a float but are not a finite number."""
+
+
+def is_non_finite_word(text: str) -> bool:
+    """Whether `text` spells NaN or an infinity ('nan', '-inf', 'Infinity', ...)."""
+    return text.lower().lstrip("+-") in NON_FINITE_WORDS
+
+
+def in_int64(value: int) -> bool:
+    """Whether a Python int fits an int64."""
+    return INT64_MIN <= value <= INT64_MAX
+
+
+def format_value(x) -> str:
+    """A value as a file holds it: integers exactly, floats in the shortest form that reads back to
+    the same double (Python's repr)."""
+    if isinstance(x, (np.integer, int)):
+        return str(int(x))
+    return repr(float(x))
+
+
+# --------------------------------------------------------------------------------------------------
+# Metadata JSON
+
+
+def json_default(obj):
+    """json.dumps fallback for numpy scalars and arrays (metadata, study records)."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"metadata value {obj!r} of type {type(obj).__name__} is not JSON serialisable")
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not valid JSON (metadata values must be finite)")
+
+
+def load_meta(text: str, source: str, line: int | None = 1):
+    """Parse metadata JSON strictly: NaN and Infinity (which Python's json accepts) are errors.
+
+    Raises:
+        LogFormatError: `source:line: metadata is not valid JSON: ...`.
+    """
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except ValueError as e:
+        raise LogFormatError(source, line, f"metadata is not valid JSON: {e}") from None
+
+
+def canonical_meta(meta, source: str) -> dict:
+    """In-memory metadata as it reads back from its file: tuples become lists, numpy scalars Python numbers.
+
+    Raises:
+        LogFormatError: a value JSON cannot hold (NaN, inf, an arbitrary object).
+    """
+    try:
+        text = json.dumps(meta, default=json_default, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise LogFormatError(source, None, f"metadata cannot be written as JSON: {e}") from None
+    return json.loads(text)
+
+
+def is_type(value, types) -> bool:
+    """isinstance for JSON values, where true/false are not numbers unless bool is among `types`."""
+    types = types if isinstance(types, tuple) else (types,)
+    if isinstance(value, bool) and bool not in types:
+        return False
+    return isinstance(value, types)
+
+
+def type_name(types) -> str:
+    """`types` in words, for messages: (int, float) -> 'an integer or a number'."""
+    types = types if isinstance(types, tuple) else (types,)
+    names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object"}
+    return " or ".join(names.get(t, t.__name__) for t in types)
+
+
+# --------------------------------------------------------------------------------------------------
+# The magic-line layout
+
+
+@dataclass(frozen=True)
+class Sections:
+    """A magic-line file cut into its parts; nothing is validated but where the lines are.
+
+    Attributes:
+        first: line 1 without its line ending (bytes).
+        last: the last non-blank line, decoded (undecodable bytes replaced), without '\\r'; None when
+            the file has a single line.
+        n_lines: the 1-based number of that last line.
+        header: line 2 without its line ending, or None when line 2 is the last line.
+        rows: the bytes between the header and the last line, each row ending in '\\n'.
+    """
+
+    first: bytes
+    last: str | None
+    n_lines: int
+    header: bytes | None
+    rows: bytes
+
+
+def cut(data: bytes) -> Sections:
+    """Find line 1, the header, the rows and the last non-blank line of a non-empty file."""
+    nl1 = data.find(b"\n")
+    first = data if nl1 < 0 else data[:nl1]
+    body_end = len(data.rstrip())
+    last_nl = data.rfind(b"\n", 0, body_end)
+    n_lines = data.count(b"\n", 0, body_end) + 1
+    if last_nl < 0:
+        return Sections(first, None, n_lines, None, b"")
+    last = data[last_nl + 1 : body_end].decode("utf-8", errors="replace").rstrip("\r")
+    if last_nl == nl1:
+        return Sections(first, last, n_lines, None, b"")
+    nl2 = data.find(b"\n", nl1 + 1)
+    return Sections(first, last, n_lines, data[nl1 + 1 : nl2].rstrip(b"\r"), data[nl2 + 1 : last_nl + 1])
+
+
+def end_count(last: str | None, end_marker: str) -> str | None:
+    """The text after the end marker on the last line, stripped; None when the last line is no end marker
+    (its writer stopped before the end)."""
+    if last is None or not last.startswith(end_marker):
+        return None
+    return last[len(end_marker) :].strip()
+
+
+def is_count(text: str) -> bool:
+    """Whether an end marker's count is a non-negative integer written in ASCII digits."""
+    return re.fullmatch(r"[0-9]+", text) is not None
+
+
+def head(magic: str, meta: dict, columns: Sequence[str]) -> bytes:
+    """Line 1 (magic and metadata JSON) and line 2 (the header) of a file, UTF-8."""
+    return (magic + json.dumps(meta, allow_nan=False) + "\n" + ",".join(columns) + "\n").encode("utf-8")
+
+
+def tail(end_marker: str, count: int) -> bytes:
+    """The last line: the end marker and the number of rows."""
+    return f"{end_marker}{count}\n".encode("ascii")
+
+
+def write_rows(table: pa.Table) -> bytes:
+    """The rows of a table as CSV without header or quotes: integers exact, floats shortest round-trip
+    (Arrow's formatting), nulls as empty fields."""
+    if table.num_rows == 0:
+        return b""
+    sink = pa.BufferOutputStream()
+    pacsv.write_csv(table, sink, pacsv.WriteOptions(include_header=False, quoting_style="none"))
+    return sink.getvalue().to_pybytes()
+
+
+def read_rows(rows: bytes, columns: Sequence[str], int_columns: frozenset[str] | set[str]) -> pa.Table:
+    """Parse the rows with one explicit type per column: int64 for `int_columns` (never through a float),
+    float64 (correctly rounded) for the others; an empty field is null.
+
+    Raises:
+        pyarrow.ArrowInvalid: a row that does not parse; the caller locates it for its message.
+    """
+    types = {c: (pa.int64() if c in int_columns else pa.float64()) for c in columns}
+    return pacsv.read_csv(
+        pa.py_buffer(rows),
+        read_options=pacsv.ReadOptions(column_names=list(columns), use_threads=False),
+        parse_options=pacsv.ParseOptions(ignore_empty_lines=False),
+        convert_options=pacsv.ConvertOptions(
+            column_types=types,
+            null_values=[""],
+            strings_can_be_null=False,
+            quoted_strings_can_be_null=False,
+        ),
+    )
+
+
+def raw_line(rows: bytes, row: int) -> bytes:
+    """Row `row` (0-based) of the rows, as written, without its line ending."""
+    start = 0
+    for _ in range(row):
+        start = rows.index(b"\n", start) + 1
+    end = rows.find(b"\n", start)
+    return rows[start : end if end >= 0 else len(rows)].rstrip(b"\r")
+
+
+def raw_field(raw: bytes, k: int) -> str:
+    """Field `k` (0-based) of a raw CSV row, as written; '' when the row is shorter."""
+    fields = raw.rstrip(b"\r").split(b",")
+    return fields[k].decode("utf-8", errors="replace") if k < len(fields) else ""

@@ -1,0 +1,280 @@
+"""jsve.io._ingest and `jsve ingest`: many logs in parallel with quarantine, Parquet, load_runs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+from pathlib import Path
+
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+from logfactory import edit_line, make_run, same_bits, set_field
+
+from jsve.cli import ingest as ingest_cli
+from jsve.io import _ingest as ingest
+from jsve.io import _logs as logs
+from jsve.io import _schema as schema
+from jsve.io._logs import LogFormatError
+
+N = 20  # frames of the small logs below
+
+
+def same_runs(a: list[schema.RunLog], b: list[schema.RunLog]) -> bool:
+    return len(a) == len(b) and all(
+        x.meta == y.meta and x.source == y.source and same_bits(x.frames, y.frames)
+        for x, y in zip(a, b, strict=True)
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Many logs
+
+
+@pytest.fixture
+def logdir(tmp_path) -> tuple[Path, list[str], list[str]]:
+    """18 good logs in three folders and four broken ones: (dir, good paths, bad paths), sorted."""
+    root = tmp_path / "logs"
+    good = [
+        logs.write_log(
+            make_run(30 + i, i, with_gt=i % 3 != 0, sequence="MH_04"), root / f"d{i % 3}" / f"r{i:02d}.csv"
+        )
+        for i in range(18)
+    ]
+    bad = []
+    p = logs.write_log(make_run(30, 100, sequence="MH_04"), root / "d0" / "r50.csv")
+    set_field(p, 9, "imu_dt", "-0.05")
+    bad.append(p)
+    p = logs.write_log(make_run(30, 101, sequence="MH_04"), root / "d1" / "r51.csv")
+    edit_line(p, 33, None)  # end marker gone
+    bad.append(p)
+    p = logs.write_log(make_run(30, 102, sequence="MH_04"), root / "d2" / "r52.csv")
+    bad.append(p.rename(p.with_name("r52.csv.partial")))
+    p = root / "notes.csv"
+    p.write_text("a,b\n1,2\n")
+    bad.append(p)
+    (root / "README.txt").write_text("not a log, not read")
+    return root, sorted(map(str, good)), sorted(map(str, bad))
+
+
+def test_quarantine_lists_exactly_the_broken_logs(logdir):
+    root, good, bad = logdir
+    result = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    assert [r.source for r in result.runs] == good
+    assert [q.path for q in result.quarantined] == bad
+    by_path = {q.path: q for q in result.quarantined}
+    assert by_path[bad[0]].line == 9 and by_path[bad[0]].column == "imu_dt"
+    assert [by_path[p].incomplete for p in bad] == [False, True, True, False]
+    report = result.report()
+    assert list(report.columns) == list(ingest.QUARANTINE_COLUMNS)
+    assert report["path"].tolist() == bad
+    assert report["message"].tolist() == [q.message for q in result.quarantined]
+
+
+def test_quarantine_report_csv(logdir, tmp_path):
+    root, _, bad = logdir
+    result = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    path = ingest.write_quarantine_report(result, tmp_path / "q.csv")
+    back = pd.read_csv(path)
+    assert back["path"].tolist() == bad
+    assert back["message"].tolist() == result.report()["message"].tolist()
+
+
+def test_raise_stops_at_the_first_bad_log_in_sorted_order(logdir):
+    root, _, bad = logdir
+    for workers in (1, 2):
+        with pytest.raises(LogFormatError) as info:
+            ingest.read_logs(root, workers=workers, progress=False)
+        assert info.value.path == bad[0]
+        assert info.value.line == 9
+
+
+def test_parallel_read_equals_serial_read(logdir):
+    root, good, _ = logdir
+    serial = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    parallel = ingest.read_logs(root, on_error="quarantine", workers=2, progress=False)
+    assert same_runs(serial.runs, parallel.runs)
+    assert serial.quarantined == parallel.quarantined
+    assert len(parallel.runs) == len(good)
+
+
+def test_sources_glob_list_and_file(logdir):
+    root, good, _ = logdir
+    by_glob = ingest.read_logs(str(root / "d1" / "r*.csv"), on_error="quarantine", workers=1, progress=False)
+    in_d1 = [p for p in good if "/d1/" in p]
+    assert [r.source for r in by_glob.runs] == in_d1 and len(by_glob.quarantined) == 1
+    by_list = ingest.read_logs(list(reversed(in_d1)), workers=1, progress=False)
+    assert [r.source for r in by_list.runs] == in_d1
+    assert ingest.find_logs(good[0]) == [good[0]]
+    with pytest.raises(FileNotFoundError):
+        ingest.find_logs(root / "nothing-here")
+    with pytest.raises(FileNotFoundError):
+        ingest.find_logs(str(root / "*.nope"))
+
+
+def test_duplicate_run_ids_name_both_files(tmp_path):
+    a = logs.write_log(make_run(N, 1, sequence="V101"), tmp_path / "a.csv")
+    b = logs.write_log(make_run(N, 1, sequence="V101"), tmp_path / "b.csv")
+    with pytest.raises(LogFormatError) as info:
+        ingest.read_logs(tmp_path, workers=1, progress=False)
+    assert info.value.path == str(b) and str(a) in str(info.value)
+    assert "duplicate run id: 'V101/none-0/1'" in str(info.value)
+    result = ingest.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
+    assert [r.source for r in result.runs] == [str(a)]
+    assert [q.path for q in result.quarantined] == [str(b)]
+
+
+def test_unreadable_paths_are_quarantined_not_lost(tmp_path):
+    good = logs.write_log(make_run(N, 1), tmp_path / "a.csv")
+    gone = tmp_path / "gone.csv"
+    result = ingest.read_logs([good, gone], on_error="quarantine", workers=1, progress=False)
+    assert [r.source for r in result.runs] == [str(good)]
+    (q,) = result.quarantined
+    assert q.path == str(gone) and "cannot read the file" in q.message
+    empty = ingest.ReadResult(runs=result.runs).report()
+    assert list(empty.columns) == list(ingest.QUARANTINE_COLUMNS) and len(empty) == 0
+
+
+def test_progress_bar_goes_to_stderr(tmp_path, capsys):
+    for i in range(3):
+        logs.write_log(make_run(N, i), tmp_path / f"r{i}.csv")
+    ingest.read_logs(tmp_path, workers=1, progress=True)
+    captured = capsys.readouterr()
+    assert captured.out == "" and "3/3" in captured.err
+    ingest.read_logs(tmp_path, workers=1, progress=False)
+    assert capsys.readouterr().err == ""
+
+
+def test_on_error_is_checked(logdir):
+    with pytest.raises(ValueError, match="on_error"):
+        ingest.read_logs(logdir[0], on_error="skip", progress=False)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Parquet
+
+
+def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
+    root, good, bad = logdir
+    out = tmp_path / "study.parquet"
+    summary = ingest.ingest(root, out, on_error="quarantine", workers=2, progress=False)
+    expected = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
+    assert summary.n_runs == len(good) and summary.n_frames == sum(len(r.frames) for r in expected.runs)
+    assert [q.path for q in summary.quarantined] == bad
+    assert summary.quarantine_report == tmp_path / "study.quarantine.csv"
+    assert pd.read_csv(summary.quarantine_report)["path"].tolist() == bad
+    assert same_runs(ingest.read_parquet(out), expected.runs)
+    assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
+
+    pf = pq.ParquetFile(out)
+    assert pf.schema_arrow.names[:2] == ["run_id", "frame"]
+    assert pf.schema_arrow.names[2:] == list(schema.COLUMNS)
+    assert str(pf.schema_arrow.field("frame").type) == "int32"
+    assert str(pf.schema_arrow.field("run_id").type).startswith("dictionary<values=string")
+    entries = json.loads(pf.metadata.metadata[b"jsve.runs"])
+    assert [e["run_id"] for e in entries] == [r.run_id for r in expected.runs]
+    assert [e["meta"] for e in entries] == [r.meta for r in expected.runs]
+    table = pq.read_table(out, columns=["run_id", "frame", "t_ns"])
+    first = expected.runs[0]
+    assert table.column("run_id")[0].as_py() == first.run_id
+    assert table.column("t_ns").to_numpy()[: len(first.frames)].tolist() == first.frames["t_ns"].tolist()
+
+
+def test_ingest_raise_writes_nothing(logdir, tmp_path):
+    out = tmp_path / "study.parquet"
+    with pytest.raises(LogFormatError):
+        ingest.ingest(logdir[0], out, workers=1, progress=False)
+    assert list(tmp_path.iterdir()) == [logdir[0]]
+
+
+def test_ingest_without_bad_logs_writes_no_report(tmp_path):
+    for i in range(3):
+        logs.write_log(make_run(N, i), tmp_path / "logs" / f"r{i}.csv")
+    out = tmp_path / "out" / "s.parquet"
+    stale = out.with_suffix(".quarantine.csv")
+    stale.parent.mkdir()
+    stale.write_text("path\nold.csv\n")
+    summary = ingest.ingest(tmp_path / "logs", out, on_error="quarantine", workers=1, progress=False)
+    assert summary.quarantine_report is None and summary.n_runs == 3
+    assert not stale.exists()  # a report from an earlier ingest would describe other logs
+
+
+def test_read_parquet_rejects_other_parquet(tmp_path):
+    path = tmp_path / "x.parquet"
+    pd.DataFrame({"a": [1, 2]}).to_parquet(path)
+    with pytest.raises(LogFormatError, match="not a jsve Parquet file"):
+        ingest.read_parquet(path)
+
+
+def test_load_runs_reads_a_parquet_file_or_logs_alike(logdir, tmp_path):
+    root, good, bad = logdir
+    out = tmp_path / "study.parquet"
+    ingest.ingest(root, out, on_error="quarantine", workers=1, progress=False)
+    from_logs = ingest.load_runs(root, on_error="quarantine", workers=1, progress=False)
+    from_parquet = ingest.load_runs(str(out))
+    assert [q.path for q in from_logs.quarantined] == bad and from_parquet.quarantined == []
+    assert [r.source for r in from_logs.runs] == good
+    assert same_runs(from_parquet.runs, from_logs.runs)
+    assert same_runs(ingest.load_runs(out).runs, from_logs.runs)  # a Path as well as a str
+    with pytest.raises(LogFormatError):
+        ingest.load_runs(root, workers=1, progress=False)  # on_error="raise" by default
+
+
+def test_partial_files_are_never_skipped(tmp_path):
+    logs.write_log(make_run(N, 1), tmp_path / "a.csv")
+    os.rename(logs.write_log(make_run(N, 2), tmp_path / "b.csv"), tmp_path / "b.csv.partial")
+    result = ingest.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
+    assert [q.path for q in result.quarantined] == [str(tmp_path / "b.csv.partial")]
+    assert result.quarantined[0].incomplete and "incomplete" in result.quarantined[0].message
+
+
+# ---------------------------------------------------------------------------------------------------
+# jsve ingest
+
+
+def cli(argv: list[str]) -> int:
+    """`jsve ingest ...` through the subcommand's own parser (the other subcommands are not needed)."""
+    parser = argparse.ArgumentParser(prog="jsve")
+    ingest_cli.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_cli_ingest(logdir, tmp_path, capsys):
+    root, good, bad = logdir
+    out = tmp_path / "s.parquet"
+    assert cli(["ingest", str(root), "-o", str(out), "--workers", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad[0]}:9: column 'imu_dt' = '-0.05': must be >= 0" in err and not out.exists()
+
+    report = tmp_path / "bad.csv"
+    argv = [
+        "ingest",
+        str(root),
+        "-o",
+        str(out),
+        "--on-error",
+        "quarantine",
+        "--quarantine-report",
+        str(report),
+    ]
+    assert cli([*argv, "--workers", "1", "--no-progress"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert re.search(rf"ingested {len(good)} runs, \d+ frames -> .*; quarantined {len(bad)}", line)
+    assert len(ingest.read_parquet(out)) == len(good) and pd.read_csv(report)["path"].tolist() == bad
+
+
+def test_cli_usage_errors(tmp_path):
+    with pytest.raises(SystemExit):
+        cli(["ingest", str(tmp_path), "-o", "x.parquet", "--quarantine-report", "q.csv"])
+    with pytest.raises(SystemExit):
+        cli(["ingest", str(tmp_path), "-o", "x.parquet", "--gt", "a.txt", "--kitti-times", "t.txt"])
+
+
+def test_no_logs_is_an_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError):
+        ingest.ingest(tmp_path / "empty", tmp_path / "s.parquet", progress=False)
+    assert cli(["ingest", str(tmp_path / "empty"), "-o", str(tmp_path / "s.parquet"), "--no-progress"]) == 2
