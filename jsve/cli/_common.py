@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from jsve.io._ingest import OnError
 
 
 def fail(command: str, message) -> int:
@@ -91,7 +95,7 @@ def n_first(n_to_align: int) -> int | None:
 # Inputs
 
 
-def load_runs(command: str, source: str, *, on_error: str, workers: int | None, progress: bool):
+def load_runs(command: str, source: str, *, on_error: OnError, workers: int | None, progress: bool):
     """The runs of LOGS (a Parquet file from `jsve ingest`, or logs on disk), each quarantined log
     reported on stderr as `jsve COMMAND: quarantined <message>`.
 

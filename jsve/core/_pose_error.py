@@ -13,7 +13,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jax.typing import ArrayLike
+from jaxtyping import Bool, Float
 
 from jsve.core._geometry import matrix_to_quat
 from jsve.core._trajectory import MIN_ALIGNMENT_FRAMES, RunError, Transform, align, ape_statistics
@@ -31,9 +32,9 @@ def _align_and_score(est_p, ref_p, valid, est_q, ref_q, *, method, n_first):
 
 
 def batched_pose_error(
-    est: Float[Array, "R T 4 4"],
-    ref: Float[Array, "R T 4 4"],
-    valid: Bool[Array, "R T"],
+    est: Float[ArrayLike, "R T 4 4"],
+    ref: Float[ArrayLike, "R T 4 4"],
+    valid: Bool[ArrayLike, "R T"],
     *,
     align: str = "se3",
     n_first: int | None = None,

@@ -334,7 +334,7 @@ def load_runs(
     Returns:
         ReadResult; nothing is quarantined from a Parquet file.
     """
-    if isinstance(source, (str, os.PathLike)) and os.fspath(source).endswith(".parquet"):
+    if isinstance(source, (str, os.PathLike)) and Path(source).name.endswith(".parquet"):
         return ReadResult(runs=read_parquet(source))
     return read_logs(source, on_error=on_error, workers=workers, progress=progress, ground_truth=ground_truth)
 

@@ -92,7 +92,8 @@ class KeypointLog:
         if bounds is None:
             width, height = self.image_size
             return 0.0, float(width), 0.0, float(height)
-        return tuple(float(b) for b in bounds)
+        min_x, max_x, min_y, max_y = (float(b) for b in bounds)
+        return min_x, max_x, min_y, max_y
 
 
 def keypoints_path(log_path: str | os.PathLike) -> Path:

@@ -430,7 +430,7 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
     table = pa.Table.from_arrays(arrays, names=list(frames.columns))
     return atomic.write_bytes(
         path,
-        text.head(schema.MAGIC, run.meta, frames.columns),
+        text.head(schema.MAGIC, run.meta, [str(c) for c in frames.columns]),
         text.write_rows(table),
         text.tail(schema.END_MARKER, len(frames)),
     )

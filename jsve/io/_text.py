@@ -115,7 +115,7 @@ def type_name(types) -> str:
     """`types` in words, for messages: (int, float) -> 'an integer or a number'."""
     types = types if isinstance(types, tuple) else (types,)
     names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object"}
-    return " or ".join(names.get(t, t.__name__) for t in types)
+    return " or ".join(names.get(t) or t.__name__ for t in types)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -144,8 +144,8 @@ def read_kitti_times(path: str | os.PathLike, n_poses: int) -> np.ndarray:
 
 
 def read_pose_pairs(
-    ref_path: str | os.PathLike,
-    est_paths: Sequence[str | os.PathLike],
+    ref_path: str | os.PathLike[str],
+    est_paths: Sequence[str | os.PathLike[str]],
     fmt: str = "tum",
     *,
     t_max_diff: float = 0.01,
@@ -177,7 +177,8 @@ def read_pose_pairs(
     ref = read_trajectory(ref_path, fmt)
     times = read_kitti_times(kitti_times, ref.num_poses) if kitti_times is not None else None
     pairs = []
-    for path in map(os.fspath, est_paths):
+    for est_path in est_paths:
+        path = os.fspath(est_path)
         ref_i, est_i = associate(ref, read_trajectory(path, fmt), ref_path, path, fmt, t_max_diff)
         if fmt == "kitti":
             t = times
