@@ -10,8 +10,9 @@ of them (dynamic-object masks, jsve.masks._masks). docs/masks.md describes the f
     # jsve-keypoints end keypoints=1                                                 <- last line
 
 Rows are grouped by frame in time order (t_ns non-decreasing); a frame without keypoints has no row.
-Errors are `jsve.io._logs.LogFormatError`s naming the file, the 1-based line, the column and the value,
-like the log reader's; files are written as `<path>.partial` and renamed when complete.
+The layout and number rules are the log's (jsve.io._text). Errors are `LogFormatError`s
+(jsve.io._errors) naming the file, the 1-based line, the column and the value, like the log reader's;
+files are written as `<path>.partial` and renamed when complete.
 """
 
 from __future__ import annotations

@@ -7,17 +7,17 @@ home of its names). Everything downstream receives `RunLog`s whose frames have b
     read_log(path)                       one CSV log -> RunLog, strict; any defect raises LogFormatError
     parse_log(data), validate_run(run)   the same rules on bytes, and on an in-memory run
 
-Two modules build on this one: jsve.io._groundtruth (`associate_ground_truth`, `GroundTruth`: gt_* columns
-from an EuRoC / TUM / KITTI trajectory) and jsve.io._ingest (`read_logs`: many logs in parallel, raise or
-quarantine; `ingest` / `read_parquet`: one Parquet file). Their public names can also be imported from
-here, as before they had homes of their own.
+Ground truth is associated through jsve.io._groundtruth (`GroundTruth`: gt_* columns from an EuRoC /
+TUM / KITTI trajectory); many logs are read by jsve.io._ingest (`read_logs`, `ingest`, `read_parquet`).
 
 Errors name the file, the 1-based line, the column and the value as written in the file, e.g.
 `logs/r7.csv:1288: column 'imu_dt' = '-0.05': must be >= 0`.
 
-Parsing uses Arrow's CSV reader with one explicit type per column: int64 columns (t_ns above all)
-never pass through float, and floats are parsed correctly rounded, so a log written by `write_log`
-(shortest round-trip decimal representation, as Python's repr) reads back bit for bit.
+The layout (magic line with the metadata JSON, header, rows, end marker) and the number rules are
+jsve.io._text's, shared with the keypoint side files. Rows are parsed by Arrow's CSV reader with one
+explicit type per column: int64 columns (t_ns above all) never pass through float, and floats are parsed
+correctly rounded, so a log written by `write_log` (shortest round-trip decimal representation, as
+Python's repr) reads back bit for bit.
 """
 
 from __future__ import annotations
