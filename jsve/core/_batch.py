@@ -10,13 +10,13 @@ carries only arrays, so jit caches depend on shapes alone.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, UInt
 
 
 class LogBatch(eqx.Module):
@@ -46,7 +46,7 @@ class LogBatch(eqx.Module):
     n_extracted: Int[Array, "R F"]
     n_inliers: Int[Array, "R F"]
     n_frustum: Int[Array, "R F"]
-    bins: Int[Array, "R F 64"]
+    bins: UInt[Array, "R F 64"]
     vis_p: Float[Array, "R F 3"]
     vis_q: Float[Array, "R F 4"]
     vis_v: Float[Array, "R F 3"]
@@ -75,7 +75,7 @@ def padded_length(n: int, multiple: int) -> int:
     return max(multiple, int(math.ceil(n / multiple)) * multiple)
 
 
-def bucket_by_length(lengths: Sequence[int], *, max_padding: float = 0.1, pad_multiple: int = 64) -> list[np.ndarray]:
+def bucket_by_length(lengths: Iterable[int], *, max_padding: float = 0.1, pad_multiple: int = 64) -> list[np.ndarray]:
     """Group run indices so that the padding a group adds stays within `max_padding` of its frames.
 
     Runs are sorted by length; a group is closed when adding the next (longer) run would make the
