@@ -42,8 +42,9 @@ def main(argv=None) -> int:
     import numpy as np
 
     from jsve.core._objective import run_losses
+    from jsve.fitting._designs import sobol
     from jsve.fitting._fit import FitData
-    from jsve.fitting._search import search, sobol
+    from jsve.fitting._search import search
     from jsve.fitting._space import inlier_space, sve_space
     from jsve.sim._motion import FlightProfile
     from jsve.sim._simulate import SimConfig, simulate_study

@@ -21,6 +21,7 @@ import oracle_orbslam3 as oracle
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from jsve.core._batch import LogBatch
 from jsve.core._replay import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST, batch_features, replay, replay_run
@@ -540,22 +541,6 @@ def _read_t_bs(path) -> np.ndarray:
     return np.array([float(x) for x in re.split(r"[,\s]+", data.strip()) if x]).reshape(4, 4)
 
 
-def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    """wxyz of a rotation matrix (the largest-diagonal branch of Shepperd's method)."""
-    tr = np.trace(m)
-    d0, d1, d2 = 1 + tr, 1 + m[0, 0] - m[1, 1] - m[2, 2], 1 - m[0, 0] + m[1, 1] - m[2, 2]
-    d3 = 1 - m[0, 0] - m[1, 1] + m[2, 2]
-    cands = [
-        (d0, [d0, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]),
-        (d1, [m[2, 1] - m[1, 2], d1, m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]]),
-        (d2, [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], d2, m[1, 2] + m[2, 1]]),
-        (d3, [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], d3]),
-    ]
-    q = np.array(max(cands, key=lambda c: c[0])[1])
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
-
-
 def euroc_body_states(shared_data):
     """V1_01 ground-truth body states: positions, wxyz and finite-difference velocities (world)."""
     rows = (shared_data / "euroc/groundtruth_left_cam/V101_GT.txt").read_text().splitlines()[1:]
@@ -566,7 +551,7 @@ def euroc_body_states(shared_data):
     T_bs = _read_t_bs(shared_data / "euroc/V1_01_first95/mav0/cam0/sensor.yaml")
     u, _, vt = np.linalg.svd(T_bs[:3, :3])  # orthonormalise the 12-digit calibration
     R_bs = u @ vt
-    q_bs = _matrix_to_quat(R_bs)
+    q_bs = np.roll(Rotation.from_matrix(R_bs).as_quat(), 1)  # xyzw -> wxyz (scipy: not jsve's algebra)
     # T_BS is body-from-camera: T_wc = T_wb T_bs, so T_wb = T_wc T_bs^-1.
     q_wb = np.array([oracle.qmul(q, oracle.qconj(q_bs)) for q in q_wc])
     p_wb = p_wc - np.array([oracle.qrotate(q, T_bs[:3, 3]) for q in q_wb])

@@ -6,6 +6,8 @@ all consume. Nothing here reads files or imports pandas, OpenCV, the simulator o
 (tests/test_layers.py enforces it).
 """
 
+from jsve.core._align import ALIGN_METHODS as ALIGN_METHODS
+from jsve.core._align import Transform as Transform
 from jsve.core._batch import LogBatch as LogBatch
 from jsve.core._batch import bucket_by_length as bucket_by_length
 from jsve.core._batch import iter_chunks as iter_chunks
@@ -13,16 +15,19 @@ from jsve.core._batch import pad_runs as pad_runs
 from jsve.core._batch import take_runs as take_runs
 from jsve.core._geometry import matrix_to_quat as matrix_to_quat
 from jsve.core._geometry import quat_conj as quat_conj
+from jsve.core._geometry import quat_exp as quat_exp
+from jsve.core._geometry import quat_log as quat_log
 from jsve.core._geometry import quat_mul as quat_mul
 from jsve.core._geometry import quat_normalize as quat_normalize
 from jsve.core._geometry import quat_rotate as quat_rotate
 from jsve.core._geometry import quat_to_matrix as quat_to_matrix
+from jsve.core._geometry import so3_exp as so3_exp
+from jsve.core._imu import imu_predict as imu_predict
 from jsve.core._objective import ObjectiveConfig as ObjectiveConfig
 from jsve.core._objective import objective as objective
 from jsve.core._objective import run_losses as run_losses
 from jsve.core._replay import ReplayResult as ReplayResult
 from jsve.core._replay import batch_features as batch_features
-from jsve.core._replay import imu_predict as imu_predict
 from jsve.core._replay import replay as replay
 from jsve.core._rules import PRESETS as PRESETS
 from jsve.core._rules import HardLogic as HardLogic
@@ -43,10 +48,8 @@ from jsve.core._sve import s_a_original as s_a_original
 from jsve.core._sve import s_b as s_b
 from jsve.core._sve import s_c as s_c
 from jsve.core._sve import sve_table as sve_table
-from jsve.core._trajectory import ALIGN_METHODS as ALIGN_METHODS
 from jsve.core._trajectory import ErrorStats as ErrorStats
 from jsve.core._trajectory import RunError as RunError
-from jsve.core._trajectory import Transform as Transform
 from jsve.core._trajectory import align as align
 from jsve.core._trajectory import ape_statistics as ape_statistics
 from jsve.core._trajectory import batched_run_error as batched_run_error

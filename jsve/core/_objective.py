@@ -10,8 +10,8 @@ issue #673). Runs can be weighted, e.g. so that every sequence, disturbance and 
            = RMSE_r                       otherwise
     J = sum_r w_r loss_r / sum_r w_r
 
-A run fails as in `jsve.evaluation._evaluate`: it reached LOST (the hard replay then starts a new, unaligned map),
-its alignment was degenerate, fewer than 3 frames were evaluated, or its coverage is below
+A run fails as in `jsve.evaluation._evaluate`: it reached LOST (the hard replay then starts a new,
+unaligned map), its alignment was degenerate, fewer than 3 frames were evaluated, or its coverage is below
 `min_coverage`. A run that never reached LOST has an estimate on every frame, so its RMSE is over every
 frame with ground truth and equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard objective is
 therefore exactly mean(where(failed, penalty, rmse)) of the per-run table (tests/test_objective.py).
@@ -34,11 +34,13 @@ import numpy as np
 import pandas as pd
 from jaxtyping import Array, Float
 
+from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES
 from jsve.core._batch import LogBatch
+from jsve.core._numerics import safe_divide
 from jsve.core._replay import batch_features, replay
 from jsve.core._rules import TIME_RECENTLY_LOST_S, HardLogic, Rule
 from jsve.core._sve import FrameFeatures
-from jsve.core._trajectory import MIN_ALIGNMENT_FRAMES, align
+from jsve.core._trajectory import align, weighted_rmse
 
 DEFAULT_FAILURE_PENALTY_M = 1.0
 """Metres charged for a failed run. A VI-SLAM run on EuRoC-sized scenes that keeps tracking stays well
@@ -52,7 +54,8 @@ class ObjectiveConfig(eqx.Module):
 
     Attributes:
         failure_penalty: metres charged for a failed run.
-        align: alignment before the RMSE: "se3" (default), "sim3", "posyaw", "origin", "none".
+        align: alignment before the RMSE, a method of jsve.core._align.ALIGNERS: "se3" (default), "sim3",
+            "posyaw", "origin", "none".
         min_coverage: runs whose coverage (evaluated / ground-truth frames) is below it fail.
         time_recently_lost: s in RECENTLY_LOST before LOST (ORB-SLAM3: 5).
     """
@@ -67,8 +70,8 @@ class ObjectiveConfig(eqx.Module):
             raise ValueError(
                 f"failure_penalty must be a finite number of metres >= 0, got {self.failure_penalty}"
             )
-        if self.align not in ("se3", "sim3", "posyaw", "origin", "none"):
-            raise ValueError(f"align must be se3, sim3, posyaw, origin or none, got {self.align!r}")
+        if self.align not in ALIGNERS:
+            raise ValueError(f"align must be one of {tuple(ALIGNERS)}, got {self.align!r}")
         if not 0.0 <= self.min_coverage <= 1.0:
             raise ValueError(f"min_coverage must lie in [0, 1], got {self.min_coverage}")
 
@@ -104,29 +107,19 @@ class ObjectiveValue(eqx.Module):
     rmse_ok: Float[Array, ""]
 
 
-def _safe_sqrt(x):
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
-
-
-def _safe_divide(num, den):
-    nonzero = den != 0
-    return jnp.where(nonzero, num / jnp.where(nonzero, den, 1.0), 0.0)
-
-
 def _one_run_loss(est_p, est_q, has_estimate, lost_any, gt_p, gt_q, gt_valid, valid, config, hard):
     """Loss of one replayed run ([T, ...] arrays; has_estimate and lost_any are flags or probabilities)."""
     dtype = est_p.dtype
     with_gt = (gt_valid & valid).astype(dtype)
     weight = has_estimate.astype(dtype) * with_gt
-    # Hard: a boolean mask, as jsve.evaluation._evaluate aligns; relaxed: the probability weights (weighted Umeyama).
+    # Hard: a boolean mask, as jsve.evaluation._evaluate aligns; relaxed: the probability weights
+    # (weighted Umeyama).
     mask = weight > 0.5 if hard else weight
     aligned, _, transform = align(est_p, gt_p, mask, method=config.align, est_q=est_q, ref_q=gt_q)
     weight = mask.astype(dtype)
-    sq = sum((aligned[:, i] - gt_p[:, i]) ** 2 for i in range(3))
+    rmse = weighted_rmse(aligned, gt_p, weight)
     count = jnp.sum(weight)
-    rmse = _safe_sqrt(_safe_divide(jnp.sum(weight * sq), count))
-    coverage = _safe_divide(count, jnp.sum(with_gt))
+    coverage = safe_divide(count, jnp.sum(with_gt))
     # Data facts, exact in both modes (their probability is 0 or 1).
     broken = transform.degenerate | (count < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
     if hard:
@@ -160,7 +153,7 @@ def run_losses(
     if features is None:
         features = batch_features(batch)
     result = replay(batch, rule, features, logic=logic, time_recently_lost=config.time_recently_lost)
-    with_q = config.align == "origin"
+    with_q = ALIGNERS[config.align].first_pose  # only first-pose alignments read orientations
     kernel = functools.partial(_one_run_loss, config=config, hard=hard)
     return jax.vmap(kernel)(
         result.position,
@@ -178,14 +171,14 @@ def weighted_objective(losses: RunLoss, weights: Float[Array, " R"]) -> Objectiv
     """The weighted means of a RunLoss (weights >= 0, not all 0; padding runs get 0)."""
     w = jnp.asarray(weights, losses.loss.dtype)
     total = jnp.sum(w)
-    mean = lambda x: _safe_divide(jnp.sum(w * x), total)  # noqa: E731
+    mean = lambda x: safe_divide(jnp.sum(w * x), total)  # noqa: E731
     failed = losses.failed.astype(w.dtype)
     ok = w * (1 - failed)
     return ObjectiveValue(
         value=mean(losses.loss),
         coverage=mean(losses.coverage),
         failure_rate=mean(failed),
-        rmse_ok=_safe_divide(jnp.sum(ok * losses.rmse), jnp.sum(ok)),
+        rmse_ok=safe_divide(jnp.sum(ok * losses.rmse), jnp.sum(ok)),
     )
 
 

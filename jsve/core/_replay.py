@@ -1,8 +1,8 @@
 """Replay: what trajectory a switching rule would have produced from a logged run (DESIGN section 5).
 
 For every frame the state machine (jsve.core._rules.machine_step) decides between the logged visual
-estimate and ORB-SLAM3's IMU prediction from the previous state (PredictStateIMU); after LOST a new
-map starts a new, unaligned segment. One `lax.scan` over frames, vmapped over runs.
+estimate and ORB-SLAM3's IMU prediction from the previous state (PredictStateIMU, jsve.core._imu);
+after LOST a new map starts a new, unaligned segment. One `lax.scan` over frames, vmapped over runs.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from jsve.core._batch import LogBatch
-from jsve.core._geometry import quat_mul, quat_rotate
+from jsve.core._imu import imu_predict
 from jsve.core._rules import (
     MODE_LOST,
     MODE_OK,
@@ -25,25 +25,6 @@ from jsve.core._rules import (
     machine_step,
 )
 from jsve.core._sve import FrameFeatures, frame_features
-
-
-def imu_predict(p, v, q, dt, dp, dv, dq, gravity):
-    """One step of ORB-SLAM3's PredictStateIMU from the previous body state.
-
-    R2 = R1 dR;  v2 = v1 + g dt + R1 dV;  p2 = p1 + v1 dt + 0.5 g dt^2 + R1 dP.
-
-    Arguments:
-        p, v, q: previous position (m), velocity (m/s), orientation (wxyz); world frame.
-        dt, dp, dv, dq: preintegration over the interval (s, m, m/s, wxyz), previous body frame.
-        gravity: m/s^2, world frame.
-    Returns:
-        (p2, v2, q2) at the end of the interval.
-    """
-    dt = dt[..., None]
-    p2 = p + v * dt + 0.5 * gravity * dt * dt + quat_rotate(q, dp)
-    v2 = v + gravity * dt + quat_rotate(q, dv)
-    q2 = quat_mul(q, dq)
-    return p2, v2, q2
 
 
 class ReplayResult(eqx.Module):
@@ -78,7 +59,13 @@ def replay_run(
     t: Float[Array, " F"],
     valid: Bool[Array, " F"],
     imu_init: Bool[Array, " F"],
-    vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq,
+    vis_p,
+    vis_q,
+    vis_v,
+    imu_dt,
+    imu_dp,
+    imu_dv,
+    imu_dq,
     gravity: Float[Array, " 3"],
     fps: Float[Array, ""],
     imu_init_delay: Float[Array, ""],
@@ -109,7 +96,9 @@ def _scan_frames(xs, valid, gravity, fps, imu_init_delay, thresholds, logic, tim
     dtype = t.dtype
     batch_shape = t.shape[1:]
     init = jax.tree.map(lambda x: jnp.broadcast_to(x, batch_shape), initial_state(dtype))
-    k = jnp.broadcast_to(jnp.arange(t.shape[0], dtype=dtype).reshape((-1,) + (1,) * len(batch_shape)), t.shape)
+    k = jnp.broadcast_to(
+        jnp.arange(t.shape[0], dtype=dtype).reshape((-1,) + (1,) * len(batch_shape)), t.shape
+    )
     hard = isinstance(logic, HardLogic)
     # Hard: a 0/1 flag, set once LOST is reached. Relaxed: the part of the mass that has never been
     # LOST, as a machine state of its own whose LOST mass is dropped every frame, so that
@@ -172,8 +161,9 @@ def replay(
     frames_major = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
     xs = (score, batch.t, batch.imu_init, batch.vis_p, batch.vis_q, batch.vis_v, batch.imu_dt, batch.imu_dp,
           batch.imu_dv, batch.imu_dq)  # fmt: skip
-    out = _scan_frames(tuple(frames_major(x) for x in xs), frames_major(batch.valid), batch.gravity, batch.fps,
-                       batch.imu_init_delay, rule.thresholds, logic, time_recently_lost)  # fmt: skip
+    out = _scan_frames(tuple(frames_major(x) for x in xs), frames_major(batch.valid), batch.gravity,
+                       batch.fps, batch.imu_init_delay, rule.thresholds, logic,
+                       time_recently_lost)  # fmt: skip
     lost_any = out.pop("lost_any")
     out = {key: frames_major(value) for key, value in out.items()}
     mode = jnp.where(batch.valid, jnp.round(out["mode"]).astype(jnp.int8), jnp.int8(-1))
@@ -185,9 +175,9 @@ def replay(
             segment=out["segment"].astype(jnp.int32), lost_any=lost_any > 0.5,
         )  # fmt: skip
     return ReplayResult(
-        position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"], accepted=out["accepted"],
-        predicted=out["predicted"], has_estimate=out["has_estimate"], mode=mode, segment=out["segment"],
-        lost_any=lost_any,
+        position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
+        accepted=out["accepted"], predicted=out["predicted"], has_estimate=out["has_estimate"], mode=mode,
+        segment=out["segment"], lost_any=lost_any,
     )  # fmt: skip
 
 
@@ -196,5 +186,12 @@ def batch_features(batch: LogBatch) -> FrameFeatures:
     return frame_features(batch.n_extracted, batch.n_inliers, batch.n_frustum, batch.bins)
 
 
-__all__ = ["MODE_OK", "MODE_RECENTLY_LOST", "MODE_LOST", "ReplayResult", "imu_predict", "replay", "replay_run",
-           "batch_features"]  # fmt: skip
+__all__ = [
+    "MODE_OK",
+    "MODE_RECENTLY_LOST",
+    "MODE_LOST",
+    "ReplayResult",
+    "replay",
+    "replay_run",
+    "batch_features",
+]

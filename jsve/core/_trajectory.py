@@ -1,11 +1,11 @@
-"""Trajectory error: alignment (se3, sim3, posyaw, origin, none), APE statistics, and per-run evaluation.
+"""Trajectory error: `align` (the methods of jsve.core._align), APE statistics, and per-run evaluation.
 
 Pure JAX over arrays, one run per call; batch over runs with `jax.vmap` (or `batched_run_error`). The public
 functions are jit-compiled (strings and counts are static arguments; a call outside jit compiles once per
 configuration and shape instead of dispatching hundreds of small operations), work inside jit/vmap/grad
 with static shapes, and the statistics are differentiable with respect to the estimated positions
-(square roots, norms and the SVD are guarded with the double-`where` idiom, so gradients stay finite even for
-degenerate input).
+(square roots, norms and the SVD are guarded with the double-`where` idiom of jsve.core._numerics, so
+gradients stay finite even for degenerate input).
 
 Conventions: positions are rows `(T, 3)` in metres, world frame; quaternions are wxyz (body in world, T_wb);
 masks are boolean `(T,)`. The estimate is mapped onto the reference: `aligned = scale * R @ est + t`.
@@ -25,60 +25,21 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jsve.core._geometry import matrix_to_quat, quat_mul, quat_normalize, quat_to_matrix
+from jsve.core._align import (
+    ALIGNERS,
+    MIN_ALIGNMENT_FRAMES,
+    AlignMethod,
+    Transform,
+    apply_columns,
+    fit,
+)
+from jsve.core._geometry import columns
+from jsve.core._numerics import safe_divide, safe_sqrt
 
-AlignMethod = Literal["se3", "sim3", "posyaw", "origin", "none"]
 SegmentMode = Literal["largest", "first", "all"]
-
-ALIGN_METHODS: tuple[str, ...] = ("se3", "sim3", "posyaw", "origin", "none")
-"""Alignment methods: SE(3) and Sim(3) Umeyama, 4-DoF yaw + translation, first-pose (origin), none."""
 
 SEGMENT_MODES: tuple[str, ...] = ("largest", "first", "all")
 """Which map segments of a run are evaluated (see `run_error`)."""
-
-MIN_ALIGNMENT_FRAMES = 3
-"""Fewer frames than this make a Umeyama alignment degenerate (and a run failed)."""
-
-# A point set whose spread (RMS distance to its centroid) is below this many machine epsilons of its RMS
-# distance to the origin is "all points identical": the centroid's rounding error alone is about one epsilon.
-_IDENTICAL_POINTS_EPS = 64.0
-
-
-class Transform(eqx.Module):
-    """A similarity transform mapping estimate coordinates to reference coordinates: `p -> scale * R p + t`.
-
-    Attributes:
-        rotation: [3, 3] rotation matrix R (det +1), estimate world frame -> reference world frame.
-        translation: [3] translation t, metres, reference world frame.
-        scale: [] scale factor (1 except for sim3), dimensionless.
-        degenerate: [] True when the alignment was not possible (fewer than 3 frames, or all estimated or all
-            reference points identical; for "origin", no frame at all). The transform is then the identity and
-            the caller must flag the result (run_error marks the run failed).
-    """
-
-    rotation: Float[Array, "3 3"]
-    translation: Float[Array, " 3"]
-    scale: Float[Array, ""]
-    degenerate: Bool[Array, ""]
-
-    @classmethod
-    def identity(cls, dtype=float) -> Transform:
-        """The identity transform (not degenerate)."""
-        return cls(jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype), jnp.ones((), dtype), jnp.zeros((), bool))
-
-    def apply(self, p: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-        """Map points (metres, estimate frame) into the reference frame: scale * R p + t."""
-        return jnp.stack(_apply_columns(self, _columns(p)), axis=-1)
-
-    def apply_quat(self, q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
-        """Map orientations (wxyz, body in estimate world) into the reference world: q_R * q."""
-        return quat_mul(matrix_to_quat(self.rotation), q)
-
-    def matrix(self) -> Float[Array, "4 4"]:
-        """Homogeneous 4x4 matrix [[scale R, t], [0, 1]]."""
-        top = jnp.concatenate([self.scale * self.rotation, self.translation[:, None]], axis=1)
-        bottom = jnp.zeros((1, 4), top.dtype).at[0, 3].set(1.0)
-        return jnp.concatenate([top, bottom], axis=0)
 
 
 class ErrorStats(eqx.Module):
@@ -89,7 +50,8 @@ class ErrorStats(eqx.Module):
         sse: sum of squared errors, square metres.
         count: number of frames the statistics are taken over (int32).
     When count is 0 every statistic is 0 (finite, so that a batch and its gradient stay finite); the host-side
-    table (`jsve.evaluation._aggregate.per_run_table`) turns them into NaN, and `run_error` marks such a run failed.
+    table (`jsve.evaluation._aggregate.per_run_table`) turns them into NaN, and `run_error` marks such a run
+    failed.
     """
 
     rmse: Float[Array, ""]
@@ -125,44 +87,6 @@ class RunError(eqx.Module):
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Coordinates as separate columns. XLA on CPU vectorises elementwise work over the frame axis well, but small
-# [T, 3] x [3, 3] products and reductions over a trailing axis of 3 poorly (applying a rotation to 3,600 rows
-# measured 0.16 ms as a product, 0.004 ms column-wise); so the hot paths below spell out the coordinates.
-
-
-def _columns(p: Float[Array, "... 3"]) -> tuple[Array, Array, Array]:
-    return p[..., 0], p[..., 1], p[..., 2]
-
-
-def _apply_columns(transform: Transform, cols) -> list[Array]:
-    """scale * R p + t on columns; works for one transform or for one per frame (leaves with a leading T)."""
-    r, t, c = transform.rotation, transform.translation, transform.scale
-    return [
-        c * (r[..., i, 0] * cols[0] + r[..., i, 1] * cols[1] + r[..., i, 2] * cols[2]) + t[..., i]
-        for i in range(3)
-    ]
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Safe elementary functions (double-where: the branch not taken never sees an infinite derivative).
-
-
-def _det3(m: Float[Array, "3 3"]) -> Float[Array, ""]:
-    """Determinant of a 3x3 matrix (triple product; cheaper to compile than an LU factorisation)."""
-    return jnp.dot(m[0], jnp.cross(m[1], m[2]))
-
-
-def _safe_sqrt(x: Array) -> Array:
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
-
-
-def _safe_divide(num: Array, den: Array) -> Array:
-    nonzero = den != 0
-    return jnp.where(nonzero, num / jnp.where(nonzero, den, 1.0), 0.0)
-
-
-# ----------------------------------------------------------------------------------------------------------
 # Argument checks (trace time).
 
 
@@ -182,9 +106,14 @@ def _check_mask(name: str, m, n_frames: int) -> None:
         raise ValueError(f"{name} must have shape ({n_frames},) like est_p's frames, got {tuple(m.shape)}")
 
 
-def _check_method(method) -> None:
-    if method not in ALIGN_METHODS:
-        raise ValueError(f"method must be one of {ALIGN_METHODS}, got {method!r}")
+def _check_method(name: str, method) -> None:
+    if method not in ALIGNERS:
+        raise ValueError(f"{name} must be one of {tuple(ALIGNERS)}, got {method!r}")
+
+
+def _check_orientations(name: str, method, est_q, ref_q) -> None:
+    if ALIGNERS[method].first_pose and (est_q is None or ref_q is None):
+        raise ValueError(f"{name}={method!r} needs est_q and ref_q (the first poses' orientations)")
 
 
 def _check_n_first(n_first) -> None:
@@ -194,123 +123,6 @@ def _check_n_first(n_first) -> None:
 
 # ----------------------------------------------------------------------------------------------------------
 # Alignment.
-
-
-def _restrict_first(w: Float[Array, " T"], n_first) -> Float[Array, " T"]:
-    """Keep the weights of the first n_first frames with positive weight; zero the rest."""
-    if n_first is None:
-        return w
-    rank = jnp.cumsum(w > 0)  # 1-based rank of each selected frame, in time order
-    return jnp.where(rank <= n_first, w, 0.0)
-
-
-def _fit_umeyama(
-    x: Float[Array, "T 3"], y: Float[Array, "T 3"], w: Float[Array, " T"], method: str
-) -> Transform:
-    """Weighted least-squares similarity (or rigid, or yaw-only) transform with y ~ c R x + t.
-
-    Umeyama, S. (1991) "Least-squares estimation of transformation parameters between two point patterns",
-    IEEE TPAMI 13(4), with every average replaced by a weighted one (weights w >= 0; 0/1 weights equal the
-    unweighted method on the selected rows).
-    """
-    dtype = x.dtype
-    eps = jnp.finfo(dtype).eps
-    n_used = jnp.sum(w > 0)
-    total = jnp.sum(w)
-    total_safe = jnp.where(total > 0, total, 1.0)
-    wn = w / total_safe
-
-    xs, ys = _columns(x), _columns(y)
-    mu_x = jnp.stack([jnp.sum(wn * c) for c in xs])  # Umeyama (1991), eq. 34
-    mu_y = jnp.stack([jnp.sum(wn * c) for c in ys])  # eq. 35
-    xc = [c - m for c, m in zip(xs, mu_x, strict=True)]
-    yc = [c - m for c, m in zip(ys, mu_y, strict=True)]
-    var_x = sum(jnp.sum(wn * c * c) for c in xc)  # eq. 36
-    var_y = sum(jnp.sum(wn * c * c) for c in yc)
-    # eq. 38: Sigma_xy = sum_i w_i (y_i - mu_y)(x_i - mu_x)^T
-    cov = jnp.stack([jnp.stack([jnp.sum(wn * yc[i] * xc[j]) for j in range(3)]) for i in range(3)])
-
-    # "All points identical" is relative to the coordinates' magnitude (the centroid carries rounding error):
-    # the mean squared norm is |mu|^2 + sigma^2, no extra pass over the frames needed.
-    ms_x = jax.lax.stop_gradient(jnp.sum(mu_x * mu_x) + var_x)
-    ms_y = jax.lax.stop_gradient(jnp.sum(mu_y * mu_y) + var_y)
-    tol = (_IDENTICAL_POINTS_EPS * eps) ** 2
-    degenerate = (n_used < MIN_ALIGNMENT_FRAMES) | (var_x <= tol * ms_x) | (var_y <= tol * ms_y)
-
-    if method == "posyaw":
-        # 4-DoF (rpg_trajectory_evaluation's "posyaw"): R = Rz(theta), c = 1. With R2 the 2x2 block,
-        # sum_i w_i yc_i^T R xc_i = const + cos(theta) (S00 + S11) + sin(theta) (S10 - S01), maximal at
-        # theta = atan2(S10 - S01, S00 + S11); z is untouched by the yaw.
-        a = cov[0, 0] + cov[1, 1]
-        b = cov[1, 0] - cov[0, 1]
-        has_xy = (a * a + b * b > 0) & ~degenerate
-        r = _safe_sqrt(jnp.where(has_xy, a * a + b * b, 1.0))
-        cos_t = jnp.where(has_xy, a / r, 1.0)
-        sin_t = jnp.where(has_xy, b / r, 0.0)
-        zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-        rotation = jnp.stack(
-            [jnp.stack([cos_t, -sin_t, zero]), jnp.stack([sin_t, cos_t, zero]), jnp.stack([zero, zero, one])]
-        )
-        scale = one
-    else:
-        # A fixed matrix with distinct singular values stands in for a degenerate covariance, so that the
-        # SVD's derivative (it divides by differences of singular values) stays finite off the taken branch.
-        cov_safe = jnp.where(degenerate, jnp.diag(jnp.array([3.0, 2.0, 1.0], dtype)), cov)
-        u, d, vt = jnp.linalg.svd(cov_safe)  # text between eqs. 38 and 39: Sigma_xy = U D V^T
-        # Reflection fix, eq. 43 (as evo): S = diag(1, 1, -1) when det(U) det(V) < 0, else I.
-        flip = _det3(jax.lax.stop_gradient(u)) * _det3(jax.lax.stop_gradient(vt)) < 0
-        s = jnp.ones(3, dtype).at[2].set(jnp.where(flip, -1.0, 1.0))
-        rotation = (u * s) @ vt  # eq. 40: R = U S V^T
-        if method == "sim3":
-            # eq. 42: c = tr(DS) / sigma_x^2
-            scale = _safe_divide(jnp.sum(d * s), jnp.where(degenerate, 1.0, var_x))
-        else:
-            scale = jnp.ones((), dtype)
-
-    translation = mu_y - scale * (rotation @ mu_x)  # eq. 41: t = mu_y - c R mu_x
-    eye = jnp.eye(3, dtype=dtype)
-    return Transform(
-        rotation=jnp.where(degenerate, eye, rotation),
-        translation=jnp.where(degenerate, 0.0, translation),
-        scale=jnp.where(degenerate, 1.0, scale).astype(dtype),
-        degenerate=degenerate,
-    )
-
-
-def _fit_origin(
-    x: Float[Array, "T 3"],
-    y: Float[Array, "T 3"],
-    w: Float[Array, " T"],
-    est_q: Float[Array, "T 4"],
-    ref_q: Float[Array, "T 4"],
-) -> Transform:
-    """The rigid transform that maps the first selected estimated pose onto the first selected reference pose.
-
-    Like evo's `align_origin`: T = T_ref,0 T_est,0^-1, i.e. R = R_ref,0 R_est,0^T, t = p_ref,0 - R p_est,0.
-    """
-    dtype = x.dtype
-    selected = w > 0
-    first = jnp.argmax(selected)
-    degenerate = ~jnp.any(selected)
-    r_est = quat_to_matrix(quat_normalize(est_q[first]))
-    r_ref = quat_to_matrix(quat_normalize(ref_q[first]))
-    rotation = r_ref @ r_est.T
-    translation = y[first] - rotation @ x[first]
-    return Transform(
-        rotation=jnp.where(degenerate, jnp.eye(3, dtype=dtype), rotation),
-        translation=jnp.where(degenerate, 0.0, translation),
-        scale=jnp.ones((), dtype),
-        degenerate=degenerate,
-    )
-
-
-def _fit(est_p, ref_p, w, method, est_q, ref_q, n_first) -> Transform:
-    """The transform of `method` fitted on the frames with positive weight (the first n_first of them)."""
-    if method == "none":
-        return Transform.identity(est_p.dtype)
-    if method == "origin":
-        return _fit_origin(est_p, ref_p, w, est_q, ref_q)
-    return _fit_umeyama(est_p, ref_p, _restrict_first(w, n_first), method)
 
 
 def _as_weights(mask, dtype) -> Array:
@@ -349,7 +161,7 @@ def align(
         never NaN. Collinear points are not degenerate: the rotation about their line is arbitrary but moves
         none of them, so the errors are well defined (the gradient of an exactly collinear set may not be).
     """
-    _check_method(method)
+    _check_method("method", method)
     _check_n_first(n_first)
     _check_points("est_p", est_p)
     n_frames = est_p.shape[0]
@@ -359,14 +171,13 @@ def align(
         _check_points("est_q", est_q, n_frames, width=4)
     if ref_q is not None:
         _check_points("ref_q", ref_q, n_frames, width=4)
-    if method == "origin" and (est_q is None or ref_q is None):
-        raise ValueError("method='origin' needs est_q and ref_q (the first poses' orientations)")
+    _check_orientations("method", method, est_q, ref_q)
 
     dtype = _float_dtype(est_p, ref_p, est_q, ref_q)
     est_p, ref_p = est_p.astype(dtype), ref_p.astype(dtype)
     est_q = None if est_q is None else est_q.astype(dtype)
     ref_q = None if ref_q is None else ref_q.astype(dtype)
-    transform = _fit(est_p, ref_p, _as_weights(mask, dtype), method, est_q, ref_q, n_first)
+    transform = fit(est_p, ref_p, _as_weights(mask, dtype), method, est_q, ref_q, n_first)
     aligned_q = None if est_q is None else transform.apply_quat(est_q)
     return transform.apply(est_p), aligned_q, transform
 
@@ -375,10 +186,27 @@ def align(
 # Statistics.
 
 
+def _squared_errors(aligned_cols, ref_cols) -> Float[Array, " T"]:
+    """|| aligned - ref ||^2 per frame (square metres), from coordinate columns."""
+    return sum((a - r) * (a - r) for a, r in zip(aligned_cols, ref_cols, strict=True))  # type: ignore[return-value]
+
+
 def _position_errors(aligned_cols, ref_cols) -> Float[Array, " T"]:
     """|| aligned - ref || per frame (metres), from coordinate columns; 0 (with zero gradient) where equal."""
-    sq = sum((a - r) * (a - r) for a, r in zip(aligned_cols, ref_cols, strict=True))
-    return _safe_sqrt(sq)
+    return safe_sqrt(_squared_errors(aligned_cols, ref_cols))
+
+
+def weighted_rmse(
+    aligned_p: Float[Array, "T 3"], ref_p: Float[Array, "T 3"], weight: Float[Array, " T"]
+) -> Float[Array, ""]:
+    """Position RMSE over frames weighted by `weight` >= 0, metres; 0 when every weight is 0.
+
+    sqrt(sum_i w_i |aligned_i - ref_i|^2 / sum_i w_i): the objective's RMSE, where the weights are the
+    probabilities that frames have an estimate (0/1 in the hard replay, where it is `ape_statistics`' rmse
+    up to rounding: that one squares each frame's error norm).
+    """
+    sq = _squared_errors(columns(aligned_p), columns(ref_p))
+    return safe_sqrt(safe_divide(jnp.sum(weight * sq), jnp.sum(weight)))
 
 
 _BITS_OF_FLOAT = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}
@@ -430,10 +258,10 @@ def _error_statistics(err: Float[Array, " T"], mask: Bool[Array, " T"]) -> Error
     n = count.astype(dtype)
     any_frame = count > 0
     sse = jnp.sum(err * err)
-    mean = _safe_divide(jnp.sum(err), n)
+    mean = safe_divide(jnp.sum(err), n)
     dev = jnp.where(mask, err - mean, 0.0)
-    std = _safe_sqrt(_safe_divide(jnp.sum(dev * dev), n))  # two-pass, like numpy.std
-    rmse = _safe_sqrt(_safe_divide(sse, n))
+    std = safe_sqrt(safe_divide(jnp.sum(dev * dev), n))  # two-pass, like numpy.std
+    rmse = safe_sqrt(safe_divide(sse, n))
     median = _masked_median(err, mask, count)
     minimum = jnp.where(any_frame, jnp.min(jnp.where(mask, err, jnp.inf)), 0.0)
     maximum = jnp.where(any_frame, jnp.max(jnp.where(mask, err, -jnp.inf)), 0.0)
@@ -463,7 +291,7 @@ def ape_statistics(
     _check_points("ref_p", ref_p, n_frames)
     _check_mask("mask", mask, n_frames)
     dtype = _float_dtype(aligned_p, ref_p)
-    err = _position_errors(_columns(aligned_p.astype(dtype)), _columns(ref_p.astype(dtype)))
+    err = _position_errors(columns(aligned_p.astype(dtype)), columns(ref_p.astype(dtype)))
     return _error_statistics(err, mask.astype(bool))
 
 
@@ -515,7 +343,7 @@ def run_error(
         or coverage < min_coverage or fewer than 3 evaluated frames or a degenerate alignment. Frames of a
         segment whose alignment is degenerate are not evaluated.
     """
-    _check_method(align)
+    _check_method("align", align)
     _check_n_first(n_first)
     if segments not in SEGMENT_MODES:
         raise ValueError(f"segments must be one of {SEGMENT_MODES}, got {segments!r}")
@@ -535,8 +363,7 @@ def run_error(
         _check_points("est_q", est_q, n_frames, width=4)
     if ref_q is not None:
         _check_points("ref_q", ref_q, n_frames, width=4)
-    if align == "origin" and (est_q is None or ref_q is None):
-        raise ValueError("align='origin' needs est_q and ref_q (the first poses' orientations)")
+    _check_orientations("align", align, est_q, ref_q)
 
     dtype = _float_dtype(est_p, ref_p, est_q, ref_q)
     est_p, ref_p = est_p.astype(dtype), ref_p.astype(dtype)
@@ -565,14 +392,14 @@ def run_error(
         k = min(max_segments, n_frames)
         _, ids = jax.lax.top_k(eval_counts, k)  # the k segments with most evaluable frames
         masks = evaluable[None, :] & (segment[None, :] == ids[:, None])  # [k, T]
-        fit = jax.vmap(lambda m: _fit(est_p, ref_p, m.astype(dtype), align, est_q, ref_q, n_first))
-        transforms = fit(masks)
+        fit_each = jax.vmap(lambda m: fit(est_p, ref_p, m.astype(dtype), align, est_q, ref_q, n_first))
+        transforms = fit_each(masks)
         usable = masks & ~transforms.degenerate[:, None]
         evaluated = jnp.any(usable, axis=0)
         # Each frame's segment among the k (0 where none: such frames are not evaluated).
         which = jnp.argmax(masks, axis=0)
         per_frame = jax.tree_util.tree_map(lambda leaf: leaf[which], transforms)
-        aligned_cols = _apply_columns(per_frame, _columns(est_p))
+        aligned_cols = apply_columns(per_frame, columns(est_p))
         chosen = jnp.array(-1, jnp.int32)
         degenerate = jnp.zeros((), bool)
     else:
@@ -581,13 +408,13 @@ def run_error(
         else:
             chosen = segment[jnp.argmax(evaluable)]
         selected = evaluable & (segment == chosen)
-        transform = _fit(est_p, ref_p, selected.astype(dtype), align, est_q, ref_q, n_first)
-        aligned_cols = _apply_columns(transform, _columns(est_p))
+        transform = fit(est_p, ref_p, selected.astype(dtype), align, est_q, ref_q, n_first)
+        aligned_cols = apply_columns(transform, columns(est_p))
         degenerate = transform.degenerate
         evaluated = selected & ~degenerate
 
-    stats = _error_statistics(_position_errors(aligned_cols, _columns(ref_p)), evaluated)
-    coverage = _safe_divide(stats.count.astype(dtype), jnp.sum(with_gt).astype(dtype))
+    stats = _error_statistics(_position_errors(aligned_cols, columns(ref_p)), evaluated)
+    coverage = safe_divide(stats.count.astype(dtype), jnp.sum(with_gt).astype(dtype))
     failed = (n_segments > 1) | (coverage < min_coverage) | (stats.count < MIN_ALIGNMENT_FRAMES) | degenerate
     return RunError(stats=stats, coverage=coverage, n_segments=n_segments, failed=failed, segment=chosen)
 

@@ -23,8 +23,9 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from jsve.core._rules import PRESETS, preset
+from jsve.fitting._designs import sobol
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, search_design
-from jsve.fitting._search import SearchResult, search, sobol
+from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, inlier_space, sve_space
 
 log = logging.getLogger(__name__)

@@ -34,7 +34,8 @@ from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.core._replay import batch_features
 from jsve.core._rules import PRESETS, SoftLogic, preset
 from jsve.core._sve import FrameFeatures
-from jsve.fitting._search import SearchBatch, SearchResult, design, prepare, search, search_chunk
+from jsve.fitting._designs import design
+from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
 from jsve.fitting._space import ParamSpace
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog

@@ -6,11 +6,12 @@ per-run matrices [settings, runs] (loss, failed, rmse, coverage), so that any we
 
 The kernel (`search_chunk`) walks the frames once for a chunk of settings x runs, with settings and runs
 as the vector lanes of every scan step: ORB-SLAM3's state machine (jsve.core._rules.machine_step, the same
-code the replay runs), ORB-SLAM3's IMU prediction and, instead of storing the trajectory, the sufficient
-statistics of its SE(3) / Sim(3) / yaw alignment to ground truth. With e_k = p_k - g_k - o (the
+code the replay runs), ORB-SLAM3's IMU prediction (jsve.core._imu, on columns) and, instead of storing the
+trajectory, the sufficient statistics of its alignment to ground truth. With e_k = p_k - g_k - o (the
 estimate's offset from ground truth, less the run's mean visual offset o) and g_c the centred ground
 truth, it accumulates sum e, M = sum e g_c^T and sum |e|^2; the per-run Gram matrix G = sum g_c g_c^T is
-fixed. Then Umeyama (1991) runs on cov = (G + M^T) / n and, with A = I - cR, the alignment residual is
+fixed. Then the alignment method's solver (jsve.core._align, Umeyama 1991) runs on the moments, with
+cov = (G + M^T) / n, and, with A = I - cR, the alignment residual is
 
     E = tr(A^T A G) - 2c tr(A^T R M) + c^2 D,      D = sum |e - mean e|^2,
 
@@ -40,134 +41,14 @@ import numpy as np
 from jaxtyping import Array
 from tqdm.auto import tqdm
 
+from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES, Moments, fit_moments
 from jsve.core._batch import LogBatch
+from jsve.core._imu import imu_predict_columns
 from jsve.core._objective import ObjectiveConfig
 from jsve.core._rules import HardLogic, InlierRule, Rule, initial_state, machine_step
 from jsve.core._sve import FrameFeatures, combination_from_logs, feature_logs
-from jsve.core._trajectory import MIN_ALIGNMENT_FRAMES
 
 log = logging.getLogger(__name__)
-
-# ---------------------------------------------------------------------------------------------------
-# Designs in the unit cube (numpy; deterministic under a seed)
-
-# Joe & Kuo (2008), new-joe-kuo-6.21201: dimension, degree s, polynomial a, initial direction numbers m.
-_JOE_KUO = (
-    (1, 0, (1,)),
-    (2, 1, (1, 3)),
-    (3, 1, (1, 3, 1)),
-    (3, 2, (1, 1, 1)),
-    (4, 1, (1, 1, 3, 3)),
-    (4, 4, (1, 3, 5, 13)),
-    (5, 2, (1, 1, 5, 5, 17)),
-    (5, 4, (1, 1, 5, 5, 5)),
-    (5, 7, (1, 1, 7, 11, 19)),
-    (5, 11, (1, 1, 5, 1, 1)),
-    (5, 13, (1, 1, 1, 3, 11)),
-    (5, 14, (1, 3, 5, 5, 31)),
-    (6, 1, (1, 3, 3, 9, 7, 49)),
-    (6, 13, (1, 1, 1, 15, 21, 21)),
-    (6, 16, (1, 3, 1, 13, 27, 49)),
-)
-SOBOL_MAX_DIM = 1 + len(_JOE_KUO)
-_SOBOL_BITS = 32
-
-
-def _sobol_directions(d: int) -> np.ndarray:
-    """[d, 32] direction numbers V_i = m_i 2^(32 - i) (Bratley & Fox 1988, Joe & Kuo 2008)."""
-    v = np.zeros((d, _SOBOL_BITS), np.uint64)
-    v[0] = [1 << (_SOBOL_BITS - 1 - i) for i in range(_SOBOL_BITS)]  # dimension 1: m_i = 1
-    for j in range(1, d):
-        s, a, m0 = _JOE_KUO[j - 1]
-        m = list(m0)
-        for i in range(s, _SOBOL_BITS):
-            new = m[i - s] ^ (m[i - s] << s)
-            for k in range(1, s):
-                new ^= ((a >> (s - 1 - k)) & 1) * (m[i - k] << k)
-            m.append(new)
-        v[j] = [m[i] << (_SOBOL_BITS - 1 - i) for i in range(_SOBOL_BITS)]
-    return v
-
-
-def sobol(n: int, d: int, *, seed: int | None = None) -> np.ndarray:
-    """The first n points of the d-dimensional Sobol sequence (Gray-code order), [n, d] in [0, 1).
-
-    Arguments:
-        seed: None for the plain sequence (point 0 is the origin; the same points as
-            scipy.stats.qmc.Sobol(scramble=False)); an int applies a random digital shift (XOR of every
-            coordinate with a seeded 32-bit word), which keeps the net's balance.
-    """
-    if not 1 <= d <= SOBOL_MAX_DIM:
-        raise ValueError(f"sobol supports 1 to {SOBOL_MAX_DIM} dimensions, got {d}")
-    if n < 1 or n > 2**_SOBOL_BITS:
-        raise ValueError(f"sobol needs 1 <= n <= 2^32 points, got {n}")
-    v = _sobol_directions(d)
-    # Gray code: point k = XOR of V_i over the bits i of k ^ (k >> 1).
-    k = np.arange(n, dtype=np.uint64)
-    gray = k ^ (k >> np.uint64(1))
-    x = np.zeros((n, d), np.uint64)
-    for i in range(_SOBOL_BITS):
-        bit = ((gray >> np.uint64(i)) & np.uint64(1)).astype(bool)
-        x[bit] ^= v[:, i]
-    if seed is not None:
-        shift = np.random.default_rng(seed).integers(0, 2**_SOBOL_BITS, size=d, dtype=np.uint64)
-        x ^= shift
-    return x.astype(np.float64) / 2.0**_SOBOL_BITS
-
-
-def _primes(k: int) -> list[int]:
-    out, c = [], 2
-    while len(out) < k:
-        if all(c % p for p in out if p * p <= c):
-            out.append(c)
-        c += 1
-    return out
-
-
-def halton(n: int, d: int, *, seed: int | None = None) -> np.ndarray:
-    """The first n points of the d-dimensional Halton sequence (radical inverses in the first d primes).
-
-    Point 0 is the origin, as scipy.stats.qmc.Halton(scramble=False). An int seed adds a random
-    Cranley-Patterson rotation (a seeded shift modulo 1 per dimension).
-    """
-    if d < 1 or n < 1:
-        raise ValueError(f"halton needs n >= 1 and d >= 1, got n={n}, d={d}")
-    out = np.zeros((n, d))
-    k0 = np.arange(n)
-    for j, base in enumerate(_primes(d)):
-        k = k0.copy()
-        f, value = 1.0 / base, np.zeros(n)
-        while np.any(k > 0):
-            value += f * (k % base)
-            k //= base
-            f /= base
-        out[:, j] = value
-    if seed is not None:
-        out = (out + np.random.default_rng(seed).random(d)) % 1.0
-    return out
-
-
-def random_design(n: int, d: int, *, seed: int = 0) -> np.ndarray:
-    """n independent uniform points of [0, 1)^d."""
-    return np.random.default_rng(seed).random((n, d))
-
-
-def grid_design(levels: Sequence[int | Sequence[float]]) -> np.ndarray:
-    """The full factorial grid: per dimension a number of equally spaced levels in [0, 1] (including
-    both ends) or explicit unit coordinates; [prod(levels), d], the last dimension varying fastest."""
-    axes = [np.linspace(0.0, 1.0, int(lv)) if np.isscalar(lv) else np.asarray(lv, float) for lv in levels]
-    mesh = np.meshgrid(*axes, indexing="ij")
-    return np.stack([m.ravel() for m in mesh], axis=-1)
-
-
-DESIGNS = {"sobol": sobol, "halton": halton, "random": random_design}
-
-
-def design(kind: str, n: int, d: int, *, seed: int = 0) -> np.ndarray:
-    """A design by name: "sobol" and "halton" (randomised by the seed) or "random"."""
-    if kind not in DESIGNS:
-        raise ValueError(f"design must be one of {sorted(DESIGNS)}, got {kind!r}")
-    return DESIGNS[kind](n, d, seed=seed)
 
 
 def score_columns(rule: Rule, n_inliers, log_ratio, log_s_b, log_s_c, pos_ratio, pos_s_b, pos_s_c):
@@ -279,32 +160,6 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
 # The kernel
 
 
-def _quat_mul(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def _quat_rotate(q, v):
-    w, x, y, z = q
-    vx, vy, vz = v
-    tx, ty, tz = 2 * (y * vz - z * vy), 2 * (z * vx - x * vz), 2 * (x * vy - y * vx)  # t = 2 u x v
-    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz), vz + w * tz + (x * ty - y * tx))
-
-
-def imu_predict_columns(p, v, q, dt, dp, dv, dq, gravity):
-    """jsve.core._replay.imu_predict (ORB-SLAM3's PredictStateIMU) on coordinate columns (tuples)."""
-    rp, rv = _quat_rotate(q, dp), _quat_rotate(q, dv)
-    p2 = tuple(p[i] + v[i] * dt + 0.5 * gravity[i] * dt * dt + rp[i] for i in range(3))
-    v2 = tuple(v[i] + gravity[i] * dt + rv[i] for i in range(3))
-    return p2, v2, _quat_mul(q, dq)
-
-
 class ChunkResult(eqx.Module):
     """Kernel output, leaves [S, R]: loss (m), failed, rmse (m; NaN where failed), coverage."""
 
@@ -320,75 +175,53 @@ _MOMENTS = 3 + 9 + 1  # sum e, sum e_i g_c,j, sum |e|^2
 def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
     """RMSE of the aligned estimate from the alignment statistics (lanes [S, R]); and degeneracy."""
     dtype = s_ee.dtype
-    eps = jnp.finfo(dtype).eps
     n = sb.n_eval
     n_safe = jnp.maximum(n, 1.0)
-    mu = [s / n_safe for s in s_e]  # mean of e (shifted offsets)
-    d_c = s_ee - n * sum(x * x for x in mu)  # sum |e - mean e|^2
-    gram = sb.gram  # [3, 3, R]; symmetric
-    # M[j][i] = sum e_j g_c,i;  cov[i][j] = (G[i][j] + M[j][i]) / n  (Umeyama eq. 38 with y = truth)
-    cov = jnp.stack(
-        [jnp.stack([(gram[i, j] + m[j][i]) / n_safe for j in range(3)], -1) for i in range(3)], -2
-    )
-    tr_g = gram[0, 0] + gram[1, 1] + gram[2, 2]
-    tr_m = m[0][0] + m[1][1] + m[2][2]
-    var_y = tr_g / n_safe
-    var_x = jnp.maximum((tr_g + 2 * tr_m + d_c) / n_safe, 0.0)
-    mu_x = [sb.g_mean[i] + sb.offset[i] + mu[i] for i in range(3)]
-    ms_x = sum(x * x for x in mu_x) + var_x
-    ms_y = sum(sb.g_mean[i] ** 2 for i in range(3)) + var_y
-    tol = (64.0 * eps) ** 2  # jsve.core._trajectory's "all points identical" test
-    degenerate = (n < MIN_ALIGNMENT_FRAMES) | (var_x <= tol * ms_x) | (var_y <= tol * ms_y)
-    eye = jnp.eye(3, dtype=dtype)
-    if method == "none":
+    aligner = ALIGNERS[method]
+    if aligner.solve is None:  # the identity (search_chunk refuses first-pose methods): sum |e + o|^2
         e2 = (
             s_ee
             + 2 * sum(sb.offset[i] * s_e[i] for i in range(3))
             + n * sum(sb.offset[i] ** 2 for i in range(3))
         )
-        return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), jnp.zeros_like(degenerate)
-    if method == "posyaw":
-        a = cov[..., 0, 0] + cov[..., 1, 1]
-        b = cov[..., 1, 0] - cov[..., 0, 1]
-        r = jnp.sqrt(jnp.where(a * a + b * b > 0, a * a + b * b, 1.0))
-        ok = a * a + b * b > 0
-        c_t, s_t = jnp.where(ok, a / r, 1.0), jnp.where(ok, b / r, 0.0)
-        zero, one = jnp.zeros_like(a), jnp.ones_like(a)
-        rot = jnp.stack(
-            [
-                jnp.stack([c_t, -s_t, zero], -1),
-                jnp.stack([s_t, c_t, zero], -1),
-                jnp.stack([zero, zero, one], -1),
-            ],
-            -2,
-        )
-        scale = one
-    else:
-        u, d, vt = jnp.linalg.svd(
-            jnp.where(degenerate[..., None, None], jnp.diag(jnp.array([3.0, 2.0, 1.0], dtype)), cov)
-        )
-        flip = jnp.linalg.det(u) * jnp.linalg.det(vt) < 0  # Umeyama eq. 43
-        s = jnp.stack([jnp.ones_like(d[..., 0]), jnp.ones_like(d[..., 0]), jnp.where(flip, -1.0, 1.0)], -1)
-        rot = (u * s[..., None, :]) @ vt
-        if method == "sim3":
-            scale = jnp.sum(d * s, -1) / jnp.where(var_x > 0, var_x, 1.0)  # eq. 42
-        else:
-            scale = jnp.ones_like(var_x)
-    a_mat = eye - scale[..., None, None] * rot
+        return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), jnp.zeros(s_ee.shape, bool)
+    mu = [s / n_safe for s in s_e]  # mean of e (shifted offsets)
+    d_c = s_ee - n * sum(x * x for x in mu)  # sum |e - mean e|^2
+    gram = sb.gram  # [3, 3, R]; symmetric
+    # The moments of the pairs (estimate x = g + o + e, truth y = g): M[j][i] = sum e_j g_c,i and
+    # cov[i][j] = (G[i][j] + M[j][i]) / n (Umeyama eq. 38), var_x = (tr G + 2 tr M + D) / n.
+    cov = jnp.stack(
+        [jnp.stack([(gram[i, j] + m[j][i]) / n_safe for j in range(3)], -1) for i in range(3)], -2
+    )
+    tr_g = gram[0, 0] + gram[1, 1] + gram[2, 2]
+    tr_m = m[0][0] + m[1][1] + m[2][2]
+    moments = Moments(
+        count=n,
+        mu_x=jnp.stack([sb.g_mean[i] + sb.offset[i] + mu[i] for i in range(3)], -1),
+        mu_y=sb.g_mean.T,
+        var_x=jnp.maximum((tr_g + 2 * tr_m + d_c) / n_safe, 0.0),
+        var_y=tr_g / n_safe,
+        cov=cov,
+    )
+    # The rotation and scale of jsve.core._align's solver; the translation is the least-squares one, so the
+    # residual below needs none (degenerate lanes get the identity and are failed by the caller).
+    transform = fit_moments(moments, aligner.solve)
+    rot, scale = transform.rotation, transform.scale
+    a_mat = jnp.eye(3, dtype=dtype) - scale[..., None, None] * rot
     g = jnp.moveaxis(gram, -1, 0)  # [R, 3, 3], broadcast over settings
     m_mat = jnp.stack([jnp.stack([m[j][i] for i in range(3)], -1) for j in range(3)], -2)  # [S, R, 3, 3] = M
     term_g = jnp.sum((a_mat @ g) * a_mat, axis=(-2, -1))  # tr(A G A^T) = tr(A^T A G)
     term_m = jnp.trace(jnp.swapaxes(a_mat, -1, -2) @ rot @ m_mat, axis1=-2, axis2=-1)
     e2 = term_g - 2 * scale * term_m + scale * scale * d_c
-    return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), degenerate
+    return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), transform.degenerate
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008
     """Hard objective of S rule settings (leaves [S]) on every run of a SearchBatch: [S, R] results."""
-    if config.align == "origin":
+    if ALIGNERS[config.align].first_pose:
         raise ValueError(
-            "the search kernel aligns from sufficient statistics; align='origin' needs the first "
+            f"the search kernel aligns from sufficient statistics; align={config.align!r} needs the first "
             "pose: use jsve.core._objective.run_losses"
         )
     dtype = sb.t.dtype
@@ -590,11 +423,6 @@ def use_all_cores() -> None:
 
 
 __all__ = [
-    "sobol",
-    "halton",
-    "random_design",
-    "grid_design",
-    "design",
     "SearchBatch",
     "prepare",
     "search_chunk",
@@ -602,6 +430,5 @@ __all__ = [
     "SearchResult",
     "score_columns",
     "feature_logs",
-    "imu_predict_columns",
     "use_all_cores",
 ]

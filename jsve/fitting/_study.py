@@ -31,8 +31,9 @@ from jsve.core._sve import EQ1, OPTION1, OPTION2, Combination
 from jsve.evaluation._aggregate import aggregate
 from jsve.evaluation._evaluate import evaluate
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
+from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit
-from jsve.fitting._search import SearchResult, grid_design, search
+from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, inlier_space, space_from_dict, sve_space
 from jsve.io import _atomic as atomic
 

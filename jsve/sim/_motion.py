@@ -1,8 +1,9 @@
 """Simulator, motion side: trajectories, IMU synthesis and per-frame preintegration (host numpy, float64).
 
 Part of the stand-in front-end (jsve.sim._simulate; docs/simulator.md). Everything here is plain numpy in
-float64: the simulator runs in worker processes without JAX, and IMU deltas need double precision.
-The rotation helpers mirror jsve.core._geometry (wxyz, Hamilton, active) and are tested against it.
+float64: the simulator's worker processes never dispatch to JAX, and IMU deltas need double precision.
+The rotation helpers and the IMU prediction are jsve.core._geometry's and jsve.core._imu's, computed with
+numpy (their `xp=np`).
 
     Trajectory                 a smooth continuous-time body trajectory (uniform cubic B-splines fitted
                                to poses): position, velocity, acceleration, orientation, body rates
@@ -17,12 +18,16 @@ The rotation helpers mirror jsve.core._geometry (wxyz, Hamilton, active) and are
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from jsve.core import _geometry as geometry
+from jsve.core import _imu
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 """World gravity, m/s^2 (EuRoC world frame, z up; jsve.io._schema.DEFAULT_GRAVITY)."""
@@ -54,110 +59,19 @@ EUROC_SEQUENCES = {
 
 
 # --------------------------------------------------------------------------------------------------
-# Rotations (numpy float64 mirrors of jsve.core._geometry; wxyz, Hamilton, active)
+# Rotations: jsve.core._geometry's functions computed in numpy float64 (xp=np), the same operations; the
+# worker processes never dispatch to JAX, and IMU deltas need double precision.
 
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b (as jsve.core._geometry.quat_mul)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_conj(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def quat_normalize(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion with w >= 0."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=-2,
-    )
-
-
-def matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w >= 0) of rotation matrices; Shepperd's method (as jsve.core._geometry)."""
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    trace = m00 + m11 + m22
-    s01, d01 = m[..., 0, 1] + m[..., 1, 0], m[..., 1, 0] - m[..., 0, 1]
-    s02, d02 = m[..., 0, 2] + m[..., 2, 0], m[..., 0, 2] - m[..., 2, 0]
-    s12, d12 = m[..., 1, 2] + m[..., 2, 1], m[..., 2, 1] - m[..., 1, 2]
-    cands = np.stack(
-        [
-            np.stack([1 + trace, d12, d02, d01], -1),
-            np.stack([d12, 1 + m00 - m11 - m22, s01, s02], -1),
-            np.stack([d02, s01, 1 - m00 + m11 - m22, s12], -1),
-            np.stack([d01, s02, s12, 1 - m00 - m11 + m22], -1),
-        ],
-        axis=-2,
-    )
-    lead = np.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
-    best = np.argmax(lead, axis=-1)
-    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
-    return quat_normalize(q)
-
-
-def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """R(q) v without forming the matrix."""
-    w, u = q[..., :1], q[..., 1:]
-    uv = np.cross(u, v)
-    return v + 2.0 * (w * uv + np.cross(u, uv))
-
-
-def so3_exp(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrices Exp(phi) of rotation vectors phi [..., 3] (Rodrigues; exact near 0)."""
-    theta2 = np.sum(phi * phi, axis=-1)[..., None, None]
-    theta = np.sqrt(theta2)
-    small = theta2 < 1e-12
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    k = skew(phi)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def quat_exp(phi: np.ndarray) -> np.ndarray:
-    """Unit quaternion of the rotation vector phi [..., 3]."""
-    theta = np.linalg.norm(phi, axis=-1, keepdims=True)
-    half = 0.5 * theta
-    small = theta < 1e-8
-    scale = np.where(small, 0.5 - theta * theta / 48.0, np.sin(half) / np.where(small, 1.0, theta))
-    return np.concatenate([np.cos(half), scale * phi], axis=-1)
-
-
-def quat_log(q: np.ndarray) -> np.ndarray:
-    """Rotation vector of unit quaternions (the shorter rotation)."""
-    q = np.where(q[..., :1] < 0, -q, q)
-    v = q[..., 1:]
-    s = np.linalg.norm(v, axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., :1])
-    small = s < 1e-12
-    return np.where(small, 2.0 * v, v * angle / np.where(small, 1.0, s))
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    z = np.zeros_like(v[..., 0])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+quat_mul = functools.partial(geometry.quat_mul, xp=np)
+quat_conj = functools.partial(geometry.quat_conj, xp=np)
+quat_normalize = functools.partial(geometry.quat_normalize, xp=np)
+quat_to_matrix = functools.partial(geometry.quat_to_matrix, xp=np)
+matrix_to_quat = functools.partial(geometry.matrix_to_quat, xp=np)
+quat_rotate = functools.partial(geometry.quat_rotate, xp=np)
+so3_exp = functools.partial(geometry.so3_exp, xp=np)
+quat_exp = functools.partial(geometry.quat_exp, xp=np)
+quat_log = functools.partial(geometry.quat_log, xp=np)
+skew = functools.partial(geometry.skew, xp=np)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -814,11 +728,8 @@ def frame_bias_estimate(
 
 
 def imu_predict(p, v, q, dt, dp, dv, dq, gravity=GRAVITY):
-    """ORB-SLAM3 PredictStateIMU in numpy float64, the same equations as jsve.core._replay.imu_predict:
-    R2 = R1 dR; v2 = v1 + g dt + R1 dV; p2 = p1 + v1 dt + 0.5 g dt^2 + R1 dP."""
-    dt = np.asarray(dt)[..., None]
-    return (p + v * dt + 0.5 * gravity * dt * dt + quat_rotate(q, dp), v + gravity * dt + quat_rotate(q, dv),
-            quat_mul(q, dq))  # fmt: skip
+    """jsve.core._imu.imu_predict (ORB-SLAM3's PredictStateIMU) in numpy float64; gravity m/s^2, world."""
+    return _imu.imu_predict(p, v, q, np.asarray(dt), dp, dv, dq, np.asarray(gravity), xp=np)
 
 
 def dead_reckoning_drift(
