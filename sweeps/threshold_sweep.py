@@ -19,12 +19,11 @@ import tomllib
 
 def load_runs(spec: dict, seed: int):
     if "logs" in spec:
-        from jsve.io._ingest import read_logs, read_parquet
+        from jsve.io import read_logs, read_parquet
 
         source = spec["logs"]
         return read_parquet(source) if str(source).endswith(".parquet") else read_logs(source).runs
-    from jsve.sim._motion import FlightProfile
-    from jsve.sim._simulate import SimConfig, simulate_study
+    from jsve.sim import FlightProfile, SimConfig, simulate_study
 
     sim = spec.get("simulate", {})
     duration = tuple(sim.get("duration_s", (60.0, 60.0)))
@@ -44,16 +43,15 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     config = tomllib.loads(Path(args.config).read_text())
 
-    from jsve.fitting._search import use_all_cores
+    from jsve.fitting import use_all_cores
 
     use_all_cores()
     import numpy as np
     import pandas as pd
 
-    from jsve.core._objective import ObjectiveConfig, group_weights
-    from jsve.fitting._fit import FitData
-    from jsve.fitting._search import design, grid_design, search
-    from jsve.fitting._space import space_from_dict
+    from jsve.core import ObjectiveConfig
+    from jsve.core._objective import group_weights  # not re-exported by jsve.core yet
+    from jsve.fitting import FitData, design, grid_design, search, space_from_dict
 
     seed = int(config.get("seed", 0))
     objective = dict(config.get("objective", {}))

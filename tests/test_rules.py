@@ -8,6 +8,7 @@ orders and two fps (20, 20.5): 8,748 cases in one vmapped call. Whole runs: test
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 
@@ -19,10 +20,12 @@ import oracle_orbslam3 as oracle
 import pytest
 
 from jsve.core._rules import (
+    BASELINES,
     MODE_LOST,
     MODE_OK,
     MODE_RECENTLY_LOST,
     PRESETS,
+    RULE_KINDS,
     TIME_RECENTLY_LOST_S,
     HardLogic,
     InlierRule,
@@ -32,12 +35,16 @@ from jsve.core._rules import (
     Thresholds,
     initial_state,
     machine_step,
+    param_names,
     preset,
     rule_from_dict,
+    rule_from_params,
+    rule_kind,
+    rule_params,
     rule_to_dict,
     tracking_succeeds,
 )
-from jsve.core._sve import FrameFeatures, frame_features
+from jsve.core._sve import Combination, FrameFeatures, frame_features
 
 TH_ORDERS = {
     "orbslam3": dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0),
@@ -142,6 +149,59 @@ def test_rule_from_dict_errors_name_source_and_key():
         rule_from_dict({**good, "thresholds": {**good["thresholds"], "reloc": "high"}}, "params.json")
     with pytest.raises(ValueError, match=r"<dict>: "):
         rule_from_dict([1, 2, 3])
+
+
+def test_parameter_names_are_the_modules_fields():
+    """A family's parameters are its Modules' fields (SVE: the combination's, then the thresholds'),
+    the JSON description's tables are the same fields, and every family has a preset baseline."""
+    fields = lambda cls: tuple(f.name for f in dataclasses.fields(cls))  # noqa: E731
+    assert param_names("inliers") == fields(Thresholds) == ("imu_init", "not_init", "reloc", "recovery")
+    assert param_names("sve") == fields(Combination) + fields(Thresholds)
+    for name in PRESETS:
+        rule = preset(name)
+        kind = rule_kind(rule)
+        assert isinstance(rule, RULE_KINDS[kind])
+        assert tuple(rule_params(rule)) == param_names(kind)
+        spec = rule_to_dict(rule)
+        assert [k for part in spec if part != "kind" for k in spec[part]] == list(param_names(kind))
+    assert set(BASELINES) == set(RULE_KINDS) and set(BASELINES.values()) <= set(PRESETS)
+    assert all(rule_kind(preset(name)) == kind for kind, name in BASELINES.items())
+    with pytest.raises(ValueError, match="rule kind must be 'inliers' or 'sve', got 'linear'"):
+        param_names("linear")
+    with pytest.raises(TypeError, match="not a jsve rule"):
+        rule_kind(Thresholds(1, 2, 3, 4))
+
+
+def test_rule_from_params_round_trip_jit_vmap_grad(x64):
+    """rule_from_params inverts rule_params for every preset (the same leaves, exactly), under jit too;
+    built from stacked values it is a stack of rules whose vmapped score equals a loop; and the score of
+    a rule built from named values has the gradient of central differences (h = 1e-6, smooth interior
+    point: 1e-6 relative)."""
+    ext, inl, fru, bins = features_grid()
+    f = frame_features(ext, inl, fru, bins)
+    for name in PRESETS:
+        rule = preset(name)
+        kind = rule_kind(rule)
+        params = rule_params(rule)
+        jitted = jax.jit(lambda p, kind=kind: rule_from_params(kind, p))(params)
+        for again in (rule_from_params(kind, params), jitted):
+            assert type(again) is type(rule)
+            for a, b in zip(jax.tree.leaves(rule), jax.tree.leaves(again), strict=True):
+                assert float(a) == float(b)
+    rng = np.random.default_rng(5)
+    stacked = {k: jnp.asarray(rng.uniform(0.1, 0.9, 3)) for k in param_names("sve")}
+    rules = rule_from_params("sve", stacked)
+    scores = np.asarray(jax.vmap(lambda r: r.score(f))(rules))
+    for i in range(3):
+        one = rule_from_params("sve", {k: v[i] for k, v in stacked.items()})
+        np.testing.assert_allclose(scores[i], np.asarray(one.score(f)), rtol=1e-14, atol=1e-15)
+
+    def score(w_a):
+        params = {**rule_params(preset("sve-option1")), "w_a": w_a}
+        return rule_from_params("sve", params).score(f)[5]  # S_a, S_b, S_c of this frame lie inside (0, 1)
+
+    fd = (float(score(0.5 + 1e-6)) - float(score(0.5 - 1e-6))) / 2e-6
+    np.testing.assert_allclose(float(jax.grad(score)(0.5)), fd, rtol=1e-6)
 
 
 def test_sve_rule_scores_its_combination():

@@ -16,9 +16,12 @@ from jsve.core._sve import (
     OPTION1,
     OPTION2,
     Combination,
+    FrameFeatures,
+    feature_metrics,
     frame_features,
     inlier_ratio,
     power_mean,
+    power_mean2,
     s_a,
     s_a_from_ratio,
     s_a_original,
@@ -289,3 +292,55 @@ def test_sve_table_columns(x64):
         np.asarray(Combination(**OPTION2)(f.inlier_ratio, f.s_b, f.s_c)),
         atol=0,
     )
+
+
+def test_two_entry_power_mean_is_power_mean(x64):
+    """power_mean2 (the log-domain kernel of the combinations) is power_mean on two columns: to 1e-13
+    in float64 over exponents from -4 to 4, p near and at 0, zero entries and zero weights."""
+    rng = np.random.default_rng(1)
+    n = 4000
+    x1, x2 = rng.random(n), rng.random(n)
+    x1[::7] = 0.0
+    x2[::11] = 0.0
+    w = rng.random(n)
+    w[::13] = 0.0
+    w[::17] = 1.0
+    p = rng.uniform(-4, 4, n)
+    p[::5] = 0.0
+    p[::9] = rng.uniform(-2e-6, 2e-6, len(p[::9]))
+    ours = power_mean2(jnp.asarray(x1), jnp.asarray(x2), jnp.asarray(w), jnp.asarray(p))
+    ref = jax.vmap(power_mean)(
+        jnp.stack([jnp.asarray(x1), jnp.asarray(x2)], -1),
+        jnp.stack([jnp.asarray(w), 1 - jnp.asarray(w)], -1),
+        jnp.asarray(p),
+    )
+    np.testing.assert_allclose(np.asarray(ours), np.asarray(ref), rtol=1e-13, atol=1e-15)
+
+
+# ------------------------------------------------------------------------------------------------
+# The metrics of FrameFeatures
+
+
+def test_feature_metrics_follow_the_fields(x64):
+    """S_a at rho, then every FrameFeatures field after the count and the ratio, by field name; S_a is
+    s_a of the counts (to 1e-15) and the others are the fields themselves."""
+    rng = np.random.default_rng(6)
+    ext = np.array([1000.0, 0.0, 379.0, 640.0])
+    inl = np.array([100.0, 0.0, 300.0, 12.0])
+    fru = np.array([200.0, 0.0, 100.0, 0.0])
+    bins = np.stack([rng.multinomial(int(n), rng.dirichlet(np.ones(64))) for n in ext]).astype(float)
+    f = frame_features(ext, inl, fru, bins)
+    metrics = feature_metrics(f, 0.4)
+    fields = [k for k in FrameFeatures.__dataclass_fields__ if k not in ("n_inliers", "inlier_ratio")]
+    assert list(metrics) == ["s_a", *fields] and {"s_b", "s_c"} <= set(fields)
+    np.testing.assert_allclose(np.asarray(metrics["s_a"]), np.asarray(s_a(inl, ext, 0.4)), rtol=0, atol=EXACT)
+    for name in fields:
+        assert metrics[name] is getattr(f, name)
+    # one JAX function of the features and rho: eager = jit = vmap over frames; d S_a / d rho = -ratio / rho^2
+    fn = lambda feats, rho: jnp.stack(list(feature_metrics(feats, rho).values()))  # noqa: E731
+    whole = np.asarray(fn(f, 0.4))
+    np.testing.assert_allclose(np.asarray(jax.jit(fn)(f, 0.4)), whole, rtol=0, atol=EXACT)
+    per_frame = np.asarray(jax.vmap(fn, in_axes=(0, None))(f, 0.4))
+    np.testing.assert_allclose(per_frame.T, whole, rtol=0, atol=EXACT)
+    d = jax.grad(lambda rho: feature_metrics(f, rho)["s_a"][0])(0.4)  # 0.1 / 0.4 < 1: no clamp
+    np.testing.assert_allclose(float(d), -0.1 / 0.4**2, rtol=1e-12)

@@ -10,10 +10,16 @@ See docs/state-machine.md for the ORB-SLAM3 source locations and the model's lim
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import typing
+from collections.abc import Mapping
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from jsve.core._sve import EQ1, OPTION1, OPTION2, Combination, FrameFeatures
 
@@ -67,6 +73,55 @@ class SVERule(eqx.Module):
 
 Rule = InlierRule | SVERule
 
+RULE_KINDS: dict[str, type[InlierRule] | type[SVERule]] = {"inliers": InlierRule, "sve": SVERule}
+"""A rule family's name (the "kind" of `rule_to_dict`, the families of jsve.fitting) -> its rule class."""
+
+
+def rule_kind(rule: Rule) -> str:
+    """The family name of a rule ("inliers" or "sve")."""
+    for kind, cls in RULE_KINDS.items():
+        if isinstance(rule, cls):
+            return kind
+    raise TypeError(f"not a jsve rule: {type(rule).__name__}")
+
+
+@functools.cache
+def _parts(cls: type) -> dict[str, Any]:
+    """The parameter Modules of a rule class by field name, e.g. {"combination": Combination,
+    "thresholds": Thresholds} (read from the class's annotations, so a new part needs no list here)."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def _rule_class(kind: str) -> type[InlierRule] | type[SVERule]:
+    if kind not in RULE_KINDS:
+        raise ValueError(f"rule kind must be {' or '.join(map(repr, RULE_KINDS))}, got {kind!r}")
+    return RULE_KINDS[kind]
+
+
+def param_names(kind: str) -> tuple[str, ...]:
+    """Every parameter of a rule family by name, in order: the fields of its parameter Modules (for SVE
+    rules the Combination's, then the Thresholds'). Names are unique across a rule's parts."""
+    return tuple(f.name for part in _parts(_rule_class(kind)).values() for f in dataclasses.fields(part))
+
+
+def rule_params(rule: Rule) -> dict[str, Array]:
+    """Every parameter of a rule by name (the leaves of its Modules), in `param_names` order."""
+    return {
+        f.name: getattr(getattr(rule, part), f.name)
+        for part, module in _parts(type(rule)).items()
+        for f in dataclasses.fields(module)
+    }
+
+
+def rule_from_params(kind: str, params: Mapping[str, ArrayLike]) -> Rule:
+    """The rule of a family from its parameters by name (`param_names(kind)`, e.g. flat values of a
+    jsve.fitting.ParamSpace); leaves of any shape give a stack of rules."""
+    cls = _rule_class(kind)
+    return cls(**{part: module(**{f.name: params[f.name] for f in dataclasses.fields(module)})
+                  for part, module in _parts(cls).items()})  # fmt: skip
+
+
 SEED_EARLY_THRESHOLDS = dict(imu_init=0.1, not_init=0.3, reloc=0.3, recovery=0.1)
 """The earlier seed code / the paper's thresholds for the linear Eq.1 and Option 1."""
 SEED_CODE_THRESHOLDS = dict(imu_init=0.06, not_init=0.2, reloc=0.2, recovery=0.04)
@@ -88,32 +143,33 @@ def preset(name: str) -> Rule:
 
 PRESETS = ("orbslam3", "sve-eq1", "sve-option1", "sve-option2")
 
+BASELINES = {"inliers": "orbslam3", "sve": "sve-option2"}
+"""The preset each rule family is compared with: ORB-SLAM3's own rule, and the seed's final code."""
+
 
 def rule_to_dict(rule: Rule) -> dict:
-    """JSON-ready description of a rule (the format of `--rule params.json`)."""
-    th = {k: float(getattr(rule.thresholds, k)) for k in ("imu_init", "not_init", "reloc", "recovery")}
-    if isinstance(rule, InlierRule):
-        return {"kind": "inliers", "thresholds": th}
-    c = rule.combination
-    combo = {k: float(getattr(c, k)) for k in ("w_a", "u_b", "p", "q", "rho")}
-    return {"kind": "sve", "combination": combo, "thresholds": th}
+    """JSON-ready description of a rule (the format of `--rule params.json`): its kind, then each
+    parameter Module as a table of its fields: {"kind": "sve", "combination": {...}, "thresholds": {...}}."""
+    out: dict = {"kind": rule_kind(rule)}
+    for part, module in _parts(type(rule)).items():
+        values = getattr(rule, part)
+        out[part] = {f.name: float(getattr(values, f.name)) for f in dataclasses.fields(module)}
+    return out
 
 
 def rule_from_dict(spec: dict, source: str = "<dict>") -> Rule:
     """Inverse of `rule_to_dict`; errors name the source and the offending key."""
     try:
         kind = spec["kind"]
-        th = Thresholds(**{k: float(spec["thresholds"][k]) for k in ("imu_init", "not_init", "reloc", "recovery")})
-        if kind == "inliers":
-            return InlierRule(th)
-        if kind == "sve":
-            c = spec["combination"]
-            return SVERule(Combination(**{k: float(c[k]) for k in ("w_a", "u_b", "p", "q", "rho")}), th)
+        if kind in RULE_KINDS:
+            parts = _parts(RULE_KINDS[kind]).items()
+            params = {f.name: float(spec[part][f.name]) for part, m in parts for f in dataclasses.fields(m)}
+            return rule_from_params(kind, params)
     except KeyError as err:
         raise ValueError(f"{source}: rule description lacks key {err}") from None
     except (TypeError, ValueError) as err:
         raise ValueError(f"{source}: bad rule description: {err}") from None
-    raise ValueError(f"{source}: rule kind must be 'inliers' or 'sve', got {kind!r}")
+    raise ValueError(f"{source}: rule kind must be {' or '.join(map(repr, RULE_KINDS))}, got {kind!r}")
 
 
 class HardLogic(eqx.Module):
@@ -194,12 +250,21 @@ def tracking_succeeds(logic, score, th: Thresholds, recently_lost, imu_ok, in_re
     """
     fail_reloc = in_reloc * logic.less(score, th.reloc)
     recover = recently_lost * logic.greater(score, th.recovery)
-    pass_main = imu_ok * (1 - logic.less(score, th.imu_init)) + (1 - imu_ok) * (1 - logic.less(score, th.not_init))
+    pass_main = (imu_ok * (1 - logic.less(score, th.imu_init))
+                 + (1 - imu_ok) * (1 - logic.less(score, th.not_init)))  # fmt: skip
     return (1 - fail_reloc) * (recover + (1 - recover) * pass_main)
 
 
 def machine_step(
-    logic, state: MachineState, score, t, k, imu_init_logged, th: Thresholds, fps, imu_init_delay,
+    logic,
+    state: MachineState,
+    score,
+    t,
+    k,
+    imu_init_logged,
+    th: Thresholds,
+    fps,
+    imu_init_delay,
     time_recently_lost=TIME_RECENTLY_LOST_S,
 ) -> tuple[MachineState, FrameDecision]:
     """Advance ORB-SLAM3's state machine by one frame (see docs/state-machine.md).
@@ -241,10 +306,12 @@ def machine_step(
         t_lost=_mass_mean(entering, staying, t, state.t_lost, ok_fail * t + (1 - ok_fail) * state.t_lost),
         # The map start belongs to the tracking (OK + RECENTLY_LOST) mass: the mass starting a new map
         # now, and the rest of the tracking mass, which keeps its own.
-        map_start_t=_mass_mean(new_map, tracking - new_map, t, state.map_start_t,
-                               new_map * t + (1 - new_map) * state.map_start_t),
-        map_start_k=_mass_mean(new_map, tracking - new_map, k, state.map_start_k,
-                               new_map * k + (1 - new_map) * state.map_start_k),
+        map_start_t=_mass_mean(
+            new_map, tracking - new_map, t, state.map_start_t, new_map * t + (1 - new_map) * state.map_start_t
+        ),
+        map_start_k=_mass_mean(
+            new_map, tracking - new_map, k, state.map_start_k, new_map * k + (1 - new_map) * state.map_start_k
+        ),
         segment=state.segment + new_map,
     )
     return next_state, FrameDecision(accepted=accepted, predicted=to_recently_lost, new_map=new_map)

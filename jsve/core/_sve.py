@@ -7,29 +7,27 @@ All functions are elementwise over leading axes, jit/vmap-safe and differentiabl
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
+
+from jsve.core._numerics import safe_divide
 
 N_BINS = 64
 WORST_CASE_FRACTION = 1.0 / 8.0
 """Fraction f of bins holding all points in the worst case; chi2_w = N (1 - f) / f = 7 N."""
 
 
-def _safe_ratio(num: Array, den: Array) -> Array:
-    """num / den with 0 where den == 0, gradient-safe (double where)."""
-    ok = den > 0
-    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
-
-
 def s_a_original(n_extracted: ArrayLike, n_features: ArrayLike) -> Float[Array, ...]:
     """Feature quantity, Haggart's original: N_extracted / nFeatures (unclamped)."""
-    return _safe_ratio(jnp.asarray(n_extracted, float), jnp.asarray(n_features, float))
+    return safe_divide(jnp.asarray(n_extracted, float), jnp.asarray(n_features, float))
 
 
 def inlier_ratio(n_inliers: ArrayLike, n_extracted: ArrayLike) -> Float[Array, ...]:
     """N_inliers / N_extracted, 0 when nothing was extracted; S_a before the rho scaling."""
-    return _safe_ratio(jnp.asarray(n_inliers, float), jnp.asarray(n_extracted, float))
+    return safe_divide(jnp.asarray(n_inliers, float), jnp.asarray(n_extracted, float))
 
 
 def s_a(n_inliers: ArrayLike, n_extracted: ArrayLike, rho: ArrayLike = 0.25) -> Float[Array, ...]:
@@ -42,7 +40,7 @@ def s_a(n_inliers: ArrayLike, n_extracted: ArrayLike, rho: ArrayLike = 0.25) -> 
 
 def s_a_from_ratio(ratio: ArrayLike, rho: ArrayLike) -> Float[Array, ...]:
     """S_a from a precomputed inlier ratio, so that rho can be swept without touching the counts."""
-    return jnp.clip(_safe_ratio(jnp.asarray(ratio, float), jnp.asarray(rho, float)), 0.0, 1.0)
+    return jnp.clip(safe_divide(jnp.asarray(ratio, float), jnp.asarray(rho, float)), 0.0, 1.0)
 
 
 def s_b(bins: ArrayLike, n_extracted: ArrayLike, clamp: bool = True) -> Float[Array, ...]:
@@ -64,7 +62,7 @@ def s_b(bins: ArrayLike, n_extracted: ArrayLike, clamp: bool = True) -> Float[Ar
     sum_sq = jnp.sum((bins - expected) ** 2, axis=-1)
     # chi2 / chi2_w = [sum (n_i - E)^2 / E] / (7 N) = 64 sum (n_i - E)^2 / (7 N^2)
     worst = (1.0 - WORST_CASE_FRACTION) / WORST_CASE_FRACTION
-    ratio = _safe_ratio(N_BINS * sum_sq, worst * n * n)
+    ratio = safe_divide(N_BINS * sum_sq, worst * n * n)
     value = jnp.where(n > 0, 1.0 - ratio, 0.0)
     return jnp.clip(value, 0.0, 1.0) if clamp else value
 
@@ -74,7 +72,7 @@ def s_c(n_inliers: ArrayLike, n_frustum: ArrayLike, clamp: bool = True) -> Float
 
     Unclamped (clamp=False) it is Haggart's version, which can exceed 1.
     """
-    value = _safe_ratio(jnp.asarray(n_inliers, float), jnp.asarray(n_frustum, float))
+    value = safe_divide(jnp.asarray(n_inliers, float), jnp.asarray(n_frustum, float))
     return jnp.clip(value, 0.0, 1.0) if clamp else value
 
 
@@ -128,7 +126,8 @@ def log_power_mean2(l1, pos1, l2, pos2, w, p):
     mean_log = w * l1 + w2 * l2
     # Near p = 0: log M = mean log x + p Var(log x) / 2 (cumulant expansion, as in power_mean).
     log_geometric = mean_log + 0.5 * p * (w * (l1 - mean_log) ** 2 + w2 * (l2 - mean_log) ** 2)
-    excess = w * jnp.where(pos1, jnp.expm1(p_safe * l1), -1.0) + w2 * jnp.where(pos2, jnp.expm1(p_safe * l2), -1.0)
+    excess = (w * jnp.where(pos1, jnp.expm1(p_safe * l1), -1.0)
+              + w2 * jnp.where(pos2, jnp.expm1(p_safe * l2), -1.0))  # fmt: skip
     inner_ok = excess > -1
     log_powered = jnp.log1p(jnp.where(inner_ok, excess, 0.0)) / p_safe
     has_zero = (~pos1 & (w > 0)) | (~pos2 & (w2 > 0))
@@ -150,8 +149,8 @@ def feature_logs(ratio, s_b, s_c):
 
     `ratio` is N_inliers / N_extracted (S_a before rho). Computed once per frame, shared by rules.
     """
-    out = [jnp.log(jnp.where(x > 0, x, 1.0)) for x in (ratio, s_b, s_c)]
-    return (*out, ratio > 0, s_b > 0, s_c > 0)
+    log_ratio, log_s_b, log_s_c = (jnp.log(jnp.where(x > 0, x, 1.0)) for x in (ratio, s_b, s_c))
+    return log_ratio, log_s_b, log_s_c, ratio > 0, s_b > 0, s_c > 0
 
 
 def combination_from_logs(c, log_ratio, log_s_b, log_s_c, pos_ratio, pos_s_b, pos_s_c):
@@ -209,6 +208,10 @@ OPTION2 = dict(w_a=0.5, u_b=0.5, p=0.0, q=1.0, rho=0.25)
 class FrameFeatures(eqx.Module):
     """Per-frame quantities every rule needs, computed once per batch (shapes [..., frames]).
 
+    Every field after the first two is an SVE metric in [0, 1] under its own name: `feature_metrics`
+    reads them from the fields, so the per-level tables of a study follow this class (a new metric is
+    its function, a field here, a line in `frame_features` and a column of `sve_table`).
+
     Attributes:
         n_inliers: tracked inliers (count, float).
         inlier_ratio: N_inliers / N_extracted (S_a before rho).
@@ -230,6 +233,16 @@ def frame_features(n_extracted, n_inliers, n_frustum, bins) -> FrameFeatures:
         s_b=s_b(bins, n_extracted),
         s_c=s_c(n_inliers, n_frustum),
     )
+
+
+def feature_metrics(features: FrameFeatures, rho: ArrayLike) -> dict[str, Float[Array, "*batch"]]:
+    """The SVE metrics of the features by name: "s_a" (the inlier ratio scaled by rho, `s_a_from_ratio`),
+    then every further field of FrameFeatures ("s_b", "s_c", ...), in field order."""
+    out = {"s_a": s_a_from_ratio(features.inlier_ratio, rho)}
+    for field in dataclasses.fields(features):
+        if field.name not in ("n_inliers", "inlier_ratio"):  # the inlier rule's count; S_a before rho
+            out[field.name] = getattr(features, field.name)
+    return out
 
 
 def sve_table(n_extracted, n_inliers, n_frustum, bins, n_features=1000) -> dict[str, Array]:

@@ -22,11 +22,11 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from jsve.core._rules import PRESETS, preset
+from jsve.core._rules import BASELINES, PRESETS
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, search_design
 from jsve.fitting._search import SearchResult, search
-from jsve.fitting._space import ParamSpace, inlier_space, sve_space
+from jsve.fitting._space import ParamSpace, preset_point
 
 log = logging.getLogger(__name__)
 
@@ -121,11 +121,6 @@ class CrossValidation:
     params: pd.DataFrame
 
 
-def preset_space(name: str) -> ParamSpace:
-    """The full space of a preset's family (all parameters free)."""
-    return inlier_space() if name == "orbslam3" else sve_space()
-
-
 def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
     """Per-run results of one setting (free values in `space`) on every run: [1, R] matrices."""
     return search(
@@ -171,10 +166,7 @@ def cross_validate(
                 progress=progress,
                 desc=f"search {name}",
             )
-    per_rule = {
-        name: rule_results(data, preset_space(name), preset_space(name).values_of(preset(name)))
-        for name in presets
-    }
+    per_rule = {name: rule_results(data, *preset_point(name)) for name in presets}
 
     rows, params = [], []
     for fold in tqdm(folds, desc="cross-validation", unit="fold", disable=not progress):
@@ -209,7 +201,7 @@ def cross_validate(
 def compare(
     heldout: pd.DataFrame,
     *,
-    baselines: Sequence[str] = ("orbslam3", "sve-option2"),
+    baselines: Sequence[str] = tuple(BASELINES.values()),
     n_boot: int = 2000,
     level: float = 0.95,
     seed: int = 0,
@@ -317,17 +309,11 @@ def parameter_bootstrap(
     objective = res.objective(counts * w[None])  # [n_boot, S]
     picks = res.values[np.argmin(objective, axis=1)]  # [n_boot, d]
     names, fitted = list(space.names), list(result.values)
-    if space.kind == "sve" and {"w_a", "u_b"} <= set(names):
-        ia, iu = names.index("w_a"), names.index("u_b")
-
-        def simplex(v):
-            return np.stack(
-                [v[..., ia], (1 - v[..., ia]) * v[..., iu], (1 - v[..., ia]) * (1 - v[..., iu])], -1
-            )
-
-        picks = np.concatenate([picks, simplex(picks)], axis=1)
-        fitted += list(simplex(np.asarray(result.values)))
-        names += ["weight_a", "weight_b", "weight_c"]
+    derived = space.derived(picks)
+    if derived:
+        picks = np.concatenate([picks, np.stack(list(derived.values()), -1)], axis=1)
+        fitted += list(np.stack(list(space.derived(result.values).values()), -1))
+        names += list(derived)
     alpha = (1 - level) / 2
     low, high = np.quantile(picks, [alpha, 1 - alpha], axis=0)
     return pd.DataFrame(
@@ -354,5 +340,4 @@ __all__ = [
     "local_design",
     "parameter_bootstrap",
     "rule_results",
-    "preset_space",
 ]

@@ -32,11 +32,11 @@ import pandas as pd
 from jsve.core._batch import LogBatch, bucket_by_length, iter_chunks
 from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.core._replay import batch_features
-from jsve.core._rules import PRESETS, SoftLogic, preset
+from jsve.core._rules import SoftLogic
 from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
-from jsve.fitting._space import ParamSpace
+from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog
 
@@ -63,8 +63,8 @@ class FitData:
         run_counts: real runs per part (parts may end in padding runs).
         meta: one row per real run, in part order (the order of every [R] array of this module).
         config: how runs are scored.
-        buckets: the full buckets (with keypoint bins) the data came from, for jsve.evaluation._evaluate; their
-            runs, concatenated, are the runs of `meta`.
+        buckets: the full buckets (with keypoint bins) the data came from, for
+            jsve.evaluation._evaluate; their runs, concatenated, are the runs of `meta`.
     """
 
     batches: list[LogBatch]
@@ -364,31 +364,8 @@ class FitResult:
         return self.space.rule(jnp.asarray(self.values))
 
     def params(self) -> dict[str, float]:
-        """Every parameter of the rule by name (free and fixed)."""
-        out = dict(self.space.fixed)
-        out.update({k: float(v) for k, v in zip(self.space.names, self.values, strict=True)})
-        return out
-
-
-def _all_params(rule) -> dict[str, float]:
-    out = {k: float(getattr(rule.thresholds, k)) for k in ("imu_init", "not_init", "reloc", "recovery")}
-    if hasattr(rule, "combination"):
-        out.update({k: float(getattr(rule.combination, k)) for k in ("w_a", "u_b", "p", "q", "rho")})
-    return out
-
-
-def preset_values(space: ParamSpace) -> dict[str, np.ndarray]:
-    """The presets of the space's family that lie inside its box and agree with its fixed values."""
-    out = {}
-    for name in PRESETS:
-        if (space.kind == "inliers") != (name == "orbslam3"):
-            continue
-        rule = preset(name)
-        params = _all_params(rule)
-        values = space.values_of(rule)
-        if all(np.isclose(params[k], v) for k, v in space.fixed) and space.contains(values):
-            out[name] = values
-    return out
+        """Every parameter of the rule by name (fixed, then free)."""
+        return self.space.params(self.values)
 
 
 def search_design(space: ParamSpace, config: FitConfig, starts: Sequence[np.ndarray] = ()) -> np.ndarray:
@@ -505,7 +482,6 @@ __all__ = [
     "relaxed_fit",
     "hard_objective",
     "relaxed_objective",
-    "preset_values",
     "search_design",
     "DEFAULT_TEMPERATURES",
 ]

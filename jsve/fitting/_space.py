@@ -1,7 +1,11 @@
-"""Parameter spaces of the fitted rules: bounds, designs in the unit cube, unconstrained coordinates.
+"""The design point: one home for a fitted rule's parameters, from a vector to the rule.
+
+    free values [d] (in a box)  <->  named values {name: value}  <->  Rule (jsve.core._rules)
+    unit cube u (designs), unconstrained z (optimisers)    presets as points    bounds per family
 
 A `ParamSpace` names the free parameters of one rule family with a box [lo, hi] for each, and holds the
-values of the parameters it keeps fixed:
+values of the parameters it keeps fixed. The names are the fields of the rule's Modules
+(jsve.core._rules.param_names: Combination's, then Thresholds'), never typed here:
 
 - "sve": the nested power mean SVE = M_p([S_a, M_q([S_b, S_c]; u_b)]; w_a) with S_a scaled by rho
   (jsve.core._sve.Combination) and its four thresholds. (w_a, u_b) are the stick-breaking coordinates of the
@@ -25,13 +29,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jsve.core._rules import InlierRule, Rule, SVERule, Thresholds
-from jsve.core._sve import Combination
-
-THRESHOLD_NAMES = ("imu_init", "not_init", "reloc", "recovery")
-COMBINATION_NAMES = ("w_a", "u_b", "p", "q", "rho")
-SVE_NAMES = COMBINATION_NAMES + THRESHOLD_NAMES
-INLIER_NAMES = THRESHOLD_NAMES
+from jsve.core._rules import (
+    PRESETS,
+    RULE_KINDS,
+    Rule,
+    param_names,
+    preset,
+    rule_from_params,
+    rule_kind,
+    rule_params,
+)
 
 SVE_BOUNDS = {
     "w_a": (0.0, 1.0),
@@ -56,6 +63,9 @@ INLIER_BOUNDS = {
 """Default boxes of ORB-SLAM3's thresholds, inliers (its own values: 15, 50, 50, 10; nFeatures 1000).
 Wider boxes cost search resolution where it matters: 1,024 Sobol points put ~6 levels on each axis."""
 
+BOUNDS = {"sve": SVE_BOUNDS, "inliers": INLIER_BOUNDS}
+"""Default boxes of every family (jsve.core._rules.RULE_KINDS), by parameter name."""
+
 SCORE_SCALE = {"sve": 1.0, "inliers": 250.0}
 """Score units per SVE unit, for temperatures given in SVE units: the seed's conversion 15 inliers = 0.06."""
 
@@ -68,7 +78,7 @@ class ParamSpace:
     """The free parameters of a rule family with their boxes, and the fixed ones (hashable, static).
 
     Attributes:
-        kind: "sve" or "inliers".
+        kind: the rule family, "sve" or "inliers" (jsve.core._rules.RULE_KINDS).
         names: free parameter names, in coordinate order.
         lo, hi: box of each free parameter (parameter units: SVE units, inliers, exponents).
         fixed: (name, value) of every parameter of the family that is not free.
@@ -81,9 +91,10 @@ class ParamSpace:
     fixed: tuple[tuple[str, float], ...] = field(default=())
 
     def __post_init__(self):
-        family = SVE_NAMES if self.kind == "sve" else INLIER_NAMES if self.kind == "inliers" else None
-        if family is None:
-            raise ValueError(f"ParamSpace kind must be 'sve' or 'inliers', got {self.kind!r}")
+        if self.kind not in RULE_KINDS:
+            kinds = " or ".join(map(repr, RULE_KINDS))
+            raise ValueError(f"ParamSpace kind must be {kinds}, got {self.kind!r}")
+        family = param_names(self.kind)
         if not self.names:
             raise ValueError("ParamSpace needs at least one free parameter")
         if not (len(self.names) == len(self.lo) == len(self.hi)):
@@ -140,19 +151,30 @@ class ParamSpace:
         full = {name: jnp.full(batch, value, values.dtype) for name, value in self.fixed}
         for i, name in enumerate(self.names):
             full[name] = values[..., i]
-        thresholds = Thresholds(*(full[k] for k in THRESHOLD_NAMES))
-        if self.kind == "inliers":
-            return InlierRule(thresholds)
-        return SVERule(Combination(**{k: full[k] for k in COMBINATION_NAMES}), thresholds)
+        return rule_from_params(self.kind, full)
 
     def values_of(self, rule: Rule) -> np.ndarray:
         """The free values of a rule of this family (e.g. a preset as a starting point), float64 [d]."""
-        if (self.kind == "sve") != isinstance(rule, SVERule):
+        if rule_kind(rule) != self.kind:
             raise ValueError(f"a {type(rule).__name__} is not in the {self.kind!r} family")
-        source = {k: getattr(rule.thresholds, k) for k in THRESHOLD_NAMES}
-        if self.kind == "sve":
-            source.update({k: getattr(rule.combination, k) for k in COMBINATION_NAMES})
-        return np.array([float(source[k]) for k in self.names])
+        params = rule_params(rule)
+        return np.array([float(params[k]) for k in self.names])
+
+    def params(self, values) -> dict[str, float]:
+        """Every parameter by name at these free values [d]: the fixed ones, then the free ones."""
+        out = dict(self.fixed)
+        out.update({k: float(v) for k, v in zip(self.names, np.asarray(values), strict=True)})
+        return out
+
+    def derived(self, values) -> dict[str, np.ndarray]:
+        """Quantities of a report derived from free values [..., d]: with w_a and u_b both free, the flat
+        simplex weights of (S_a, S_b, S_c) of the stick-breaking coordinates,
+        (w_a, (1 - w_a) u_b, (1 - w_a)(1 - u_b)), as weight_a, weight_b, weight_c; else none."""
+        if self.kind != "sve" or not {"w_a", "u_b"} <= set(self.names):
+            return {}
+        v = np.asarray(values)
+        w_a, u_b = v[..., self.names.index("w_a")], v[..., self.names.index("u_b")]
+        return {"weight_a": w_a, "weight_b": (1 - w_a) * u_b, "weight_c": (1 - w_a) * (1 - u_b)}
 
     def contains(self, values) -> bool:
         v = np.asarray(values, float)
@@ -191,31 +213,61 @@ class ParamSpace:
         }
 
 
+def family_space(kind: str, **bounds: tuple[float, float]) -> ParamSpace:
+    """A rule family with every parameter free, in the rule's parameter order (default boxes, BOUNDS,
+    overridable by name)."""
+    if kind not in BOUNDS:
+        raise ValueError(f"space kind must be {' or '.join(map(repr, BOUNDS))}, got {kind!r}")
+    names = param_names(kind)
+    b = {**BOUNDS[kind], **bounds}
+    return ParamSpace(kind, names, tuple(b[k][0] for k in names), tuple(b[k][1] for k in names))
+
+
 def sve_space(**bounds: tuple[float, float]) -> ParamSpace:
     """The SVE family with all nine parameters free (default boxes, SVE_BOUNDS, overridable)."""
-    b = {**SVE_BOUNDS, **bounds}
-    return ParamSpace("sve", SVE_NAMES, tuple(b[k][0] for k in SVE_NAMES), tuple(b[k][1] for k in SVE_NAMES))
+    return family_space("sve", **bounds)
 
 
 def inlier_space(**bounds: tuple[float, float]) -> ParamSpace:
     """ORB-SLAM3's rule with its four thresholds free (default boxes, INLIER_BOUNDS, overridable)."""
-    b = {**INLIER_BOUNDS, **bounds}
-    return ParamSpace(
-        "inliers", INLIER_NAMES, tuple(b[k][0] for k in INLIER_NAMES), tuple(b[k][1] for k in INLIER_NAMES)
-    )
+    return family_space("inliers", **bounds)
 
 
 def space_from_dict(spec: dict) -> ParamSpace:
-    """Inverse of ParamSpace.describe (the `[space]` table of a sweep config)."""
-    kind = spec.get("kind")
-    base = sve_space() if kind == "sve" else inlier_space() if kind == "inliers" else None
-    if base is None:
-        raise ValueError(f"space kind must be 'sve' or 'inliers', got {kind!r}")
+    """Inverse of ParamSpace.describe (the `[space]` table of a sweep config; `free` and `fixed` may
+    be left out: the family's defaults)."""
+    base = family_space(spec.get("kind"))
     free = spec.get("free")
     if free is not None:
         base = base.bounded(**{k: tuple(v) for k, v in free.items()})
     fixed = spec.get("fixed") or {}
     return base.fix(**fixed) if fixed else base
+
+
+# ---------------------------------------------------------------------------------------------------
+# Presets as points
+
+
+def preset_values(space: ParamSpace) -> dict[str, np.ndarray]:
+    """The presets (jsve.core._rules.PRESETS) of the space's family that lie inside its box and agree
+    with its fixed values, as free values [d] by preset name."""
+    out = {}
+    for name in PRESETS:
+        rule = preset(name)
+        if rule_kind(rule) != space.kind:
+            continue
+        params = rule_params(rule)
+        values = space.values_of(rule)
+        if all(np.isclose(float(params[k]), v) for k, v in space.fixed) and space.contains(values):
+            out[name] = values
+    return out
+
+
+def preset_point(name: str) -> tuple[ParamSpace, np.ndarray]:
+    """A preset as a point: its family's full space (default boxes) and its values there."""
+    rule = preset(name)
+    space = family_space(rule_kind(rule))
+    return space, space.values_of(rule)
 
 
 class RuleParams(eqx.Module):

@@ -21,20 +21,19 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig, group_weights
-from jsve.core._rules import PRESETS, preset, rule_to_dict
-from jsve.core._sve import EQ1, OPTION1, OPTION2, Combination
+from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
+from jsve.core._sve import Combination, feature_metrics
 from jsve.evaluation._aggregate import aggregate
 from jsve.evaluation._evaluate import evaluate
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit
 from jsve.fitting._search import SearchResult, search
-from jsve.fitting._space import ParamSpace, inlier_space, space_from_dict, sve_space
+from jsve.fitting._space import ParamSpace, space_from_dict
 from jsve.io import _atomic as atomic
 
 log = logging.getLogger(__name__)
@@ -82,13 +81,8 @@ class StudyConfig:
         )
 
     def space(self, family: str) -> ParamSpace:
-        if family in self.spaces:
-            return space_from_dict({"kind": family, **self.spaces[family]})
-        if family == "sve":
-            return sve_space()
-        if family == "inliers":
-            return inlier_space()
-        raise ValueError(f"unknown family {family!r}: choose sve or inliers")
+        """The family's ParamSpace: its description in `spaces`, else the family's defaults."""
+        return space_from_dict({"kind": family, **self.spaces.get(family, {})})
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -172,7 +166,8 @@ class Stages:
 
 def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.DataFrame:
     """Per (disturbance, level, combination): mean and std of the SVE score over all valid frames, and
-    of S_a (at the combination's rho), S_b and S_c (seed Figs 4-6)."""
+    of every SVE metric (jsve.core._sve.feature_metrics: S_a at the combination's rho, S_b, S_c; seed
+    Figs 4-6)."""
     rows = []
     meta = data.meta
     for name, combo in combinations.items():
@@ -181,9 +176,7 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
             valid = np.asarray(batch.valid[:n_real], np.float64)
             values = {
                 "sve": combo(feats.inlier_ratio, feats.s_b, feats.s_c),
-                "s_a": jnp.clip(feats.inlier_ratio / combo.rho, 0.0, 1.0),
-                "s_b": feats.s_b,
-                "s_c": feats.s_c,
+                **feature_metrics(feats, combo.rho),
             }
             part = {"count": valid.sum(1)}
             for key, v in values.items():
@@ -195,9 +188,10 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
         per_run["disturbance"] = meta["disturbance"].to_numpy()
         per_run["level"] = meta["level"].to_numpy()
         grouped = per_run.groupby(["disturbance", "level"], sort=True).sum(numeric_only=True)
+        keys = [c.removesuffix("_sum") for c in per_run.columns if c.endswith("_sum")]
         for (dist, level), g in grouped.iterrows():
             row = {"disturbance": dist, "level": level, "combination": name, "frames": int(g["count"])}
-            for key in ("sve", "s_a", "s_b", "s_c"):
+            for key in keys:
                 mean = g[f"{key}_sum"] / g["count"]
                 row[f"{key}_mean"] = mean
                 row[f"{key}_std"] = float(np.sqrt(max(g[f"{key}_sq"] / g["count"] - mean * mean, 0.0)))
@@ -285,7 +279,8 @@ def run_study(
     """Run every stage of a fitting study on `data` and write its tables to `out_dir`.
 
     Arguments:
-        data: FitData (with its buckets, for jsve.evaluation._evaluate); its objective config must be config's.
+        data: FitData (with its buckets, for jsve.evaluation._evaluate); its objective config must be
+            config's.
         data_description: JSON-ready facts about the data (source, simulator settings) for the report.
     Returns:
         The stage records (seconds and key results per stage).
@@ -414,11 +409,7 @@ def run_study(
     stages.run("heatmap", heatmap, [out / "heatmap.parquet"] if config.heatmap else [])
 
     def sve_levels():
-        combos = {
-            "sve-eq1": Combination(**EQ1),
-            "sve-option1": Combination(**OPTION1),
-            "sve-option2": Combination(**OPTION2),
-        }
+        combos = {name: preset(name).combination for name in PRESETS if rule_kind(preset(name)) == "sve"}
         if "sve" in fits:
             combos["fitted-sve"] = fits["sve"].rule.combination
         if {"disturbance", "level"} <= set(meta.columns):

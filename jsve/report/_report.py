@@ -28,17 +28,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from jsve.core._rules import BASELINES, PRESETS, RULE_KINDS, preset  # noqa: E402
+
 log = logging.getLogger(__name__)
 
-RULE_ORDER = ("orbslam3", "sve-eq1", "sve-option1", "sve-option2", "fitted-inliers", "fitted-sve")
-RULE_COLORS = {
-    "orbslam3": "#444444",
-    "sve-eq1": "#1f77b4",
-    "sve-option1": "#2ca02c",
-    "sve-option2": "#ff7f0e",
-    "fitted-inliers": "#7f7f7f",
-    "fitted-sve": "#d62728",
-}
+RULE_ORDER = PRESETS + tuple(f"fitted-{kind}" for kind in RULE_KINDS)
+"""The presets, then the fitted families (jsve.fitting._crossval names them "fitted-<family>")."""
+RULE_COLORS = dict(
+    zip(RULE_ORDER, ("#444444", "#1f77b4", "#2ca02c", "#ff7f0e", "#7f7f7f", "#d62728"), strict=True)
+)
+"""One colour per rule of RULE_ORDER (a new preset must choose its own: zip is strict)."""
 PNG_META = {"Software": None}
 
 
@@ -213,7 +212,7 @@ def _heldout_view(summary: pd.DataFrame) -> pd.DataFrame:
             "failure rate": d["failure_rate"],
             "coverage": d["coverage"],
         }
-        for base in ("orbslam3", "sve-option2"):
+        for base in BASELINES.values():
             key = f"diff_vs_{base}"
             present = key in d and pd.notna(d[key])
             row[f"vs {base}, m [CI]"] = (
@@ -288,15 +287,13 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
     if {"disturbance", "level"} <= set(summary.columns):
         figures["RMS ATE and failures per level"] = figure_ate_levels(summary, fig_dir / "ate_levels.png")
     if heat is not None:
-        from jsve.core._rules import preset
-
         for family, g in heat.groupby("family", sort=True):
             x_name, y_name = g["x_name"].iloc[0], g["y_name"].iloc[0]
             marks = {}
             if family in fitted:
                 p = fitted[family]["params"]
                 marks["fitted"] = (p[x_name], p[y_name])
-            base = "sve-option2" if family == "sve" else "orbslam3"
+            base = BASELINES[str(family)]
             th = preset(base).thresholds
             marks[base] = (float(getattr(th, x_name)), float(getattr(th, y_name)))
             figures[f"Objective over {x_name} x {y_name} ({family})"] = figure_heatmap(

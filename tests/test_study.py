@@ -1,0 +1,96 @@
+"""jsve.fitting._study: the study's configuration and its tables (whole studies: tests/test_report.py).
+
+Oracles: jsve.fitting._space for the families' spaces, and the per-frame features averaged by hand
+(numpy over the valid frames of each disturbance and level) for the SVE-per-level table.
+"""
+
+from __future__ import annotations
+
+import knownanswer as ka
+import numpy as np
+import pytest
+
+from jsve.core._rules import preset
+from jsve.core._sve import FrameFeatures, s_a_from_ratio
+from jsve.fitting._fit import FitData
+from jsve.fitting._search import search
+from jsve.fitting._space import inlier_space, space_from_dict, sve_space
+from jsve.fitting._study import StudyConfig, heatmap_table, sve_level_table
+
+
+def test_config_spaces_are_the_families_spaces():
+    config = StudyConfig()
+    assert config.space("sve") == sve_space() and config.space("inliers") == inlier_space()
+    narrowed = StudyConfig(spaces={"sve": {"fixed": {"rho": 0.25}, "free": {"imu_init": [0.0, 0.3]}}})
+    want = space_from_dict({"kind": "sve", "fixed": {"rho": 0.25}, "free": {"imu_init": [0.0, 0.3]}})
+    assert narrowed.space("sve") == want and want.dim == sve_space().dim - 1
+    assert narrowed.space("inliers") == inlier_space()
+    with pytest.raises(ValueError, match="space kind must be 'sve' or 'inliers', got 'linear'"):
+        config.space("linear")
+
+
+def test_config_round_trip_and_unknown_keys():
+    config = StudyConfig(kfold=3, heatmap=("imu_init", "not_init", 5))
+    assert StudyConfig.from_dict(config.to_dict()) == config
+    with pytest.raises(ValueError, match="unknown study settings"):
+        StudyConfig.from_dict({"kfolds": 3})
+    with pytest.raises(ValueError, match=r"unknown \[fit\] settings"):
+        StudyConfig.from_dict({"fit": {"steps": 3}})
+
+
+@pytest.fixture(scope="module")
+def data():
+    return FitData.from_runs(ka.make_study("occlusion", range(6), n_frames=200))
+
+
+def test_sve_level_table_is_the_mean_of_the_valid_frames(data):
+    """Per (disturbance, level, combination): frames, and the mean and std of the score and of every
+    metric (S_a at the combination's rho, then each further FrameFeatures field) over the valid frames
+    of those runs, as numpy computes them from the features (float64 sums of float32 values: 1e-6
+    relative for means, 1e-4 for the std's one-pass variance)."""
+    combos = {name: preset(name).combination for name in ("sve-eq1", "sve-option2")}
+    table = sve_level_table(data, combos)
+    metrics = [k for k in FrameFeatures.__dataclass_fields__ if k not in ("n_inliers", "inlier_ratio")]
+    assert {"s_b", "s_c"} <= set(metrics)
+    assert list(table.columns) == ["disturbance", "level", "combination", "frames"] + [
+        f"{k}_{s}" for k in ("sve", "s_a", *metrics) for s in ("mean", "std")
+    ]
+    frames = []
+    for feats, batch, n in zip(data.features, data.batches, data.run_counts, strict=True):
+        valid = np.asarray(batch.valid[:n])
+        for r in range(n):
+            keys = ("inlier_ratio", *metrics)
+            frames.append({k: np.asarray(getattr(feats, k)[r], np.float64)[valid[r]] for k in keys})
+    levels = data.meta["level"].to_numpy()
+    for name, combo in combos.items():
+        for level in np.unique(levels):
+            runs = [frames[i] for i in np.flatnonzero(levels == level)]
+            cat = {k: np.concatenate([f[k] for f in runs]) for k in runs[0]}
+            want = {
+                "sve": np.asarray(combo(cat["inlier_ratio"], cat["s_b"], cat["s_c"]), np.float64),
+                "s_a": np.asarray(s_a_from_ratio(cat["inlier_ratio"], combo.rho), np.float64),
+                **{k: cat[k] for k in metrics},
+            }
+            row = table[(table["combination"] == name) & (table["level"] == level)].iloc[0]
+            assert row["frames"] == len(cat["s_b"])
+            for k, x in want.items():
+                np.testing.assert_allclose(row[f"{k}_mean"], x.mean(), rtol=1e-6, err_msg=k)
+                np.testing.assert_allclose(row[f"{k}_std"], x.std(), rtol=1e-4, atol=1e-7, err_msg=k)
+
+
+def test_heatmap_table_is_the_search_over_a_grid(data):
+    """Every cell is the search's objective at that pair of thresholds, the other values held (to
+    float32 rounding of the kernel)."""
+    space = inlier_space()
+    values = space.values_of(preset("orbslam3"))
+    weights = np.ones(data.n_runs)
+    table = heatmap_table(data, space, values, weights, "imu_init", "recovery", 3)
+    assert len(table) == 9 and set(table["x_name"]) == {"imu_init"} and set(table["y_name"]) == {"recovery"}
+    cell = table.iloc[4]
+    point = np.array(values)
+    point[space.names.index("imu_init")], point[space.names.index("recovery")] = cell["x"], cell["y"]
+    res = search(data.parts, space, point[None], data.config, run_counts=data.run_counts, progress=False)
+    # float32 kernel: XLA contracts multiply-adds differently for another number of settings (lanes)
+    assert cell["objective"] == pytest.approx(float(res.objective(weights)[0]), rel=1e-5)
+    with pytest.raises(ValueError, match="heat map axes"):
+        heatmap_table(data, space, values, weights, "imu_init", "rho", 3)
