@@ -1,7 +1,8 @@
 """Image disturbances: pure functions on one grey image, and their registry (an I/O edge of jsve).
 
 Every disturbance is a pure function on one 8-bit grey image (H x W numpy array) and one level,
-registered in `DISTURBANCES` as name -> Disturbance(function, levels, unit, doc). The seed paper's
+registered in `DISTURBANCES` as name -> Disturbance(function, levels, unit, doc); the level grids
+are jsve.core._levels.LEVELS, which the simulator shares. The seed paper's
 three (Rugg-Gunn & Aitken 2022, section 3) keep its exact level grids: Gaussian blur, downsampling and
 a centred black occlusion. Five more cover what SLAM users meet in the field: sensor noise, low
 light, motion blur, haze and lens dirt. See docs/disturbances.md.
@@ -25,6 +26,8 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+
+from jsve.core._levels import LEVELS
 
 # --------------------------------------------------------------------------------------------------
 # Checks shared by the image functions
@@ -372,7 +375,8 @@ def _seed_tuple(seed: int | Sequence[int]) -> tuple[int, ...]:
 
 
 class Disturbance(NamedTuple):
-    """One registered disturbance: a pure image function, its default level grid, unit and doc."""
+    """One registered disturbance: a pure image function, its default level grid (jsve.core._levels),
+    unit and doc."""
 
     function: Callable[..., np.ndarray]
     levels: tuple[float, ...]
@@ -383,50 +387,50 @@ class Disturbance(NamedTuple):
 DISTURBANCES: dict[str, Disturbance] = {
     "blur": Disturbance(
         gaussian_blur,
-        tuple(range(0, 55, 5)),
+        LEVELS["blur"],
         "kernel px (n x n; even n -> n + 1)",
         "Gaussian blur, seed paper; OpenCV default sigma for the kernel size",
     ),
     "downsample": Disturbance(
         downsample,
-        tuple(round(1.0 - 0.1 * i, 1) for i in range(10)),
+        LEVELS["downsample"],
         "scale factor s",
         "INTER_AREA down to round(W s) x round(H s), seed paper; mode rescale (back up, INTER_LINEAR) or "
         "calibration (small image, scaled intrinsics)",
     ),
     "occlusion": Disturbance(
         occlusion,
-        tuple(range(50, 500, 50)),
+        LEVELS["occlusion"],
         "square side px",
         "black n x n square in the centre, seed paper",
     ),
     "noise": Disturbance(
         sensor_noise,
-        (0, 2, 5, 10, 15, 20, 30, 40),
+        LEVELS["noise"],
         "sigma DN",
         "additive white Gaussian sensor noise, new every frame",
     ),
     "low_light": Disturbance(
         low_light,
-        (1.0, 0.5, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03),
+        LEVELS["low_light"],
         "light fraction k",
         "irradiance times k with Poisson-Gaussian noise; optional auto gain and gamma",
     ),
     "motion_blur": Disturbance(
         motion_blur,
-        (0, 5, 10, 15, 20, 30, 40, 50),
+        LEVELS["motion_blur"],
         "streak length px",
         "line kernel of the given length along `angle` degrees (default 0, horizontal)",
     ),
     "haze": Disturbance(
         haze,
-        (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0),
+        LEVELS["haze"],
         "optical depth tau",
         "I = J t + A (1 - t), t = exp(-tau), uniform or patchy depth-free transmission",
     ),
     "lens_dirt": Disturbance(
         lens_dirt,
-        (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),
+        LEVELS["lens_dirt"],
         "mean opacity",
         "fixed soft blotches from a seed, the same on every frame; blocked light partly scattered",
     ),

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from jsve.core._levels import LEVELS, SEED_DISTURBANCES
 from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
 from jsve.sim._motion import (
@@ -61,7 +62,6 @@ from jsve.sim._motion import (
 from jsve.sim._vision import (
     EUROC_CAM0,
     N_FEATURES,
-    SEED_GRIDS,
     Counts,
     SceneProfile,
     VisionParams,
@@ -76,17 +76,14 @@ logger = logging.getLogger(__name__)
 FRONTEND = "jsve simulator 1"
 """Value of the `frontend` metadata key of simulated logs (the model version)."""
 
-EXTRA_GRIDS = {
-    "noise": (0, 2, 5, 10, 15, 20, 30, 40),
-    "low_light": (1.0, 0.5, 0.3, 0.2, 0.15, 0.1, 0.07, 0.05, 0.03),
-    "motion_blur": (0, 5, 10, 15, 20, 30, 40, 50),
-    "haze": (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0),
-    "lens_dirt": (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),
-}
-"""Level grids of jsve.image._disturb's further disturbances (the same as jsve.image._disturb.DISTURBANCES; a test
-checks), so that the simulator needs neither OpenCV nor images."""
+GRIDS = {name: (0, *levels) if name == "occlusion" else levels for name, levels in LEVELS.items()}
+"""The level grids the simulator runs: jsve.core._levels.LEVELS (the image registry's), with the
+undisturbed 0 before occlusion's 50..450, as each of the seed paper's figures starts from the
+undisturbed camera (blur's grid starts at 0 and downsample's at 1.0 already)."""
 
-GRIDS = {**SEED_GRIDS, **EXTRA_GRIDS}
+SEED_GRIDS = {name: GRIDS[name] for name in SEED_DISTURBANCES}
+"""The seed paper's 31 settings: blur 0..50 step 5 (11), downsample 1.0..0.1 (10), occlusion 0..450
+step 50 (10)."""
 
 
 @dataclass(frozen=True)
@@ -844,7 +841,6 @@ def write_study(
 __all__ = [
     "FRONTEND",
     "GRIDS",
-    "EXTRA_GRIDS",
     "Setting",
     "settings",
     "TrackingParams",
