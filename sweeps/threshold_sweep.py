@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     import pandas as pd
 
     from jsve.core import ObjectiveConfig
-    from jsve.core._objective import group_weights  # not re-exported by jsve.core yet
+    from jsve.evaluation import group_weights
     from jsve.fitting import FitData, design, grid_design, search, space_from_dict
 
     seed = int(config.get("seed", 0))

@@ -35,7 +35,6 @@ arch = _architecture()
 KNOWN = {
     # (importer, imported) -> why it is still there. Each entry is a real fault the layering names; the
     # entry goes with its fix, and test_known_faults_are_still_there fails once the import is gone.
-    ("jsve.core._objective", "pandas"): "group_weights takes the runs' metadata as a DataFrame",
 }
 
 

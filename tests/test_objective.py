@@ -18,7 +18,8 @@ import pandas as pd
 import pytest
 
 from jsve.core._batch import LogBatch
-from jsve.core._objective import ObjectiveConfig, group_weights, objective, run_losses, weighted_objective
+from jsve.core._objective import ObjectiveConfig, objective, run_losses, weighted_objective
+from jsve.evaluation._aggregate import group_weights
 from jsve.core._replay import batch_features, replay
 from jsve.core._rules import InlierRule, SoftLogic, Thresholds, preset
 from jsve.evaluation._evaluate import evaluate_batch

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jsve.core._objective import group_weights
+from jsve.evaluation import group_weights
 from jsve.fitting._fit import FitConfig, FitData
 from jsve.fitting._study import StudyConfig, read_table, run_study
 from jsve.report._report import markdown_table, write_report

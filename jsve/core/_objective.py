@@ -25,13 +25,11 @@ probability tends to its hard 0/1 value and the relaxed objective to the hard on
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pandas as pd
 from jaxtyping import Array, Float
 
 from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES
@@ -202,26 +200,3 @@ def objective(
             f"weights must have shape ({batch.n_runs},) (one per run), got {tuple(weights.shape)}"
         )
     return weighted_objective(run_losses(batch, rule, features, config, logic=logic), weights)
-
-
-def group_weights(
-    meta: pd.DataFrame, by: Sequence[str] | None = ("sequence", "disturbance", "level")
-) -> np.ndarray:
-    """Run weights under which every group of `by` counts equally (mean weight 1).
-
-    Arguments:
-        meta: one row per run (host metadata, e.g. Bucket.meta).
-        by: metadata columns defining a group; None or [] gives every run weight 1.
-    Returns:
-        float64 [R]: n_runs / (n_groups x size of the run's group).
-    """
-    n = len(meta)
-    if not by:
-        return np.ones(n)
-    missing = [k for k in by if k not in meta.columns]
-    if missing:
-        raise ValueError(f"group_weights: metadata lacks {missing}; has {list(meta.columns)}")
-    keys = meta[list(by)].astype(str).agg("\x1f".join, axis=1)
-    sizes = keys.map(keys.value_counts())
-    n_groups = keys.nunique()
-    return (n / (n_groups * sizes.to_numpy(np.float64))).astype(np.float64)

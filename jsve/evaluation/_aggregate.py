@@ -176,3 +176,26 @@ def aggregate(
                 row[f"rmse_mean_{suffix}_ci_high"] = high
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def group_weights(
+    meta: pd.DataFrame, by: Sequence[str] | None = ("sequence", "disturbance", "level")
+) -> np.ndarray:
+    """Run weights under which every group of `by` counts equally (mean weight 1).
+
+    Arguments:
+        meta: one row per run (host metadata, e.g. Bucket.meta).
+        by: metadata columns defining a group; None or [] gives every run weight 1.
+    Returns:
+        float64 [R]: n_runs / (n_groups x size of the run's group).
+    """
+    n = len(meta)
+    if not by:
+        return np.ones(n)
+    missing = [k for k in by if k not in meta.columns]
+    if missing:
+        raise ValueError(f"group_weights: metadata lacks {missing}; has {list(meta.columns)}")
+    keys = meta[list(by)].astype(str).agg("\x1f".join, axis=1)
+    sizes = keys.map(keys.value_counts())
+    n_groups = keys.nunique()
+    return (n / (n_groups * sizes.to_numpy(np.float64))).astype(np.float64)

@@ -392,7 +392,7 @@ def fit(
     """Fit the free parameters of `space` to minimise the weighted hard objective over `data`.
 
     Arguments:
-        weights: [R] run weights (jsve.core._objective.group_weights; 0 excludes a run, e.g. a held-out fold).
+        weights: [R] run weights (jsve.evaluation.group_weights; 0 excludes a run, e.g. a held-out fold).
         search_result: a search already run on these data (cross-validation reuses one for all folds).
     Returns:
         FitResult; its stages record the objective after the search, Nelder-Mead and the relaxed fit.

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig, group_weights
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
+from jsve.evaluation._aggregate import group_weights
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination, feature_metrics
 from jsve.evaluation._aggregate import aggregate

@@ -34,6 +34,7 @@ import jax
 import numpy as np
 import pandas as pd
 
+from jsve.core._geometry import yaw_rotation
 from jsve.io import _schema as schema
 from jsve.io._keypoints import KeypointLog
 from jsve.io._schema import RunLog
@@ -89,14 +90,6 @@ class DrivingConfig:
 # Ground truth
 
 
-def yaw_matrix(yaw: np.ndarray) -> np.ndarray:
-    """[..., 3, 3] rotations about z."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    m = np.zeros(np.shape(yaw) + (3, 3))
-    m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1], m[..., 2, 2] = c, -s, s, c, 1.0
-    return m
-
-
 def procedural_poses(rng: np.random.Generator, config: DrivingConfig = DrivingConfig()) -> np.ndarray:
     """A car-like planar path: [F, 4, 4] T_wb at config.fps, speed within config.speed, gentle yaw.
 
@@ -115,7 +108,7 @@ def procedural_poses(rng: np.random.Generator, config: DrivingConfig = DrivingCo
     step = speed[:-1, None] * dt * np.stack([np.cos(yaw[:-1]), np.sin(yaw[:-1])], axis=1)
     xy = np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
     poses = np.tile(np.eye(4), (n, 1, 1))
-    poses[:, :3, :3] = yaw_matrix(yaw)
+    poses[:, :3, :3] = yaw_rotation(yaw, xp=np)
     poses[:, :2, 3] = xy
     poses[:, 2, 3] = 1.65
     return poses
@@ -321,7 +314,7 @@ def _odometry(gt: np.ndarray, yaw_err: np.ndarray, step_err: np.ndarray) -> np.n
     est[0] = gt[0]
     rel = np.linalg.inv(gt[:-1]) @ gt[1:]
     err = np.tile(np.eye(4), (len(gt) - 1, 1, 1))
-    err[:, :3, :3] = yaw_matrix(yaw_err[1:])
+    err[:, :3, :3] = yaw_rotation(yaw_err[1:], xp=np)
     err[:, :3, 3] = step_err[1:]
     steps = rel @ err
     for k in range(1, len(gt)):
