@@ -122,7 +122,9 @@ def time_evo(n_runs: int, n_frames: int) -> float:
     for r in range(n_runs):
         t0 = time.perf_counter()
         ref = PoseTrajectory3D(np.asarray(batch.gt_p[r], float), np.asarray(batch.gt_q[r], float), stamps[r])
-        est = PoseTrajectory3D(np.asarray(batch.vis_p[r], float), np.asarray(batch.vis_q[r], float), stamps[r])
+        est = PoseTrajectory3D(
+            np.asarray(batch.vis_p[r], float), np.asarray(batch.vis_q[r], float), stamps[r]
+        )
         ref, est = sync.associate_trajectories(ref, est)
         est.align(ref, correct_scale=False)
         ape = metrics.APE(metrics.PoseRelation.translation_part)
@@ -133,7 +135,9 @@ def time_evo(n_runs: int, n_frames: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sizes", default="10,100,1000,10000", help="numbers of runs")
     parser.add_argument("--frames", type=int, default=3600)
     parser.add_argument("--chunk", type=int, default=1000, help="runs per compiled call")

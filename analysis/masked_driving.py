@@ -3,10 +3,10 @@
     python analysis/masked_driving.py [--runs 20] [--frames 400] [--out docs/data/masked_driving.csv]
 
 Every run is simulated once; its original log carries the visual poses of the front-end on all keypoints,
-its masked log (jsve.masks._masks.apply_masks over the keypoint side file and the box masks) the counts without
+its masked log (jsve.masks.apply_masks over the keypoint side file and the box masks) the counts without
 the dynamic keypoints and the simulator's stand-in for a masked re-run (same draws, no dynamic features).
-Both are aligned (se3) and scored by jsve.masks._table_one.table_one; the paired difference masked - original of
-per-run RMSE gets a percentile bootstrap 95% CI (jsve.evaluation._aggregate.bootstrap_ci).
+Both are aligned (se3) and scored by jsve.masks.table_one; the paired difference masked - original of
+per-run RMSE gets a percentile bootstrap 95% CI (jsve.evaluation.bootstrap_ci).
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from jsve.io import _schema as schema  # noqa: E402
 from jsve.evaluation._aggregate import bootstrap_ci  # noqa: E402
+from jsve.io import _schema as schema  # noqa: E402
 from jsve.io._atomic import write_text  # noqa: E402
 from jsve.masks._table_one import PosePair, table_one, to_markdown  # noqa: E402
 from jsve.sim._driving import DrivingConfig, simulate_sequence  # noqa: E402

@@ -3,7 +3,7 @@
 Applies each registered disturbance (jsve.image._disturb.DISTURBANCES, plus downsampling in its calibration
 mode) at every level of its grid to the frames of one EuRoC sequence, in memory, measures the
 per-frame counts with jsve.image._measure (ORB-SLAM3-style ORB, verified frame-to-frame inliers, frustum
-stand-in, SVE bins) and summarises the SVE metrics (jsve.core._sve via jsve.image._measure.visibility_table) per
+stand-in, SVE bins) and summarises the SVE metrics (jsve.core via jsve.image.visibility_table) per
 level: mean and standard deviation over frames. Writes
 
     docs/data/real_response.csv              one row per (disturbance, parameters, level): the calibration

@@ -274,7 +274,7 @@ def failure_table(
     euroc_gt=None,
 ) -> pd.DataFrame:
     """Replay the seed's rules over a simulated study: per (disturbance, level, rule) the share of
-    failed runs (jsve.evaluation._evaluate's `failed`: LOST at least once, or no estimate) and the median APE RMSE
+    failed runs (jsve.evaluate's `failed`: LOST at least once, or no estimate) and the median APE RMSE
     (m, SE3-aligned, largest segment) of the runs that did not fail. One sequence at a time, so
     memory stays bounded."""
     from jsve.core._rules import preset

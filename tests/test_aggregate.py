@@ -1,4 +1,4 @@
-"""jsve.evaluation._aggregate: per-run tables and group summaries, checked against sums computed by hand in numpy."""
+"""jsve.evaluation._aggregate: per-run tables and group summaries, against sums computed by hand in numpy."""
 
 from __future__ import annotations
 

@@ -485,14 +485,14 @@ def test_errors_deep_in_a_large_log_name_the_right_line(tmp_path):
     # 3,000 frames are ~2 MB: past Arrow's 1 MB parse blocks.
     path = logs.write_log(make_run(3000, 4), tmp_path / "big.csv")
     good = path.read_bytes()
-    for line, column, text, reason in [
+    for line, column, bad, reason in [
         (2900, "n_inliers", "x", "not an integer"),
         (2950, "vis_px", "1.2.3", "not a number"),
         (2999, "imu_dt", "-1", "must be >= 0"),
     ]:
         path.write_bytes(good)
-        set_field(path, line, column, text)
-        expect(path, LogFormatError, line, column=column, value=text, reason=reason)
+        set_field(path, line, column, bad)
+        expect(path, LogFormatError, line, column=column, value=bad, reason=reason)
     path.write_bytes(good)
     lines = read_lines(path)
     lines[2700] = ",".join(lines[2700].split(",")[:50])

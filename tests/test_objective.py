@@ -19,9 +19,9 @@ import pytest
 
 from jsve.core._batch import LogBatch
 from jsve.core._objective import ObjectiveConfig, objective, run_losses, weighted_objective
-from jsve.evaluation._aggregate import group_weights
 from jsve.core._replay import batch_features, replay
 from jsve.core._rules import InlierRule, SoftLogic, Thresholds, preset
+from jsve.evaluation._aggregate import group_weights
 from jsve.evaluation._evaluate import evaluate_batch
 from jsve.fitting._space import RuleParams, inlier_space, sve_space
 from jsve.io._batching import from_runs
@@ -69,7 +69,7 @@ CASES = (
 
 @pytest.mark.parametrize(("name", "align"), CASES)
 def test_hard_objective_is_the_penalised_evaluate_table(x64, counts_runs, name, align):
-    """Per run, the hard loss is jsve.evaluation._evaluate's RMSE, or the penalty where evaluate says failed (to
+    """Per run, the hard loss is jsve.evaluate's RMSE, or the penalty where evaluate says failed (to
     1e-12 m in float64: the same alignment on the same frames, summed in a different order)."""
     batch, features, _ = _batch(counts_runs, jnp.float64)
     config = ObjectiveConfig(failure_penalty=2.5, align=align)
@@ -299,7 +299,8 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
 
     zeros = jnp.zeros((R, F), f64)
     features = FrameFeatures(
-        n_inliers=jnp.asarray(score[None], f64), inlier_ratio=zeros, s_b=zeros, s_c=zeros
+        **{name: zeros for name in FrameFeatures.__dataclass_fields__}
+        | {"n_inliers": jnp.asarray(score[None], f64)}
     )
     res = replay(batch, InlierRule(th), features, logic=SoftLogic(jnp.asarray(temperature)))
     expected = 1 - np.prod(s)

@@ -75,7 +75,9 @@ def padded_length(n: int, multiple: int) -> int:
     return max(multiple, int(math.ceil(n / multiple)) * multiple)
 
 
-def bucket_by_length(lengths: Iterable[int], *, max_padding: float = 0.1, pad_multiple: int = 64) -> list[np.ndarray]:
+def bucket_by_length(
+    lengths: Iterable[int], *, max_padding: float = 0.1, pad_multiple: int = 64
+) -> list[np.ndarray]:
     """Group run indices so that the padding a group adds stays within `max_padding` of its frames.
 
     Runs are sorted by length; a group is closed when adding the next (longer) run would make the
@@ -128,7 +130,11 @@ def pad_runs(batch: LogBatch, n_runs: int) -> LogBatch:
     return eqx.tree_at(
         lambda b: (b.valid, b.gt_valid, b.run_index),
         padded,
-        (padded.valid & keep[:, None], padded.gt_valid & keep[:, None], jnp.where(keep, padded.run_index, -1)),
+        (
+            padded.valid & keep[:, None],
+            padded.gt_valid & keep[:, None],
+            jnp.where(keep, padded.run_index, -1),
+        ),
     )
 
 

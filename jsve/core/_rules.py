@@ -157,7 +157,7 @@ def rule_to_dict(rule: Rule) -> dict:
     return out
 
 
-def rule_from_dict(spec: dict, source: str = "<dict>") -> Rule:
+def rule_from_dict(spec: Any, source: str = "<dict>") -> Rule:  # parsed JSON; wrong shapes get a ValueError
     """Inverse of `rule_to_dict`; errors name the source and the offending key."""
     try:
         kind = spec["kind"]
@@ -214,13 +214,13 @@ class MachineState(eqx.Module):
         segment: index of the current map (0 for the first).
     """
 
-    ok: Float[Array, ""]
-    recently_lost: Float[Array, ""]
-    lost: Float[Array, ""]
-    t_lost: Float[Array, ""]
-    map_start_t: Float[Array, ""]
-    map_start_k: Float[Array, ""]
-    segment: Float[Array, ""]
+    ok: Float[Array, "*runs"]
+    recently_lost: Float[Array, "*runs"]
+    lost: Float[Array, "*runs"]
+    t_lost: Float[Array, "*runs"]
+    map_start_t: Float[Array, "*runs"]
+    map_start_k: Float[Array, "*runs"]
+    segment: Float[Array, "*runs"]
 
 
 def initial_state(dtype=float) -> MachineState:
@@ -237,9 +237,9 @@ class FrameDecision(eqx.Module):
     has_estimate = accepted + predicted. new_map: a new map (segment) starts at this frame.
     """
 
-    accepted: Float[Array, ""]
-    predicted: Float[Array, ""]
-    new_map: Float[Array, ""]
+    accepted: Float[Array, "*runs"]
+    predicted: Float[Array, "*runs"]
+    new_map: Float[Array, "*runs"]
 
 
 def tracking_succeeds(logic, score, th: Thresholds, recently_lost, imu_ok, in_reloc):

@@ -76,7 +76,7 @@ def s_c(n_inliers: ArrayLike, n_frustum: ArrayLike, clamp: bool = True) -> Float
     return jnp.clip(value, 0.0, 1.0) if clamp else value
 
 
-def power_mean(x: Float[Array, "... k"], w: Float[Array, " k"], p: ArrayLike) -> Float[Array, ...]:
+def power_mean(x: Float[ArrayLike, "... k"], w: Float[ArrayLike, " k"], p: ArrayLike) -> Float[Array, ...]:
     """Weighted power mean (sum_i w_i x_i^p)^(1/p) of non-negative x, weights summing to 1.
 
     p = 1 arithmetic, p -> 0 geometric (exp sum w log x), p = -1 harmonic. A zero entry with positive
@@ -190,7 +190,7 @@ class Combination(eqx.Module):
         self.q = jnp.asarray(q, float)
         self.rho = jnp.asarray(rho, float)
 
-    def __call__(self, ratio: Array, sb: Array, sc: Array) -> Float[Array, ...]:
+    def __call__(self, ratio: ArrayLike, sb: ArrayLike, sc: ArrayLike) -> Float[Array, ...]:
         """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes)."""
         ratio, sb, sc = (jnp.asarray(x, float) for x in (ratio, sb, sc))
         return combination_from_logs(self, *feature_logs(ratio, sb, sc))

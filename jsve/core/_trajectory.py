@@ -54,14 +54,14 @@ class ErrorStats(eqx.Module):
     failed.
     """
 
-    rmse: Float[Array, ""]
-    mean: Float[Array, ""]
-    median: Float[Array, ""]
-    std: Float[Array, ""]
-    min: Float[Array, ""]
-    max: Float[Array, ""]
-    sse: Float[Array, ""]
-    count: Int[Array, ""]
+    rmse: Float[Array, "*runs"]
+    mean: Float[Array, "*runs"]
+    median: Float[Array, "*runs"]
+    std: Float[Array, "*runs"]
+    min: Float[Array, "*runs"]
+    max: Float[Array, "*runs"]
+    sse: Float[Array, "*runs"]
+    count: Int[Array, "*runs"]
 
 
 class RunError(eqx.Module):
@@ -80,10 +80,10 @@ class RunError(eqx.Module):
     """
 
     stats: ErrorStats
-    coverage: Float[Array, ""]
-    n_segments: Int[Array, ""]
-    failed: Bool[Array, ""]
-    segment: Int[Array, ""]
+    coverage: Float[Array, "*runs"]
+    n_segments: Int[Array, "*runs"]
+    failed: Bool[Array, "*runs"]
+    segment: Int[Array, "*runs"]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -135,7 +135,7 @@ def align(
     ref_p: Float[Array, "T 3"],
     mask: Bool[Array, " T"] | Float[Array, " T"],
     *,
-    method: AlignMethod,
+    method: str,  # AlignMethod; an unknown name gets a ValueError naming the choices
     est_q: Float[Array, "T 4"] | None = None,
     ref_q: Float[Array, "T 4"] | None = None,
     n_first: int | None = None,
@@ -312,7 +312,7 @@ def run_error(
     *,
     align: AlignMethod = "se3",
     n_first: int | None = None,
-    segments: SegmentMode = "largest",
+    segments: str = "largest",  # SegmentMode; checked here with a message naming the choices
     min_coverage: float | Float[Array, ""] = 0.0,
     max_segments: int = 8,
 ) -> RunError:
@@ -439,7 +439,7 @@ def batched_run_error(
     *,
     align: AlignMethod = "se3",
     n_first: int | None = None,
-    segments: SegmentMode = "largest",
+    segments: str = "largest",  # SegmentMode; checked here with a message naming the choices
     min_coverage: float | Float[Array, ""] = 0.0,
     max_segments: int = 8,
     runs_per_block: int = RUNS_PER_BLOCK,

@@ -25,10 +25,9 @@ import numpy as np
 import pandas as pd
 
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
-from jsve.evaluation._aggregate import group_weights
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination, feature_metrics
-from jsve.evaluation._aggregate import aggregate
+from jsve.evaluation._aggregate import aggregate, group_weights
 from jsve.evaluation._evaluate import evaluate
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from jsve.fitting._designs import grid_design

@@ -198,7 +198,7 @@ def make_scene(rng: np.random.Generator, n_frames: int, config: DrivingConfig = 
 
 
 class BoxMasks:
-    """The scene's boxes as a jsve.masks._masks mask source: frame index -> bool [height, width] (in memory)."""
+    """The scene's boxes as a jsve.masks mask source: frame index -> bool [height, width] (in memory)."""
 
     def __init__(self, scene: Scene):
         self.scene = scene

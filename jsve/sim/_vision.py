@@ -276,11 +276,6 @@ class VisionParams:
 # Disturbances as physical degradations
 
 
-SEED_GRIDS = {
-    "blur": tuple(range(0, 55, 5)),
-    "downsample": tuple(round(1.0 - 0.1 * i, 1) for i in range(10)),
-    "occlusion": tuple(range(0, 500, 50)),
-}
 """The seed paper's level grids as the simulator runs them: blur 0..50 step 5 (11), downsample 1.0..0.1
 (10), occlusion 0..450 step 50 (10: the seed's 50..450 plus the undisturbed 0 that each figure of the
 paper starts from). 31 settings."""
@@ -310,7 +305,7 @@ class Degradation:
 
 
 def gaussian_blur_sigma(n: float) -> float:
-    """px: OpenCV's default sigma of the seed's n x n blur (jsve.image._disturb.blur_sigma, without OpenCV)."""
+    """px: OpenCV's default sigma of the seed's n x n blur (jsve.image's blur_sigma, no OpenCV)."""
     if n <= 0:
         return 0.0
     k = int(n) if int(n) % 2 == 1 else int(n) + 1
@@ -563,7 +558,7 @@ class Counts:
 
 def texture_mtf(sigma: np.ndarray, wavelength: np.ndarray, box: float = 0.0) -> np.ndarray:
     """Amplitude left of texture of wavelength `wavelength` (px) after a Gaussian blur sigma (px) and
-    a box average of width `box` px followed by linear interpolation over the same width (jsve.image._disturb's
+    a box average of width `box` px followed by linear interpolation over the same width (jsve.image's
     downsample-rescale): exp(-2 pi^2 sigma^2 / wavelength^2) |sinc(box / wavelength)|^3 (box: sinc,
     tent: sinc^2; sinc(x) = sin(pi x) / (pi x))."""
     wavelength = np.asarray(wavelength, float)
