@@ -103,7 +103,8 @@ def _analysis_module(name: str):
     return module
 
 
-def test_masking_lowers_ape():
+def test_masking_lowers_ape(x64):
+    """In float64, as `python analysis/masked_driving.py` runs it."""
     study = _analysis_module("masked_driving").study
 
     table, per_run = study(n_runs=4, n_frames=250)
