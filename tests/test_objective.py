@@ -18,9 +18,10 @@ import pandas as pd
 import pytest
 
 from jsve.core._batch import LogBatch
+from jsve.core._machine import SoftLogic
 from jsve.core._objective import ObjectiveConfig, objective, run_losses, weighted_objective
 from jsve.core._replay import batch_features, replay
-from jsve.core._rules import InlierRule, SoftLogic, Thresholds, preset
+from jsve.core._rules import InlierRule, Thresholds, preset
 from jsve.evaluation._aggregate import group_weights
 from jsve.evaluation._evaluate import evaluate_batch
 from jsve.fitting._space import RuleParams, inlier_space, sve_space
@@ -307,7 +308,7 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
     np.testing.assert_allclose(float(res.lost_any[0]), expected, rtol=1e-9)
     # the naive accumulation over per-frame LOST mass is measurably larger on these frames
     lost_mass = []
-    from jsve.core._rules import initial_state, machine_step
+    from jsve.core._machine import initial_state, machine_step
 
     state = initial_state(f64)
     for k in range(n):

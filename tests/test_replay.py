@@ -25,17 +25,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from jsve.core._batch import LogBatch
+from jsve.core._machine import MachineState, SoftLogic, initial_state, machine_step
 from jsve.core._replay import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST, batch_features, replay, replay_run
-from jsve.core._rules import (
-    InlierRule,
-    MachineState,
-    SoftLogic,
-    SVERule,
-    Thresholds,
-    initial_state,
-    machine_step,
-    preset,
-)
+from jsve.core._rules import InlierRule, SVERule, Thresholds, preset
 from jsve.core._sve import FrameFeatures
 
 ORBSLAM3_TH = dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0)

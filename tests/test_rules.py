@@ -19,22 +19,25 @@ import numpy as np
 import oracle_orbslam3 as oracle
 import pytest
 
-from jsve.core._rules import (
-    BASELINES,
+from jsve.core._machine import (
     MODE_LOST,
     MODE_OK,
     MODE_RECENTLY_LOST,
-    PRESETS,
-    RULE_KINDS,
     TIME_RECENTLY_LOST_S,
     HardLogic,
-    InlierRule,
     MachineState,
     SoftLogic,
-    SVERule,
-    Thresholds,
     initial_state,
     machine_step,
+    tracking_succeeds,
+)
+from jsve.core._rules import (
+    BASELINES,
+    PRESETS,
+    RULE_KINDS,
+    InlierRule,
+    SVERule,
+    Thresholds,
     param_names,
     preset,
     rule_from_dict,
@@ -42,7 +45,6 @@ from jsve.core._rules import (
     rule_kind,
     rule_params,
     rule_to_dict,
-    tracking_succeeds,
 )
 from jsve.core._sve import Combination, FrameFeatures, frame_features
 

@@ -23,6 +23,9 @@ from jsve.core._geometry import quat_rotate as quat_rotate
 from jsve.core._geometry import quat_to_matrix as quat_to_matrix
 from jsve.core._geometry import so3_exp as so3_exp
 from jsve.core._imu import imu_predict as imu_predict
+from jsve.core._machine import HardLogic as HardLogic
+from jsve.core._machine import SoftLogic as SoftLogic
+from jsve.core._machine import machine_step as machine_step
 from jsve.core._objective import ObjectiveConfig as ObjectiveConfig
 from jsve.core._objective import objective as objective
 from jsve.core._objective import run_losses as run_losses
@@ -30,12 +33,9 @@ from jsve.core._replay import ReplayResult as ReplayResult
 from jsve.core._replay import batch_features as batch_features
 from jsve.core._replay import replay as replay
 from jsve.core._rules import PRESETS as PRESETS
-from jsve.core._rules import HardLogic as HardLogic
 from jsve.core._rules import InlierRule as InlierRule
-from jsve.core._rules import SoftLogic as SoftLogic
 from jsve.core._rules import SVERule as SVERule
 from jsve.core._rules import Thresholds as Thresholds
-from jsve.core._rules import machine_step as machine_step
 from jsve.core._rules import preset as preset
 from jsve.core._rules import rule_from_dict as rule_from_dict
 from jsve.core._rules import rule_to_dict as rule_to_dict

@@ -34,9 +34,10 @@ from jaxtyping import Array, Float
 
 from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES
 from jsve.core._batch import LogBatch
+from jsve.core._machine import TIME_RECENTLY_LOST_S, HardLogic
 from jsve.core._numerics import safe_divide
 from jsve.core._replay import batch_features, replay
-from jsve.core._rules import TIME_RECENTLY_LOST_S, HardLogic, Rule
+from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import align, weighted_rmse
 

@@ -1,6 +1,6 @@
 """Replay: what trajectory a switching rule would have produced from a logged run (DESIGN section 5).
 
-For every frame the state machine (jsve.core._rules.machine_step) decides between the logged visual
+For every frame the state machine (jsve.core._machine.machine_step) decides between the logged visual
 estimate and ORB-SLAM3's IMU prediction from the previous state (PredictStateIMU, jsve.core._imu);
 after LOST a new map starts a new, unaligned segment. One `lax.scan` over frames, vmapped over runs.
 """
@@ -14,16 +14,16 @@ from jaxtyping import Array, Bool, Float, Int
 
 from jsve.core._batch import LogBatch
 from jsve.core._imu import imu_predict
-from jsve.core._rules import (
+from jsve.core._machine import (
     MODE_LOST,
     MODE_OK,
     MODE_RECENTLY_LOST,
     TIME_RECENTLY_LOST_S,
     HardLogic,
-    Rule,
     initial_state,
     machine_step,
 )
+from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures, frame_features
 
 

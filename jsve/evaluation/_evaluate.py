@@ -19,8 +19,9 @@ from jaxtyping import Array, Bool, Float
 from tqdm.auto import tqdm
 
 from jsve.core._batch import LogBatch, iter_chunks, runs_per_chunk_for
+from jsve.core._machine import TIME_RECENTLY_LOST_S
 from jsve.core._replay import batch_features, replay
-from jsve.core._rules import TIME_RECENTLY_LOST_S, Rule
+from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import RunError, batched_run_error
 from jsve.evaluation._aggregate import per_run_table

@@ -30,9 +30,9 @@ import optimistix as optx
 import pandas as pd
 
 from jsve.core._batch import LogBatch, bucket_by_length, iter_chunks
+from jsve.core._machine import SoftLogic
 from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.core._replay import batch_features
-from jsve.core._rules import SoftLogic
 from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk

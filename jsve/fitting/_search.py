@@ -5,7 +5,7 @@ per-run matrices [settings, runs] (loss, failed, rmse, coverage), so that any we
 (cross-validation folds, bootstrap resamples, group balancing) is a matrix-vector product afterwards.
 
 The kernel (`search_chunk`) walks the frames once for a chunk of settings x runs, with settings and runs
-as the vector lanes of every scan step: ORB-SLAM3's state machine (jsve.core._rules.machine_step, the same
+as the vector lanes of every scan step: ORB-SLAM3's state machine (jsve.core._machine.machine_step, the same
 code the replay runs), ORB-SLAM3's IMU prediction (jsve.core._imu, on columns) and, instead of storing the
 trajectory, the sufficient statistics of its alignment to ground truth. With e_k = p_k - g_k - o (the
 estimate's offset from ground truth, less the run's mean visual offset o) and g_c the centred ground
@@ -44,8 +44,9 @@ from tqdm.auto import tqdm
 from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES, Moments, fit_moments
 from jsve.core._batch import LogBatch
 from jsve.core._imu import imu_predict_columns
+from jsve.core._machine import HardLogic, initial_state, machine_step
 from jsve.core._objective import ObjectiveConfig
-from jsve.core._rules import HardLogic, InlierRule, Rule, initial_state, machine_step
+from jsve.core._rules import InlierRule, Rule
 from jsve.core._sve import FrameFeatures, combination_from_logs, feature_logs
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ For any set of sequences x disturbance settings x runs, deterministically under 
                 degraded images, matching and localisation quality             (jsve.sim._vision)
     run         per run: map inliers and frustum counts, the visual pose error (information matrix of
                 the inliers' geometry, drift, gross jumps when tracking is weak), IMU initialisation,
-                and ORB-SLAM3's own state (its rule replayed by jsve.core._rules.machine_step)
+                and ORB-SLAM3's own state (its rule replayed by jsve.core._machine.machine_step)
 
 Nothing is defined through the SVE formulas; docs/simulator.md describes the model, its parameters,
 its calibration against real frames and its limits.
@@ -443,11 +443,12 @@ def _draw_run(
 
 def _orbslam3_states(n_inliers: np.ndarray, t: np.ndarray, imu_init: np.ndarray, fps: float) -> np.ndarray:
     """ORB-SLAM3's logged eTrackingState per frame [R, F] under its own rule (15/50/50/10), from
-    jsve.core._rules.machine_step: OK 2, RECENTLY_LOST 3, LOST 4 on the frame tracking is lost and
+    jsve.core._machine.machine_step: OK 2, RECENTLY_LOST 3, LOST 4 on the frame tracking is lost and
     NOT_INITIALIZED 1 while a new map waits to start."""
     import jax.numpy as jnp
 
-    from jsve.core._rules import MODE_LOST, preset
+    from jsve.core._machine import MODE_LOST
+    from jsve.core._rules import preset
 
     R, F = n_inliers.shape
     padded = max(1024, int(math.ceil(F / 1024)) * 1024)  # few distinct shapes: few compilations
@@ -479,7 +480,7 @@ def _machine_fn():
     import jax
     import jax.numpy as jnp
 
-    from jsve.core._rules import HardLogic, initial_state, machine_step
+    from jsve.core._machine import HardLogic, initial_state, machine_step
 
     def one(score, t, init, fps, delay, thresholds):
         k = jnp.arange(t.shape[0], dtype=t.dtype)
