@@ -26,7 +26,10 @@ class LogBatch(eqx.Module):
         t: [R, F] s since the run's first frame (relative, so float32 keeps 0.1 ms over hours).
         valid: [R, F] frame exists (False on padding).
         state: [R, F] int8, the front-end's own logged eTrackingState.
-        imu_init: [R, F] IMU initialised in the original run.
+        imu_init: [R, F] IMU initialised in the recorded run's map (Atlas::isImuInitialized).
+        imu_ba2: [R, F] inertial BA2 done for the recorded run's map (Map::GetIniertialBA2).
+        map_id: [R, F] int32, the recorded run's Atlas map (Map::GetId; a reset keeps it).
+        has_pose: [R, F] the recorded run posed the frame (vis_* are zeros / identity where not).
         n_extracted, n_inliers, n_frustum: [R, F] counts (int32).
         bins: [R, F, 64] keypoints per SVE bin (uint16).
         vis_p, vis_q, vis_v: [R, F, 3|4|3] visual estimate: m, wxyz, m/s; world frame.
@@ -35,7 +38,10 @@ class LogBatch(eqx.Module):
         gt_valid: [R, F] ground truth available.
         fps: [R] frames per second (sets the relocalisation window).
         gravity: [R, 3] m/s^2, world frame.
-        imu_init_delay: [R] s from the first frame to the first imu_init frame (inf if never).
+        imu_init_delay: [R] s from the first posed frame to the first imu_init frame (inf if never).
+        ba2_delay: [R] s from the first posed frame to the first imu_ba2 frame (inf if never).
+        n_features: [R] ORB nFeatures of the front-end (the original S_a divides by it).
+        stereo: [R] the sensor is IMU_STEREO or IMU_RGBD (log metadata `sensor`).
         run_index: [R] row of the run in the host metadata table; -1 for padding runs.
     """
 
@@ -43,6 +49,9 @@ class LogBatch(eqx.Module):
     valid: Bool[Array, "R F"]
     state: Int[Array, "R F"]
     imu_init: Bool[Array, "R F"]
+    imu_ba2: Bool[Array, "R F"]
+    map_id: Int[Array, "R F"]
+    has_pose: Bool[Array, "R F"]
     n_extracted: Int[Array, "R F"]
     n_inliers: Int[Array, "R F"]
     n_frustum: Int[Array, "R F"]
@@ -60,6 +69,9 @@ class LogBatch(eqx.Module):
     fps: Float[Array, " R"]
     gravity: Float[Array, "R 3"]
     imu_init_delay: Float[Array, " R"]
+    ba2_delay: Float[Array, " R"]
+    n_features: Float[Array, " R"]
+    stereo: Bool[Array, " R"]
     run_index: Int[Array, " R"]
 
     @property

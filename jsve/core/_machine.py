@@ -50,18 +50,84 @@ class SoftLogic(eqx.Module):
         return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
 
 
+SWITCH_MODELS = ("orbslam3", "imu-coast")
+"""What a frame in RECENTLY_LOST is posed with (docs/state-machine.md): "orbslam3", the logged pose
+(ORB-SLAM3 v1.0 optimises every tracked frame before its success test); "imu-coast", PredictStateIMU
+from the previous replayed state (a front-end that drops the visual update of a failed frame)."""
+
+
+def check_switch_model(switch_model: str) -> str:
+    """`switch_model` if it is one of SWITCH_MODELS, else a ValueError naming the choices."""
+    if switch_model not in SWITCH_MODELS:
+        raise ValueError(f"switch model must be one of {', '.join(SWITCH_MODELS)}; got {switch_model!r}")
+    return switch_model
+
+
+MONO_INIT_MIN_KEYPOINTS = 100
+"""MonocularInitialization: both frames need more than 100 keypoints (Tracking.cc l.2454, l.2483)."""
+MONO_INIT_MIN_MATCHES = 100
+"""MonocularInitialization: at least 100 matches between them (l.2495); the recorded inliers stand in."""
+STEREO_INIT_MIN_KEYPOINTS = 500
+"""StereoInitialization: more than 500 keypoints (l.2337)."""
+
+
+class FrameData(eqx.Module):
+    """What the log says about each frame, as the machine reads it (exact flags in the float dtype;
+    leading axes any shape, e.g. [F, R] frames-major in a scan, or one frame's [R]).
+
+    Attributes:
+        t: s since the log's first frame. k: frame index (float).
+        imu_init, imu_ba2: the recorded map's inertial stage (Atlas::isImuInitialized, GetIniertialBA2).
+        has_pose: the recorded run posed the frame (its logged pose exists).
+        can_init: a map could initialise on this frame, data part (keypoints, matches, a pose);
+            the machine adds "at least two frames after the loss".
+        rec_start: the recorded run starts a map here (a new map_id, or a pose after frames without one).
+        rec_loss: rec_start, and not the log's first map: the recorded run lost its map.
+        rec_start_t: s, start time of the recorded map the frame belongs to.
+        rec_reloc: frame index at which ORB-SLAM3 restarted its relocalisation window for this recorded
+            start (the recorded run's reset: its last posed frame), or -1.
+    """
+
+    t: Array
+    k: Array
+    imu_init: Array
+    imu_ba2: Array
+    has_pose: Array
+    can_init: Array
+    rec_start: Array
+    rec_loss: Array
+    rec_start_t: Array
+    rec_reloc: Array
+
+
+class RunConstants(eqx.Module):
+    """Per-run constants of the machine (leaves shaped like one frame's batch shape).
+
+    Attributes:
+        fps: frames/s; the relocalisation window is floor(fps) frames (mMaxFrames, an int).
+        imu_init_delay, ba2_delay: s the recorded run needed from its first map to IMU initialisation
+            and to inertial BA2; a map the replay starts later than the recorded one waits as long again.
+        stereo: 1 for IMU_STEREO / IMU_RGBD (their main test ignores the IMU state), else 0.
+    """
+
+    fps: Array
+    imu_init_delay: Array
+    ba2_delay: Array
+    stereo: Array
+
+
 class MachineState(eqx.Module):
     """Carry of the state machine. Modes are {0, 1} flags (probabilities when relaxed).
 
     Attributes:
-        ok, recently_lost, lost: mode flags, exactly one is 1 in the hard machine.
+        ok, recently_lost, lost: mode flags, exactly one is 1 in the hard machine. LOST means no map:
+            waiting for one to initialise (also before the log's first map).
         t_lost: s, time of the frame that entered RECENTLY_LOST (the timer is never restarted there).
-            Relaxed, it is the timer of the RECENTLY_LOST mass: the mass-weighted mean entry time of
-            the mass now in RECENTLY_LOST (the OK and LOST masses have no timer).
-        map_start_t: s, time of the first frame of the current map.
-        map_start_k: frame index of the first frame of the current map (ORB-SLAM3 sets
-            mnLastRelocFrameId to the initial frame of a new monocular map).
-        segment: index of the current map (0 for the first).
+            Relaxed, each clock is the mass-weighted mean over the mass that owns it (`_mass_mean`).
+        map_start_t: s, time of the first frame of the replay's current map.
+        k_loss: frame index of the last loss (reset or expiry); a map initialises two frames later.
+        reloc_k: mnLastRelocFrameId: frame index the relocalisation window counts from.
+        segment: index of the replay's current map (-1 before the first).
     """
 
     ok: Float[Array, "*runs"]
@@ -69,39 +135,50 @@ class MachineState(eqx.Module):
     lost: Float[Array, "*runs"]
     t_lost: Float[Array, "*runs"]
     map_start_t: Float[Array, "*runs"]
-    map_start_k: Float[Array, "*runs"]
+    k_loss: Float[Array, "*runs"]
+    reloc_k: Float[Array, "*runs"]
     segment: Float[Array, "*runs"]
 
 
 def initial_state(dtype=float) -> MachineState:
-    """Tracking OK in map 0, started at frame 0: the log begins once the front-end has a map."""
+    """No map yet (LOST), relocalisation window from frame 0 (mnLastRelocFrameId starts at 0): the
+    first recorded map start begins map 0."""
     one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
-    return MachineState(ok=one, recently_lost=zero, lost=zero, t_lost=zero, map_start_t=zero,
-                        map_start_k=zero, segment=zero)  # fmt: skip
+    return MachineState(ok=zero, recently_lost=zero, lost=one, t_lost=zero, map_start_t=zero,
+                        k_loss=-2 * one, reloc_k=zero, segment=-one)  # fmt: skip
 
 
 class FrameDecision(eqx.Module):
     """What the machine decided for one frame (flags in {0, 1}, probabilities when relaxed).
 
-    accepted: the visual estimate is used. predicted: the IMU prediction is used (RECENTLY_LOST).
-    has_estimate = accepted + predicted. new_map: a new map (segment) starts at this frame.
+    Attributes:
+        tracked: OK after the frame, posed by tracking (the test passed, or a map started here).
+        coasting: RECENTLY_LOST after the frame with an estimate (the logged pose under "orbslam3",
+            the IMU prediction under "imu-coast").
+        new_map: a map starts at this frame (the replay's own initialisation or a recorded start).
+        loss: tracking was lost at this frame (a reset, an expiry or a recorded map loss).
+        reset: the replay's map was reset here: its earlier frames lose their estimates.
     """
 
-    accepted: Float[Array, "*runs"]
-    predicted: Float[Array, "*runs"]
+    tracked: Float[Array, "*runs"]
+    coasting: Float[Array, "*runs"]
     new_map: Float[Array, "*runs"]
+    loss: Float[Array, "*runs"]
+    reset: Float[Array, "*runs"]
 
 
-def tracking_succeeds(logic, score, th: Thresholds, recently_lost, imu_ok, in_reloc):
-    """Tracking::TrackLocalMap's success test with the rule's thresholds (ORB-SLAM3 v1.0, IMU).
+def tracking_succeeds(logic, score, th: Thresholds, recently_lost, imu_ok, in_reloc, stereo=0.0):
+    """Tracking::TrackLocalMap's success test with the rule's thresholds (ORB-SLAM3 v1.0, l.3027-3064).
 
     In order: inside the relocalisation window a score below `reloc` fails; in RECENTLY_LOST a score
-    above `recovery` succeeds; otherwise fail below `imu_init` (IMU initialised) or `not_init`.
+    above `recovery` succeeds; otherwise fail below `imu_init` (IMU initialised, or a stereo sensor
+    whatever the IMU state) or below `not_init`.
     """
     fail_reloc = in_reloc * logic.less(score, th.reloc)
     recover = recently_lost * logic.greater(score, th.recovery)
-    pass_main = (imu_ok * (1 - logic.less(score, th.imu_init))
-                 + (1 - imu_ok) * (1 - logic.less(score, th.not_init)))  # fmt: skip
+    strict_imu = imu_ok + stereo - imu_ok * stereo
+    pass_main = (strict_imu * (1 - logic.less(score, th.imu_init))
+                 + (1 - strict_imu) * (1 - logic.less(score, th.not_init)))  # fmt: skip
     return (1 - fail_reloc) * (recover + (1 - recover) * pass_main)
 
 
@@ -109,76 +186,90 @@ def machine_step(
     logic,
     state: MachineState,
     score,
-    t,
-    k,
-    imu_init_logged,
+    frame: FrameData,
+    run: RunConstants,
     th: Thresholds,
-    fps,
-    imu_init_delay,
     time_recently_lost=TIME_RECENTLY_LOST_S,
 ) -> tuple[MachineState, FrameDecision]:
-    """Advance ORB-SLAM3's state machine by one frame (see docs/state-machine.md).
+    """Advance ORB-SLAM3's state machine by one frame (the table of docs/state-machine.md).
 
     Arguments:
-        score: the rule's score of this frame. t: s since the first frame. k: frame index (float).
-        imu_init_logged: 1 if the original run had the IMU initialised at this frame.
-        fps: frames per second; the relocalisation window is floor(fps) frames (ORB-SLAM3 mMaxFrames).
-        imu_init_delay: s the run needed to initialise the IMU; a new map waits as long again.
-        time_recently_lost: s in RECENTLY_LOST before LOST (5 in ORB-SLAM3 v1.0).
+        score: the rule's score of this frame. frame: the log's facts about it. run: per-run constants.
+        th: the rule's thresholds. time_recently_lost: s in RECENTLY_LOST before LOST (5 in v1.0).
     """
-    dtype = jnp.result_type(t, float)
-    ge = lambda a, b: (a >= b).astype(dtype)  # noqa: E731 - data comparisons stay exact when relaxed
-    imu_ok = imu_init_logged * ge(t - state.map_start_t, imu_init_delay)
-    # ORB-SLAM3's mMaxFrames is an int set from Camera.fps, so a fractional fps truncates.
-    in_reloc = (k < state.map_start_k + jnp.floor(fps)).astype(dtype)
-    expired = (t - state.t_lost > time_recently_lost).astype(dtype)
+    dtype = jnp.result_type(frame.t, float)
+    flag = lambda c: c.astype(dtype)  # noqa: E731 - data comparisons stay exact when relaxed
+    t, k = frame.t, frame.k
+    # The replay's map is younger than the recorded one when it started later: it then waits the
+    # recorded run's delays again before its IMU counts as initialised (and BA2 as done).
+    young = flag(state.map_start_t > frame.rec_start_t)
+    age = t - state.map_start_t
+    imu_ok = frame.imu_init * (1 - young * flag(age < run.imu_init_delay))
+    ba2_ok = frame.imu_ba2 * (1 - young * flag(age < run.ba2_delay))
+    in_reloc = flag(k < state.reloc_k + jnp.floor(run.fps))
+    expired = flag(t - state.t_lost > time_recently_lost)
 
-    ok_pass = tracking_succeeds(logic, score, th, 0.0, imu_ok, in_reloc)
-    rl_pass = (1 - expired) * tracking_succeeds(logic, score, th, 1.0, imu_ok, in_reloc)
-    # A new monocular map must pass the strict relocalisation-window test without the IMU.
-    lost_pass = tracking_succeeds(logic, score, th, 0.0, 0.0, 1.0)
-
+    ok_pass = tracking_succeeds(logic, score, th, 0.0, imu_ok, in_reloc, run.stereo)
     ok_fail = state.ok * (1 - ok_pass)
-    accepted = state.ok * ok_pass + state.recently_lost * rl_pass + state.lost * lost_pass
-    # OK -> RECENTLY_LOST when the IMU can carry the estimate; before IMU initialisation ORB-SLAM3
-    # resets the active map instead, which the replay treats as LOST (a new segment follows).
-    entering = ok_fail * imu_ok
-    staying = state.recently_lost * (1 - expired) * (1 - rl_pass)
-    to_recently_lost = entering + staying
-    to_lost = ok_fail * (1 - imu_ok) + state.recently_lost * expired + state.lost * (1 - lost_pass)
-    new_map = state.lost * lost_pass
-    tracking = accepted + to_recently_lost
+    ok_to_rl = ok_fail * imu_ok * ba2_ok  # l.2142-2163: RECENTLY_LOST, timer set
+    ok_reset = ok_fail * (1 - imu_ok * ba2_ok)  # l.2149-2153: ResetActiveMap before BA2
+    rl_expire = state.recently_lost * expired  # l.1993-1997
+    rl_live = state.recently_lost * (1 - expired)
+    rl_blind = rl_live * (1 - imu_ok)  # l.1988-1991: no PredictStateIMU, no TrackLocalMap
+    rl_pass = rl_live * imu_ok * tracking_succeeds(logic, score, th, 1.0, imu_ok, in_reloc, run.stereo)
+    rl_stay = rl_live * imu_ok - rl_pass
+    init = frame.can_init * flag(k >= state.k_loss + 2)
+    lost_init = state.lost * init
 
-    next_state = MachineState(
-        ok=accepted,
-        recently_lost=to_recently_lost,
-        lost=to_lost,
-        t_lost=_mass_mean(entering, staying, t, state.t_lost, ok_fail * t + (1 - ok_fail) * state.t_lost),
-        # The map start belongs to the tracking (OK + RECENTLY_LOST) mass: the mass starting a new map
-        # now, and the rest of the tracking mass, which keeps its own.
-        map_start_t=_mass_mean(
-            new_map, tracking - new_map, t, state.map_start_t, new_map * t + (1 - new_map) * state.map_start_t
-        ),
-        map_start_k=_mass_mean(
-            new_map, tracking - new_map, k, state.map_start_k, new_map * k + (1 - new_map) * state.map_start_k
-        ),
-        segment=state.segment + new_map,
+    tracked = state.ok * ok_pass + rl_pass + lost_init
+    coasting = ok_to_rl + rl_stay
+    loss = ok_reset + rl_expire
+    natural = MachineState(
+        ok=tracked,
+        recently_lost=coasting + rl_blind,
+        lost=loss + state.lost * (1 - init),
+        t_lost=_mass_mean(ok_to_rl, rl_stay + rl_blind, t, state.t_lost,
+                          ok_to_rl * t + (1 - ok_to_rl) * state.t_lost),
+        # The map start belongs to the OK + RECENTLY_LOST mass: the mass starting a map now, and the
+        # rest of the tracking mass, which keeps its own.
+        map_start_t=_mass_mean(lost_init, tracked + coasting + rl_blind - lost_init, t, state.map_start_t,
+                               lost_init * t + (1 - lost_init) * state.map_start_t),
+        k_loss=_mass_mean(loss, state.lost * (1 - init), k, state.k_loss,
+                          loss * k + (1 - loss) * state.k_loss),
+        reloc_k=_mass_mean(ok_reset, 1 - ok_reset, k, state.reloc_k,
+                           ok_reset * k + (1 - ok_reset) * state.reloc_k),
+        segment=state.segment + lost_init,
+    )  # fmt: skip
+    # The recorded run starts a map here (exact): every replayed world ends its map and starts this one.
+    rs = frame.rec_start
+    reloc = jnp.where(frame.rec_reloc >= 0, frame.rec_reloc, state.reloc_k)
+    forced = MachineState(ok=jnp.ones_like(tracked), recently_lost=jnp.zeros_like(tracked),
+                          lost=jnp.zeros_like(tracked), t_lost=state.t_lost, map_start_t=t + 0 * tracked,
+                          k_loss=state.k_loss, reloc_k=reloc + 0 * tracked,
+                          segment=jnp.round(state.segment) + 1)  # fmt: skip
+    next_state = jax.tree.map(lambda f, n: rs * f + (1 - rs) * n, forced, natural)
+    decision = FrameDecision(
+        tracked=rs + (1 - rs) * tracked,
+        coasting=(1 - rs) * coasting,
+        new_map=rs + (1 - rs) * lost_init,
+        loss=frame.rec_loss + (1 - rs) * loss,
+        reset=(1 - rs) * ok_reset,
     )
-    return next_state, FrameDecision(accepted=accepted, predicted=to_recently_lost, new_map=new_map)
+    return next_state, decision
 
 
 def _mass_mean(entering, staying, now, old, hard_update):
     """A per-mass clock after a step: the mass-weighted mean of `now` (for the `entering` mass) and of
     `old` (the clock the `staying` mass already had).
 
-    The relaxed machine holds probabilities, and the RECENTLY_LOST timer and the map start belong to
-    parts of that mass, not to all of it: blending them with the clocks of the other modes (a LOST
-    mass's stale map start, an OK mass's stale timer) would make recently lost mass expire at once or
-    a new map look old (tests/test_replay.py). With exact flags this is `now` on entry and `old` while
-    staying, bit for bit (1 * now / 1, 0 * now + 1 * old); when no mass holds the clock it is
-    irrelevant and follows the hard machine's own update `hard_update`. The clocks feed only exact
-    comparisons (expiry, relocalisation window, IMU age), so they carry no gradient (stopped, which
-    also keeps 1 / mass out of the backward pass).
+    The relaxed machine holds probabilities, and the RECENTLY_LOST timer, the map start and the loss
+    frame belong to parts of that mass, not to all of it: blending them with the clocks of the other
+    modes (a LOST mass's stale map start, an OK mass's stale timer) would make recently lost mass
+    expire at once or a new map look old (tests/test_replay.py). With exact flags this is `now` on
+    entry and `old` while staying, bit for bit (1 * now / 1, 0 * now + 1 * old); when no mass holds
+    the clock it is irrelevant and follows the hard machine's own update `hard_update`. The clocks
+    feed only exact comparisons (expiry, relocalisation window, IMU age, initialisation), so they
+    carry no gradient (stopped, which also keeps 1 / mass out of the backward pass).
     """
     mass = entering + staying
     some = mass > 0

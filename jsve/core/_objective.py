@@ -10,11 +10,11 @@ issue #673). Runs can be weighted, e.g. so that every sequence, disturbance and 
            = RMSE_r                       otherwise
     J = sum_r w_r loss_r / sum_r w_r
 
-A run fails as in `jsve.evaluation._evaluate`: it reached LOST (the hard replay then starts a new,
-unaligned map), its alignment was degenerate, fewer than 3 frames were evaluated, or its coverage is below
-`min_coverage`. A run that never reached LOST has an estimate on every frame, so its RMSE is over every
-frame with ground truth and equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard objective is
-therefore exactly mean(where(failed, penalty, rmse)) of the per-run table (tests/test_objective.py).
+A run fails as in `jsve.evaluation._evaluate`: it lost tracking (a reset, an expiry or a recorded map
+loss: the hard replay then starts a new, unaligned map), its alignment was degenerate, fewer than 3 frames
+were evaluated, or its coverage is below `min_coverage`. A run that never lost tracking stays in one map,
+so its RMSE equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard objective is therefore
+exactly mean(where(failed, penalty, rmse)) of the per-run table (tests/test_objective.py).
 
 Relaxed (SoftLogic with a temperature): the replay's flags are probabilities. The loss is the expected one,
 P(ever LOST) x penalty + (1 - P) x RMSE, with the RMSE taken over frames weighted by the probability that
@@ -34,7 +34,7 @@ from jaxtyping import Array, Float
 
 from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES
 from jsve.core._batch import LogBatch
-from jsve.core._machine import TIME_RECENTLY_LOST_S, HardLogic
+from jsve.core._machine import TIME_RECENTLY_LOST_S, HardLogic, check_switch_model
 from jsve.core._numerics import safe_divide
 from jsve.core._replay import batch_features, replay
 from jsve.core._rules import Rule
@@ -57,14 +57,18 @@ class ObjectiveConfig(eqx.Module):
             "posyaw", "origin", "none".
         min_coverage: runs whose coverage (evaluated / ground-truth frames) is below it fail.
         time_recently_lost: s in RECENTLY_LOST before LOST (ORB-SLAM3: 5).
+        switch_model: the pose of a frame in RECENTLY_LOST, "orbslam3" (the logged pose, default) or
+            "imu-coast" (IMU prediction); see docs/state-machine.md.
     """
 
     failure_penalty: float = eqx.field(static=True, default=DEFAULT_FAILURE_PENALTY_M)
     align: str = eqx.field(static=True, default="se3")
     min_coverage: float = eqx.field(static=True, default=0.0)
     time_recently_lost: float = eqx.field(static=True, default=TIME_RECENTLY_LOST_S)
+    switch_model: str = eqx.field(static=True, default="orbslam3")
 
     def __check_init__(self):
+        check_switch_model(self.switch_model)
         if not (np.isfinite(self.failure_penalty) and self.failure_penalty >= 0):
             raise ValueError(
                 f"failure_penalty must be a finite number of metres >= 0, got {self.failure_penalty}"
@@ -151,7 +155,8 @@ def run_losses(
     hard = isinstance(logic, HardLogic)
     if features is None:
         features = batch_features(batch)
-    result = replay(batch, rule, features, logic=logic, time_recently_lost=config.time_recently_lost)
+    result = replay(batch, rule, features, switch_model=config.switch_model, logic=logic,
+                    time_recently_lost=config.time_recently_lost)  # fmt: skip
     with_q = ALIGNERS[config.align].first_pose  # only first-pose alignments read orientations
     kernel = functools.partial(_one_run_loss, config=config, hard=hard)
     return jax.vmap(kernel)(

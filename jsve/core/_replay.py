@@ -1,8 +1,11 @@
-"""Replay: what trajectory a switching rule would have produced from a logged run (DESIGN section 5).
+"""Replay: what trajectory a switching rule would have produced from a logged run (docs/state-machine.md).
 
-For every frame the state machine (jsve.core._machine.machine_step) decides between the logged visual
-estimate and ORB-SLAM3's IMU prediction from the previous state (PredictStateIMU, jsve.core._imu);
-after LOST a new map starts a new, unaligned segment. One `lax.scan` over frames, vmapped over runs.
+For every frame the state machine (jsve.core._machine.machine_step) decides the tracking state; the
+switch model decides the pose of a frame in RECENTLY_LOST: the logged, optimised pose ("orbslam3", what
+ORB-SLAM3 v1.0 does) or ORB-SLAM3's IMU prediction from the previous replayed state ("imu-coast",
+jsve.core._imu). Every map start (the replay's own, or one of the recorded run) begins a new, unaligned
+segment; a reset before inertial BA2 takes the estimates of its map's frames away. One `lax.scan` over
+frames with all runs as vector lanes.
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Float, Int
 
 from jsve.core._batch import LogBatch
 from jsve.core._imu import imu_predict
@@ -18,8 +21,14 @@ from jsve.core._machine import (
     MODE_LOST,
     MODE_OK,
     MODE_RECENTLY_LOST,
+    MONO_INIT_MIN_KEYPOINTS,
+    MONO_INIT_MIN_MATCHES,
+    STEREO_INIT_MIN_KEYPOINTS,
     TIME_RECENTLY_LOST_S,
+    FrameData,
     HardLogic,
+    RunConstants,
+    check_switch_model,
     initial_state,
     machine_step,
 )
@@ -32,14 +41,17 @@ class ReplayResult(eqx.Module):
 
     Attributes:
         position, quaternion, velocity: the estimate (m, wxyz, m/s; world frame of its segment).
-            Meaningful where has_estimate; on frames without one (LOST) they hold the IMU
-            prediction carried forward, which no error statistic uses.
-        accepted: the visual estimate was used. predicted: the IMU prediction was used.
-        has_estimate: accepted or predicted, and the frame exists.
+            Meaningful where has_estimate only.
+        accepted: OK after the frame with a tracked pose (the test passed, or a map started here).
+        coasting: RECENTLY_LOST after the frame with an estimate (the logged pose under "orbslam3",
+            the IMU prediction under "imu-coast").
+        has_estimate: the frame has an estimate in the replayed trajectory (after resets took theirs
+            away, and only where the log supports it).
+        out_of_support: the replay needs the recorded pose of a frame the recorded run did not pose.
         mode: MODE_OK / MODE_RECENTLY_LOST / MODE_LOST after the frame (int8; -1 on padding; the
             expected mode, rounded, when relaxed).
-        segment: index of the map the frame belongs to (int32).
-        lost_any: [runs] the run reached LOST at least once (tracking failure).
+        segment: index of the replay's map the frame belongs to (int32; -1 before the first map).
+        lost_any: [runs] the run lost tracking at least once (a reset, an expiry, a recorded map loss).
     In a relaxed replay (SoftLogic) the flags are probabilities.
     """
 
@@ -47,94 +59,149 @@ class ReplayResult(eqx.Module):
     quaternion: Float[Array, "R F 4"]
     velocity: Float[Array, "R F 3"]
     accepted: Array
-    predicted: Array
+    coasting: Array
     has_estimate: Array
+    out_of_support: Array
     mode: Int[Array, "R F"]
     segment: Array
     lost_any: Array
 
 
-def replay_run(
-    score: Float[Array, " F"],
-    t: Float[Array, " F"],
-    valid: Bool[Array, " F"],
-    imu_init: Bool[Array, " F"],
-    vis_p,
-    vis_q,
-    vis_v,
-    imu_dt,
-    imu_dp,
-    imu_dv,
-    imu_dq,
-    gravity: Float[Array, " 3"],
-    fps: Float[Array, ""],
-    imu_init_delay: Float[Array, ""],
-    thresholds,
-    logic=HardLogic(),
-    time_recently_lost: float = TIME_RECENTLY_LOST_S,
+def _shift(x: Array, fill) -> Array:
+    """x delayed by one frame along the last axis, `fill` at frame 0."""
+    return jnp.concatenate([jnp.full_like(x[..., :1], fill), x[..., :-1]], axis=-1)
+
+
+def frame_data(batch: LogBatch) -> FrameData:
+    """The log's facts per frame ([R, F] leaves in the batch's float dtype), see FrameData."""
+    dtype = batch.t.dtype
+    has = batch.has_pose & batch.valid
+    idx = jnp.broadcast_to(jnp.arange(batch.n_frames), has.shape)
+    prev_map = _shift(batch.map_id, -1)
+    rec_start = has & (~_shift(has, False) | (batch.map_id != prev_map))
+    # The recorded map each frame belongs to starts at the last recorded start so far.
+    start_idx = jax.lax.cummax(jnp.where(rec_start, idx, -1), axis=1)
+    rec_start_t = jnp.take_along_axis(batch.t, jnp.maximum(start_idx, 0), axis=1)
+    rec_loss = rec_start & (jnp.cumsum(rec_start, axis=1) > 1)
+    # A recorded start in the map of the last posed frame is a reset of that map: ORB-SLAM3 restarted
+    # its relocalisation window at the failed frame (ResetActiveMap, l.3915), the last posed one.
+    last_posed = _shift(jax.lax.cummax(jnp.where(has, idx, -1), axis=1), -1)
+    same_map = jnp.take_along_axis(batch.map_id, jnp.maximum(last_posed, 0), axis=1) == batch.map_id
+    rec_reloc = jnp.where(rec_start & (last_posed >= 0) & same_map, last_posed, -1)
+    n_ext = batch.n_extracted
+    mono = ((_shift(n_ext, 0) > MONO_INIT_MIN_KEYPOINTS) & (n_ext > MONO_INIT_MIN_KEYPOINTS)
+            & (batch.n_inliers >= MONO_INIT_MIN_MATCHES))  # fmt: skip
+    stereo = n_ext > STEREO_INIT_MIN_KEYPOINTS
+    can_init = has & jnp.where(batch.stereo[:, None], stereo, mono)
+    f = lambda x: x.astype(dtype)  # noqa: E731
+    return FrameData(
+        t=batch.t,
+        k=f(idx),
+        imu_init=f(batch.imu_init),
+        imu_ba2=f(batch.imu_ba2),
+        has_pose=f(has),
+        can_init=f(can_init),
+        rec_start=f(rec_start),
+        rec_loss=f(rec_loss),
+        rec_start_t=rec_start_t,
+        rec_reloc=f(rec_reloc),
+    )
+
+
+def run_constants(batch: LogBatch) -> RunConstants:
+    """The machine's per-run constants of a batch ([R] leaves)."""
+    dtype = batch.t.dtype
+    return RunConstants(
+        fps=batch.fps.astype(dtype),
+        imu_init_delay=batch.imu_init_delay.astype(dtype),
+        ba2_delay=batch.ba2_delay.astype(dtype),
+        stereo=batch.stereo.astype(dtype),
+    )
+
+
+def _scan_frames(
+    score, data, run, logged, valid, gravity, thresholds, logic, switch_model, time_recently_lost
 ):
-    """Replay one run (no leading runs axis); see `replay` for the batched entry point.
+    """The replay scan over a leading frames axis; per-frame slices carry the batch shape B = (runs,).
 
-    Returns a dict of per-frame arrays (float flags) consumed by `replay`.
-    """
-    xs = (score, t, imu_init, vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq)
-    return _scan_frames(xs, valid, gravity, fps, imu_init_delay, thresholds, logic, time_recently_lost)
-
-
-def _scan_frames(xs, valid, gravity, fps, imu_init_delay, thresholds, logic, time_recently_lost):
-    """The replay scan over a leading frames axis; per-frame slices may carry any batch shape B.
-
-    With B = (runs,) every scan step advances all runs at once as vector lanes: frames-major data
-    make each step read contiguous memory, which measured 2-4x faster on CPU than vmapping a
-    per-run scan over runs-major arrays (analysis/bench_evaluate.py).
+    Every scan step advances all runs at once as vector lanes: frames-major data make each step read
+    contiguous memory, which measured 2-4x faster on CPU than vmapping a per-run scan over runs-major
+    arrays (analysis/bench_evaluate.py).
 
     Arguments:
-        xs: (score, t, imu_init, vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq), each [F, *B, ...].
-        valid: [F, *B]. gravity: [*B, 3]. fps, imu_init_delay: [*B].
+        score: [F, *B]. data: FrameData with [F, *B] leaves. run: RunConstants with [*B] leaves.
+        logged: (vis_p, vis_q, vis_v, imu_dt, imu_dp, imu_dv, imu_dq), each [F, *B, ...].
+        valid: [F, *B]. gravity: [*B, 3].
     """
-    score, t, imu_init, vis_p, vis_q, vis_v = xs[:6]
-    dtype = t.dtype
-    batch_shape = t.shape[1:]
+    vis_p, vis_q, vis_v = logged[:3]
+    dtype = data.t.dtype
+    batch_shape = data.t.shape[1:]
     init = jax.tree.map(lambda x: jnp.broadcast_to(x, batch_shape), initial_state(dtype))
-    k = jnp.broadcast_to(
-        jnp.arange(t.shape[0], dtype=dtype).reshape((-1,) + (1,) * len(batch_shape)), t.shape
-    )
     hard = isinstance(logic, HardLogic)
-    # Hard: a 0/1 flag, set once LOST is reached. Relaxed: the part of the mass that has never been
-    # LOST, as a machine state of its own whose LOST mass is dropped every frame, so that
-    # lost_any = 1 - (its OK + RECENTLY_LOST mass) is the probability of ever having been LOST
-    # (accumulating 1 - prod(1 - lost) instead counts mass that stays LOST for n frames n times).
-    lost_carry = jnp.zeros(batch_shape, dtype) if hard else init
-    start = (init, vis_p[0], vis_v[0], vis_q[0], lost_carry)
+    coast = switch_model == "imu-coast"
+    # Hard: a 0/1 flag, set at the first loss. Relaxed: the part of the mass that has never lost
+    # tracking, as a machine state of its own from which every loss is dropped, so that
+    # lost_any = 1 - its mass is the probability of ever having lost tracking.
+    never = jnp.zeros(batch_shape, dtype) if hard else init
+    start = (init, vis_p[0], vis_v[0], vis_q[0], never)
 
     def step(carry, x):
-        state, p, v, q, lost_carry = carry
-        sc, tt, ii, vp, vq, vv, dt, dp, dv, dq, kk = x
-        args = (sc, tt, kk, ii.astype(dtype), thresholds, fps, imu_init_delay, time_recently_lost)
+        state, p, v, q, never = carry
+        sc, fd, vp, vq, vv, dt, dp, dv, dq = x
+        args = (sc, fd, run, thresholds, time_recently_lost)
         state, decision = machine_step(logic, state, *args)
-        pp, pv, pq = imu_predict(p, v, q, dt, dp, dv, dq, gravity)
-        a = decision.accepted[..., None]
-        p2 = a * vp + (1 - a) * pp
-        v2 = a * vv + (1 - a) * pv
-        q2 = logic.normalize_quat(a * vq + (1 - a) * pq)
+        posed = fd.has_pose
+        if coast:
+            pp, pv, pq = imu_predict(p, v, q, dt, dp, dv, dq, gravity)
+            visual = decision.tracked * posed
+            estimate = visual + decision.coasting
+            out_of_support = decision.tracked * (1 - posed)
+            a = (visual / jnp.where(estimate > 0, estimate, 1.0))[..., None]
+            p2, v2, q2 = (
+                a * vp + (1 - a) * pp,
+                a * vv + (1 - a) * pv,
+                logic.normalize_quat(a * vq + (1 - a) * pq),
+            )
+        else:
+            needs_pose = decision.tracked + decision.coasting
+            estimate = needs_pose * posed
+            out_of_support = needs_pose * (1 - posed)
+            h = posed[..., None]
+            p2, v2, q2 = h * vp + (1 - h) * p, h * vv + (1 - h) * v, h * vq + (1 - h) * q
         mode = state.recently_lost * MODE_RECENTLY_LOST + state.lost * MODE_LOST
         if hard:
-            lost_carry = lost_carry + (1 - lost_carry) * state.lost
-            lost_any = lost_carry
+            never = jnp.maximum(never, decision.loss)
+            lost_any = never
         else:
-            never, _ = machine_step(logic, lost_carry, *args)
-            lost_carry = eqx.tree_at(lambda s: s.lost, never, jnp.zeros_like(never.lost))
-            lost_any = 1 - (never.ok + never.recently_lost)
-        out = (p2, q2, v2, decision.accepted, decision.predicted, mode, state.segment, lost_any)
-        return (state, p2, v2, q2, lost_carry), out
+            nxt, dn = machine_step(logic, never, *args)
+            nxt = eqx.tree_at(lambda s: s.lost, nxt, nxt.lost - dn.loss + fd.rec_loss)
+            keep = 1 - fd.rec_loss
+            never = eqx.tree_at(lambda s: (s.ok, s.recently_lost, s.lost), nxt,
+                                (nxt.ok * keep, nxt.recently_lost * keep, nxt.lost * keep))  # fmt: skip
+            lost_any = 1 - (never.ok + never.recently_lost + never.lost)
+        out = (p2, q2, v2, decision.tracked, decision.coasting, estimate, out_of_support, mode, state.segment,
+               decision.reset, lost_any)  # fmt: skip
+        return (state, p2, v2, q2, never), out
 
-    _, (p, q, v, accepted, predicted, mode, segment, lost_any) = jax.lax.scan(step, start, tuple(xs) + (k,))
+    _, out = jax.lax.scan(step, start, (score, data) + tuple(logged))
+    p, q, v, tracked, coasting, estimate, out_of_support, mode, segment, reset, lost_any = out
     validf = valid.astype(dtype)
     return dict(
-        position=p, quaternion=q, velocity=v, accepted=accepted * validf, predicted=predicted * validf,
-        has_estimate=(accepted + predicted) * validf, mode=mode, segment=segment,
-        lost_any=jnp.max(lost_any * validf, axis=0),
+        position=p, quaternion=q, velocity=v, accepted=tracked * validf, coasting=coasting * validf,
+        has_estimate=estimate * validf, out_of_support=out_of_support * validf, mode=mode, segment=segment,
+        reset=reset * validf, lost_any=jnp.max(lost_any * validf, axis=0),
     )  # fmt: skip
+
+
+def _erase_reset_maps(has_estimate, segment, reset):
+    """Frames of a map that was later reset lose their estimates (one run: [F] arrays).
+
+    ORB-SLAM3's ResetActiveMap marks every frame of the active map lost (l.3893-3911); a map's frames
+    are contiguous, so a frame is erased when its segment had a reset at any frame.
+    """
+    slot = segment.astype(jnp.int32) + 1  # -1 (no map yet) -> 0
+    was_reset = jnp.zeros(segment.shape[0] + 1, bool).at[slot].max(reset > 0.5)
+    return has_estimate & ~was_reset[slot]
 
 
 def replay(
@@ -142,42 +209,58 @@ def replay(
     rule: Rule,
     features: FrameFeatures | None = None,
     *,
+    switch_model: str = "orbslam3",
     logic=HardLogic(),
     time_recently_lost: float = TIME_RECENTLY_LOST_S,
 ) -> ReplayResult:
     """Replay `rule` over every run of `batch` (jit it at the call site, or use `jsve.evaluation._evaluate`).
 
     Arguments:
-        batch: the logs. features: per-frame features of the batch (computed if omitted; pass them
-            when replaying many rules over the same batch). logic: HardLogic() for the real machine,
-            SoftLogic(temperature) for the differentiable relaxation.
+        batch: the logs. rule: any jsve rule. features: per-frame features of the batch (computed if
+            omitted; pass them when replaying many rules over the same batch).
+        switch_model: "orbslam3" or "imu-coast" (jsve.core._machine.SWITCH_MODELS).
+        logic: HardLogic() for the real machine, SoftLogic(temperature) for the differentiable relaxation.
         time_recently_lost: s before RECENTLY_LOST turns LOST (ORB-SLAM3: 5).
     Returns:
         ReplayResult with [runs, frames] leaves, as the batch.
     """
+    check_switch_model(switch_model)
     if features is None:
         features = batch_features(batch)
-    score = rule.score(features).astype(batch.t.dtype)
+    dtype = batch.t.dtype
+    score = rule.score(features).astype(dtype)
     frames_major = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
-    xs = (score, batch.t, batch.imu_init, batch.vis_p, batch.vis_q, batch.vis_v, batch.imu_dt, batch.imu_dp,
-          batch.imu_dv, batch.imu_dq)  # fmt: skip
-    out = _scan_frames(tuple(frames_major(x) for x in xs), frames_major(batch.valid), batch.gravity,
-                       batch.fps, batch.imu_init_delay, rule.thresholds, logic,
-                       time_recently_lost)  # fmt: skip
+    data = jax.tree.map(frames_major, frame_data(batch))
+    logged = (batch.vis_p, batch.vis_q, batch.vis_v, batch.imu_dt, batch.imu_dp, batch.imu_dv, batch.imu_dq)
+    out = _scan_frames(
+        frames_major(score),
+        data,
+        run_constants(batch),
+        tuple(frames_major(x) for x in logged),
+        frames_major(batch.valid),
+        batch.gravity,
+        rule.thresholds,
+        logic,
+        switch_model,
+        time_recently_lost,
+    )
     lost_any = out.pop("lost_any")
     out = {key: frames_major(value) for key, value in out.items()}
     mode = jnp.where(batch.valid, jnp.round(out["mode"]).astype(jnp.int8), jnp.int8(-1))
     if isinstance(logic, HardLogic):
+        has_estimate = jax.vmap(_erase_reset_maps)(out["has_estimate"] > 0.5, out["segment"], out["reset"])
         return ReplayResult(
             position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
-            accepted=out["accepted"] > 0.5, predicted=out["predicted"] > 0.5,
-            has_estimate=out["has_estimate"] > 0.5, mode=mode,
-            segment=out["segment"].astype(jnp.int32), lost_any=lost_any > 0.5,
+            accepted=out["accepted"] > 0.5, coasting=out["coasting"] > 0.5, has_estimate=has_estimate,
+            out_of_support=out["out_of_support"] > 0.5, mode=mode, segment=out["segment"].astype(jnp.int32),
+            lost_any=lost_any > 0.5,
         )  # fmt: skip
+    # Relaxed: a reset's erasure of earlier frames is left out; it only concerns runs that lost
+    # tracking, which the objective charges the failure penalty (docs/state-machine.md).
     return ReplayResult(
         position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
-        accepted=out["accepted"], predicted=out["predicted"], has_estimate=out["has_estimate"], mode=mode,
-        segment=out["segment"], lost_any=lost_any,
+        accepted=out["accepted"], coasting=out["coasting"], has_estimate=out["has_estimate"],
+        out_of_support=out["out_of_support"], mode=mode, segment=out["segment"], lost_any=lost_any,
     )  # fmt: skip
 
 
@@ -191,7 +274,8 @@ __all__ = [
     "MODE_RECENTLY_LOST",
     "MODE_LOST",
     "ReplayResult",
+    "frame_data",
+    "run_constants",
     "replay",
-    "replay_run",
     "batch_features",
 ]

@@ -25,7 +25,7 @@ from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import RunError, batched_run_error
 from jsve.evaluation._aggregate import per_run_table
-from jsve.io._batching import Bucket
+from jsve.io._batching import Bucket, recorded_mode
 
 
 class Evaluation(eqx.Module):
@@ -33,20 +33,28 @@ class Evaluation(eqx.Module):
 
     Attributes:
         error: APE statistics, coverage, segments (jsve.core._trajectory.RunError).
-        accepted_fraction: share of valid frames whose visual estimate was used.
-        predicted_fraction: share of valid frames carried by IMU prediction (RECENTLY_LOST).
-        lost_any: tracking reached LOST at least once.
+        accepted_fraction: share of valid frames tracked (OK with a tracked pose).
+        coasting_fraction: share of valid frames in RECENTLY_LOST with an estimate (the logged pose
+            under the "orbslam3" switch model, the IMU prediction under "imu-coast").
+        changed_fraction: share of valid frames whose replayed mode differs from the recorded state.
+        unsupported_fraction: share of valid frames where the replay needs a recorded pose that does
+            not exist (the rule kept tracking where the recorded run had lost its map).
+        lost_any: tracking was lost at least once (a reset, an expiry, a recorded map loss).
         failed: error.failed or lost_any: the run is a tracking failure, whatever its error.
     """
 
     error: RunError
     accepted_fraction: Float[Array, " R"]
-    predicted_fraction: Float[Array, " R"]
+    coasting_fraction: Float[Array, " R"]
+    changed_fraction: Float[Array, " R"]
+    unsupported_fraction: Float[Array, " R"]
     lost_any: Bool[Array, " R"]
     failed: Bool[Array, " R"]
 
 
-@functools.partial(jax.jit, static_argnames=("align", "n_first", "segments", "time_recently_lost"))
+@functools.partial(
+    jax.jit, static_argnames=("align", "n_first", "segments", "time_recently_lost", "switch_model")
+)
 def evaluate_batch(
     batch: LogBatch,
     rule: Rule,
@@ -57,6 +65,7 @@ def evaluate_batch(
     segments: str = "largest",
     min_coverage: float = 0.0,
     time_recently_lost: float = TIME_RECENTLY_LOST_S,
+    switch_model: str = "orbslam3",
 ) -> Evaluation:
     """Replay `rule` over `batch` and score every run against its ground truth (one compiled call).
 
@@ -64,18 +73,22 @@ def evaluate_batch(
         batch: padded logs. rule: any jsve rule (array leaves; a new value does not recompile).
         features: the batch's FrameFeatures when already computed (sweeps share them).
         align, n_first, segments, min_coverage: see jsve.core._trajectory.run_error.
+        switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md).
     """
-    result = replay(batch, rule, features, time_recently_lost=time_recently_lost)
+    result = replay(batch, rule, features, switch_model=switch_model, time_recently_lost=time_recently_lost)
     error = batched_run_error(
         result.position, result.quaternion, result.has_estimate, result.segment,
         batch.gt_p, batch.gt_q, batch.gt_valid, batch.valid,
         align=align, n_first=n_first, segments=segments, min_coverage=min_coverage,
     )  # fmt: skip
     n_valid = jnp.maximum(jnp.sum(batch.valid, axis=-1), 1)
+    share = lambda flags: jnp.sum(flags & batch.valid, axis=-1) / n_valid  # noqa: E731
     return Evaluation(
         error=error,
-        accepted_fraction=jnp.sum(result.accepted, axis=-1) / n_valid,
-        predicted_fraction=jnp.sum(result.predicted, axis=-1) / n_valid,
+        accepted_fraction=share(result.accepted),
+        coasting_fraction=share(result.coasting),
+        changed_fraction=share(result.mode != recorded_mode(batch.state)),
+        unsupported_fraction=share(result.out_of_support),
         lost_any=result.lost_any,
         failed=error.failed | result.lost_any,
     )
@@ -90,6 +103,7 @@ def evaluate(
     n_first: int | None = None,
     segments: str = "largest",
     min_coverage: float = 0.0,
+    switch_model: str = "orbslam3",
     runs_per_chunk: int | None = None,
     progress: bool = True,
 ) -> pd.DataFrame:
@@ -98,10 +112,11 @@ def evaluate(
     Arguments:
         buckets: from jsve.io._batching.buckets (or a single from_runs Bucket in a list).
         rule_name: value of the `rule` column.
+        switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md); the `switch_model` column.
         runs_per_chunk: runs evaluated per compiled call; default fits a 4 GB working set.
     Returns:
         One row per run: meta columns, `rule`, rmse ... count (metres), coverage, n_segments, failed,
-        accepted_fraction, predicted_fraction, lost_any.
+        accepted_fraction, coasting_fraction, changed_fraction, unsupported_fraction, lost_any.
     """
     tables = []
     total = sum(b.batch.n_runs for b in buckets)
@@ -112,16 +127,18 @@ def evaluate(
             parts = []
             for runs, chunk in iter_chunks(bucket.batch, size):
                 ev = evaluate_batch(chunk, rule, batch_features(chunk), align=align, n_first=n_first,
-                                    segments=segments, min_coverage=min_coverage)  # fmt: skip
+                                    segments=segments, min_coverage=min_coverage,
+                                    switch_model=switch_model)  # fmt: skip
                 n = runs.stop - runs.start
                 parts.append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], ev))
                 bar.update(n)
             ev = jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
             table = per_run_table(ev.error, bucket.meta)
             table.insert(len(bucket.meta.columns), "rule", rule_name)
+            table.insert(len(bucket.meta.columns) + 1, "switch_model", switch_model)
             table["failed"] = np.asarray(ev.failed)
-            table["accepted_fraction"] = np.asarray(ev.accepted_fraction)
-            table["predicted_fraction"] = np.asarray(ev.predicted_fraction)
+            for column in ("accepted", "coasting", "changed", "unsupported"):
+                table[f"{column}_fraction"] = np.asarray(getattr(ev, f"{column}_fraction"))
             table["lost_any"] = np.asarray(ev.lost_any)
             tables.append(table)
     return pd.concat(tables, ignore_index=True)

@@ -44,8 +44,9 @@ from tqdm.auto import tqdm
 from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES, Moments, fit_moments
 from jsve.core._batch import LogBatch
 from jsve.core._imu import imu_predict_columns
-from jsve.core._machine import HardLogic, initial_state, machine_step
+from jsve.core._machine import FrameData, HardLogic, RunConstants, initial_state, machine_step
 from jsve.core._objective import ObjectiveConfig
+from jsve.core._replay import frame_data, run_constants
 from jsve.core._rules import InlierRule, Rule
 from jsve.core._sve import FrameFeatures, combination_from_logs, feature_logs
 
@@ -82,9 +83,11 @@ class SearchBatch(eqx.Module):
     pos_s_b: Array
     pos_s_c: Array
     t: Array
-    imu_init: Array
+    data: FrameData  # the log's facts per frame, [F, R] leaves
+    run: RunConstants  # [R] leaves
     valid: Array
-    weight: Array  # frame has ground truth and exists
+    gt: Array  # frame exists and has ground truth
+    weight: Array  # ... and a recorded pose
     vis_p: tuple
     vis_q: tuple
     vis_v: tuple
@@ -95,12 +98,11 @@ class SearchBatch(eqx.Module):
     ref: tuple  # ground truth + the run's mean visual offset
     g_c: tuple  # centred ground truth, 0 where weight is 0
     gravity: tuple  # [R] each
-    fps: Array
-    imu_init_delay: Array
     offset: Array  # [3, R]
     g_mean: Array  # [3, R]
     gram: Array  # [3, 3, R]
-    n_eval: Array  # [R] frames with ground truth
+    n_eval: Array  # [R] frames with ground truth and a recorded pose
+    n_gt: Array  # [R] frames with ground truth
 
     @property
     def n_runs(self) -> int:
@@ -117,7 +119,9 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
     dtype = batch.t.dtype
     fm = lambda x: jnp.swapaxes(x, 0, 1).astype(dtype)  # noqa: E731
     cols = lambda x: tuple(fm(x[..., i]) for i in range(x.shape[-1]))  # noqa: E731
-    weight = (batch.valid & batch.gt_valid).astype(dtype)  # [R, F]
+    # Frames a run that keeps tracking has an estimate on: posed by the recorded run (under both switch
+    # models; search_chunk refuses a lane whose estimates differ from these frames).
+    weight = (batch.valid & batch.gt_valid & batch.has_pose).astype(dtype)  # [R, F]
     n = jnp.sum(weight, axis=1)
     n_safe = jnp.maximum(n, 1.0)
     mean = lambda x: jnp.sum(weight[..., None] * x, axis=1) / n_safe[:, None]  # noqa: E731
@@ -135,8 +139,10 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
         pos_s_b=logs[4],
         pos_s_c=logs[5],
         t=fm(batch.t),
-        imu_init=fm(batch.imu_init),
+        data=jax.tree.map(fm, frame_data(batch)),
+        run=run_constants(batch),
         valid=fm(batch.valid),
+        gt=fm(batch.valid & batch.gt_valid),
         weight=fm(weight),
         vis_p=cols(batch.vis_p),
         vis_q=cols(batch.vis_q),
@@ -148,12 +154,11 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
         ref=cols(batch.gt_p + offset[:, None]),
         g_c=cols(g_c),
         gravity=tuple(batch.gravity[:, i].astype(dtype) for i in range(3)),
-        fps=batch.fps.astype(dtype),
-        imu_init_delay=batch.imu_init_delay.astype(dtype),
         offset=offset.T,
         g_mean=g_mean.T,
         gram=gram,
         n_eval=n,
+        n_gt=jnp.sum((batch.valid & batch.gt_valid).astype(dtype), axis=1),
     )
 
 
@@ -162,7 +167,12 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
 
 
 class ChunkResult(eqx.Module):
-    """Kernel output, leaves [S, R]: loss (m), failed, rmse (m; NaN where failed), coverage."""
+    """Kernel output, leaves [S, R]: loss (m), failed, rmse (m; NaN where failed), coverage.
+
+    A lane the kernel cannot score exactly (a run that kept tracking but whose estimates are not exactly
+    its posed frames with ground truth: the alignment statistics were fixed for those) has a NaN loss;
+    `search` refuses it with a message rather than returning a number.
+    """
 
     loss: Array
     failed: Array
@@ -232,14 +242,14 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
     state0 = jax.tree.map(lambda x: jnp.broadcast_to(x, lanes), initial_state(dtype))
     first = lambda cols: tuple(jnp.broadcast_to(c[0], lanes) for c in cols)  # noqa: E731
     zeros = jnp.zeros(lanes, dtype)
-    start = (state0, first(sb.vis_p), first(sb.vis_v), first(sb.vis_q), zeros, zeros, (zeros,) * _MOMENTS)
-    k = jnp.arange(sb.n_frames, dtype=dtype)
+    counts = (zeros, zeros, zeros)  # estimates in closed maps, in the current map, off the fixed frames
+    start = (state0, first(sb.vis_p), first(sb.vis_v), first(sb.vis_q), zeros, counts, (zeros,) * _MOMENTS)
     xs = (
         sb.n_inliers,
         (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c),
-        sb.t,
-        sb.imu_init,
+        sb.data,
         sb.valid,
+        sb.gt,
         sb.weight,
         sb.vis_p,
         sb.vis_q,
@@ -250,51 +260,55 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
         sb.imu_dq,
         sb.ref,
         sb.g_c,
-        k,
     )
     logic = HardLogic()
+    coast = config.switch_model == "imu-coast"
 
     def step(carry, x):
-        state, p, v, q, lost, n_est, mom = carry
-        n_inl, feats, t, imu_init, valid, w, vp, vq, vv, dt, dp, dv, dq, ref, g_c, kk = x
+        state, p, v, q, lost, (n_closed, n_map, n_off), mom = carry
+        n_inl, feats, fd, valid, gt, w, vp, vq, vv, dt, dp, dv, dq, ref, g_c = x
         score = score_columns(rule, n_inl, *feats)
         state, decision = machine_step(
-            logic,
-            state,
-            score,
-            t,
-            kk,
-            imu_init,
-            rule.thresholds,
-            sb.fps,
-            sb.imu_init_delay,
-            config.time_recently_lost,
+            logic, state, score, fd, sb.run, rule.thresholds, config.time_recently_lost
         )
-        pp, pv, pq = imu_predict_columns(p, v, q, dt, dp, dv, dq, sb.gravity)
         # (machine_step computes in result_type(t, float): float64 for float32 data under jax_enable_x64)
         state, decision = jax.tree.map(lambda x: x.astype(dtype), (state, decision))
-        a = decision.accepted > 0.5
-        sel = lambda vis, pred: tuple(jnp.where(a, u, z) for u, z in zip(vis, pred, strict=True))  # noqa: E731
-        p2, v2, q2 = sel(vp, pp), sel(vv, pv), sel(vq, pq)
-        lost = jnp.maximum(lost, state.lost * valid)
-        n_est = n_est + w * (decision.accepted + decision.predicted)
-        e = [w * (p2[i] - ref[i]) for i in range(3)]
+        posed = fd.has_pose > 0.5
+        if coast:
+            pp, pv, pq = imu_predict_columns(p, v, q, dt, dp, dv, dq, sb.gravity)
+            a = (decision.tracked > 0.5) & posed
+            sel = lambda vis, pred: tuple(jnp.where(a, u, z) for u, z in zip(vis, pred, strict=True))  # noqa: E731
+            p2, v2, q2 = sel(vp, pp), sel(vv, pv), sel(vq, pq)
+            est = (a | (decision.coasting > 0.5)).astype(dtype)
+        else:
+            keep = lambda vis, old: tuple(jnp.where(posed, u, z) for u, z in zip(vis, old, strict=True))  # noqa: E731
+            p2, v2, q2 = keep(vp, p), keep(vv, v), keep(vq, q)
+            est = ((decision.tracked + decision.coasting > 0.5) & posed).astype(dtype)
+        lost = jnp.maximum(lost, decision.loss * valid)
+        # Coverage follows the replay: a new map closes the current one; a reset takes its estimates away.
+        counted = est * gt
+        n_closed = n_closed + decision.new_map * n_map
+        n_map = (1 - decision.new_map) * (1 - decision.reset) * n_map + counted
+        n_off = n_off + jnp.abs(counted - w)  # estimates off the frames the statistics were fixed for
+        e = [w * est * (p2[i] - ref[i]) for i in range(3)]
         new = (
             e
             + [e[j] * g_c[i] for j in range(3) for i in range(3)]
             + [e[0] * e[0] + e[1] * e[1] + e[2] * e[2]]
         )
         mom = tuple(acc + d for acc, d in zip(mom, new, strict=True))
-        return (state, p2, v2, q2, lost, n_est, mom), None
+        return (state, p2, v2, q2, lost, (n_closed, n_map, n_off), mom), None
 
-    (_, _, _, _, lost, n_est, mom), _ = jax.lax.scan(step, start, xs)
+    (_, _, _, _, lost, (n_closed, n_map, n_off), mom), _ = jax.lax.scan(step, start, xs)
     s_e, s_ee = mom[:3], mom[12]
     m = [[mom[3 + 3 * j + i] for i in range(3)] for j in range(3)]  # m[j][i] = sum e_j g_c,i
     rmse, degenerate = _umeyama_residual(sb, s_e, m, s_ee, config.align)
     n = sb.n_eval
-    coverage = jnp.where(n > 0, n_est / jnp.maximum(n, 1.0), 0.0)
+    n_gt = sb.n_gt
+    coverage = jnp.where(n_gt > 0, (n_closed + n_map) / jnp.maximum(n_gt, 1.0), 0.0)
     failed = (lost > 0.5) | degenerate | (n < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
     loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), rmse)
+    loss = jnp.where(~failed & (n_off > 0.5), jnp.nan, loss)
     return ChunkResult(loss=loss, failed=failed, rmse=jnp.where(failed, jnp.nan, rmse), coverage=coverage)
 
 

@@ -1,7 +1,7 @@
 """Parsed logs (RunLog) -> LogBatch: stacking runs into padded arrays, with host-side metadata.
 
 The LogBatch pytree and its pure array helpers live in jsve.core; this module is the I/O edge that
-fills it from format-v1 runs (pandas frames) and keeps per-run metadata in a DataFrame.
+fills it from parsed runs (pandas frames) and keeps per-run metadata in a DataFrame.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from jsve.core._batch import LogBatch, bucket_by_length, padded_length
+from jsve.core._machine import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST
 from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
 
@@ -24,6 +25,16 @@ class Bucket:
 
     batch: LogBatch
     meta: pd.DataFrame
+
+
+def recorded_mode(state):
+    """The replay's mode (jsve.core._machine MODE_*) of a logged eTrackingState, elementwise (numpy or
+    jax arrays): OK and OK_KLT -> OK, RECENTLY_LOST -> RECENTLY_LOST, anything else -> LOST (no map)."""
+    ok = (state == schema.STATE_OK) | (state == schema.STATE_OK_KLT)
+    recently_lost = state == schema.STATE_RECENTLY_LOST
+    return (MODE_OK * ok + MODE_RECENTLY_LOST * recently_lost + MODE_LOST * (~ok & ~recently_lost)).astype(
+        "int8"
+    )
 
 
 def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
@@ -75,7 +86,8 @@ def from_runs(
         return np.full((R, F) + shape, fill, dtype=dt)
 
     t, valid = alloc((), fdt), alloc((), bool, False)
-    state, imu_init = alloc((), np.int8), alloc((), bool, False)
+    state, imu_init, imu_ba2 = alloc((), np.int8), alloc((), bool, False), alloc((), bool, False)
+    map_id, has_pose = alloc((), np.int32), alloc((), bool, False)
     n_ext, n_inl, n_fru = alloc((), np.int32), alloc((), np.int32), alloc((), np.int32)
     bins = alloc((schema.N_BINS,), np.uint16)
     vis_p, vis_v, imu_dp, imu_dv, gt_p = (alloc((3,), fdt) for _ in range(5))
@@ -85,7 +97,8 @@ def from_runs(
     imu_dt, gt_valid = alloc((), fdt), alloc((), bool, False)
     fps = np.zeros(R, fdt)
     gravity = np.zeros((R, 3), fdt)
-    delay = np.zeros(R, fdt)
+    delay, ba2_delay = np.zeros(R, fdt), np.zeros(R, fdt)
+    n_features, stereo = np.zeros(R, fdt), np.zeros(R, bool)
     for i, run in enumerate(runs):
         f = run.frames
         n = len(f)
@@ -94,15 +107,21 @@ def from_runs(
         valid[i, :n] = True
         state[i, :n] = f["state"].to_numpy()
         init = f["imu_init"].to_numpy() != 0
-        imu_init[i, :n] = init
-        delay[i] = t[i, int(np.argmax(init))] if init.any() else np.inf
+        ba2 = f["imu_ba2"].to_numpy() != 0
+        posed = np.isfinite(f[list(schema.VIS_POSITION)].to_numpy()).all(axis=1)  # NaN: no pose (v2)
+        imu_init[i, :n], imu_ba2[i, :n], has_pose[i, :n] = init, ba2, posed
+        map_id[i, :n] = f["map_id"].to_numpy()
+        # Delays from the recorded run's first map (its first posed frame), as a new map needs them.
+        t_first = t[i, int(np.argmax(posed))] if posed.any() else 0.0
+        delay[i] = t[i, int(np.argmax(init))] - t_first if init.any() else np.inf
+        ba2_delay[i] = t[i, int(np.argmax(ba2))] - t_first if ba2.any() else np.inf
         n_ext[i, :n] = f["n_extracted"].to_numpy()
         n_inl[i, :n] = f["n_inliers"].to_numpy()
         n_fru[i, :n] = f["n_frustum"].to_numpy()
         bins[i, :n] = f[list(schema.BIN_COLUMNS)].to_numpy()
-        vis_p[i, :n] = f[list(schema.VIS_POSITION)].to_numpy()
-        vis_q[i, :n] = f[list(schema.VIS_QUATERNION)].to_numpy()
-        vis_v[i, :n] = f[list(schema.VIS_VELOCITY)].to_numpy()
+        vis_p[i, :n][posed] = f[list(schema.VIS_POSITION)].to_numpy()[posed]
+        vis_q[i, :n][posed] = f[list(schema.VIS_QUATERNION)].to_numpy()[posed]
+        vis_v[i, :n][posed] = f[list(schema.VIS_VELOCITY)].to_numpy()[posed]
         imu_dt[i, :n] = f["imu_dt"].to_numpy()
         imu_dp[i, :n] = f[list(schema.IMU_DP)].to_numpy()
         imu_dv[i, :n] = f[list(schema.IMU_DV)].to_numpy()
@@ -116,15 +135,38 @@ def from_runs(
             gt_valid[i, :n] = ok
         fps[i] = float(run.meta["fps"])
         gravity[i] = run.meta.get("gravity", schema.DEFAULT_GRAVITY)
+        n_features[i] = run.meta.get("n_features", schema.DEFAULT_N_FEATURES)
+        stereo[i] = run.meta.get("sensor", "imu_monocular") in schema.STEREO_SENSORS
     batch = LogBatch(
-        t=jnp.asarray(t), valid=jnp.asarray(valid), state=jnp.asarray(state), imu_init=jnp.asarray(imu_init),
-        n_extracted=jnp.asarray(n_ext), n_inliers=jnp.asarray(n_inl), n_frustum=jnp.asarray(n_fru),
-        bins=jnp.asarray(bins), vis_p=jnp.asarray(vis_p), vis_q=jnp.asarray(vis_q), vis_v=jnp.asarray(vis_v),
-        imu_dt=jnp.asarray(imu_dt), imu_dp=jnp.asarray(imu_dp), imu_dv=jnp.asarray(imu_dv),
-        imu_dq=jnp.asarray(imu_dq), gt_p=jnp.asarray(gt_p), gt_q=jnp.asarray(gt_q),
-        gt_valid=jnp.asarray(gt_valid), fps=jnp.asarray(fps), gravity=jnp.asarray(gravity),
-        imu_init_delay=jnp.asarray(delay), run_index=jnp.arange(R, dtype=jnp.int32),
-    )  # fmt: skip
+        t=jnp.asarray(t),
+        valid=jnp.asarray(valid),
+        state=jnp.asarray(state),
+        imu_init=jnp.asarray(imu_init),
+        imu_ba2=jnp.asarray(imu_ba2),
+        map_id=jnp.asarray(map_id),
+        has_pose=jnp.asarray(has_pose),
+        n_extracted=jnp.asarray(n_ext),
+        n_inliers=jnp.asarray(n_inl),
+        n_frustum=jnp.asarray(n_fru),
+        bins=jnp.asarray(bins),
+        vis_p=jnp.asarray(vis_p),
+        vis_q=jnp.asarray(vis_q),
+        vis_v=jnp.asarray(vis_v),
+        imu_dt=jnp.asarray(imu_dt),
+        imu_dp=jnp.asarray(imu_dp),
+        imu_dv=jnp.asarray(imu_dv),
+        imu_dq=jnp.asarray(imu_dq),
+        gt_p=jnp.asarray(gt_p),
+        gt_q=jnp.asarray(gt_q),
+        gt_valid=jnp.asarray(gt_valid),
+        fps=jnp.asarray(fps),
+        gravity=jnp.asarray(gravity),
+        imu_init_delay=jnp.asarray(delay),
+        ba2_delay=jnp.asarray(ba2_delay),
+        n_features=jnp.asarray(n_features),
+        stereo=jnp.asarray(stereo),
+        run_index=jnp.arange(R, dtype=jnp.int32),
+    )
     return Bucket(batch=batch, meta=run_meta_table(runs).reset_index(drop=True))
 
 
