@@ -1,14 +1,17 @@
-"""Synthetic, valid format-v1 runs for tests, and text-level edits to make broken log files.
+"""Synthetic, valid format-v2 runs for tests, and text-level edits to make broken log files.
 
     from logfactory import make_run, set_field
     run = make_run(300, seed=1, sequence="MH_04", disturbance="blur", level=15)
     write_log(run, tmp_path / "r1.csv")
     set_field(tmp_path / "r1.csv", line=12, column="imu_dt", text="-0.05")   # now invalid at line 12
 
-`make_run` draws every value at random (deterministically from `seed`) within the v1 rules: strictly
-increasing int64 stamps with jitter, ORB-SLAM3 states, counts with n_inliers <= n_extracted and the
-binned keypoints <= n_extracted, unit quaternions (wxyz), IMU preintegration from the previous frame
-with frame 0 at imu_dt = 0 and identity, and optional ground truth. It is not a physical simulation
+`make_run` draws every value at random (deterministically from `seed`) within the v2 rules: strictly
+increasing int64 stamps with jitter, ORB-SLAM3 states, one map (map_id 0) with imu_ba2 by
+schema.v1_defaults unless asked otherwise, counts with n_inliers <= n_extracted and the binned
+keypoints <= n_extracted, unit quaternions (wxyz), optionally frames without a pose (NaN vis_*, only
+outside states 2, 3, 5), IMU preintegration from the previous frame with frame 0 at imu_dt = 0 and
+identity, and optional ground truth. `v1_text` turns a written v2 log into the v1 file it would have
+been. It is not a physical simulation
 (the simulator is jsve.sim._simulate): positions, velocities and preintegration are not consistent with
 each other. Floats use all 17 significant digits, so round trips are a real test of exactness.
 """
@@ -59,10 +62,12 @@ def make_run(
     t0_ns: int = EUROC_T0_NS,
     period_ns: int | None = None,
     awkward_floats: bool = False,
+    no_pose: float = 0.0,
+    map_id: np.ndarray | None = None,
     source: str = "<memory>",
     **meta,
 ) -> RunLog:
-    """A random, valid format-v1 run.
+    """A random, valid format-v2 run.
 
     Arguments:
         n_frames: frames (>= 1).
@@ -73,6 +78,9 @@ def make_run(
         period_ns: mean frame spacing, ns (default 1e9 / fps); each step is jittered by up to +-10 %.
         awkward_floats: put -0.0, the smallest subnormal, 1e300 and 0.1 into vis_v* of frames 1-4
             (needs n_frames >= 5): values that a careless writer would not round-trip.
+        no_pose: fraction of frames (drawn at random among those not in states 2, 3, 5, and never
+            frames 1-4 with awkward_floats) without a pose: all ten vis_* NaN.
+        map_id: [n_frames] int map ids (default 0 on every frame).
         source: RunLog.source.
         **meta: metadata entries, overriding DEFAULT_META and `run` (e.g. sequence="MH_04", level=15).
 
@@ -103,6 +111,7 @@ def make_run(
         "t_ns": t_ns,
         "state": state,
         "imu_init": imu_init,
+        **schema.v1_defaults(t_ns, imu_init),
         "n_extracted": n_extracted.astype(np.int64),
         "n_inliers": n_inliers.astype(np.int64),
         "n_frustum": n_frustum.astype(np.int64),
@@ -130,6 +139,15 @@ def make_run(
         if n < 5:
             raise ValueError("awkward_floats needs n_frames >= 5")
         cols["vis_vx"][1:5] = [-0.0, 5e-324, 1e300, 0.1]
+    if map_id is not None:
+        cols["map_id"] = np.asarray(map_id, dtype=np.int64)
+    if no_pose:
+        posed = np.isin(state, schema.POSED_STATES)
+        if awkward_floats:
+            posed[1:5] = True
+        lacking = ~posed & (rng.random(n) < no_pose)
+        for c in schema.VIS_COLUMNS:
+            cols[c][lacking] = np.nan
     if with_gt:
         gp = np.cumsum(rng.normal(scale=0.05, size=(n, 3)), axis=0)
         gq = _unit_quaternions(rng, n)
@@ -144,6 +162,19 @@ def make_run(
 
 # ---------------------------------------------------------------------------------------------------
 # Text-level edits of a written log (1-based line numbers, as in LogFormatError messages).
+
+
+def v1_text(path: str | os.PathLike) -> None:
+    """Rewrite a v2 log in place as the v1 file it would have been: v1 magic, no map_id / imu_ba2.
+
+    The log must have a pose on every frame (v1 has no empty vis_* fields)."""
+    lines = read_lines(path)
+    drop = [lines[1].split(",").index(c) for c in schema.MAP_COLUMNS]
+    lines[0] = schema.MAGICS[1] + lines[0][len(schema.MAGIC) :]
+    for i in range(1, len(lines) - 1):
+        fields = lines[i].split(",")
+        lines[i] = ",".join(f for k, f in enumerate(fields) if k not in drop)
+    write_lines(path, lines)
 
 
 def read_lines(path: str | os.PathLike) -> list[str]:

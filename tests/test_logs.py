@@ -1,10 +1,12 @@
-"""jsve.io._logs: tracking logs, format v1: writing, reading and validating one log, exactly."""
+"""jsve.io._logs: tracking logs, format v2 (and v1 read with defaults): writing, reading and
+validating one log, exactly."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -12,11 +14,22 @@ import pandas as pd
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from logfactory import edit_line, get_field, make_run, read_lines, same_bits, set_field, write_lines
+from logfactory import (
+    EUROC_T0_NS,
+    edit_line,
+    get_field,
+    make_run,
+    read_lines,
+    same_bits,
+    set_field,
+    v1_text,
+    write_lines,
+)
 
 from jsve.io import _logs as logs
 from jsve.io import _schema as schema
 from jsve.io import _text as text
+from jsve.io._errors import LogVersionWarning
 from jsve.io._logs import LogFormatError, LogIncompleteError
 
 N = 20  # frames of the small logs below; frame i is on line i + 3, the end marker on line N + 3
@@ -65,21 +78,41 @@ def expect(path, exc, line, column=None, value=None, reason=None) -> LogFormatEr
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("with_gt", [True, False])
 def test_round_trip_is_exact(tmp_path, seed, with_gt):
+    map_id = np.repeat([0, 3, 3, 1 << 40], 100)  # ids change (a new map) and repeat (a reset keeps it)
     run = make_run(
-        400, seed, with_gt=with_gt, gt_missing=0.25, awkward_floats=True, sequence="MH_04", level=15
+        400,
+        seed,
+        with_gt=with_gt,
+        gt_missing=0.25,
+        awkward_floats=True,
+        no_pose=0.3,
+        map_id=map_id,
+        sequence="MH_04",
+        level=15,
     )
+    no_pose = run.frames["vis_px"].isna().to_numpy()
+    assert 0 < no_pose.sum() and 0 < run.frames["imu_ba2"].sum()
     path = logs.write_log(run, tmp_path / "a.csv")
-    back = logs.read_log(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a v2 log reads without a version warning
+        back = logs.read_log(path)
     assert same_bits(back.frames, run.frames)
+    assert np.array_equal(back.frames["map_id"].to_numpy(), map_id)
+    assert np.array_equal(back.frames[list(schema.VIS_COLUMNS)].isna().all(axis=1).to_numpy(), no_pose)
     assert back.meta == run.meta
     assert back.source == str(path)
     assert isinstance(back.frames.index, pd.RangeIndex)
     lines = read_lines(path)
-    assert lines[0] == schema.MAGIC + json.dumps(run.meta)
+    assert lines[0] == "# jsve-log v2 " + json.dumps(run.meta)
+    assert lines[1].startswith("t_ns,state,imu_init,map_id,imu_ba2,n_extracted,")
     assert lines[1] == ",".join(schema.COLUMNS if with_gt else schema.REQUIRED_COLUMNS)
     assert lines[-1] == f"{schema.END_MARKER}400"
     assert len(lines) == 403
     assert not (tmp_path / "a.csv.partial").exists()
+    # A frame without a pose has its ten vis_* fields empty, and only those.
+    k = int(np.argmax(no_pose))
+    fields = dict(zip(lines[1].split(","), lines[k + 2].split(","), strict=True))
+    assert [c for c, v in fields.items() if v == "" and not c.startswith("gt_")] == list(schema.VIS_COLUMNS)
 
 
 def test_round_trip_keeps_int64_stamps_that_float64_cannot_hold(tmp_path):
@@ -178,7 +211,7 @@ def test_empty_file(tmp_path):
 
 def test_wrong_magic(log):
     edit_line(log, 1, "# some other tool {}")
-    expect(log, LogFormatError, 1, reason="not a jsve v1 log: line 1 must start with '# jsve-log v1 '")
+    expect(log, LogFormatError, 1, reason="not a jsve log: line 1 must start with '# jsve-log v2 '")
 
 
 def test_missing_magic_line(log):
@@ -186,9 +219,11 @@ def test_missing_magic_line(log):
     expect(log, LogFormatError, 1, reason="found 't_ns,state,imu_init,")
 
 
-def test_other_format_version(log):
-    edit_line(log, 1, '# jsve-log v2 {"sequence": "X", "run": 1, "fps": 20}')
-    expect(log, LogFormatError, 1, reason="unsupported format version 'v2'")
+@pytest.mark.parametrize("version", ["v3", "v0", "v2.1"])
+def test_other_format_version(log, version):
+    edit_line(log, 1, f'# jsve-log {version} {{"sequence": "X", "run": 1, "fps": 20}}')
+    err = expect(log, LogFormatError, 1)
+    assert err.reason == f"unsupported format version '{version}' (this reader reads v1 and v2)"
 
 
 def test_metadata_not_json(log):
@@ -253,7 +288,7 @@ def test_header_wrong_order(log):
         LogFormatError,
         2,
         column="n_inliers",
-        reason="wrong column order: header position 4 holds 'n_inliers', v1 expects 'n_extracted'",
+        reason="wrong column order: header position 6 holds 'n_inliers', v2 expects 'n_extracted'",
     )
 
 
@@ -273,8 +308,14 @@ def test_truncated_row(log):
     lines = read_lines(log)
     lines[6] = ",".join(lines[6].split(",")[:-3])  # line 7 loses its last three fields
     write_lines(log, lines)
+    n = len(schema.COLUMNS)
+    assert n == 100  # 98 v1 columns + map_id + imu_ba2
     expect(
-        log, LogFormatError, 7, column=schema.COLUMNS[-3], reason="row has 95 of 98 fields (truncated row)"
+        log,
+        LogFormatError,
+        7,
+        column=schema.COLUMNS[-3],
+        reason=f"row has {n - 3} of {n} fields (truncated row)",
     )
 
 
@@ -282,7 +323,7 @@ def test_too_many_fields(log):
     lines = read_lines(log)
     lines[8] += ",1.0"
     write_lines(log, lines)
-    expect(log, LogFormatError, 9, reason="too many fields: the row has 99, v1 expects 98")
+    expect(log, LogFormatError, 9, reason="too many fields: the row has 101, the header has 100")
 
 
 def test_empty_line(log):
@@ -315,10 +356,10 @@ def test_nan_or_inf(log, column, text):
     expect(log, LogFormatError, 11, column=column, value=text, reason="NaN or inf is not allowed")
 
 
-@pytest.mark.parametrize("column", ["vis_px", "n_frustum", "t_ns"])
-def test_empty_value_outside_gt(log, column):
+@pytest.mark.parametrize("column", ["n_frustum", "t_ns", "map_id", "imu_ba2", "imu_dt"])
+def test_empty_value_outside_gt_and_vis(log, column):
     set_field(log, 6, column, "")
-    expect(log, LogFormatError, 6, column=column, value="", reason="only gt_* fields may be empty")
+    expect(log, LogFormatError, 6, column=column, value="", reason="only gt_* and vis_* fields may be empty")
 
 
 def test_duplicate_timestamp(log):
@@ -498,3 +539,255 @@ def test_errors_deep_in_a_large_log_name_the_right_line(tmp_path):
     lines[2700] = ",".join(lines[2700].split(",")[:50])
     write_lines(path, lines)
     expect(path, LogFormatError, 2701, column=schema.COLUMNS[50], reason="truncated row")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Format v2: map_id, imu_ba2, frames without a pose, metadata
+
+
+def clear_pose(path, line: int, state: str = "4") -> None:
+    """Make line `line` a frame without a pose: `state` and ten empty vis_* fields."""
+    set_field(path, line, "state", state)
+    for c in schema.VIS_COLUMNS:
+        set_field(path, line, c, "")
+
+
+@pytest.mark.parametrize("state", ["-1", "0", "1", "4"])
+def test_frame_without_a_pose_reads_as_nan(log, state):
+    clear_pose(log, 8, state)
+    frames = logs.read_log(log).frames
+    assert frames.loc[5, list(schema.VIS_COLUMNS)].isna().all()  # line 8 is frame 5
+    assert frames.drop(index=5)[list(schema.VIS_COLUMNS)].notna().all(axis=None)
+    assert frames["vis_px"].dtype == np.float64
+
+
+@pytest.mark.parametrize("state", ["2", "3", "5"])
+def test_frame_in_a_tracked_state_must_have_a_pose(log, state):
+    clear_pose(log, 8, state)
+    name = schema.STATE_NAMES[int(state)]
+    err = expect(
+        log, LogFormatError, 8, column="vis_px", value="", reason=f"no pose in state {state} ({name})"
+    )
+    assert "2 OK, 3 RECENTLY_LOST, 5 OK_KLT" in err.reason
+
+
+@pytest.mark.parametrize("column", ["vis_px", "vis_qy", "vis_vz"])
+def test_partially_empty_pose_names_the_column(log, column):
+    set_field(log, 8, "state", "4")
+    set_field(log, 8, column, "")
+    err = expect(log, LogFormatError, 8, column=column, value="")
+    assert "missing while 9 other vis_* values of this frame are present" in err.reason
+
+
+def test_partially_empty_pose_reports_the_first_empty_column(log):
+    clear_pose(log, 8)
+    set_field(log, 8, "vis_qx", "0.5")  # nine empty, one present: the first empty is named
+    expect(log, LogFormatError, 8, column="vis_px", value="", reason="missing while 1 other vis_*")
+
+
+def test_nan_text_in_a_pose_field_is_not_an_empty_field(log):
+    clear_pose(log, 8)
+    set_field(log, 8, "vis_vy", "nan")
+    expect(log, LogFormatError, 8, column="vis_vy", value="nan", reason="leave all ten vis_* fields empty")
+
+
+def test_quaternion_check_skips_frames_without_a_pose_only(log):
+    clear_pose(log, 8)
+    logs.read_log(log)  # NaN quaternion: no unit-norm error
+    set_field(log, 9, "vis_qw", "3.0")  # a posed frame is still checked
+    expect(log, LogFormatError, 9, column="vis_qw..vis_qz", reason="not a unit quaternion")
+
+
+def test_imu_ba2_requires_imu_init(log):
+    set_field(log, 7, "imu_init", "0")
+    set_field(log, 7, "imu_ba2", "1")
+    err = expect(log, LogFormatError, 7, column="imu_ba2", value="1", reason="requires imu_init = 1")
+    assert str(err).startswith(f"{log}:7: column 'imu_ba2' = '1': requires imu_init = 1")
+    set_field(log, 7, "imu_ba2", "0")
+    assert logs.read_log(log).frames.loc[4, ["imu_init", "imu_ba2"]].tolist() == [0, 0]
+
+
+@pytest.mark.parametrize(
+    "column, text, reason",
+    [
+        ("imu_ba2", "2", "must be 0 or 1"),
+        ("imu_ba2", "-1", "must be 0 or 1"),
+        ("map_id", "-1", "must be >= 0 (ORB-SLAM3 Map::GetId()"),
+        ("map_id", "1.0", "not an integer"),
+        ("imu_ba2", "yes", "not an integer"),
+    ],
+)
+def test_map_columns_are_checked(log, column, text, reason):
+    set_field(log, 7, "imu_init", "1")
+    set_field(log, 7, column, text)
+    expect(log, LogFormatError, 7, column=column, value=text, reason=reason)
+
+
+def test_v2_header_needs_the_map_columns(log):
+    edit_line(log, 2, read_lines(log)[1].replace(",map_id,imu_ba2", ""))
+    err = expect(log, LogFormatError, 2, column="map_id")
+    assert "missing columns 'map_id', 'imu_ba2'" in err.reason
+
+
+def test_in_memory_runs_follow_the_same_pose_rules(tmp_path):
+    run = make_run(N, 2)
+    frames = run.frames.copy()
+    frames.loc[6, "state"] = schema.STATE_LOST
+    frames.loc[6, list(schema.VIS_COLUMNS)] = np.nan
+    assert logs.validate_run(dataclasses.replace(run, frames=frames)).frames["vis_qz"].isna().sum() == 1
+    back = logs.read_log(logs.write_log(dataclasses.replace(run, frames=frames), tmp_path / "a.csv"))
+    assert same_bits(back.frames, frames)
+
+    partial = frames.copy()
+    partial.loc[6, "vis_qx"] = 0.0
+    with pytest.raises(LogFormatError) as info:
+        logs.validate_run(dataclasses.replace(run, frames=partial))
+    assert str(info.value).startswith("<memory>: frame 6: column 'vis_px' = 'nan': missing while 1 other")
+
+    posed = frames.copy()
+    posed.loc[6, "state"] = schema.STATE_OK_KLT
+    with pytest.raises(
+        LogFormatError, match=r"frame 6: column 'vis_px' = 'nan': no pose in state 5 \(OK_KLT\)"
+    ):
+        logs.write_log(dataclasses.replace(run, frames=posed), tmp_path / "b.csv")
+    assert not (tmp_path / "b.csv").exists()
+
+    infinite = run.frames.copy()
+    infinite.loc[3, "vis_vx"] = np.inf
+    with pytest.raises(LogFormatError, match="frame 3: column 'vis_vx' = 'inf': NaN or inf is not allowed"):
+        logs.validate_run(dataclasses.replace(run, frames=infinite))
+
+    ba2 = run.frames.copy()
+    ba2.loc[2, ["imu_init", "imu_ba2"]] = [0, 1]
+    with pytest.raises(LogFormatError, match="frame 2: column 'imu_ba2' = '1': requires imu_init = 1"):
+        logs.validate_run(dataclasses.replace(run, frames=ba2))
+
+    with pytest.raises(LogFormatError, match="missing columns 'map_id', 'imu_ba2'"):
+        logs.validate_run(dataclasses.replace(run, frames=run.frames.drop(columns=list(schema.MAP_COLUMNS))))
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("rule", "sve-option2"),
+        ("rule", {"kind": "inliers", "thresholds": {"imu_init": 15.0, "not_init": 50.0, "reloc": 50.0}}),
+        ("switch_model", "imu-coast"),
+    ],
+)
+def test_rule_and_switch_model_metadata_round_trip(tmp_path, key, value):
+    run = make_run(N, 1, **{key: value})
+    back = logs.read_log(logs.write_log(run, tmp_path / "a.csv"))
+    assert back.meta[key] == value
+
+
+@pytest.mark.parametrize(
+    "extra, key, shown, reason",
+    [
+        ('"rule": 15', "rule", "15", "must be a string or an object, got int"),
+        ('"rule": ["orbslam3"]', "rule", '["orbslam3"]', "must be a string or an object, got list"),
+        ('"switch_model": {"name": "orbslam3"}', "switch_model", '{"name": "orbslam3"}', "must be a string"),
+        ('"switch_model": null', "switch_model", "null", "must be a string, got NoneType"),
+    ],
+)
+def test_rule_and_switch_model_metadata_types(log, extra, key, shown, reason):
+    edit_line(log, 1, schema.MAGIC + '{"sequence": "X", "run": 1, "fps": 20, ' + extra + "}")
+    expect(log, LogFormatError, 1, column=key, value=shown, reason=reason)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Reading v1 logs: defaults
+
+
+def v1_run(tmp_path, n=400, seed=6, **kwargs) -> tuple[schema.RunLog, Path]:
+    """A v2 run with a pose on every frame, and the v1 file of the same frames."""
+    run = make_run(n, seed, **kwargs)
+    path = logs.write_log(run, tmp_path / "v1.csv")
+    v1_text(path)
+    return run, path
+
+
+@pytest.mark.parametrize("with_gt", [True, False])
+def test_v1_log_reads_with_defaults_and_a_warning(tmp_path, with_gt):
+    run, path = v1_run(tmp_path, with_gt=with_gt, gt_missing=0.1)
+    lines = read_lines(path)
+    assert lines[0].startswith("# jsve-log v1 {") and "map_id" not in lines[1]
+    with pytest.warns(LogVersionWarning) as record:
+        back = logs.read_log(path)
+    (w,) = record
+    message = str(w.message)
+    assert message.startswith(f"{path}: format v1 log read with defaults: ")
+    assert "map_id = 0, imu_ba2 = imu_init & (t - t_first >= 15 s)" in message
+    assert w.filename == __file__  # attributed to the caller of read_log
+    assert list(back.frames.columns) == list(schema.COLUMNS if with_gt else schema.REQUIRED_COLUMNS)
+    # Everything v1 has is read as written; the defaults, computed here independently: one map, and
+    # BA2 from 15 s (15e9 ns, exact in integers) after the first frame where the IMU is initialised.
+    others = [c for c in back.frames.columns if c not in schema.MAP_COLUMNS]
+    assert same_bits(back.frames[others], run.frames[others])
+    t = [int(x) for x in back.frames["t_ns"]]
+    init = back.frames["imu_init"].tolist()
+    expected = [int(i == 1 and ti - t[0] >= 15_000_000_000) for ti, i in zip(t, init, strict=True)]
+    assert back.frames["imu_ba2"].tolist() == expected
+    assert 0 < sum(expected) < sum(init)  # the rule decides both ways on this run
+    assert back.frames["map_id"].tolist() == [0] * len(t)
+    assert back.frames["map_id"].dtype == back.frames["imu_ba2"].dtype == np.int64
+
+
+def test_v1_ba2_delay_boundary_is_inclusive(tmp_path):
+    run = make_run(320, 1, with_gt=False)
+    t = EUROC_T0_NS + np.arange(320, dtype=np.int64) * 50_000_000  # frame 300 is exactly 15 s in
+    frames = run.frames.assign(t_ns=t, imu_init=np.ones(320, np.int64), imu_ba2=np.zeros(320, np.int64))
+    path = logs.write_log(dataclasses.replace(run, frames=frames), tmp_path / "a.csv")
+    v1_text(path)
+    with pytest.warns(LogVersionWarning):
+        ba2 = logs.read_log(path).frames["imu_ba2"].to_numpy()
+    assert schema.V1_BA2_DELAY_S == 15.0
+    assert ba2[299] == 0 and ba2[300] == 1 and ba2[:300].sum() == 0 and ba2[300:].all()
+
+
+def test_v1_defaults_near_the_end_of_int64():
+    t = np.array([2**63 - 20_000_000_000, 2**63 - 5_000_000_000, 2**63 - 1], dtype=np.int64)
+    d = schema.v1_defaults(t, np.array([1, 1, 0]))
+    assert d["imu_ba2"].tolist() == [0, 1, 0] and d["map_id"].tolist() == [0, 0, 0]
+    late = np.array([2**63 - 10, 2**63 - 1], dtype=np.int64)  # t_first + 15 s is past int64
+    assert schema.v1_defaults(late, np.array([1, 1]))["imu_ba2"].tolist() == [0, 0]
+
+
+def test_parse_log_of_v1_bytes_warns_too(tmp_path):
+    _, path = v1_run(tmp_path, n=N)
+    with pytest.warns(LogVersionWarning, match="memory-name: format v1 log read with defaults"):
+        logs.parse_log(path.read_bytes(), "memory-name")
+    run, version = logs.read_log_version(path)  # the variant for callers that report v1 themselves
+    assert version == 1 and run.frames["map_id"].eq(0).all()
+
+
+def test_v1_log_is_written_back_as_v2(tmp_path):
+    _, path = v1_run(tmp_path)
+    with pytest.warns(LogVersionWarning):
+        run = logs.read_log(path)
+    out = logs.write_log(run, tmp_path / "v2.csv")
+    assert read_lines(out)[0].startswith("# jsve-log v2 ")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert same_bits(logs.read_log(out).frames, run.frames)
+
+
+def test_v1_logs_keep_the_v1_rules(tmp_path):
+    _, path = v1_run(tmp_path, n=N)
+    good = path.read_bytes()
+    for c in schema.VIS_COLUMNS:  # no frames without a pose in v1
+        set_field(path, 8, c, "")
+    set_field(path, 8, "state", "4")
+    expect(
+        path, LogFormatError, 8, column="vis_px", value="", reason="only gt_* fields may be empty in a v1 log"
+    )
+    path.write_bytes(good)
+    edit_line(path, 2, read_lines(path)[1].replace("imu_init,", "imu_init,map_id,"))
+    expect(path, LogFormatError, 2, column="map_id", reason="unexpected column 'map_id'")
+    path.write_bytes(good)
+    edit_line(path, 2, read_lines(path)[1].replace("n_extracted,n_inliers", "n_inliers,n_extracted"))
+    expect(
+        path, LogFormatError, 2, column="n_inliers", reason="header position 4 holds 'n_inliers', v1 expects"
+    )
+    path.write_bytes(good)
+    set_field(path, 9, "imu_dt", "-0.05")
+    expect(path, LogFormatError, 9, column="imu_dt", value="-0.05", reason="must be >= 0")

@@ -15,7 +15,7 @@ def shorten(text: str) -> str:
 
 
 class LogFormatError(ValueError):
-    """A tracking log (or jsve Parquet file) that does not follow format v1.
+    """A tracking log (or jsve Parquet file) that does not follow its format (v2, or v1 when it says v1).
 
     The message reads `path:line: column 'name' = 'value': reason`; parts that do not apply are left
     out (`path: reason` when the problem has no line, e.g. a `.partial` file).
@@ -71,6 +71,12 @@ class LogFormatError(ValueError):
 class LogIncompleteError(LogFormatError):
     """A log whose writer did not finish: no end marker, a frame count that disagrees with the rows,
     an empty file, or a `.partial` file. The message always says that the log is incomplete."""
+
+
+class LogVersionWarning(UserWarning):
+    """A log (or jsve Parquet file) of an older format version was read, with documented defaults for
+    what that version does not record (format v1: map_id = 0, imu_ba2 from the map's age; see
+    jsve.io._schema.v1_defaults). The message names the file(s) and the defaults used."""
 
 
 def _rebuild_error(cls, path, line, reason, kwargs):

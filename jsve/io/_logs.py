@@ -1,11 +1,14 @@
-"""Tracking logs, format v1: write, read and validate one log.
+"""Tracking logs, format v2 (v1 still read): write, read and validate one log.
 
 The I/O edge of jsve (docs/log-format.md describes the format for people; jsve.io._schema is the one
 home of its names). Everything downstream receives `RunLog`s whose frames have been validated here:
 
-    write_log(run, path)                 one run -> one CSV log, atomically (`<path>.partial`, then rename)
-    read_log(path)                       one CSV log -> RunLog, strict; any defect raises LogFormatError
+    write_log(run, path)                 one run -> one v2 CSV log, atomically (`.partial`, then rename)
+    read_log(path)                       one v2 (or v1) CSV log -> RunLog; any defect raises LogFormatError
     parse_log(data), validate_run(run)   the same rules on bytes, and on an in-memory run
+
+A v1 log reads with `schema.v1_defaults` for map_id and imu_ba2 and a `LogVersionWarning` naming the
+file (`read_log_version` returns the version instead of warning: jsve.io._ingest summarises many).
 
 Ground truth is associated through jsve.io._groundtruth (`GroundTruth`: gt_* columns from an EuRoC /
 TUM / KITTI trajectory); many logs are read by jsve.io._ingest (`read_logs`, `ingest`, `read_parquet`).
@@ -26,6 +29,7 @@ import json
 import math
 import os
 import re
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +41,7 @@ import pyarrow as pa
 from jsve.io import _atomic as atomic
 from jsve.io import _schema as schema
 from jsve.io import _text as text
-from jsve.io._errors import LogFormatError, LogIncompleteError, shorten
+from jsve.io._errors import LogFormatError, LogIncompleteError, LogVersionWarning, shorten
 from jsve.io._groundtruth import GroundTruthSpec, apply_ground_truth
 from jsve.io._schema import RunLog
 
@@ -50,6 +54,8 @@ the ground-truth file used."""
 
 _INT_SET = frozenset(schema.INT_COLUMNS)
 _GT_SET = frozenset(schema.GT_COLUMNS)
+_VIS_SET = frozenset(schema.VIS_COLUMNS)
+_POSED = ", ".join(f"{s} {schema.STATE_NAMES[s]}" for s in schema.POSED_STATES)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -71,7 +77,7 @@ def _check_meta(meta, source: str, line: int | None) -> None:
     required = ", ".join(schema.REQUIRED_METADATA)
     for key, types in schema.REQUIRED_METADATA.items():
         if key not in meta:
-            fail(key, f"required key missing (v1 requires {required})", _MISSING)
+            fail(key, f"required key missing (every log has {required})", _MISSING)
         if not text.is_type(meta[key], types):
             fail(key, f"must be {text.type_name(types)}, got {type(meta[key]).__name__}", meta[key])
     if not (math.isfinite(meta["fps"]) and meta["fps"] > 0):
@@ -87,41 +93,46 @@ def _check_meta(meta, source: str, line: int | None) -> None:
         fail("image_size", "must be [width, height] in pixels", size)
     grid = meta.get("grid")
     if grid is not None and list(grid) != [8, 8]:
-        fail("grid", "must be [8, 8] in format v1 (SVE bins, cols x rows)", grid)
+        fail("grid", "must be [8, 8] (SVE bins, cols x rows)", grid)
     missing = meta.get("gt_missing_frames")
     if missing is not None and missing < 0:
         fail("gt_missing_frames", "must be >= 0", missing)
 
 
-def _parse_meta_line(raw: bytes, source: str) -> dict:
+_READS = " and ".join(f"v{v}" for v in schema.READ_VERSIONS)
+
+
+def _parse_meta_line(raw: bytes, source: str) -> tuple[dict, int]:
+    """(metadata, format version) of line 1."""
     try:
         line = raw.decode("utf-8").rstrip("\r")
     except UnicodeDecodeError as e:
-        raise LogFormatError(source, 1, f"not a jsve v1 log: line 1 is not UTF-8 text ({e.reason})") from None
-    if not line.startswith(schema.MAGIC):
-        version = re.match(r"# jsve-log (v\S+)", line)
-        if version and version.group(1) != f"v{schema.FORMAT_VERSION}":
-            reason = (
-                f"unsupported format version '{version.group(1)}' "
-                f"(this reader reads v{schema.FORMAT_VERSION})"
-            )
+        raise LogFormatError(source, 1, f"not a jsve log: line 1 is not UTF-8 text ({e.reason})") from None
+    version = next((v for v, magic in schema.MAGICS.items() if line.startswith(magic)), None)
+    if version is None:
+        other = re.match(r"# jsve-log (v\S+)", line)
+        if other:
+            reason = f"unsupported format version '{other.group(1)}' (this reader reads {_READS})"
         else:
             reason = (
-                f"not a jsve v1 log: line 1 must start with '{schema.MAGIC}' followed by the JSON metadata, "
-                f"found '{shorten(line)}'"
+                f"not a jsve log: line 1 must start with '{schema.MAGIC}' (or a v1 log's "
+                f"'{schema.MAGICS[1]}') followed by the JSON metadata, found '{shorten(line)}'"
             )
         raise LogFormatError(source, 1, reason)
-    meta = text.load_meta(line[len(schema.MAGIC) :], source)
+    meta = text.load_meta(line[len(schema.MAGICS[version]) :], source)
     _check_meta(meta, source, 1)
-    return meta
+    return meta, version
 
 
 # --------------------------------------------------------------------------------------------------
 # Header
 
 
-def _check_header(names: list[str], source: str, line: int | None) -> list[str]:
-    """The v1 column list `names` must be; raises naming missing, unexpected or misplaced columns."""
+def _check_header(
+    names: list[str], source: str, line: int | None, version: int = schema.FORMAT_VERSION
+) -> list[str]:
+    """The column list `names` must be in format `version`; raises naming missing, unexpected or
+    misplaced columns."""
 
     def fail(reason, column=None):
         raise LogFormatError(source, line, reason, column=column, what="column")
@@ -139,9 +150,10 @@ def _check_header(names: list[str], source: str, line: int | None) -> list[str]:
             "(give all seven gt_* columns or none)",
             lacking[0],
         )
-    expected = list(schema.COLUMNS if gt_present else schema.REQUIRED_COLUMNS)
+    required = schema.required_columns(version)
+    expected = list(required + schema.GT_COLUMNS if gt_present else required)
     missing = [c for c in expected if c not in seen]
-    unexpected = [c for c in names if c not in set(schema.COLUMNS)]
+    unexpected = [c for c in names if c not in set(required + schema.GT_COLUMNS)]
     if missing or unexpected:
         parts = []
         if missing:
@@ -152,8 +164,8 @@ def _check_header(names: list[str], source: str, line: int | None) -> list[str]:
     if names != expected:
         k = next(i for i, (a, b) in enumerate(zip(names, expected, strict=True)) if a != b)
         fail(
-            f"wrong column order: header position {k + 1} holds '{names[k]}', v1 expects '{expected[k]}' "
-            f"there (order: {expected[0]}, {expected[1]}, ..., see docs/log-format.md)",
+            f"wrong column order: header position {k + 1} holds '{names[k]}', v{version} expects "
+            f"'{expected[k]}' there (order: {expected[0]}, {expected[1]}, ..., see docs/log-format.md)",
             names[k],
         )
     return expected
@@ -182,14 +194,18 @@ class _Problem:
     ref_row: int | None = None
 
 
-def _find_problem(cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None) -> _Problem | None:
-    """First (lowest row, then leftmost column) violation of the v1 value rules, or None.
+def _find_problem(
+    cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None, vis_missing: np.ndarray | None
+) -> _Problem | None:
+    """First (lowest row, then leftmost column) violation of the value rules, or None.
 
     Arguments:
-        cols: column name -> values [frames], in v1 order; ints int64, floats float64, gt_* NaN where
-            missing.
+        cols: column name -> values [frames], in file order (v2, or v1 without map_id / imu_ba2);
+            ints int64, floats float64, gt_* and vis_* NaN where missing.
         gt_missing: bool [frames, 7], True where a gt value is absent (an empty field in a file; NaN in
             memory), or None when there are no gt columns.
+        vis_missing: bool [frames, 10], True where a vis_* value is absent (as gt_missing), or None
+            where no vis_* value may be absent (format v1).
     """
     pos = {c: i for i, c in enumerate(cols)}
     n_frames = len(cols["t_ns"])
@@ -218,11 +234,55 @@ def _find_problem(cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None)
             found.append(_Problem(r, pos[c], c, text, (c,)))
 
     ints = cols
-    float_names = list(schema.FLOAT_COLUMNS)
-    floats = block(float_names)
+    other_floats = [c for c in schema.FLOAT_COLUMNS if c not in _VIS_SET]
 
-    # NaN / inf anywhere (an empty gt_* field is a missing value, not NaN).
-    per_cell(~np.isfinite(floats), float_names, "NaN or inf is not allowed")
+    # NaN / inf anywhere (an empty gt_* or vis_* field is a missing value, not NaN).
+    per_cell(~np.isfinite(block(other_floats)), other_floats, "NaN or inf is not allowed")
+    vis = block(schema.VIS_COLUMNS)
+    if vis_missing is None:
+        per_cell(~np.isfinite(vis), schema.VIS_COLUMNS, "NaN or inf is not allowed")
+    else:
+        per_cell(
+            ~np.isfinite(vis) & ~vis_missing,
+            schema.VIS_COLUMNS,
+            "NaN or inf is not allowed (leave all ten vis_* fields empty for a frame without a pose)",
+        )
+        n_vis = len(schema.VIS_COLUMNS)
+        n_missing = vis_missing.sum(axis=1)
+        partial = (n_missing > 0) & (n_missing < n_vis)
+        hit = first_cell(vis_missing & partial[:, None])
+        if hit is not None:
+            r, k = hit
+            c = schema.VIS_COLUMNS[k]
+            present = n_vis - int(n_missing[r])
+            found.append(
+                _Problem(
+                    r,
+                    # After the single-field rules of the row: a 'nan' written beside empty fields
+                    # is reported as itself.
+                    pos[schema.VIS_COLUMNS[-1]],
+                    c,
+                    f"missing while {present} other vis_* values of this frame are present (a frame "
+                    "has all ten vis_* values, or none when the front-end has no pose)",
+                    (c,),
+                )
+            )
+        state = ints["state"]
+        hit = first_cell((n_missing == n_vis) & np.isin(state, schema.POSED_STATES))
+        if hit is not None:
+            r = hit[0]
+            c = schema.VIS_COLUMNS[0]
+            s = int(state[r])
+            found.append(
+                _Problem(
+                    r,
+                    pos[c],
+                    c,
+                    f"no pose in state {s} ({schema.STATE_NAMES[s]}): a frame in state {_POSED} has "
+                    "a pose (vis_* may be empty only in the other states)",
+                    (c,),
+                )
+            )
     if gt_missing is not None:
         gt = block(schema.GT_COLUMNS)
         per_cell(
@@ -271,6 +331,15 @@ def _find_problem(cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None)
     )
     imu_init = ints["imu_init"]
     per_cell((imu_init != 0) & (imu_init != 1), ("imu_init",), "must be 0 or 1")
+    if "map_id" in cols:  # format v2
+        per_cell(ints["map_id"] < 0, ("map_id",), "must be >= 0 (ORB-SLAM3 Map::GetId(), an unsigned id)")
+        ba2 = ints["imu_ba2"]
+        per_cell((ba2 != 0) & (ba2 != 1), ("imu_ba2",), "must be 0 or 1")
+        per_cell(
+            (ba2 == 1) & (imu_init == 0),
+            ("imu_ba2",),
+            "requires imu_init = 1 (ORB-SLAM3 runs inertial BA2 only on a map whose IMU is initialised)",
+        )
 
     count_names = schema.COUNT_COLUMNS + schema.BIN_COLUMNS
     counts = block(count_names)
@@ -299,7 +368,8 @@ def _find_problem(cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None)
             continue
         q = block(names)
         norm = np.sqrt(np.sum(q * q, axis=1))
-        hit = first_cell(np.abs(norm - 1.0) > tol)  # NaN rows compare False: reported above, or missing gt
+        # NaN rows compare False: reported above, or a frame without ground truth or without a pose.
+        hit = first_cell(np.abs(norm - 1.0) > tol)
         if hit is not None:
             r = hit[0]
             found.append(
@@ -340,11 +410,12 @@ def _find_problem(cols: Mapping[str, np.ndarray], gt_missing: np.ndarray | None)
 
 
 def validate_run(run: RunLog) -> RunLog:
-    """Check an in-memory run against format v1 and return it in canonical form.
+    """Check an in-memory run against format v2 and return it in canonical form.
 
-    Canonical form: columns in v1 order (schema.REQUIRED_COLUMNS, then GT_COLUMNS when present), int
+    Canonical form: columns in v2 order (schema.REQUIRED_COLUMNS, then GT_COLUMNS when present), int
     columns int64, float columns float64, a RangeIndex, metadata as it reads back from JSON (tuples
-    become lists, numpy scalars Python numbers). gt_* NaN marks a frame without ground truth.
+    become lists, numpy scalars Python numbers). gt_* NaN marks a frame without ground truth, all ten
+    vis_* NaN a frame without a pose (allowed outside schema.POSED_STATES).
 
     Raises:
         LogFormatError: with `frame` (0-based) instead of a line, e.g.
@@ -376,7 +447,8 @@ def validate_run(run: RunLog) -> RunLog:
                 raise LogFormatError(source, None, f"has dtype {values.dtype}; expected float64", column=c)
             columns[c] = values.astype(np.float64, copy=False)
     gt_missing = np.stack([np.isnan(columns[c]) for c in schema.GT_COLUMNS], axis=1) if has_gt else None
-    problem = _find_problem(columns, gt_missing)
+    vis_missing = np.stack([np.isnan(columns[c]) for c in schema.VIS_COLUMNS], axis=1)
+    problem = _find_problem(columns, gt_missing, vis_missing)
     if problem is not None:
         raise _memory_error(problem, columns, source)
     if (
@@ -400,13 +472,13 @@ def _memory_error(p: _Problem, cols: Mapping[str, np.ndarray], source: str) -> L
 
 
 def write_log(run: RunLog, path: str | os.PathLike) -> Path:
-    """Write one run as a format-v1 CSV log, atomically.
+    """Write one run as a format-v2 CSV log, atomically (always v2, whatever the run was read from).
 
     Line 1 is MAGIC + the metadata as JSON, line 2 the header (schema.REQUIRED_COLUMNS, plus
     GT_COLUMNS when the frames have them), then one row per frame and last the end marker with the
     frame count. Integers are written exactly; floats in the shortest decimal form that reads back to
     the same double (as Python's repr), so `read_log` returns the frames bit for bit. A frame without
-    ground truth has its seven gt_* fields empty.
+    ground truth has its seven gt_* fields empty, a frame without a pose (NaN) its ten vis_* fields.
 
     The file is written as `<path>.partial` and renamed to `path` when complete, so a reader never
     sees a half-written log under the final name. (No fsync: this guards against the writer dying,
@@ -425,8 +497,8 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
     arrays = []
     for c in frames.columns:
         values = frames[c].to_numpy()
-        # Only gt_* may be missing: NaN there becomes an empty field (Arrow writes nulls as "").
-        arrays.append(pa.array(values, from_pandas=c in _GT_SET))
+        # Only gt_* and vis_* may be missing: NaN there becomes an empty field (Arrow writes nulls as "").
+        arrays.append(pa.array(values, from_pandas=c in _GT_SET or c in _VIS_SET))
     table = pa.Table.from_arrays(arrays, names=list(frames.columns))
     return atomic.write_bytes(
         path,
@@ -441,7 +513,7 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
 
 
 def read_log(path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = None) -> RunLog:
-    """Read and validate one format-v1 log.
+    """Read and validate one log of format v2, or v1 with defaults.
 
     Arguments:
         path: the CSV log. A name ending in `.partial` is an unfinished log and is reported as such.
@@ -450,14 +522,38 @@ def read_log(path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = 
             (see `associate_ground_truth`).
 
     Returns:
-        The run: frames with int64 / float64 columns in v1 order, gt_* NaN where a frame has none;
-        `source` is `path` as given.
+        The run: frames with int64 / float64 columns in v2 order, vis_* NaN where a frame has no
+        pose, gt_* NaN where a frame has no ground truth; `source` is `path` as given. A v1 log gets
+        map_id and imu_ba2 from `schema.v1_defaults`, with a `LogVersionWarning` naming the file.
 
     Raises:
         LogIncompleteError: empty file, no end marker, a frame count that disagrees with the rows, or
             a `.partial` name (the writer died mid-run or is still running).
         LogFormatError: any other defect, naming file, line, column and value.
         OSError: the file cannot be read.
+    """
+    run, version = read_log_version(path, ground_truth=ground_truth)
+    if version == 1:
+        _warn_v1(run.source)
+    return run
+
+
+def _warn_v1(source: str) -> None:
+    # stacklevel 3: this function, read_log / parse_log, then their caller.
+    warnings.warn(
+        f"{source}: format v1 log read with defaults: {schema.V1_DEFAULTS_TEXT} (docs/log-format.md, "
+        "'Reading v1 logs: defaults'); write_log rewrites it as v2",
+        LogVersionWarning,
+        stacklevel=3,
+    )
+
+
+def read_log_version(
+    path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = None
+) -> tuple[RunLog, int]:
+    """`read_log` without the v1 warning: (the run, the file's format version, 1 or 2).
+
+    For callers that report v1 logs themselves (jsve.io._ingest gives one summary for many logs).
     """
     source = os.fspath(path)
     if source.endswith(PARTIAL_SUFFIX):
@@ -469,25 +565,32 @@ def read_log(path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = 
         )
     with open(path, "rb") as f:
         data = f.read()
-    run = parse_log(data, source)
+    run, version = _parse(data, source)
     if ground_truth is not None:
         run = apply_ground_truth(run, ground_truth)
-    return run
+    return run, version
 
 
 def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
-    """Parse and validate the bytes of a format-v1 log (what `read_log` does after reading the file).
+    """Parse and validate the bytes of a log (what `read_log` does after reading the file).
 
     Arguments:
         data: the whole file.
         source: the name used in messages and stored in RunLog.source.
     """
+    run, version = _parse(data, source)
+    if version == 1:
+        _warn_v1(source)
+    return run
+
+
+def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
     if not data:
         raise LogIncompleteError(
             source, 1, "empty file (0 bytes): the log is incomplete (its writer wrote nothing)"
         )
     parts = text.cut(data)
-    meta = _parse_meta_line(parts.first, source)
+    meta, version = _parse_meta_line(parts.first, source)
 
     # The last non-blank line must be the end marker; without it the writer stopped mid-run.
     n_lines = parts.n_lines
@@ -513,7 +616,7 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
         header = parts.header.decode("utf-8")
     except UnicodeDecodeError:
         raise LogFormatError(source, 2, "header line is not UTF-8 text") from None
-    columns = _check_header(header.split(","), source, 2)
+    columns = _check_header(header.split(","), source, 2, version)
 
     region = parts.rows
     if not region:
@@ -533,12 +636,14 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
             f"but the file has {table.num_rows} rows",
         )
 
-    # Empty fields: allowed only in gt_* (a frame without ground truth); checked on Arrow's null masks
-    # before conversion, since pandas would silently turn an int column with a null into floats.
+    # Empty fields: allowed only in gt_* (a frame without ground truth) and, from v2, in vis_* (a frame
+    # without a pose); checked on Arrow's null masks before conversion, since pandas would silently
+    # turn an int column with a null into floats.
+    may_be_empty = _GT_SET | _VIS_SET if version >= 2 else _GT_SET
     first_empty = None
     for c in columns:
         col = table.column(c)
-        if col.null_count and c not in _GT_SET:
+        if col.null_count and c not in may_be_empty:
             r = int(np.argmax(np.asarray(col.is_null())))
             if first_empty is None or r < first_empty[0]:
                 first_empty = (r, c)
@@ -549,20 +654,35 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
             raise LogFormatError(
                 source, r + 3, f"empty line (a row has {len(columns)} comma-separated fields)"
             )
-        raise LogFormatError(
-            source,
-            r + 3,
-            "empty value (only gt_* fields may be empty)",
-            column=c,
-            value=text.raw_field(raw, columns.index(c)),
+        reason = (
+            "empty value (only gt_* and vis_* fields may be empty)"
+            if version >= 2
+            else "empty value (only gt_* fields may be empty in a v1 log)"
         )
-    gt_missing = None
-    if columns[-1] in _GT_SET:
-        gt_missing = np.stack([np.asarray(table.column(c).is_null()) for c in schema.GT_COLUMNS], axis=1)
-    problem = _find_problem({c: table.column(c).to_numpy() for c in columns}, gt_missing)
+        raise LogFormatError(source, r + 3, reason, column=c, value=text.raw_field(raw, columns.index(c)))
+
+    def nulls(names):
+        return np.stack([np.asarray(table.column(c).is_null()) for c in names], axis=1)
+
+    gt_missing = nulls(schema.GT_COLUMNS) if columns[-1] in _GT_SET else None
+    vis_missing = nulls(schema.VIS_COLUMNS) if version >= 2 else None
+    problem = _find_problem({c: table.column(c).to_numpy() for c in columns}, gt_missing, vis_missing)
     if problem is not None:
         raise _file_error(problem, region, columns, source)
-    return RunLog(meta=meta, frames=table.to_pandas(), source=source)
+    frames = table.to_pandas()
+    if version == 1:
+        frames = with_v1_defaults(frames)
+    return RunLog(meta=meta, frames=frames, source=source), version
+
+
+def with_v1_defaults(frames: pd.DataFrame) -> pd.DataFrame:
+    """v1 frames (no map_id / imu_ba2) with `schema.v1_defaults` inserted after imu_init: v2 order."""
+    defaults = schema.v1_defaults(frames["t_ns"].to_numpy(), frames["imu_init"].to_numpy())
+    out = frames.copy(deep=False)
+    at = out.columns.get_loc("imu_init") + 1
+    for k, c in enumerate(schema.MAP_COLUMNS):
+        out.insert(at + k, c, defaults[c])
+    return out
 
 
 def _parse_rows(region: bytes, columns: list[str], source: str) -> pa.Table:
@@ -592,7 +712,7 @@ def _locate_parse_error(region: bytes, columns: list[str], source: str, arrow_me
         return LogFormatError(
             source,
             i + 3,
-            f"too many fields: the row has {n}, v1 expects {n_cols} (last column '{columns[-1]}')",
+            f"too many fields: the row has {n}, the header has {n_cols} (last column '{columns[-1]}')",
         )
     # Rectangular, so a field did not convert. Arrow names the column and the value; find its line.
     m = re.search(r"column #(\d+).*?CSV conversion error to (\w+): invalid value '(.*)'", arrow_message, re.S)

@@ -1,31 +1,45 @@
-"""Tracking log format v1: the one home of column names, dtypes, units and metadata keys.
+"""Tracking log format v2: the one home of column names, dtypes, units and metadata keys.
 
 Every reader, writer, simulator and the C++ header follow this module; docs/log-format.md describes
 it for people. A log is one CSV file per run:
 
-    # jsve-log v1 {"sequence": "MH_04", "run": 7, "fps": 20, ...}      <- line 1: magic + JSON metadata
-    t_ns,state,imu_init,n_extracted,...                                 <- line 2: header (COLUMNS order)
-    1403636580838555648,2,1,1000,...                                    <- one row per frame
+    # jsve-log v2 {"sequence": "MH_04", "run": 7, "fps": 20, ...}      <- line 1: magic + JSON metadata
+    t_ns,state,imu_init,map_id,imu_ba2,n_extracted,...                  <- line 2: header (COLUMNS order)
+    1403636580838555648,2,1,0,1,1000,...                                <- one row per frame
     # jsve-log end frames=3600                                          <- last line: completeness marker
 
 Conventions: timestamps are int64 nanoseconds; poses are body-in-world T_wb with quaternions wxyz;
 positions in metres (world frame), velocities in m/s (world frame); IMU preintegration is from the
 previous frame to this one, expressed in the previous body frame (ORB-SLAM3's mpImuPreintegratedFrame).
+
+Format v1 (no `map_id` / `imu_ba2`, a pose on every frame) is still read: `v1_defaults` fills the two
+columns (docs/log-format.md, "Reading v1 logs: defaults").
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import pandas as pd
 
-MAGIC = "# jsve-log v1 "
-"""Prefix of line 1; the rest of the line is a JSON object of metadata."""
+FORMAT_VERSION = 2
+"""The version every writer writes."""
+
+READ_VERSIONS = (1, 2)
+"""The versions the readers accept."""
+
+MAGIC_PREFIX = "# jsve-log v"
+"""Line 1 starts with this, the version number and a space."""
+
+MAGICS = {v: f"{MAGIC_PREFIX}{v} " for v in READ_VERSIONS}
+"""Line-1 prefix of each readable version; the rest of the line is a JSON object of metadata."""
+
+MAGIC = MAGICS[FORMAT_VERSION]
+"""Prefix of line 1 as written: `# jsve-log v2 `."""
 
 END_MARKER = "# jsve-log end frames="
 """Prefix of the last line, followed by the frame count. A log without it is incomplete."""
-
-FORMAT_VERSION = 1
 
 N_BINS = 64
 """SVE bins per frame: ORB-SLAM3's 64 x 48 keypoint grid binned 8 x 8 (bin x = col // 8, y = row // 6)."""
@@ -42,6 +56,17 @@ STATE_RECENTLY_LOST = 3
 STATE_LOST = 4
 STATE_OK_KLT = 5
 VALID_STATES = (-1, 0, 1, 2, 3, 4, 5)
+POSED_STATES = (STATE_OK, STATE_RECENTLY_LOST, STATE_OK_KLT)
+"""States in which the front-end has a pose: a row in one of them must carry its vis_* values."""
+STATE_NAMES = {
+    -1: "SYSTEM_NOT_READY",
+    0: "NO_IMAGES_YET",
+    1: "NOT_INITIALIZED",
+    2: "OK",
+    3: "RECENTLY_LOST",
+    4: "LOST",
+    5: "OK_KLT",
+}
 
 VIS_POSITION = ("vis_px", "vis_py", "vis_pz")
 VIS_QUATERNION = ("vis_qw", "vis_qx", "vis_qy", "vis_qz")
@@ -51,17 +76,63 @@ IMU_DV = ("imu_dvx", "imu_dvy", "imu_dvz")
 IMU_DQ = ("imu_dqw", "imu_dqx", "imu_dqy", "imu_dqz")
 GT_POSITION = ("gt_px", "gt_py", "gt_pz")
 GT_QUATERNION = ("gt_qw", "gt_qx", "gt_qy", "gt_qz")
+VIS_COLUMNS = VIS_POSITION + VIS_QUATERNION + VIS_VELOCITY
+"""The pose of a frame: all ten present, or (outside POSED_STATES) all ten empty / NaN."""
 GT_COLUMNS = GT_POSITION + GT_QUATERNION
 COUNT_COLUMNS = ("n_extracted", "n_inliers", "n_frustum")
+MAP_COLUMNS = ("map_id", "imu_ba2")
+"""The recorded run's map and its inertial stage, new in v2 (right after imu_init)."""
 
-INT_COLUMNS = ("t_ns", "state", "imu_init") + COUNT_COLUMNS + BIN_COLUMNS
-FLOAT_COLUMNS = VIS_POSITION + VIS_QUATERNION + VIS_VELOCITY + ("imu_dt",) + IMU_DP + IMU_DV + IMU_DQ
+INT_COLUMNS = ("t_ns", "state", "imu_init") + MAP_COLUMNS + COUNT_COLUMNS + BIN_COLUMNS
+FLOAT_COLUMNS = VIS_COLUMNS + ("imu_dt",) + IMU_DP + IMU_DV + IMU_DQ
 
 REQUIRED_COLUMNS = INT_COLUMNS + FLOAT_COLUMNS
-"""Columns every v1 log has, in this order."""
+"""Columns every v2 log has, in this order."""
 
 COLUMNS = REQUIRED_COLUMNS + GT_COLUMNS
 """Full column order when ground truth is logged; gt_* are optional (all seven or none)."""
+
+V1_REQUIRED_COLUMNS = tuple(c for c in REQUIRED_COLUMNS if c not in MAP_COLUMNS)
+"""Columns every v1 log has, in this order (v2 without map_id and imu_ba2)."""
+
+
+def required_columns(version: int) -> tuple[str, ...]:
+    """The required columns of format `version` (1 or 2), in file order."""
+    return V1_REQUIRED_COLUMNS if version == 1 else REQUIRED_COLUMNS
+
+
+V1_BA2_DELAY_S = 15.0
+"""s of map age after which a v1 log's frames count as past inertial BA2: ORB-SLAM3 v1.0
+LocalMapping::Run starts VIBA 2 once the map's inertial time `mTinit` exceeds 15 s
+(src/LocalMapping.cc, `if (mTinit>15.0f)`, ~l.218)."""
+
+V1_DEFAULTS_TEXT = f"map_id = 0, imu_ba2 = imu_init & (t - t_first >= {V1_BA2_DELAY_S:g} s)"
+"""The v1 defaults in words, for warnings and messages."""
+
+
+def v1_defaults(t_ns: np.ndarray, imu_init: np.ndarray) -> dict[str, np.ndarray]:
+    """map_id and imu_ba2 for frames that do not say (v1 logs, sources without Atlas maps).
+
+    One map for the whole run (map_id 0), and inertial BA2 done from V1_BA2_DELAY_S after the first
+    frame on frames whose IMU is initialised.
+
+    Arguments:
+        t_ns: [F] int64 stamps, ns, strictly increasing.
+        imu_init: [F] 0/1.
+
+    Returns:
+        {"map_id": [F] int64 zeros, "imu_ba2": [F] int64 0/1}.
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    map_id = np.zeros(len(t), np.int64)
+    if len(t) == 0:
+        return {"map_id": map_id, "imu_ba2": map_id.copy()}
+    # The threshold in Python ints: t_first + 15 s may not fit in int64 (stamps near 2^63).
+    threshold = int(t[0]) + round(V1_BA2_DELAY_S * 1e9)
+    aged = t >= threshold if threshold <= np.iinfo(np.int64).max else np.zeros(len(t), bool)
+    imu_ba2 = ((np.asarray(imu_init) != 0) & aged).astype(np.int64)
+    return {"map_id": map_id, "imu_ba2": imu_ba2}
+
 
 QUATERNION_GROUPS = {"vis_q": VIS_QUATERNION, "imu_dq": IMU_DQ, "gt_q": GT_QUATERNION}
 
@@ -72,11 +143,13 @@ UNITS = {
     "t_ns": "ns (int64, sensor clock)",
     "state": "ORB-SLAM3 eTrackingState (-1..5)",
     "imu_init": "0/1, Atlas::isImuInitialized() for the active map",
+    "map_id": "ORB-SLAM3 Map::GetId() of the Atlas map the frame was tracked in (int >= 0)",
+    "imu_ba2": "0/1, Map::GetIniertialBA2() of that map (1 requires imu_init = 1)",
     "n_extracted": "keypoints extracted (Frame::N)",
     "n_inliers": "map-point inliers after TrackLocalMap (mnMatchesInliers)",
     "n_frustum": "local-map points in frustum (nToMatch in SearchLocalPoints)",
     "bin_k": "keypoints in SVE bin k (count)",
-    "vis_p*": "m, world frame (T_wb translation)",
+    "vis_p*": "m, world frame (T_wb translation); empty / NaN on a frame without a pose",
     "vis_q*": "unit quaternion wxyz, body-to-world rotation",
     "vis_v*": "m/s, world frame",
     "imu_dt": "s, preintegration interval (0 on the first frame)",
@@ -96,24 +169,33 @@ OPTIONAL_METADATA = {
     "sensor": str,  # "imu_monocular", "imu_stereo", ...
     "n_features": int,  # ORB nFeatures of the front-end (S_a original variant)
     "image_size": list,  # [width, height] in pixels
-    "grid": list,  # SVE bins [cols, rows], always [8, 8] in v1
+    "grid": list,  # SVE bins [cols, rows], always [8, 8]
     "gravity": list,  # world gravity vector, m/s^2; default [0, 0, -9.81]
     "frontend": str,  # free text: "ORB-SLAM3 v1.0 + jsve logger", "jsve simulator 0.1"
     "seed": int,  # simulator seed
+    "rule": (str, dict),  # the rule the front-end ran: a preset name, or jsve.core._rules.rule_to_dict's form
+    "switch_model": str,  # what the front-end does with a rejected frame's pose: "orbslam3", "imu-coast", ...
 }
 
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
 """World gravity (m/s^2) when the metadata has no `gravity`: z up, as in EuRoC's world frame."""
 
+DEFAULT_N_FEATURES = 1000
+"""ORB nFeatures when the metadata has no `n_features` (ORB-SLAM3 EuRoC settings, ORBextractor.nFeatures)."""
+
+STEREO_SENSORS = ("imu_stereo", "imu_rgbd")
+"""`sensor` values whose success test ignores the IMU state (Tracking.cc l.3047-3053: < 15 inliers fails)."""
+
 
 @dataclass(frozen=True)
 class RunLog:
-    """One run's tracking log in memory, as read from (or about to be written to) a v1 file.
+    """One run's tracking log in memory, as read from (or about to be written to) a v2 file.
 
     Attributes:
         meta: the metadata object of line 1 (REQUIRED_METADATA keys at least).
         frames: one row per frame, columns in REQUIRED_COLUMNS (+ GT_COLUMNS) order; integer
-            columns int64, float columns float64, gt_* NaN where no ground truth is associated.
+            columns int64, float columns float64, vis_* NaN on frames without a pose, gt_* NaN
+            where no ground truth is associated. Runs read from v1 files carry v1_defaults.
         source: where it came from (a path, or a name for in-memory logs), used in every message.
     """
 
