@@ -24,6 +24,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "ingest",
     "sve",
     "evaluate",
+    "check",
     "ape",
     "frontend-include",
     "disturb",

@@ -32,6 +32,19 @@ def add_align_option(parser: argparse.ArgumentParser, help: str | None = None) -
     parser.add_argument("--align", choices=tuple(ALIGN_METHODS), default="se3", help=help)
 
 
+def add_switch_model_option(parser: argparse.ArgumentParser) -> None:
+    """--switch-model: the pose of a frame in RECENTLY_LOST (jsve.core._machine.SWITCH_MODELS)."""
+    from jsve.core._machine import SWITCH_MODELS
+
+    parser.add_argument(
+        "--switch-model",
+        choices=SWITCH_MODELS,
+        default=None,
+        help="orbslam3 (default): a tracked frame keeps its logged pose, as ORB-SLAM3 v1.0 does; "
+        "imu-coast: a frame in RECENTLY_LOST takes the IMU prediction (docs/state-machine.md)",
+    )
+
+
 def add_segments_option(parser: argparse.ArgumentParser) -> None:
     """--segments: which map segment of a run is scored (jsve.core._trajectory.run_error)."""
     from jsve.core._trajectory import SEGMENT_MODES

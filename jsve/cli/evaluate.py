@@ -42,6 +42,7 @@ def register(subparsers) -> None:
         default="sequence,disturbance,level,rule",
         help="comma-separated metadata keys to aggregate by (default: %(default)s)",
     )
+    common.add_switch_model_option(p)
     p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
     p.add_argument("-o", "--output", metavar="DIR", help="write runs.parquet, runs.csv and summary.csv here")
     p.add_argument("--workers", type=int, metavar="N")
@@ -101,7 +102,12 @@ def run(args) -> int:
             "associate it with `jsve ingest --gt`",
         )
     groups = buckets(runs, dtype=jnp.float64 if args.x64 else jnp.float32)
-    options = dict(align=args.align, n_first=args.n_to_align, segments=args.segments)
+    options = dict(
+        align=args.align,
+        n_first=args.n_to_align,
+        segments=args.segments,
+        switch_model=args.switch_model or "orbslam3",
+    )
     tables = [
         evaluate(groups, rule, rule_name=name, min_coverage=args.min_coverage, progress=progress, **options)
         for name, rule in rules
@@ -123,6 +129,8 @@ def run(args) -> int:
         "n_runs",
         "failure_rate",
         "mean_coverage",
+        "mean_changed",
+        "mean_unsupported",
         "rmse_mean_all",
         "rmse_median_all",
         "pooled_rmse_all",

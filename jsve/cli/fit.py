@@ -37,6 +37,7 @@ def register(subparsers) -> None:
         help="rule family to fit; repeatable (default: both)",
     )
     p.add_argument("--failure-penalty", type=float, metavar="M", help="metres charged for a failed run")
+    common.add_switch_model_option(p)
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument("--seed", type=int, help="seed of designs, folds and bootstraps")
     p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
@@ -83,6 +84,7 @@ def run(args) -> int:
             args.config,
             families=tuple(args.family) if args.family else None,
             failure_penalty=args.failure_penalty,
+            switch_model=args.switch_model,
             relaxed=args.relaxed or None,
             seed=args.seed,
         )

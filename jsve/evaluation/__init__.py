@@ -7,3 +7,4 @@ from jsve.evaluation._aggregate import per_run_table as per_run_table
 from jsve.evaluation._evaluate import Evaluation as Evaluation
 from jsve.evaluation._evaluate import evaluate as evaluate
 from jsve.evaluation._evaluate import evaluate_batch as evaluate_batch
+from jsve.evaluation._identity import identity_table as identity_table

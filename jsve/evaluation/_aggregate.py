@@ -142,6 +142,9 @@ def aggregate(
     Returns:
         One row per group (the `by` columns first), with
         n_runs, n_failed, failure_rate, mean_coverage;
+        mean_changed, mean_unsupported, share_unsupported_runs: when the table has the support columns
+            of jsve.evaluation._evaluate (the mean share of frames whose replayed mode differs from the
+            recorded state, the mean share out of the log's support, the share of runs with any);
         rmse_{mean,median,std,min,max}_all: over the per-run RMSE of all runs that evaluated any frame
             (std across runs with ddof = 1);
         rmse_{mean,median,std,min,max}_nonfailed: the same over the runs whose failed flag is False;
@@ -165,6 +168,10 @@ def aggregate(
         row["n_failed"] = int(failed.sum())
         row["failure_rate"] = float(failed.mean())
         row["mean_coverage"] = float(group["coverage"].mean())
+        if "changed_fraction" in group:
+            row["mean_changed"] = float(group["changed_fraction"].mean())
+            row["mean_unsupported"] = float(group["unsupported_fraction"].mean())
+            row["share_unsupported_runs"] = float((group["unsupported_fraction"] > 0).mean())
         row.update(_rmse_summary(group["rmse"], "all"))
         row.update(_rmse_summary(ok["rmse"], "nonfailed"))
         row.update(_pooled(group, "all"))

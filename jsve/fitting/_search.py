@@ -419,6 +419,14 @@ def search(
             bar.update(n * n_real)
     merged = [jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *chunks) for chunks in per_part]
     merged = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *merged)
+    inexact = np.isnan(merged.loss)
+    if inexact.any():
+        setting, run = (int(i[0]) for i in np.nonzero(inexact))
+        raise ValueError(
+            f"search: run {run} under setting {setting} kept tracking but has estimates on frames other "
+            f"than its posed frames with ground truth ({int(inexact.sum())} setting-run pairs): the fixed "
+            "alignment statistics do not apply; score such logs with jsve.core._objective.run_losses"
+        )
     return SearchResult(
         values=values, loss=merged.loss, failed=merged.failed, rmse=merged.rmse, coverage=merged.coverage
     )
