@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import pickle
+import warnings
 
 import pytest
-from logfactory import make_run, set_field
+from logfactory import make_run, set_field, v1_text
 
 from jsve.io import _logs as logs
-from jsve.io._errors import MAX_SHOWN, LogFormatError, LogIncompleteError, TrajectoryFileError, shorten
+from jsve.io._errors import (
+    MAX_SHOWN,
+    LogFormatError,
+    LogIncompleteError,
+    LogVersionWarning,
+    TrajectoryFileError,
+    shorten,
+)
 
 
 def test_message_names_what_applies():
@@ -55,3 +63,14 @@ def test_trajectory_errors_are_value_errors():
     # Callers that catch ValueError for unusable input (the CLI) catch it too.
     err = TrajectoryFileError("b.tum holds no poses")
     assert isinstance(err, ValueError) and str(err) == "b.tum holds no poses"
+
+
+def test_v1_version_warning_is_a_user_warning_that_can_be_made_an_error(tmp_path):
+    # Scripts that turn UserWarnings into errors stop on a v1 log; jsve never silently guesses.
+    log = logs.write_log(make_run(20, seed=3), tmp_path / "r7.csv")
+    v1_text(log)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        with pytest.raises(LogVersionWarning, match=r"r7\.csv: format v1 log read with defaults: map_id = 0"):
+            logs.read_log(log)
+    assert issubclass(LogVersionWarning, UserWarning) and not issubclass(LogVersionWarning, LogFormatError)

@@ -1,4 +1,5 @@
-"""jsve.io._ingest and `jsve ingest`: many logs in parallel with quarantine, Parquet, load_runs."""
+"""jsve.io._ingest and `jsve ingest`: many logs in parallel with quarantine, Parquet, load_runs, and
+v1 logs (one summary warning) among v2 logs."""
 
 from __future__ import annotations
 
@@ -6,17 +7,20 @@ import argparse
 import json
 import os
 import re
+import warnings
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-from logfactory import edit_line, make_run, same_bits, set_field
+from logfactory import edit_line, make_run, same_bits, set_field, v1_text
 
 from jsve.cli import ingest as ingest_cli
 from jsve.io import _ingest as ingest
 from jsve.io import _logs as logs
 from jsve.io import _schema as schema
+from jsve.io._errors import LogVersionWarning
 from jsve.io._logs import LogFormatError
 
 N = 20  # frames of the small logs below
@@ -278,3 +282,129 @@ def test_no_logs_is_an_error(tmp_path):
     with pytest.raises(FileNotFoundError):
         ingest.ingest(tmp_path / "empty", tmp_path / "s.parquet", progress=False)
     assert cli(["ingest", str(tmp_path / "empty"), "-o", str(tmp_path / "s.parquet"), "--no-progress"]) == 2
+
+
+# ---------------------------------------------------------------------------------------------------
+# Format v2 columns and v1 logs in a batch
+
+
+@pytest.fixture
+def mixed_versions(tmp_path) -> tuple[Path, list[str]]:
+    """20 logs: 15 v2 (some frames without a pose, several maps) and 5 v1; (dir, v1 paths sorted)."""
+    root = tmp_path / "mixed"
+    v1 = []
+    for i in range(20):
+        if i % 4 == 1:
+            p = logs.write_log(make_run(40 + i, i, sequence="V101"), root / f"r{i:02d}.csv")
+            v1_text(p)
+            v1.append(str(p))
+        else:
+            map_id = np.repeat([0, i], [20, 20 + i])
+            logs.write_log(
+                make_run(40 + i, i, no_pose=0.4, map_id=map_id, sequence="V101"), root / f"r{i:02d}.csv"
+            )
+    return root, v1
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_v1_logs_in_a_batch_give_one_summary_warning(mixed_versions, workers):
+    root, v1 = mixed_versions
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        result = ingest.read_logs(root, workers=workers, progress=False)
+    versions = [w for w in record if issubclass(w.category, LogVersionWarning)]
+    assert len(versions) == 1, [str(w.message) for w in record]
+    message = str(versions[0].message)
+    assert message.startswith(
+        "5 v1 logs read with defaults: map_id = 0, imu_ba2 = imu_init & (t - t_first >= 15 s)"
+    )
+    assert f"({v1[0]}, {v1[1]}, {v1[2]} and 2 more;" in message
+    assert versions[0].filename == __file__
+    # Each run is what read_log gives alone (defaults for v1, map ids and NaN poses for v2).
+    for run in result.runs:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LogVersionWarning)
+            alone = logs.read_log(run.source)
+        assert same_bits(run.frames, alone.frames)
+    by_source = {r.source: r for r in result.runs}
+    assert all(by_source[p].frames["map_id"].eq(0).all() for p in v1)
+    assert sum(r.frames["vis_px"].isna().any() for r in result.runs) >= 10
+
+
+def test_a_batch_of_v2_logs_warns_nothing(logdir):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ingest.read_logs(logdir[0], on_error="quarantine", workers=1, progress=False)
+
+
+def test_ingest_carries_map_columns_and_missing_poses(mixed_versions, tmp_path):
+    root, v1 = mixed_versions
+    out = tmp_path / "s.parquet"
+    with pytest.warns(LogVersionWarning, match="^5 v1 logs read with defaults") as record:
+        ingest.ingest(root, out, workers=1, progress=False)
+    assert len([w for w in record if issubclass(w.category, LogVersionWarning)]) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LogVersionWarning)
+        expected = ingest.read_logs(root, workers=1, progress=False).runs
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a format-2 Parquet file reads without a warning
+        back = ingest.read_parquet(out)
+    assert same_runs(back, expected)  # map_id, imu_ba2 exact; NaN poses bit for bit
+    pf = pq.ParquetFile(out)
+    assert pf.schema_arrow.names[2:7] == ["t_ns", "state", "imu_init", "map_id", "imu_ba2"]
+    assert pf.metadata.metadata[b"jsve.format"] == b"2"
+    entries = json.loads(pf.metadata.metadata[b"jsve.runs"])
+    assert [e["source"] for e in entries if e["log_version"] == 1] == v1
+    assert sum(e["log_version"] == 2 for e in entries) == 15
+
+
+def _as_format_1(path: Path, out: Path) -> None:
+    """A Parquet file as `ingest` wrote it before format v2: no map_id / imu_ba2, jsve.format "1"."""
+    _rewrite(path, out, b"1", list(schema.MAP_COLUMNS))
+
+
+def _rewrite(path: Path, out: Path, version: bytes, drop: list[str]) -> None:
+    table = pq.read_table(path).drop_columns(drop)
+    kv = {k: v for k, v in pq.ParquetFile(path).metadata.metadata.items() if k.startswith(b"jsve.")}
+    kv[b"jsve.format"] = version
+    pq.write_table(table.replace_schema_metadata(kv), out)
+
+
+def test_parquet_of_format_1_reads_with_v1_defaults(tmp_path):
+    for i in range(3):
+        logs.write_log(make_run(400, i, sequence="MH_04"), tmp_path / "logs" / f"r{i}.csv")
+    out = tmp_path / "s.parquet"
+    ingest.ingest(tmp_path / "logs", out, workers=1, progress=False)
+    old = tmp_path / "old.parquet"
+    _as_format_1(out, old)
+    with pytest.warns(LogVersionWarning) as record:
+        runs = ingest.read_parquet(old)
+    (w,) = record
+    assert str(w.message).startswith(
+        f"{old}: jsve Parquet file of format 1 (ingested before format v2): its 3 runs"
+    )
+    assert "map_id = 0, imu_ba2 = imu_init & (t - t_first >= 15 s)" in str(w.message)
+    assert w.filename == __file__
+    fresh = ingest.read_parquet(out)
+    for a, b in zip(runs, fresh, strict=True):
+        assert list(a.frames.columns) == list(schema.COLUMNS)
+        assert a.frames["map_id"].eq(0).all()
+        t = a.frames["t_ns"].to_numpy()
+        expected = (a.frames["imu_init"].to_numpy() == 1) & (t - t[0] >= 15_000_000_000)
+        assert np.array_equal(a.frames["imu_ba2"].to_numpy(), expected.astype(np.int64))
+        others = [c for c in schema.COLUMNS if c not in schema.MAP_COLUMNS]
+        assert same_bits(a.frames[others], b.frames[others])
+    with pytest.warns(LogVersionWarning):
+        assert same_runs(ingest.load_runs(old).runs, runs)
+
+
+def test_parquet_of_an_unknown_format_is_refused(tmp_path):
+    logs.write_log(make_run(N, 1), tmp_path / "logs" / "r.csv")
+    out = tmp_path / "s.parquet"
+    ingest.ingest(tmp_path / "logs", out, workers=1, progress=False)
+    _rewrite(out, tmp_path / "x.parquet", b"3", [])
+    with pytest.raises(LogFormatError, match="unsupported jsve Parquet format '3'.*reads 1 and 2"):
+        ingest.read_parquet(tmp_path / "x.parquet")
+    _rewrite(out, tmp_path / "y.parquet", b"2", ["imu_ba2"])
+    with pytest.raises(LogFormatError, match="without the column.*imu_ba2"):
+        ingest.read_parquet(tmp_path / "y.parquet")

@@ -7,7 +7,8 @@
     load_runs(source)                    a Parquet file from `ingest`, or logs as read_logs takes them
 
 Each log is read and validated by `jsve.io._logs.read_log` (in worker processes for large batches);
-docs/log-format.md describes the batch behaviour, the quarantine report and the Parquet layout.
+docs/log-format.md describes the batch behaviour, the quarantine report and the Parquet layout. Format
+v1 logs read with `schema.v1_defaults`; a batch gives one `LogVersionWarning` for all of them.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import math
 import multiprocessing
 import os
 import sys
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,8 +36,15 @@ from tqdm.auto import tqdm
 
 from jsve.io import _atomic as atomic
 from jsve.io import _schema as schema
+from jsve.io._errors import LogVersionWarning
 from jsve.io._groundtruth import GroundTruthSpec
-from jsve.io._logs import PARTIAL_SUFFIX, LogFormatError, LogIncompleteError, read_log
+from jsve.io._logs import (
+    PARTIAL_SUFFIX,
+    LogFormatError,
+    LogIncompleteError,
+    read_log_version,
+    with_v1_defaults,
+)
 from jsve.io._schema import RunLog
 
 # The log reader's logger: read_log's warnings in worker processes are collected from it (_read_chunk)
@@ -49,6 +58,10 @@ PARQUET_RUNS_KEY = b"jsve.runs"
 """Parquet key-value metadata key: a JSON list of {run_id, source, meta, n_frames, has_ground_truth}."""
 
 PARQUET_FORMAT_KEY = b"jsve.format"
+"""Parquet key-value metadata key: the log format version of its columns, "2" (files written before v2
+say "1" and have no map_id / imu_ba2: read_parquet fills v1 defaults)."""
+
+_V1_SHOWN = 3  # v1 logs named in the summary warning of a batch
 
 _NOT_LOGS = tuple(s + p for s in (".quarantine.csv", ".keypoints.csv") for p in ("", PARTIAL_SUFFIX))
 """CSV files a directory search skips: quarantine reports and keypoint side files (jsve.io._keypoints)."""
@@ -152,13 +165,29 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
     return sorted(set(files))
 
 
-def _read_one(path: str, ground_truth) -> RunLog | LogFormatError:
+def _read_one(path: str, ground_truth) -> tuple[RunLog, int] | LogFormatError:
+    """(run, format version) or the error; v1 logs are reported by the caller, once per batch."""
     try:
-        return read_log(path, ground_truth=ground_truth)
+        return read_log_version(path, ground_truth=ground_truth)
     except LogFormatError as e:
         return e
     except OSError as e:
         return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
+
+
+def _warn_v1(paths: list[str], stacklevel: int) -> None:
+    """One LogVersionWarning for every v1 log of a batch: how many, which defaults, the first few."""
+    if not paths:
+        return
+    shown = ", ".join(paths[:_V1_SHOWN])
+    more = f" and {len(paths) - _V1_SHOWN} more" if len(paths) > _V1_SHOWN else ""
+    noun = "log" if len(paths) == 1 else "logs"
+    warnings.warn(
+        f"{len(paths)} v1 {noun} read with defaults: {schema.V1_DEFAULTS_TEXT} ({shown}{more}; "
+        "docs/log-format.md, 'Reading v1 logs: defaults')",
+        LogVersionWarning,
+        stacklevel=stacklevel + 1,
+    )
 
 
 class _Collect(logging.Handler):
@@ -200,7 +229,7 @@ def _mp_context():
 
 
 def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_truth, stop_on_error: bool):
-    """(path, RunLog | LogFormatError) in the order of `paths`, read in parallel chunks."""
+    """(path, (RunLog, version) | LogFormatError) in the order of `paths`, read in parallel chunks."""
     workers = (os.cpu_count() or 1) if workers is None else int(workers)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -245,8 +274,9 @@ def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_
 
 def _good_runs(
     paths, *, on_error: OnError, workers, progress, ground_truth, quarantined: list
-) -> Iterator[RunLog]:
-    """Valid runs in path order; bad logs raise (on_error='raise') or go to `quarantined`."""
+) -> Iterator[tuple[RunLog, int]]:
+    """(valid run, its format version) in path order; bad logs raise (on_error='raise') or go to
+    `quarantined`."""
     if on_error not in ("raise", "quarantine"):
         raise ValueError(f"on_error must be 'raise' or 'quarantine', got {on_error!r}")
     seen: dict[str, str] = {}
@@ -258,6 +288,9 @@ def _good_runs(
         stop_on_error=on_error == "raise",
     )
     for path, result in results:
+        version = None
+        if not isinstance(result, LogFormatError):
+            result, version = result
         if isinstance(result, RunLog) and result.run_id in seen:
             result = LogFormatError(
                 path,
@@ -272,7 +305,7 @@ def _good_runs(
             quarantined.append(Quarantined.from_error(result))
             continue
         seen[result.run_id] = path
-        yield result
+        yield result, version
 
 
 def read_logs(
@@ -299,10 +332,18 @@ def read_logs(
     Returns:
         ReadResult(runs in sorted path order, quarantined). A run id (RunLog.run_id) met a second time
         is an error naming both files (the later file is the one raised or quarantined).
+
+    Warns:
+        LogVersionWarning: once, when v1 logs were read (how many, the defaults used, the first few
+            paths), instead of one warning per log.
     """
+    return _read_logs(source, on_error, workers, progress, ground_truth, stacklevel=3)
+
+
+def _read_logs(source, on_error, workers, progress, ground_truth, *, stacklevel: int) -> ReadResult:
     paths = find_logs(source)
     quarantined: list[Quarantined] = []
-    runs = list(
+    read = list(
         _good_runs(
             paths,
             on_error=on_error,
@@ -312,6 +353,8 @@ def read_logs(
             quarantined=quarantined,
         )
     )
+    runs = [run for run, _ in read]
+    _warn_v1([run.source for run, version in read if version == 1], stacklevel)
     return ReadResult(runs=runs, quarantined=quarantined)
 
 
@@ -335,8 +378,8 @@ def load_runs(
         ReadResult; nothing is quarantined from a Parquet file.
     """
     if isinstance(source, (str, os.PathLike)) and Path(source).name.endswith(".parquet"):
-        return ReadResult(runs=read_parquet(source))
-    return read_logs(source, on_error=on_error, workers=workers, progress=progress, ground_truth=ground_truth)
+        return ReadResult(runs=_read_parquet(source, stacklevel=3))
+    return _read_logs(source, on_error, workers, progress, ground_truth, stacklevel=3)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -353,7 +396,8 @@ PARQUET_SCHEMA = pa.schema(
     + [pa.field(c, pa.float64(), nullable=True) for c in schema.GT_COLUMNS]
 )
 """Layout of the consolidated Parquet file: one row per frame, runs contiguous in sorted path order.
-gt_* are null for runs without ground truth, NaN for frames without it in runs that have it."""
+vis_* are NaN on frames without a pose; gt_* are null for runs without ground truth, NaN for frames
+without it in runs that have it."""
 
 
 @dataclass(frozen=True)
@@ -423,10 +467,11 @@ def ingest(
     """Validate many logs (optionally associating ground truth) and consolidate them into one Parquet file.
 
     The file (layout PARQUET_SCHEMA) holds one row per frame: `run_id` (dictionary-encoded string),
-    `frame` (int32, 0-based), then the v1 columns; runs are contiguous, in sorted path order. The
-    schema's key-value metadata holds b'jsve.runs': a JSON list of {run_id, source, meta, n_frames,
-    has_ground_truth}, one per run in file order. Logs are streamed (row groups of ~260k frames), so
-    memory stays flat. The file is written as `<out>.partial` and renamed when complete.
+    `frame` (int32, 0-based), then the v2 columns (v1 logs with their defaults); runs are contiguous,
+    in sorted path order. The schema's key-value metadata holds b'jsve.runs': a JSON list of {run_id,
+    source, meta, n_frames, has_ground_truth, log_version}, one per run in file order, and
+    b'jsve.format' = b'2'. Logs are streamed (row groups of ~260k frames), so memory stays flat. The
+    file is written as `<out>.partial` and renamed when complete.
 
     Arguments:
         source: logs (see `find_logs`).
@@ -442,12 +487,16 @@ def ingest(
     Raises:
         LogFormatError: the first bad log, with on_error='raise' (nothing is written).
         FileNotFoundError: no logs in `source`.
+
+    Warns:
+        LogVersionWarning: once, when v1 logs were read (see `read_logs`).
     """
     paths = find_logs(source)
     if not paths:
         raise FileNotFoundError(f"no tracking logs (*.csv, *.csv.partial) in {os.fspath(source)!r}")
     out = Path(out_path)
     quarantined: list[Quarantined] = []
+    v1: list[str] = []
     entries = []
     n_frames = 0
     with atomic.atomic_path(out) as tmp, pq.ParquetWriter(tmp, PARQUET_SCHEMA, compression="zstd") as writer:
@@ -461,7 +510,9 @@ def ingest(
             ground_truth=ground_truth,
             quarantined=quarantined,
         )
-        for run in runs:
+        for run, version in runs:
+            if version == 1:
+                v1.append(run.source)
             entries.append(
                 {
                     "run_id": run.run_id,
@@ -469,6 +520,8 @@ def ingest(
                     "meta": run.meta,
                     "n_frames": len(run.frames),
                     "has_ground_truth": run.has_ground_truth,
+                    # map_id / imu_ba2 of a v1 log are schema.v1_defaults, not recorded values.
+                    "log_version": version,
                 }
             )
             n_frames += len(run.frames)
@@ -486,6 +539,7 @@ def ingest(
             }
         )
 
+    _warn_v1(v1, 2)
     default_report = default_quarantine_report_path(out)
     report = Path(quarantine_report) if quarantine_report is not None else default_report
     if quarantined:
@@ -502,13 +556,21 @@ def ingest(
 def read_parquet(path: str | os.PathLike) -> list[RunLog]:
     """Restore the runs of a Parquet file written by `ingest`, exactly (ints exact, floats bitwise).
 
+    A file ingested before format v2 (`jsve.format` "1": no map_id / imu_ba2 columns) is read with
+    `schema.v1_defaults` for every run and one `LogVersionWarning` naming the file.
+
     Returns:
         RunLogs in file order, with the metadata and source recorded at ingest; runs ingested without
         ground truth have no gt_* columns.
 
     Raises:
-        LogFormatError: not a jsve Parquet file, or its rows disagree with its run list.
+        LogFormatError: not a jsve Parquet file, a format version this reader does not know, or rows
+            that disagree with its run list.
     """
+    return _read_parquet(path, stacklevel=3)
+
+
+def _read_parquet(path: str | os.PathLike, *, stacklevel: int) -> list[RunLog]:
     source = os.fspath(path)
     pf = pq.ParquetFile(source)
     kv = pf.metadata.metadata or {}
@@ -516,6 +578,15 @@ def read_parquet(path: str | os.PathLike) -> list[RunLog]:
         raise LogFormatError(
             source, None, f"not a jsve Parquet file: no {PARQUET_RUNS_KEY.decode()!r} metadata"
         )
+    version_text = kv.get(PARQUET_FORMAT_KEY, b"").decode("utf-8", errors="replace")
+    if version_text not in {str(v) for v in schema.READ_VERSIONS}:
+        raise LogFormatError(
+            source,
+            None,
+            f"unsupported jsve Parquet format {version_text!r} in its {PARQUET_FORMAT_KEY.decode()!r} "
+            f"metadata (this reader reads {' and '.join(map(str, schema.READ_VERSIONS))})",
+        )
+    version = int(version_text)
     entries = json.loads(kv[PARQUET_RUNS_KEY])
     table = pf.read()
     lengths = np.array([e["n_frames"] for e in entries], dtype=np.int64)
@@ -537,10 +608,26 @@ def read_parquet(path: str | os.PathLike) -> list[RunLog]:
         and np.array_equal(frame, expected_frame)
     ):
         raise LogFormatError(source, None, "rows are not grouped by run in the order of its run list")
-    columns = {c: table.column(c).to_numpy() for c in schema.COLUMNS}
+    required = schema.required_columns(version)
+    lacking = [c for c in required + schema.GT_COLUMNS if c not in table.column_names]
+    if lacking:
+        raise LogFormatError(
+            source, None, f"a format-{version} jsve Parquet file without the column(s) {', '.join(lacking)}"
+        )
+    columns = {c: table.column(c).to_numpy() for c in required + schema.GT_COLUMNS}
     runs = []
     for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
-        names = schema.COLUMNS if e["has_ground_truth"] else schema.REQUIRED_COLUMNS
+        names = required + schema.GT_COLUMNS if e["has_ground_truth"] else required
         frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
+        if version == 1:
+            frames = with_v1_defaults(frames)
         runs.append(RunLog(meta=e["meta"], frames=frames, source=e["source"]))
+    if version == 1:
+        warnings.warn(
+            f"{source}: jsve Parquet file of format 1 (ingested before format v2): its {len(runs)} runs "
+            f"read with the v1 defaults {schema.V1_DEFAULTS_TEXT} (docs/log-format.md, 'Reading v1 "
+            "logs: defaults'); ingest the logs again to write format 2",
+            LogVersionWarning,
+            stacklevel=stacklevel,
+        )
     return runs
