@@ -1,4 +1,4 @@
-"""Per-frame cost of jsve_log.hpp, the C++ writer of log format v1.
+"""Per-frame cost of jsve_log.hpp, the C++ writer of log format v2.
 
 Compiles tests/cpp/bench_writer.cpp with the system compiler at -O2, writes N realistic frames
 (ORB-SLAM3 on EuRoC magnitudes) to a real file in a temporary directory, REPEATS times, and

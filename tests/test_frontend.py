@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -148,6 +149,8 @@ EXPECTED_META = {
     "gravity": [0.0, 0.0, -9.81],
     "frontend": "jsve write_synthetic (test)",
     "seed": 2**40 + 3,
+    "rule": "sve-option2",
+    "switch_model": "orbslam3",
     "neg_zero": -0.0,
     "tiny": 5e-324,
     "big": 2**63 - 1,
@@ -229,14 +232,23 @@ def _assert_meta(meta):
 
 def _assert_independent_values(frames):
     """Values fixed by write_synthetic's formulas, checked without the sidecar."""
+    i = np.arange(N_FRAMES)
+    state = i % 7 - 1
+    has_pose = np.isin(state, [2, 3, 5]) | (i % 2 == 1)
+    assert 0 < (~has_pose).sum() < N_FRAMES
+    np.testing.assert_array_equal(frames[list(schema.VIS_COLUMNS)].isna().all(axis=1), ~has_pose)
+    np.testing.assert_array_equal(frames[list(schema.VIS_COLUMNS)].isna().any(axis=1), ~has_pose)
+    np.testing.assert_array_equal(frames["map_id"], np.where(i < 20, 0, np.where(i < 40, 3, 2**40)))
+    np.testing.assert_array_equal(frames["imu_ba2"], ((i % 3 == 0) & (i >= 30)).astype(np.int64))
     t = frames["t_ns"].to_numpy()
     assert t[0] == TWO53 + 1 and t[1] == TWO53 + 2  # not representable as doubles
     expected_t = 1403636579763555584 + (np.arange(2, N_FRAMES) - 2) * 50_000_000 + np.arange(2, N_FRAMES) % 7
     np.testing.assert_array_equal(t[2:], expected_t)
     vis_px = frames["vis_px"].to_numpy()
     special = np.array([SPECIAL[i % len(SPECIAL)] for i in range(N_FRAMES)])
-    assert vis_px.view(np.uint64).tolist() == special.view(np.uint64).tolist()
-    assert np.signbit(vis_px[2]) and vis_px[2] == 0.0 and not np.signbit(vis_px[3])
+    assert vis_px[has_pose].view(np.uint64).tolist() == special[has_pose].view(np.uint64).tolist()
+    assert has_pose[19] and has_pose[20]  # SPECIAL[2] = -0.0 and SPECIAL[3] = 0.0
+    assert np.signbit(vis_px[19]) and vis_px[19] == 0.0 and not np.signbit(vis_px[20])
     np.testing.assert_array_equal(frames["state"].to_numpy(), np.arange(N_FRAMES) % 7 - 1)
     np.testing.assert_array_equal(
         frames["imu_init"].to_numpy(), (np.arange(N_FRAMES) % 3 == 0).astype(np.int64)
@@ -249,7 +261,9 @@ def _assert_independent_values(frames):
 def test_round_trip_is_exact(build, tmp_path, variant, gt):
     log, expected, _ = _run_synthetic(build, tmp_path, variant, *(["--gt"] if gt else []))
     assert not Path(str(log) + ".partial").exists()
-    run = read_log(log)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a v2 log: no version warning
+        run = read_log(log)
     assert run.source == str(log)
     assert run.has_ground_truth == gt
     _assert_meta(run.meta)
@@ -261,6 +275,12 @@ def test_round_trip_is_exact(build, tmp_path, variant, gt):
         assert missing.any(axis=1).sum() == missing.all(axis=1).sum()
     lines = log.read_bytes().split(b"\n")
     assert lines[-1] == b"" and lines[-2] == f"{schema.END_MARKER}{N_FRAMES}".encode()
+    assert lines[0].startswith(b"# jsve-log v2 {")
+    assert lines[1].startswith(b"t_ns,state,imu_init,map_id,imu_ba2,n_extracted,")
+    # Frame 0 (state -1) has no pose: ten empty fields after the bins.
+    fields = lines[2].split(b",")
+    k = len(schema.INT_COLUMNS)
+    assert fields[k : k + 10] == [b""] * 10 and fields[k + 10] == b"0.0"  # then imu_dt
 
 
 @needs_cxx
@@ -377,13 +397,20 @@ def test_error_policy(build, tmp_path):
     failures = [line for line in lines if line.startswith("FAIL")]
     assert done.returncode == 0 and not failures, "\n".join(failures) + done.stderr
     passed = {line.split()[1] for line in lines if line.startswith("PASS")}
-    assert len(passed) == 39, sorted(passed)
+    assert len(passed) == 47, sorted(passed)
     assert {"nan_position", "repeated_stamp", "throw_policy", "no_frames", "flush_every"} <= passed
+    assert {
+        "negative_map_id",
+        "imu_ba2_without_imu_init",
+        "no_pose_in_state_2",
+        "no_pose_in_state_3",
+    } <= passed
+    assert {"no_pose_in_state_5", "frame_without_pose", "meta_rule_int", "meta_switch_model_list"} <= passed
 
     # What the writer left on disk is what the reader says it is.
     partials = sorted(tmp_path.glob("*.partial"))
     finished = sorted(tmp_path.glob("*.csv"))
-    assert len(partials) == 16 and len(finished) == 8
+    assert len(partials) == 21 and len(finished) == 9
     for p in partials:
         with pytest.raises(LogIncompleteError, match="incomplete"):
             read_log(p)
@@ -393,6 +420,15 @@ def test_error_policy(build, tmp_path):
     gap = read_log(tmp_path / "gt_gap.csv").frames
     assert not np.isnan(gap.loc[0, list(schema.GT_COLUMNS)].to_numpy(dtype=float)).any()
     assert np.isnan(gap.loc[1, list(schema.GT_COLUMNS)].to_numpy(dtype=float)).all()
+    # A frame without a pose reads as NaN in all ten vis_* (its NaN and non-unit values were not
+    # written); the map columns are as set.
+    no_pose = read_log(tmp_path / "no_pose.csv").frames
+    assert no_pose[list(schema.VIS_COLUMNS)].notna().all(axis=1).tolist() == [True, False]
+    assert no_pose.loc[1, list(schema.VIS_COLUMNS)].isna().all()
+    assert no_pose[["state", "imu_init", "map_id", "imu_ba2"]].to_numpy().tolist() == [
+        [2, 1, 7, 1],
+        [4, 0, 8, 0],
+    ]
     # The partial of a rejected frame holds the frames before it, never the rejected one.
     rejected = (tmp_path / "nan_position.csv.partial").read_text().splitlines()
     assert len(rejected) == 2 + 2 and rejected[-1].startswith("2000,")
@@ -412,11 +448,24 @@ def test_a_frame_the_writer_rejects_is_one_the_reader_rejects(build, tmp_path):
         out.write_text("".join(text[: line - 1] + [",".join(fields) + "\n"] + text[line:]), encoding="utf-8")
         return out
 
-    for column, value in [("vis_px", "nan"), ("imu_dt", "-1e-9"), ("state", "6"), ("n_frustum", "-1")]:
+    # Line 5 is frame 2: state 1, imu_init 0, without a pose; line 6 is frame 3: state 2, with one.
+    cases = [
+        ("imu_dt", "-1e-9", 5),
+        ("state", "6", 5),
+        ("n_frustum", "-1", 5),
+        ("map_id", "-1", 5),
+        ("imu_ba2", "1", 5),
+        ("vis_px", "nan", 6),
+        ("vis_qy", "", 6),
+    ]
+    for column, value, line in cases:
         with pytest.raises(LogFormatError, match=f"{column}") as info:
-            read_log(patched(column, value))
-        assert ":5:" in str(info.value)
+            read_log(patched(column, value, line))
+        assert f":{line}:" in str(info.value)
         assert not isinstance(info.value, LogIncompleteError)
+    # The state of a pose-less frame set to OK: the reader wants the pose the writer refuses to omit.
+    with pytest.raises(LogFormatError, match=r":5: column 'vis_px' = '': no pose in state 2 \(OK\)"):
+        read_log(patched("state", "2", 5))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-// jsve_log.hpp: header-only C++17 writer of jsve tracking log format v1.
+// jsve_log.hpp: header-only C++17 writer of jsve tracking log format v2.
 //
 // Part of jsve (GPL-3.0-or-later). The format itself is defined in jsve/io/_schema.py and described
 // in docs/log-format.md; the hook guide for ORB-SLAM3 v1.0 is docs/frontend.md. This header has no
@@ -13,7 +13,8 @@
 //     jsve::LogWriter log("logs/MH_04_run7.csv", meta);   // writes logs/MH_04_run7.csv.partial
 //     for (...each frame...) {
 //         jsve::Frame f;                                     // zeros, identity quaternions
-//         f.t_ns = stamp_ns; f.state = 2; ...
+//         f.t_ns = stamp_ns; f.state = 2; f.map_id = map_id; ...
+//         f.has_pose = false;                                // only outside OK, RECENTLY_LOST, OK_KLT
 //         log.write(f);
 //     }
 //     log.close();                       // end marker, then rename to logs/MH_04_run7.csv
@@ -36,7 +37,8 @@
 //     (a std::runtime_error carrying the Status) instead.
 //   * OnError::kReturn: calls return the Status; last_error() holds the message.
 //   A frame that jsve's reader would reject (a non-finite double, a stamp not after the previous
-//   one, a state outside -1..5, a negative count, more binned keypoints or inliers than extracted
+//   one, a state outside -1..5, a negative map_id, imu_ba2 without imu_init, no pose in state OK,
+//   RECENTLY_LOST or OK_KLT, a negative count, more binned keypoints or inliers than extracted
 //   keypoints, a quaternion whose norm is off 1 by more than 1e-6, a negative imu_dt, a first frame
 //   with a preintegration that is not zero / identity) is never written, and it marks the writer
 //   as failed: every later write() and close() reports
@@ -46,7 +48,7 @@
 //   destructor of an open writer) closes the file and leaves it as `.partial`; it never throws.
 //   open() checks the metadata the same way (required keys sequence/run/fps, the types and values
 //   jsve.io._logs accepts for the keys it knows) and creates no file when it is wrong; close() before
-//   any frame reports Status::kNoFrames, since a v1 log has at least one frame.
+//   any frame reports Status::kNoFrames, since a log has at least one frame.
 //
 // Not thread-safe: use one writer per run from one thread (ORB-SLAM3's tracking thread).
 
@@ -78,11 +80,11 @@
 
 namespace jsve {
 
-inline constexpr int kFormatVersion = 1;
+inline constexpr int kFormatVersion = 2;
 inline constexpr int kBins = 64;          // SVE bins per frame, 8 x 8, row-major (k = 8 * by + bx)
 inline constexpr int kGridCols = 64;      // ORB-SLAM3 FRAME_GRID_COLS
 inline constexpr int kGridRows = 48;      // ORB-SLAM3 FRAME_GRID_ROWS
-inline constexpr const char* kMagic = "# jsve-log v1 ";
+inline constexpr const char* kMagic = "# jsve-log v2 ";
 inline constexpr const char* kEndMarker = "# jsve-log end frames=";
 inline constexpr const char* kPartialSuffix = ".partial";
 inline constexpr double kUnitQuaternionTolerance = 1e-6;  // schema.UNIT_QUATERNION_TOLERANCE
@@ -96,8 +98,8 @@ enum class Status : int {
     kBadMetadata,          // a metadata value or a required key is missing or of the wrong type
     kNonFinite,            // a NaN or infinite double in a frame
     kNonIncreasingStamp,   // t_ns not strictly after the previous frame's
-    kOutOfRange,           // state, counts, bins, quaternion norm, imu_* out of range
-    kNoFrames,             // close() before any frame: a v1 log has at least one
+    kOutOfRange,           // state, map_id, imu_ba2, missing pose, counts, bins, quaternion norm, imu_*
+    kNoFrames,             // close() before any frame: a log has at least one
     kFailed,               // the writer failed earlier; nothing more is written
 };
 
@@ -136,11 +138,16 @@ struct Options {
     OnError on_error = OnError::kThrow;
 };
 
-// One frame, in the units of docs/log-format.md. Defaults: zeros and identity quaternions.
+// One frame, in the units of docs/log-format.md. Defaults: zeros, identity quaternions, a pose,
+// map 0.
 struct Frame {
     std::int64_t t_ns = 0;          // sensor stamp, nanoseconds
     int state = 0;                  // ORB-SLAM3 Tracking::eTrackingState, -1..5
     bool imu_init = false;          // Atlas::isImuInitialized() for the active map
+    std::int64_t map_id = 0;        // mpAtlas->GetCurrentMap()->GetId(), >= 0
+    bool imu_ba2 = false;           // mpAtlas->GetCurrentMap()->GetIniertialBA2(); needs imu_init
+    bool has_pose = true;           // mCurrentFrame.isSet(); false (only outside states 2, 3, 5):
+                                    // the ten vis_* fields are left empty and not checked
     int n_extracted = 0;            // Frame::N
     int n_inliers = 0;              // Tracking::mnMatchesInliers after TrackLocalMap
     int n_frustum = 0;              // nToMatch in Tracking::SearchLocalPoints
@@ -493,6 +500,10 @@ public:
         *p++ = ',';
         *p++ = f.imu_init ? '1' : '0';
         *p++ = ',';
+        p = detail::put_int(p, end, f.map_id);
+        *p++ = ',';
+        *p++ = f.imu_ba2 ? '1' : '0';
+        *p++ = ',';
         p = detail::put_int(p, end, f.n_extracted);
         *p++ = ',';
         p = detail::put_int(p, end, f.n_inliers);
@@ -502,9 +513,13 @@ public:
             *p++ = ',';
             p = detail::put_int(p, end, f.bins[k]);
         }
-        p = put_doubles(p, end, f.vis_p, 3);
-        p = put_doubles(p, end, f.vis_q, 4);
-        p = put_doubles(p, end, f.vis_v, 3);
+        if (f.has_pose) {
+            p = put_doubles(p, end, f.vis_p, 3);
+            p = put_doubles(p, end, f.vis_q, 4);
+            p = put_doubles(p, end, f.vis_v, 3);
+        } else {
+            for (int i = 0; i < 10; ++i) *p++ = ',';
+        }
         p = put_doubles(p, end, &f.imu_dt, 1);
         p = put_doubles(p, end, f.imu_dp, 3);
         p = put_doubles(p, end, f.imu_dv, 3);
@@ -539,7 +554,7 @@ public:
         if (frames_ == 0) {
             failed_ = Status::kNoFrames;
             abandon();
-            return fail(Status::kNoFrames, partial_ + ": not finalised: no frames were written (a v1 log has at least one)");
+            return fail(Status::kNoFrames, partial_ + ": not finalised: no frames were written (a log has at least one)");
         }
         std::string tail = kEndMarker;
         tail += std::to_string(frames_);
@@ -580,8 +595,9 @@ public:
 
 private:
     static constexpr std::size_t kBufferSize = std::size_t{1} << 16;  // stdio buffer, 64 KiB
-    // t_ns, state, imu_init, 3 counts, 64 bins at <= 21 chars each; 28 doubles at <= 27 chars.
-    static constexpr std::size_t kLineCapacity = 6 * 21 + kBins * 21 + 28 * 27 + 16;
+    // t_ns, state, imu_init, map_id, imu_ba2, 3 counts, 64 bins at <= 21 chars each; 28 doubles at
+    // <= 27 chars.
+    static constexpr std::size_t kLineCapacity = 8 * 21 + kBins * 21 + 28 * 27 + 16;
 
     static char* put_doubles(char* p, char* end, const double* v, int n) {
         for (int i = 0; i < n; ++i) {
@@ -592,7 +608,7 @@ private:
     }
 
     static void append_header_row(std::string& out, bool gt) {
-        out += "t_ns,state,imu_init,n_extracted,n_inliers,n_frustum";
+        out += "t_ns,state,imu_init,map_id,imu_ba2,n_extracted,n_inliers,n_frustum";
         for (int k = 0; k < kBins; ++k) {
             out += ",bin_";
             out += std::to_string(k);
@@ -623,6 +639,9 @@ private:
             {"grid", false, false, false, false, true},     {"gravity", false, false, false, false, true},
             {"frontend", false, true, false, false, false}, {"seed", false, false, true, false, false},
             {"gt_missing_frames", false, false, true, false, false}, {"gt_source", false, true, false, false, false},
+            // A JSON object form of "rule" exists (jsve.core._rules.rule_to_dict); this header
+            // writes the preset name.
+            {"rule", false, true, false, false, false},     {"switch_model", false, true, false, false, false},
         };
         for (const Rule& r : rules) {
             K k;
@@ -659,7 +678,7 @@ private:
             return false;
         }
         if (meta.numbers("grid", v) && !(v.size() == 2 && v[0] == 8.0 && v[1] == 8.0)) {
-            why = "metadata \"grid\" must be [8, 8] in format v1 (SVE bins, cols x rows)";
+            why = "metadata \"grid\" must be [8, 8] (SVE bins, cols x rows)";
             return false;
         }
         if (meta.numbers("gt_missing_frames", v) && v[0] < 0.0) {
@@ -676,6 +695,20 @@ private:
         }
         if (f.state < -1 || f.state > 5) {
             msg = "state " + std::to_string(f.state) + " is not an ORB-SLAM3 tracking state (-1..5)";
+            return Status::kOutOfRange;
+        }
+        if (f.map_id < 0) {
+            msg = "map_id " + std::to_string(f.map_id) + " is negative (Map::GetId() is unsigned)";
+            return Status::kOutOfRange;
+        }
+        if (f.imu_ba2 && !f.imu_init) {
+            msg = "imu_ba2 is set but imu_init is not (inertial BA2 runs only on a map whose IMU is initialised)";
+            return Status::kOutOfRange;
+        }
+        // OK 2, RECENTLY_LOST 3, OK_KLT 5: the front-end has a pose in these states.
+        if (!f.has_pose && (f.state == 2 || f.state == 3 || f.state == 5)) {
+            msg = "no pose (has_pose false) in state " + std::to_string(f.state) +
+                  ": frames in states 2, 3, 5 (OK, RECENTLY_LOST, OK_KLT) have one";
             return Status::kOutOfRange;
         }
         if (f.n_extracted < 0 || f.n_inliers < 0 || f.n_frustum < 0) {
@@ -710,7 +743,7 @@ private:
                                 {"imu_dq", f.imu_dq, 4}, {"gt_p", f.gt_p, 3},     {"gt_q", f.gt_q, 4}};
         const bool gt = options_.ground_truth && f.has_gt;
         const int n_groups = gt ? 9 : 7;
-        for (int g = 0; g < n_groups; ++g) {
+        for (int g = f.has_pose ? 0 : 3; g < n_groups; ++g) {  // without a pose vis_* is not written
             for (int i = 0; i < groups[g].n; ++i) {
                 if (!std::isfinite(groups[g].v[i])) {
                     msg = std::string(groups[g].name) + "[" + std::to_string(i) + "] is " + detail::double_text(groups[g].v[i]);
@@ -733,7 +766,7 @@ private:
             }
         }
         const Group quats[] = {{"vis_q", f.vis_q, 4}, {"imu_dq", f.imu_dq, 4}, {"gt_q", f.gt_q, 4}};
-        for (int g = 0; g < (gt ? 3 : 2); ++g) {
+        for (int g = f.has_pose ? 0 : 1; g < (gt ? 3 : 2); ++g) {
             const double* q = quats[g].v;
             const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
             if (!(std::fabs(norm - 1.0) <= kUnitQuaternionTolerance)) {

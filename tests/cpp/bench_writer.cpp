@@ -41,6 +41,7 @@ jsve::Frame realistic(std::int64_t i) {
     f.t_ns = 1403636579763555584 + i * 50000000;
     f.state = 2;
     f.imu_init = true;
+    f.imu_ba2 = i >= 300;  // inertial BA2 once the map is 15 s old (20 fps)
     int binned = 0;
     for (int k = 0; k < jsve::kBins; ++k) binned += (f.bins[k] = static_cast<int>(uniform() * 30.0));
     f.n_extracted = binned + 20;

@@ -60,6 +60,8 @@ jsve::Frame good_frame(std::int64_t t_ns, bool first = false) {
     f.t_ns = t_ns;
     f.state = 2;
     f.imu_init = true;
+    f.map_id = 7;
+    f.imu_ba2 = true;
     f.n_extracted = 100;
     f.n_inliers = 40;
     f.n_frustum = 80;
@@ -135,6 +137,22 @@ int main(int argc, char** argv) {
     }
     {
         jsve::Frame f = good_frame(3000);
+        f.map_id = -1;
+        rejected("negative_map_id", f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.imu_init = false;  // imu_ba2 stays true
+        rejected("imu_ba2_without_imu_init", f, jsve::Status::kOutOfRange);
+    }
+    for (const int state : {2, 3, 5}) {  // OK, RECENTLY_LOST, OK_KLT: the front-end has a pose
+        jsve::Frame f = good_frame(3000);
+        f.state = state;
+        f.has_pose = false;
+        rejected("no_pose_in_state_" + std::to_string(state), f, jsve::Status::kOutOfRange);
+    }
+    {
+        jsve::Frame f = good_frame(3000);
         f.bins[5] = -2;
         rejected("negative_bin", f, jsve::Status::kOutOfRange);
     }
@@ -183,7 +201,24 @@ int main(int argc, char** argv) {
         report("frame_without_ground_truth",
                s1 == jsve::Status::kOk && s2 == jsve::Status::kOk && c == jsve::Status::kOk && exists(p), w.last_error());
     }
-    {  // A log with no frames is not a v1 log: close() refuses to finalise it.
+    {  // has_pose = false (outside states 2, 3, 5) leaves the ten vis_* fields empty, unchecked.
+        const std::string p = path("no_pose.csv");
+        jsve::LogWriter w(p, good_meta(), returning());
+        const jsve::Status s1 = w.write(good_frame(1000, true));
+        jsve::Frame f = good_frame(2000);
+        f.state = 4;  // LOST
+        f.has_pose = false;
+        f.vis_p[0] = nan;
+        f.vis_q[0] = 3.0;
+        f.map_id = 8;  // a new map
+        f.imu_init = false;
+        f.imu_ba2 = false;
+        const jsve::Status s2 = w.write(f);
+        const jsve::Status c = w.close();
+        report("frame_without_pose",
+               s1 == jsve::Status::kOk && s2 == jsve::Status::kOk && c == jsve::Status::kOk && exists(p), w.last_error());
+    }
+    {  // A log with no frames is not a log: close() refuses to finalise it.
         const std::string p = path("no_frames.csv");
         jsve::LogWriter w(p, good_meta(), returning());
         const jsve::Status c = w.close();
@@ -274,13 +309,18 @@ int main(int argc, char** argv) {
         gt_source_int.set("gt_source", 3);
         jsve::Metadata big_unsigned = good_meta();
         big_unsigned.set("seed", std::numeric_limits<std::uint64_t>::max());
+        jsve::Metadata rule_int = good_meta();
+        rule_int.set("rule", 15);
+        jsve::Metadata switch_model_list = good_meta();
+        switch_model_list.set("switch_model", {1, 2});
         const Case cases[] = {{"meta_missing_run", no_run},       {"meta_fps_string", fps_text},
                               {"meta_run_double", run_double},    {"meta_nan_double", nan_level},
                               {"meta_invalid_utf8", bad_utf8},    {"meta_image_size_scalar", size_scalar},
                               {"meta_image_size_doubles", size_doubles}, {"meta_image_size_three", size_three},
                               {"meta_fps_zero", fps_zero},        {"meta_gravity_two", gravity_two},
                               {"meta_grid_not_8x8", grid_other},  {"meta_gt_source_int", gt_source_int},
-                              {"meta_unsigned_overflow", big_unsigned}};
+                              {"meta_unsigned_overflow", big_unsigned}, {"meta_rule_int", rule_int},
+                              {"meta_switch_model_list", switch_model_list}};
         for (const Case& c : cases) {
             const std::string p = path(std::string(c.name) + ".csv");
             jsve::LogWriter w;

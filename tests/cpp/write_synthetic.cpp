@@ -1,4 +1,4 @@
-// Writes a format-v1 log of a deterministic synthetic run with jsve_log.hpp, and a sidecar file
+// Writes a format-v2 log of a deterministic synthetic run with jsve_log.hpp, and a sidecar file
 // holding every value it wrote (integers in decimal, doubles as the hex of their bits), so that
 // tests/test_frontend.py can check the reader bit for bit. Used only by the tests.
 //
@@ -133,6 +133,8 @@ int main(int argc, char** argv) {
         .set("gravity", {0.0, 0.0, -9.81})
         .set("frontend", "jsve write_synthetic (test)")
         .set("seed", (std::int64_t{1} << 40) + 3)
+        .set("rule", "sve-option2")
+        .set("switch_model", "orbslam3")
         .set("neg_zero", -0.0)
         .set("tiny", 5e-324)
         .set("big", std::numeric_limits<std::int64_t>::max())
@@ -160,6 +162,10 @@ int main(int argc, char** argv) {
         else f.t_ns = 1403636579763555584 + (i - 2) * 50000000 + (i % 7);
         f.state = static_cast<int>(i % 7) - 1;
         f.imu_init = (i % 3 == 0);
+        f.map_id = i < 20 ? 0 : (i < 40 ? 3 : (std::int64_t{1} << 40));  // a new map, then an id past int32
+        f.imu_ba2 = f.imu_init && i >= 30;
+        const bool posed_state = f.state == 2 || f.state == 3 || f.state == 5;
+        f.has_pose = posed_state || i % 2 == 1;  // even frames outside states 2, 3, 5 have no pose
 
         static int grid[jsve::kGridCols][jsve::kGridRows];
         for (int c = 0; c < jsve::kGridCols; ++c)
@@ -176,6 +182,7 @@ int main(int argc, char** argv) {
         f.vis_p[2] = kSpecial[(i * 5 + 3) % kNumSpecial];
         random_unit_quaternion(f.vis_q);
         for (double& v : f.vis_v) v = random_finite();
+        if (!f.has_pose) f.vis_p[1] = std::numeric_limits<double>::quiet_NaN();  // not written, not checked
         f.imu_dt = (i == 0) ? 0.0 : (i % 4 == 1 ? std::fabs(random_finite()) : 0.05 + 1e-3 * unit_interval());
         if (i > 0) {  // the first frame has nothing to preintegrate from: zeros and identity
             for (double& v : f.imu_dp) v = random_finite();
@@ -193,12 +200,16 @@ int main(int argc, char** argv) {
         log.write(f);
 
         if (expected != nullptr) {
-            std::fprintf(expected, "F %" PRId64 " %d %d %d %d %d", f.t_ns, f.state, f.imu_init ? 1 : 0, f.n_extracted,
-                         f.n_inliers, f.n_frustum);
+            std::fprintf(expected, "F %" PRId64 " %d %d %" PRId64 " %d %d %d %d", f.t_ns, f.state, f.imu_init ? 1 : 0,
+                         f.map_id, f.imu_ba2 ? 1 : 0, f.n_extracted, f.n_inliers, f.n_frustum);
             for (int k = 0; k < jsve::kBins; ++k) std::fprintf(expected, " %d", f.bins[k]);
-            put_hex(expected, f.vis_p, 3);
-            put_hex(expected, f.vis_q, 4);
-            put_hex(expected, f.vis_v, 3);
+            if (f.has_pose) {
+                put_hex(expected, f.vis_p, 3);
+                put_hex(expected, f.vis_q, 4);
+                put_hex(expected, f.vis_v, 3);
+            } else {
+                std::fprintf(expected, " - - - - - - - - - -");  // no pose: NaN when read
+            }
             put_hex(expected, &f.imu_dt, 1);
             put_hex(expected, f.imu_dp, 3);
             put_hex(expected, f.imu_dv, 3);
