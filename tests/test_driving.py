@@ -9,7 +9,7 @@ from jsve.io import keypoints_path, read_keypoints, read_log, write_keypoints, w
 from jsve.masks import PngMasks, apply_masks
 from jsve.sim._driving import DrivingConfig, kitti_body_poses, simulate_sequence, write_png_masks
 
-SMALL = DrivingConfig(n_frames=120)
+SMALL = DrivingConfig(n_frames=180)
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +37,11 @@ def test_files_pass_readers(runs, tmp_path):
     log = write_log(sim.original, tmp_path / "r0.csv")
     side = write_keypoints(sim.keypoints, keypoints_path(log))
     back, kp = read_log(log), read_keypoints(side)
+    # Format v2: one map, BA2 15 s in (10 fps: from frame 150; imu_init is 1 throughout), the rule.
+    f = back.frames
+    assert list(f.columns) == list(schema.COLUMNS) and (f["map_id"] == 0).all()
+    np.testing.assert_array_equal(f["imu_ba2"], (np.arange(len(f)) >= 150).astype(np.int64))
+    assert back.meta["rule"] == "orbslam3" and back.meta["switch_model"] == "orbslam3"
     np.testing.assert_array_equal(back.frames["n_extracted"], sim.original.frames["n_extracted"])
     assert len(kp.keypoints) == len(sim.keypoints.keypoints)
     masked = sim.masked()

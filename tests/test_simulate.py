@@ -69,6 +69,14 @@ def test_logs_round_trip_and_are_deterministic(tmp_path):
         f = run.frames
         assert list(f.columns) == list(schema.COLUMNS)
         assert (f[list(schema.BIN_COLUMNS)].sum(axis=1) <= f["n_extracted"]).all()
+        # Format v2: one map and a pose on every frame (full support), BA2 from 15 s after the first
+        # frame where the IMU is initialised (docs/simulator.md), the rule and switch model it ran.
+        assert (f["map_id"] == 0).all() and f[list(schema.VIS_COLUMNS)].notna().all(axis=None)
+        t = f["t_ns"].to_numpy()
+        ba2 = (f["imu_init"].to_numpy() == 1) & (t - t[0] >= 15_000_000_000)
+        np.testing.assert_array_equal(f["imu_ba2"].to_numpy(), ba2.astype(np.int64))
+        assert 0 < ba2.sum() < f["imu_init"].sum()  # 25 s flights: BA2 comes 15 s in
+        assert run.meta["rule"] == "orbslam3" and run.meta["switch_model"] == "orbslam3"
         assert (f["n_inliers"] <= f["n_extracted"]).all() and f["n_extracted"].max() <= 1000
         assert set(np.unique(f["state"])) <= {1, 2, 3, 4}
     again = sim.simulate_study(

@@ -392,10 +392,13 @@ def simulate_run(
     masked_vis = vis(n_static, np.zeros(n))
 
     dt = 1.0 / config.fps
+    imu_init = np.ones(n, np.int64)
     columns = {
         "t_ns": t_ns,
         "state": np.full(n, schema.STATE_OK),
-        "imu_init": np.ones(n, np.int64),
+        "imu_init": imu_init,
+        # One map, a pose on every frame; inertial BA2 from 15 s in (schema.v1_defaults' rule).
+        **schema.v1_defaults(t_ns, imu_init),
         "n_extracted": n_ext,
         "n_inliers": n_inl,
         "n_frustum": n_inl + n_ext // 3,
@@ -415,7 +418,7 @@ def simulate_run(
     meta = {
         "sequence": sequence, "run": int(run), "fps": config.fps, "sensor": "monocular",
         "image_size": [width, height], "frontend": "jsve simulate_driving (original: all keypoints)",
-        "seed": int(seed),
+        "rule": "orbslam3", "switch_model": "orbslam3", "seed": int(seed),
     }  # fmt: skip
     kp = pd.DataFrame({
         "t_ns": t_ns[frame], "x": x, "y": y, "ux": x, "uy": y,

@@ -1,4 +1,4 @@
-"""The simulator: a stand-in front-end that writes format-v1 tracking logs as ORB-SLAM3 + logger would.
+"""The simulator: a stand-in front-end that writes format-v2 tracking logs as ORB-SLAM3 + logger would.
 
 For any set of sequences x disturbance settings x runs, deterministically under a seed:
 
@@ -546,6 +546,9 @@ def simulate_setting(
             "t_ns": recording.frame_ns,
             "state": states[i],
             "imu_init": imu_init[i].astype(np.int64),
+            # One map for the whole run (a pose on every frame: full support for any rule), inertial
+            # BA2 from 15 s after the first frame: the rule of schema.v1_defaults (docs/simulator.md).
+            **schema.v1_defaults(recording.frame_ns, imu_init[i]),
             "n_extracted": counts.n_extracted,
             "n_inliers": d["n_inliers"],
             "n_frustum": d["n_frustum"],
@@ -573,6 +576,8 @@ def simulate_setting(
             "fps": fps,
             "gravity": [float(g) for g in GRAVITY],
             "frontend": FRONTEND,
+            "rule": "orbslam3",  # the logged state is ORB-SLAM3's own rule ...
+            "switch_model": "orbslam3",  # ... and a rejected frame keeps its optimised pose
             "seed": int(seed),
             "trajectory": Path(recording.trajectory.source).name,  # file names: logs do not
             "imu": Path(recording.imu_source).name,  # depend on where the data sits
@@ -774,7 +779,7 @@ def write_study(
     progress: bool = True,
     parquet: bool = False,
 ) -> StudyResult:
-    """Simulate a study and write one format-v1 log per run under out_dir (see log_path).
+    """Simulate a study and write one format-v2 log per run under out_dir (see log_path).
 
     Resumable: logs already complete are skipped (a re-run after an interruption finishes the rest;
     jsve.io._logs.write_log writes `.partial` files and renames them, and stale ones are removed).
