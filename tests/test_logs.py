@@ -568,7 +568,7 @@ def test_frame_in_a_tracked_state_must_have_a_pose(log, state):
     err = expect(
         log, LogFormatError, 8, column="vis_px", value="", reason=f"no pose in state {state} ({name})"
     )
-    assert "2 OK, 3 RECENTLY_LOST, 5 OK_KLT" in err.reason
+    assert "frames in states 2 (OK), 3 (RECENTLY_LOST) and 5 (OK_KLT) have one" in err.reason
 
 
 @pytest.mark.parametrize("column", ["vis_px", "vis_qy", "vis_vz"])

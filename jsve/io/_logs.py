@@ -55,7 +55,9 @@ the ground-truth file used."""
 _INT_SET = frozenset(schema.INT_COLUMNS)
 _GT_SET = frozenset(schema.GT_COLUMNS)
 _VIS_SET = frozenset(schema.VIS_COLUMNS)
-_POSED = ", ".join(f"{s} {schema.STATE_NAMES[s]}" for s in schema.POSED_STATES)
+_POSED = ", ".join(f"{s} ({schema.STATE_NAMES[s]})" for s in schema.POSED_STATES[:-1]) + (
+    f" and {schema.POSED_STATES[-1]} ({schema.STATE_NAMES[schema.POSED_STATES[-1]]})"
+)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -278,8 +280,8 @@ def _find_problem(
                     r,
                     pos[c],
                     c,
-                    f"no pose in state {s} ({schema.STATE_NAMES[s]}): a frame in state {_POSED} has "
-                    "a pose (vis_* may be empty only in the other states)",
+                    f"no pose in state {s} ({schema.STATE_NAMES[s]}): frames in states {_POSED} "
+                    "have one (vis_* may be empty only in the other states)",
                     (c,),
                 )
             )
