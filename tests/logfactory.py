@@ -85,7 +85,7 @@ def make_run(
         **meta: metadata entries, overriding DEFAULT_META and `run` (e.g. sequence="MH_04", level=15).
 
     Returns:
-        RunLog with frames in v1 column order, int64 / float64.
+        RunLog with frames in v2 column order, int64 / float64.
     """
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
