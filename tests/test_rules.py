@@ -44,6 +44,7 @@ from jsve.core._rules import (
     rule_from_params,
     rule_kind,
     rule_params,
+    rule_static,
     rule_to_dict,
 )
 from jsve.core._sve import Combination, FrameFeatures, frame_features
@@ -83,40 +84,78 @@ def test_orbslam3_preset_is_15_50_50_10_on_inliers():
     assert np.array_equal(np.asarray(rule.score(frame_features(ext, inl, fru, bins))), inl)
 
 
-def _by_hand(ext, inl, fru, bins, rho):
-    sa = np.where(ext > 0, np.clip(inl / np.maximum(rho * ext, 1e-300), 0, 1), 0.0)
-    sb = oracle.s_b_numpy(bins, ext)
-    sc = np.where(fru > 0, np.clip(inl / np.maximum(fru, 1), 0, 1), 0.0)
+def _by_hand(ext, inl, fru, bins, rho, clamped=True, n_features=1000.0):
+    """(S_a, S_b, S_c) of the counts written out: jsve's clamped inputs, or the authors' unclamped
+    ones (S_a original = N / nFeatures when rho is None, else the clamped inlier ratio over rho)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if rho is None:
+            sa = ext / n_features
+        else:
+            sa = np.where(ext > 0, np.clip(inl / (rho * ext), 0, 1), 0.0)
+        e = ext[:, None] / 64.0
+        sb = np.where(ext > 0, 1.0 - np.sum((bins - e) ** 2 / e, axis=-1) / (7.0 * ext), 0.0)
+        sc = np.where(fru > 0, inl / fru, 0.0)
+    if clamped:
+        np.testing.assert_allclose(np.clip(sb, 0, 1), oracle.s_b_numpy(bins, ext), atol=1e-14)
+        sb, sc = np.clip(sb, 0, 1), np.clip(sc, 0, 1)
     return sa, sb, sc
 
 
 @pytest.mark.parametrize(
-    "name, thresholds, formula, rho",
+    "name, thresholds, formula, rho, clamped",
     [
-        ("sve-option2", (0.06, 0.2, 0.2, 0.04), lambda a, b, c: np.sqrt(a * (0.5 * b + 0.5 * c)), 0.25),
-        ("sve-eq1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c, 0.5),
-        ("sve-option1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c, 0.5),
+        ("sve-option2", (0.06, 0.2, 0.2, 0.04), lambda a, b, c: np.sqrt(a * (0.5 * b + 0.5 * c)), 0.25, True),
+        ("sve-eq1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c, None, False),
+        ("sve-option1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c, 0.5, False),
+        ("jsve-eq1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c, 0.5, True),
+        ("jsve-option1", (0.1, 0.3, 0.3, 0.1), lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c, 0.5, True),
     ],
 )
-def test_sve_presets(x64, name, thresholds, formula, rho):
+def test_sve_presets(x64, name, thresholds, formula, rho, clamped):
     """Scores equal the seed's formulas written out by hand to 1e-12 (float64 rounding of a few
-    operations on values in [0, 1]; the geometric mean is evaluated as exp(mean log))."""
+    operations on values up to ~10; the geometric mean is evaluated as exp(mean log)): Option 2 and
+    jsve's variants on the clamped metrics, the authors' Eq.1 and Option 1 on the unclamped S_b, S_c
+    (Eq.1 with S_a = N / nFeatures), with the thresholds of their builds."""
     rule = preset(name)
     assert isinstance(rule, SVERule)
     th = rule.thresholds
     np.testing.assert_allclose([float(th.imu_init), float(th.not_init), float(th.reloc), float(th.recovery)],
                                thresholds, rtol=0, atol=1e-15)  # fmt: skip
-    assert float(rule.combination.rho) == rho
+    if rho is not None:
+        assert float(rule.combination.rho) == rho
     ext, inl, fru, bins = features_grid()
     got = np.asarray(rule.score(frame_features(ext, inl, fru, bins)))
-    np.testing.assert_allclose(got, formula(*_by_hand(ext, inl, fru, bins, rho)), rtol=0, atol=1e-12)
-    assert ((got >= 0) & (got <= 1)).all() and got[3] == 0.0  # a frame without features scores 0
+    sa, sb, sc = _by_hand(ext, inl, fru, bins, rho, clamped)
+    np.testing.assert_allclose(got, formula(sa, sb, sc), rtol=0, atol=1e-12)
+    assert got[3] == 0.0  # a frame without features scores 0
+    if clamped:
+        assert ((got >= 0) & (got <= 1)).all()
+    else:  # the grid has frames whose unclamped S_b is negative or S_c above 1: the score leaves [0, 1]
+        assert (sb < 0).any() and (sc > 1).any() and ((got < 0) | (got > 1)).any()
+
+
+def test_presets_name_their_inputs():
+    """The authors' builds combine their own inputs, jsve's presets the clamped ones (docs/sve.md)."""
+    inputs = {name: preset(name).combination.inputs for name in PRESETS if name != "orbslam3"}
+    assert inputs == {
+        "sve-eq1": "authors-eq1",
+        "sve-option1": "authors-option1",
+        "sve-option2": "jsve",
+        "jsve-eq1": "jsve",
+        "jsve-option1": "jsve",
+    }
+    # the same weights and thresholds on either inputs
+    for ours, theirs in (("jsve-eq1", "sve-eq1"), ("jsve-option1", "sve-option1")):
+        assert rule_params(preset(ours)).keys() == rule_params(preset(theirs)).keys()
+        for key, value in rule_params(preset(ours)).items():
+            if key != "rho" or theirs == "sve-option1":  # Eq.1's authors' S_a has no rho
+                assert float(value) == float(rule_params(preset(theirs))[key]), key
 
 
 def test_unknown_preset_names_the_choices():
     with pytest.raises(ValueError, match="sve-option2"):
         preset("sve-option3")
-    assert set(PRESETS) == {"orbslam3", "sve-eq1", "sve-option1", "sve-option2"}
+    assert PRESETS == ("orbslam3", "sve-eq1", "sve-option1", "sve-option2", "jsve-eq1", "jsve-option1")
 
 
 @pytest.mark.parametrize("float64", [False, True])
@@ -129,11 +168,29 @@ def test_rule_dict_round_trip(name, float64):
         spec = rule_to_dict(rule)
         again = rule_from_dict(json.loads(json.dumps(spec)))  # JSON-ready, and back
         assert type(again) is type(rule)
-        assert rule_to_dict(again) == spec
+        assert rule_to_dict(again) == spec and rule_static(again) == rule_static(rule)
         for a, b in zip(jax.tree.leaves(rule), jax.tree.leaves(again), strict=True):
             assert a.dtype == b.dtype and float(a) == float(b)
+        # the inputs are written only when they are not jsve's, and read back
+        authors = {"sve-eq1": "authors-eq1", "sve-option1": "authors-option1"}
+        assert spec.get("combination", {}).get("inputs") == authors.get(name)
     finally:
         jax.config.update("jax_enable_x64", previous)
+
+
+def test_rule_json_without_inputs_reads_as_jsve(x64):
+    """A description written before Combination.inputs existed (no "inputs" key) is a jsve rule; with
+    the key it is the authors' build, and the two score differently (float64: the floats come back
+    exactly)."""
+    old = {"kind": "sve", "combination": {"w_a": 0.2, "u_b": 0.5, "p": 1.0, "q": 1.0, "rho": 0.5},
+           "thresholds": {"imu_init": 0.1, "not_init": 0.3, "reloc": 0.3, "recovery": 0.1}}  # fmt: skip
+    rule = rule_from_dict(json.loads(json.dumps(old)))
+    assert rule.combination.inputs == "jsve" and rule_to_dict(rule) == rule_to_dict(preset("jsve-eq1")) == old
+    new = {**old, "combination": {**old["combination"], "inputs": "authors-eq1"}}
+    assert rule_to_dict(rule_from_dict(new)) == rule_to_dict(preset("sve-eq1")) == new
+    ext, inl, fru, bins = features_grid()
+    f = frame_features(ext, inl, fru, bins)
+    assert not np.allclose(np.asarray(rule_from_dict(new).score(f)), np.asarray(rule.score(f)))
 
 
 def test_rule_from_dict_errors_name_source_and_key():
@@ -151,21 +208,32 @@ def test_rule_from_dict_errors_name_source_and_key():
         rule_from_dict({**good, "thresholds": {**good["thresholds"], "reloc": "high"}}, "params.json")
     with pytest.raises(ValueError, match=r"<dict>: "):
         rule_from_dict([1, 2, 3])
+    eq1 = rule_to_dict(preset("sve-eq1"))
+    with pytest.raises(ValueError, match=r"params\.json: bad rule description: .*inputs must be one of"):
+        rule_from_dict({**eq1, "combination": {**eq1["combination"], "inputs": "authors-eq3"}}, "params.json")
+    with pytest.raises(ValueError, match=r"params\.json: bad rule description: .*needs p = 1, got 0\.0"):
+        rule_from_dict({**eq1, "combination": {**eq1["combination"], "p": 0.0}}, "params.json")
 
 
 def test_parameter_names_are_the_modules_fields():
     """A family's parameters are its Modules' fields (SVE: the combination's, then the thresholds'),
     the JSON description's tables are the same fields, and every family has a preset baseline."""
-    fields = lambda cls: tuple(f.name for f in dataclasses.fields(cls))  # noqa: E731
-    assert param_names("inliers") == fields(Thresholds) == ("imu_init", "not_init", "reloc", "recovery")
-    assert param_names("sve") == fields(Combination) + fields(Thresholds)
+    leaves = lambda cls: tuple(f.name for f in dataclasses.fields(cls) if not f.metadata.get("static"))  # noqa: E731
+    assert param_names("inliers") == leaves(Thresholds) == ("imu_init", "not_init", "reloc", "recovery")
+    assert param_names("sve") == leaves(Combination) + leaves(Thresholds)
+    assert [f.name for f in dataclasses.fields(Combination) if f.metadata.get("static")] == ["inputs"]
+    assert "inputs" not in param_names("sve")  # a static field is never a fitted parameter
     for name in PRESETS:
         rule = preset(name)
         kind = rule_kind(rule)
         assert isinstance(rule, RULE_KINDS[kind])
         assert tuple(rule_params(rule)) == param_names(kind)
+        assert set(rule_static(rule)) == ({"inputs"} if kind == "sve" else set())
         spec = rule_to_dict(rule)
-        assert [k for part in spec if part != "kind" for k in spec[part]] == list(param_names(kind))
+        written = [k for part in spec if part != "kind" for k in spec[part]]
+        statics = [k for k, v in rule_static(rule).items() if v != "jsve"]  # only non-defaults are written
+        names, n_combination = list(param_names(kind)), len(leaves(Combination)) if kind == "sve" else 0
+        assert written == names[:n_combination] + statics + names[n_combination:]
     assert set(BASELINES) == set(RULE_KINDS) and set(BASELINES.values()) <= set(PRESETS)
     assert all(rule_kind(preset(name)) == kind for kind, name in BASELINES.items())
     with pytest.raises(ValueError, match="rule kind must be 'inliers' or 'sve', got 'linear'"):
@@ -184,12 +252,16 @@ def test_rule_from_params_round_trip_jit_vmap_grad(x64):
     for name in PRESETS:
         rule = preset(name)
         kind = rule_kind(rule)
-        params = rule_params(rule)
-        jitted = jax.jit(lambda p, kind=kind: rule_from_params(kind, p))(params)
-        for again in (rule_from_params(kind, params), jitted):
-            assert type(again) is type(rule)
+        params, static = rule_params(rule), rule_static(rule)
+        jitted = jax.jit(lambda p, kind=kind, static=static: rule_from_params(kind, p, static))(params)
+        for again in (rule_from_params(kind, params, static), jitted):
+            assert type(again) is type(rule) and rule_static(again) == static
             for a, b in zip(jax.tree.leaves(rule), jax.tree.leaves(again), strict=True):
                 assert float(a) == float(b)
+        # without the static fields, their defaults: jsve's inputs
+        assert all(v == "jsve" for v in rule_static(rule_from_params(kind, params)).values())
+    with pytest.raises(ValueError, match="sve rules have no static field 'input'"):
+        rule_from_params("sve", rule_params(preset("sve-eq1")), {"input": "authors-eq1"})
     rng = np.random.default_rng(5)
     stacked = {k: jnp.asarray(rng.uniform(0.1, 0.9, 3)) for k in param_names("sve")}
     rules = rule_from_params("sve", stacked)
@@ -198,18 +270,24 @@ def test_rule_from_params_round_trip_jit_vmap_grad(x64):
         one = rule_from_params("sve", {k: v[i] for k, v in stacked.items()})
         np.testing.assert_allclose(scores[i], np.asarray(one.score(f)), rtol=1e-14, atol=1e-15)
 
-    def score(w_a):
-        params = {**rule_params(preset("sve-option1")), "w_a": w_a}
-        return rule_from_params("sve", params).score(f)[5]  # S_a, S_b, S_c of this frame lie inside (0, 1)
+    for name in ("jsve-option1", "sve-option1", "sve-eq1"):
+        static = rule_static(preset(name))
 
-    fd = (float(score(0.5 + 1e-6)) - float(score(0.5 - 1e-6))) / 2e-6
-    np.testing.assert_allclose(float(jax.grad(score)(0.5)), fd, rtol=1e-6)
+        def score(w_a, name=name, static=static):
+            params = {**rule_params(preset(name)), "w_a": w_a}
+            return rule_from_params("sve", params, static).score(f)[5]  # S_a, S_b, S_c of this frame: (0, 1)
+
+        fd = (float(score(0.5 + 1e-6)) - float(score(0.5 - 1e-6))) / 2e-6
+        np.testing.assert_allclose(float(jax.grad(score)(0.5)), fd, rtol=1e-6, err_msg=name)
 
 
 def test_sve_rule_scores_its_combination():
     ext, inl, fru, bins = features_grid()
     f = frame_features(ext, inl, fru, bins)
-    rule = preset("sve-eq1")
+    for name in PRESETS[1:]:
+        rule = preset(name)
+        assert np.array_equal(np.asarray(rule.score(f)), np.asarray(rule.combination.score(f)))
+    rule = preset("jsve-eq1")  # jsve's inputs: the three-argument form is the same score
     assert np.array_equal(
         np.asarray(rule.score(f)), np.asarray(rule.combination(f.inlier_ratio, f.s_b, f.s_c))
     )

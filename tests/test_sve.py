@@ -12,11 +12,17 @@ import numpy as np
 import pytest
 
 from jsve.core._sve import (
+    COMBINATIONS,
     EQ1,
+    INPUTS,
+    JSVE_EQ1,
+    JSVE_OPTION1,
     OPTION1,
     OPTION2,
     Combination,
     FrameFeatures,
+    combination_from_logs,
+    feature_logs,
     feature_metrics,
     frame_features,
     inlier_ratio,
@@ -164,8 +170,8 @@ def _abc(n=200, seed=0):
 @pytest.mark.parametrize(
     "params, by_hand",
     [
-        (EQ1, lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c),
-        (OPTION1, lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c),
+        (JSVE_EQ1, lambda a, b, c: 0.2 * a + 0.4 * b + 0.4 * c),
+        (JSVE_OPTION1, lambda a, b, c: 0.5 * a + 0.25 * b + 0.25 * c),
         (OPTION2, lambda a, b, c: np.sqrt(a * (0.5 * b + 0.5 * c))),
     ],
 )
@@ -238,7 +244,9 @@ def test_metric_gradients_match_finite_differences(x64):
         np.testing.assert_allclose(float(g[k]), float(fd), **tol)
 
 
-@pytest.mark.parametrize("params", [EQ1, OPTION1, OPTION2, dict(w_a=0.35, u_b=0.7, p=-0.6, q=1.7, rho=0.3)])
+@pytest.mark.parametrize(
+    "params", [JSVE_EQ1, JSVE_OPTION1, OPTION2, dict(w_a=0.35, u_b=0.7, p=-0.6, q=1.7, rho=0.3)]
+)
 def test_combination_gradients_match_finite_differences(x64, params):
     """d score / d (inputs and parameters) at an interior point, including p = 0 (Option 2),
     against central differences with h = 1e-4. The differences converge to the gradient as h^2
@@ -261,7 +269,7 @@ def test_combination_gradients_match_finite_differences(x64, params):
 
 
 def test_gradients_finite_at_zero_features(x64):
-    for params in (EQ1, OPTION1, OPTION2):
+    for params in (JSVE_EQ1, JSVE_OPTION1, OPTION2):
         combo = Combination(**params)
         g = jax.grad(lambda x, combo=combo: combo(x[0], x[1], x[2]))(jnp.zeros(3))
         assert np.isfinite(np.asarray(g)).all()
@@ -272,6 +280,13 @@ def test_gradients_finite_at_zero_features(x64):
         jnp.zeros(3)
     )
     assert np.isfinite(np.asarray(g)).all()
+    # and the authors' presets, through every count (their features are ratios with safe zeros too)
+    for params in (EQ1, OPTION1):
+        combo = Combination(**params)
+        g = jax.grad(
+            lambda n, combo=combo: combo.score(frame_features(n[0], n[1], n[2], jnp.zeros(64), n[3]))
+        )(jnp.asarray([0.0, 0.0, 0.0, 1000.0]))
+        assert np.isfinite(np.asarray(g)).all()
 
 
 def test_sve_table_columns(x64):
@@ -291,6 +306,25 @@ def test_sve_table_columns(x64):
         np.asarray(table["sve_option2"]),
         np.asarray(Combination(**OPTION2)(f.inlier_ratio, f.s_b, f.s_c)),
         atol=0,
+    )
+    # one score column per preset combination, each its Combination's score of the features
+    assert list(table)[-len(COMBINATIONS) :] == [
+        "sve_eq1",
+        "sve_option1",
+        "sve_option2",
+        "jsve_eq1",
+        "jsve_option1",
+    ]
+    for name, params in COMBINATIONS.items():
+        want = np.asarray(Combination(**params).score(f))
+        np.testing.assert_array_equal(np.asarray(table[name.replace("-", "_")]), want)
+    # n_features reaches S_a original and the authors' Eq.1
+    other = sve_table(ext, inl, fru, bins, n_features=500)
+    np.testing.assert_allclose(np.asarray(other["s_a_original"]), [2.0, 0.0, 0.758], atol=EXACT)
+    np.testing.assert_allclose(
+        np.asarray(other["sve_eq1"]) - np.asarray(table["sve_eq1"]),
+        0.2 * np.array([1.0, 0.0, 0.379]),
+        atol=1e-15,
     )
 
 
@@ -344,3 +378,181 @@ def test_feature_metrics_follow_the_fields(x64):
     np.testing.assert_allclose(per_frame.T, whole, rtol=0, atol=EXACT)
     d = jax.grad(lambda rho: feature_metrics(f, rho)["s_a"][0])(0.4)  # 0.1 / 0.4 < 1: no clamp
     np.testing.assert_allclose(float(d), -0.1 / 0.4**2, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# The authors' builds: unclamped inputs (docs/sve.md, "Presets")
+
+
+def _authors_counts():
+    """Two runs of three frames whose authors' features are worked out by hand (in `_authors_expected`):
+    run 0 with nFeatures 1000, run 1 with 1200. Bins hold the keypoints inside the grid; N may be larger."""
+    ext = np.array([[640.0, 64.0, 0.0], [1100.0, 1280.0, 640.0]])
+    inl = np.array([[300.0, 40.0, 0.0], [220.0, 0.0, 64.0]])
+    fru = np.array([[100.0, 0.0, 0.0], [200.0, 50.0, 32.0]])
+    bins = np.zeros((2, 3, 64))
+    bins[0, 0, 17] = 640  # all in one bin
+    bins[0, 1] = np.tile([2.0, 0.0], 32)  # every other bin
+    bins[1, 0] = 16  # uniform, 1024 of the 1100 inside the grid
+    bins[1, 1, :8] = 160  # evenly over 8 of the 64 bins: the worst case
+    bins[1, 2, [0, 63]] = 320  # two opposite corners
+    return ext, inl, fru, bins, np.array([[1000.0], [1200.0]])
+
+
+def _authors_expected():
+    """The features of `_authors_counts` by hand. S_b = 1 - 64 sum_i (n_i - E)^2 / (7 N^2), E = N / 64:
+    one bin: sum = 63 N^2 / 64, S_b = -8. Every other bin (N = 64): sum = 64, S_b = 6/7. Uniform 16 with
+    N = 1100: E = 17.1875, sum = 64 * 1.1875^2 = 90.25, S_b = 1 - 5776 / 8470000. Worst case: 0. Two
+    corners of 320 (N = 640, E = 10): sum = 2 * 310^2 + 62 * 100 = 198400, S_b = 1 - 31/7 = -24/7."""
+    s_a_original = np.array([[0.64, 0.064, 0.0], [1100 / 1200, 1280 / 1200, 640 / 1200]])
+    s_b = np.array([[-8.0, 6 / 7, 0.0], [1 - 5776 / 8470000, 0.0, -24 / 7]])
+    s_c = np.array([[3.0, 0.0, 0.0], [1.1, 0.0, 2.0]])
+    ratio = np.array([[300 / 640, 40 / 64, 0.0], [0.2, 0.0, 0.1]])
+    return s_a_original, s_b, s_c, ratio
+
+
+def _authors_s_b(bins, n):
+    """S_b normalised as Frame::AssignFeaturesToGrid writes the worst case (domRG/ORB_SLAM3_SVE): all N
+    points evenly in a fraction f = 1/8 of the 64 bins, chi2_w = E (1 - f) 64 + (f 64 / E) (N / (f 64) - E)^2,
+    which is 7 N; unclamped, as in the original and Option 1 builds."""
+    e = n / 64.0
+    chi2 = np.sum((bins - e) ** 2 / e)
+    worst = e * (1 - 1 / 8) * 64 + (64 / 8 / e) * (n / 8 - e) ** 2
+    return 1 - chi2 / worst
+
+
+def test_frame_features_carry_the_authors_variants(x64):
+    """The unclamped variants and S_a original against the hand values (1e-15: a few roundings of
+    values up to 8; -24/7 and 6/7 are not binary), the clamped ones are their clips, and the authors'
+    chi2_w form gives the same S_b (1e-13: its terms reach 1e6)."""
+    ext, inl, fru, bins, n_features = _authors_counts()
+    s_a_original, s_b_u, s_c_u, ratio = _authors_expected()
+    f = frame_features(ext, inl, fru, bins, n_features)
+    np.testing.assert_allclose(np.asarray(f.s_a_original), s_a_original, rtol=0, atol=EXACT)
+    np.testing.assert_allclose(np.asarray(f.s_b_unclamped), s_b_u, rtol=0, atol=4 * EXACT)
+    np.testing.assert_allclose(np.asarray(f.s_c_unclamped), s_c_u, rtol=0, atol=4 * EXACT)
+    np.testing.assert_allclose(np.asarray(f.inlier_ratio), ratio, rtol=0, atol=EXACT)
+    np.testing.assert_array_equal(np.asarray(f.s_b), np.clip(np.asarray(f.s_b_unclamped), 0, 1))
+    np.testing.assert_array_equal(np.asarray(f.s_c), np.clip(np.asarray(f.s_c_unclamped), 0, 1))
+    assert float(f.s_b_unclamped[0, 0]) < -7.99 and float(f.s_a_original[1, 1]) > 1.0  # not clamped
+    for r, k in ((0, 0), (0, 1), (1, 0), (1, 1), (1, 2)):
+        np.testing.assert_allclose(
+            float(f.s_b_unclamped[r, k]), _authors_s_b(bins[r, k], ext[r, k]), atol=1e-13
+        )
+    # a scalar nFeatures is the same for every run; a per-run [R] vector does not broadcast to [R, F]
+    same = frame_features(ext, inl, fru, bins, 1000.0)
+    np.testing.assert_allclose(np.asarray(same.s_a_original), ext / 1000, rtol=0, atol=EXACT)
+    with pytest.raises(ValueError, match=r"n_features has shape \(2,\).*\(2, 3\)"):
+        frame_features(ext, inl, fru, bins, np.array([1000.0, 1200.0]))
+
+
+def test_authors_presets_from_counts(x64):
+    """Eq.1 (0.2 a + 0.4 b + 0.4 c of S_a original and the unclamped S_b, S_c) and Option 1 (0.5 a +
+    0.25 b + 0.25 c, S_a = clamp(ratio / 0.5, 0, 1), S_b and S_c unclamped), frame by frame by hand, with
+    scores below 0 and above 1. 1e-14: a few roundings of values up to 8."""
+    ext, inl, fru, bins, n_features = _authors_counts()
+    f = frame_features(ext, inl, fru, bins, n_features)
+    s_b_uniform = 1 - 5776 / 8470000
+    eq1 = np.array(
+        [
+            [0.2 * 0.64 + 0.4 * -8 + 0.4 * 3, 0.2 * 0.064 + 0.4 * 6 / 7, 0.0],  # -1.872, 0.3556...
+            [0.2 * 1100 / 1200 + 0.4 * s_b_uniform + 0.4 * 1.1, 0.2 * 1280 / 1200,
+             0.2 * 640 / 1200 + 0.4 * -24 / 7 + 0.4 * 2],
+        ]
+    )  # fmt: skip
+    option1 = np.array(
+        [
+            [0.5 * 0.9375 + 0.25 * -8 + 0.25 * 3, 0.5 * 1.0 + 0.25 * 6 / 7, 0.0],  # -0.78125; S_a 1.25 -> 1
+            [0.5 * 0.4 + 0.25 * s_b_uniform + 0.25 * 1.1, 0.0, 0.5 * 0.2 + 0.25 * -24 / 7 + 0.25 * 2],
+        ]
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(Combination(**EQ1).score(f)), eq1, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(Combination(**OPTION1).score(f)), option1, rtol=0, atol=1e-14)
+    assert eq1.min() < -1.8 and eq1.max() > 0.9  # the authors' Eq.1 is not confined to [0, 1]
+    # jsve's clamped variants of the same weights stay in [0, 1] and differ where clamps act
+    for params in (JSVE_EQ1, JSVE_OPTION1, OPTION2):
+        got = np.asarray(Combination(**params).score(f))
+        np.testing.assert_array_equal(got, np.asarray(Combination(**params)(f.inlier_ratio, f.s_b, f.s_c)))
+        assert ((got >= 0) & (got <= 1)).all()
+    np.testing.assert_allclose(float(Combination(**JSVE_EQ1).score(f)[0, 0]), 0.2 * 0.9375 + 0.4, atol=1e-15)
+
+
+def test_unclamped_inputs_refuse_nonlinear_exponents(x64):
+    """With the authors' inputs only p = q = 1 is defined: concrete exponents are refused when the
+    Combination is made, traced ones when it scores; a traced 1 scores as the concrete one."""
+    ext, inl, fru, bins, n_features = _authors_counts()
+    f = frame_features(ext, inl, fru, bins, n_features)
+    for params in (EQ1, OPTION1):
+        with pytest.raises(ValueError, match=r"needs p = 1, got 0\.0.*linear mean"):
+            Combination(**{**params, "p": 0.0})
+        with pytest.raises(ValueError, match=r"needs q = 1, got \[1\. 2\.\]"):
+            Combination(**{**params, "q": np.array([1.0, 2.0])})  # a stack with one bad entry
+        with pytest.raises(RuntimeError, match=r"only defined for p = q = 1"):
+            jax.jit(lambda p, params=params: Combination(**{**params, "p": p}).score(f))(0.5)
+        with pytest.raises(RuntimeError, match=r"only defined for p = q = 1"):
+            jax.vmap(lambda q, params=params: Combination(**{**params, "q": q}).score(f))(
+                jnp.asarray([1.0, 3.0])
+            )
+        ok = jax.jit(lambda p, params=params: Combination(**{**params, "p": p}).score(f))(1.0)
+        np.testing.assert_array_equal(np.asarray(ok), np.asarray(Combination(**params).score(f)))
+        # the three-argument form carries neither S_a original nor the unclamped S_b, S_c
+        combo = Combination(**params)
+        with pytest.raises(ValueError, match=r"call \.score\(features\)"):
+            combo(f.inlier_ratio, f.s_b, f.s_c)
+        with pytest.raises(ValueError, match=r"inputs='authors-"):
+            combination_from_logs(combo, *feature_logs(f.inlier_ratio, f.s_b, f.s_c))
+    Combination(**{**OPTION2, "p": -2.0})  # jsve's clamped inputs take any exponent
+    with pytest.raises(ValueError, match=r"inputs must be one of 'jsve', 'authors-eq1', 'authors-option1'"):
+        Combination(inputs="authors-option2")
+    assert INPUTS == ("jsve", "authors-eq1", "authors-option1")
+
+
+def test_authors_scores_eager_jit_vmap_agree(x64):
+    """Frame by frame eagerly, jitted over the batch, and vmapped over runs (n_features per run):
+    identical to 1e-15 (a handful of multiply-adds)."""
+    ext, inl, fru, bins, n_features = _authors_counts()
+
+    def scores(e, i, fr, b, n):
+        f = frame_features(e, i, fr, b, n)
+        return jnp.stack([Combination(**c).score(f) for c in COMBINATIONS.values()])
+
+    whole = np.asarray(scores(ext, inl, fru, bins, n_features))
+    np.testing.assert_allclose(
+        np.asarray(jax.jit(scores)(ext, inl, fru, bins, n_features)), whole, atol=EXACT
+    )
+    per_run = np.asarray(jax.vmap(scores)(ext, inl, fru, bins, n_features[:, 0]))  # [R, presets, F]
+    np.testing.assert_allclose(np.moveaxis(per_run, 0, 1), whole, rtol=0, atol=EXACT)
+    for r in range(2):
+        for k in range(3):
+            one = np.asarray(scores(ext[r, k], inl[r, k], fru[r, k], bins[r, k], n_features[r, 0]))
+            np.testing.assert_allclose(one, whole[:, r, k], rtol=0, atol=EXACT)
+
+
+def test_authors_scores_gradients(x64):
+    """Linear in the weights: d Eq.1 / d w_a = a - (u b + (1 - u) c) and d / d u_b = (1 - w)(b - c),
+    exactly, at the frame with S_b = -8; through the counts (Option 1, S_a = 0.4 inside its clamp) the
+    gradient is the analytic one and a central difference's (h = 1e-3 on counts ~1000; the score is
+    smooth there: 1e-8 relative)."""
+    ext, inl, fru, bins, n_features = _authors_counts()
+    f = frame_features(ext, inl, fru, bins, n_features)
+    a, b, c = 0.64, -8.0, 3.0
+
+    def eq1(w_a, u_b):
+        return Combination(**{**EQ1, "w_a": w_a, "u_b": u_b}).score(f)[0, 0]
+
+    g_w, g_u = jax.grad(eq1, argnums=(0, 1))(0.2, 0.5)
+    np.testing.assert_allclose(float(g_w), a - (0.5 * b + 0.5 * c), rtol=1e-14)
+    np.testing.assert_allclose(float(g_u), 0.8 * (b - c), rtol=1e-14)
+
+    def option1(counts):  # n_inliers, n_extracted, n_frustum of run 1, frame 0
+        feats = frame_features(counts[1], counts[0], counts[2], bins[1, 0], 1200.0)
+        return Combination(**OPTION1).score(feats)
+
+    x = jnp.asarray([220.0, 1100.0, 200.0])
+    g = np.asarray(jax.grad(option1)(x))
+    fd = np.array(
+        [(float(option1(x.at[j].add(1e-3))) - float(option1(x.at[j].add(-1e-3)))) / 2e-3 for j in range(3)]
+    )
+    np.testing.assert_allclose(g, fd, rtol=1e-8)
+    # d/d n_inliers = 0.5 / (0.5 N) + 0.25 / N_frustum
+    np.testing.assert_allclose(g[0], 0.5 / 550 + 0.25 / 200, rtol=1e-14)

@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from jsve.core._numerics import safe_divide
@@ -156,14 +158,39 @@ def feature_logs(ratio, s_b, s_c):
 def combination_from_logs(c, log_ratio, log_s_b, log_s_c, pos_ratio, pos_s_b, pos_s_c):
     """The SVE score of Combination `c` from `feature_logs` (any broadcastable shapes).
 
-    S_a = clip(ratio / rho, 0, 1) is min(log ratio - log rho, 0) in the log domain.
+    S_a = clip(ratio / rho, 0, 1) is min(log ratio - log rho, 0) in the log domain. Only for
+    `inputs="jsve"`: the logs are of the clamped features (the fitted family's inputs).
     """
+    if c.inputs != "jsve":
+        raise ValueError(
+            f"combination_from_logs takes the clamped features of inputs='jsve', got a Combination with "
+            f"inputs={c.inputs!r}: use Combination.score(features)"
+        )
     rho_ok = c.rho > 0
     log_s_a = jnp.minimum(log_ratio - jnp.log(jnp.where(rho_ok, c.rho, 1.0)), 0.0)
     pos_s_a = pos_ratio & rho_ok
     log_inner, inner_zero = log_power_mean2(log_s_b, pos_s_b, log_s_c, pos_s_c, c.u_b, c.q)
     log_m, zero = log_power_mean2(log_s_a, pos_s_a, log_inner, ~inner_zero, c.w_a, c.p)
     return jnp.where(zero, 0.0, jnp.exp(jnp.where(zero, 0.0, log_m)))
+
+
+INPUTS = ("jsve", "authors-eq1", "authors-option1")
+"""What a Combination combines (its static field `inputs`); docs/sve.md has the sources.
+
+- "jsve": S_a = clamp(N_inliers / (rho N_extracted), 0, 1), clamped S_b and S_c. The seed's final
+  build (Option 2) and the family jsve fits.
+- "authors-eq1": the seed's original build (Haggart's metrics): S_a = N_extracted / nFeatures,
+  unclamped S_b and S_c; rho is not used.
+- "authors-option1": the seed's Option 1 build: S_a = clamp(N_inliers / (rho N_extracted), 0, 1),
+  unclamped S_b and S_c.
+
+Unclamped S_b reaches -8 (all keypoints in one bin) and S_c exceeds 1, so a power mean of them is
+only defined for p = q = 1: the authors' inputs are combined linearly and other exponents refused.
+"""
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
 
 
 class Combination(eqx.Module):
@@ -174,7 +201,9 @@ class Combination(eqx.Module):
     It contains the seed's three: Eq.1 (w=0.2, u=0.5, p=q=1, i.e. 0.2a + 0.4b + 0.4c), Option 1
     (w=0.5, u=0.5, p=q=1, i.e. 0.5a + 0.25b + 0.25c) and Option 2 (w=0.5, u=0.5, p=0, q=1, i.e.
     sqrt(a (0.5b + 0.5c))); with p = q it is the flat weighted power mean of (a, b, c). rho scales S_a.
-    All fields are array leaves so sweeps can vmap over them.
+    The five numbers are array leaves so sweeps can vmap over them; `inputs` (one of INPUTS) is
+    static: which S_a, S_b, S_c variants are combined. With the authors' unclamped inputs only
+    p = q = 1 is defined (refused otherwise: here when p, q are concrete, in `score` when traced).
     """
 
     w_a: Float[Array, ""]
@@ -182,62 +211,150 @@ class Combination(eqx.Module):
     p: Float[Array, ""]
     q: Float[Array, ""]
     rho: Float[Array, ""]
+    inputs: str = eqx.field(static=True, default="jsve")
 
-    def __init__(self, w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.25):
+    def __init__(self, w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.25, inputs="jsve"):
+        if inputs not in INPUTS:
+            raise ValueError(
+                f"Combination inputs must be one of {', '.join(map(repr, INPUTS))}, got {inputs!r}"
+            )
         self.w_a = jnp.asarray(w_a, float)
         self.u_b = jnp.asarray(u_b, float)
         self.p = jnp.asarray(p, float)
         self.q = jnp.asarray(q, float)
         self.rho = jnp.asarray(rho, float)
+        self.inputs = inputs
+        if inputs != "jsve":
+            for name in ("p", "q"):
+                value = getattr(self, name)
+                if _is_concrete(value) and np.any(np.asarray(value) != 1.0):
+                    raise ValueError(
+                        f"Combination(inputs={inputs!r}) needs {name} = 1, got {np.asarray(value)}: "
+                        "its unclamped S_b and S_c can be negative, so only the linear mean (p = q = 1) "
+                        "is defined"
+                    )
 
     def __call__(self, ratio: ArrayLike, sb: ArrayLike, sc: ArrayLike) -> Float[Array, ...]:
-        """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes)."""
+        """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes); the
+        clamped features of inputs="jsve" only (`score` serves every `inputs`)."""
+        if self.inputs != "jsve":
+            raise ValueError(
+                f"Combination(inputs={self.inputs!r}) combines S_a, S_b, S_c variants that "
+                "(inlier ratio, S_b, S_c) do not carry: call .score(features)"
+            )
         ratio, sb, sc = (jnp.asarray(x, float) for x in (ratio, sb, sc))
         return combination_from_logs(self, *feature_logs(ratio, sb, sc))
 
+    def score(self, features: FrameFeatures) -> Float[Array, "*batch"]:
+        """SVE score of every frame of `features`, from the S_a, S_b, S_c variants `inputs` names."""
+        if self.inputs == "jsve":
+            return self(features.inlier_ratio, features.s_b, features.s_c)
+        if self.inputs == "authors-eq1":
+            a = features.s_a_original
+        else:  # "authors-option1"
+            a = s_a_from_ratio(features.inlier_ratio, self.rho)
+        b, c = features.s_b_unclamped, features.s_c_unclamped
+        # M_1([a, M_1([b, c]; u)]; w): the linear combination the authors' builds compute
+        # (Tracking::TrackLocalMap, "visibility" of the Option 1 build)
+        value = self.w_a * a + (1.0 - self.w_a) * (self.u_b * b + (1.0 - self.u_b) * c)
+        nonlinear = (self.p != 1.0) | (self.q != 1.0)
+        return eqx.error_if(
+            value, nonlinear, f"Combination(inputs={self.inputs!r}) is only defined for p = q = 1"
+        )
 
-EQ1 = dict(w_a=0.2, u_b=0.5, p=1.0, q=1.0, rho=0.5)
-"""Eq.1: 0.2 a + 0.4 b + 0.4 c. The paper gives no rho for it; we take Option 1's 0.5 (same era of
-the code, same thresholds 0.3/0.1/0.1/0.3) and say so in docs/sve.md."""
-OPTION1 = dict(w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.5)
-"""Eq.2 "Option 1": 0.5 a + 0.25 b + 0.25 c with rho = 0.5."""
+
+EQ1 = dict(w_a=0.2, u_b=0.5, p=1.0, q=1.0, rho=0.5, inputs="authors-eq1")
+"""Eq.1 as the authors built it: 0.2 a + 0.4 b + 0.4 c of Haggart's S_a = N_extracted / nFeatures and
+the unclamped S_b, S_c (rho is not used; 0.5 is only a placeholder leaf)."""
+OPTION1 = dict(w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.5, inputs="authors-option1")
+"""Eq.2 "Option 1" as the authors built it: 0.5 a + 0.25 b + 0.25 c with S_a clamped at rho = 0.5,
+S_b and S_c unclamped."""
 OPTION2 = dict(w_a=0.5, u_b=0.5, p=0.0, q=1.0, rho=0.25)
-"""Eq.3 "Option 2": sqrt(a (0.5 b + 0.5 c)) with rho = 0.25 (the seed's final code)."""
+"""Eq.3 "Option 2": sqrt(a (0.5 b + 0.5 c)) with rho = 0.25 and every input clamped (the seed's final
+code; jsve's inputs are that build's)."""
+JSVE_EQ1 = dict(w_a=0.2, u_b=0.5, p=1.0, q=1.0, rho=0.5)
+"""Eq.1's weights on jsve's clamped inputs, S_a at rho = 0.5 (jsve's choice; no build has it)."""
+JSVE_OPTION1 = dict(w_a=0.5, u_b=0.5, p=1.0, q=1.0, rho=0.5)
+"""Option 1's weights on jsve's clamped inputs (the authors' build leaves S_b and S_c unclamped)."""
+
+COMBINATIONS = {
+    "sve-eq1": EQ1,
+    "sve-option1": OPTION1,
+    "sve-option2": OPTION2,
+    "jsve-eq1": JSVE_EQ1,
+    "jsve-option1": JSVE_OPTION1,
+}
+"""The combination of every SVE rule preset by preset name (jsve.core._rules adds the thresholds)."""
 
 
 class FrameFeatures(eqx.Module):
     """Per-frame quantities every rule needs, computed once per batch (shapes [..., frames]).
 
-    Every field after the first two is an SVE metric in [0, 1] under its own name: `feature_metrics`
-    reads them from the fields, so the per-level tables of a study follow this class (a new metric is
-    its function, a field here, a line in `frame_features` and a column of `sve_table`).
+    Every field after the first two is an SVE metric under its own name: `feature_metrics` reads them
+    from the fields, so the per-level tables of a study follow this class (a new metric is its
+    function, a field here, a line in `frame_features` and a column of `sve_table`). The clamped ones
+    lie in [0, 1]; the authors' unclamped variants do not (S_b down to -8, S_c and S_a original above 1).
 
     Attributes:
         n_inliers: tracked inliers (count, float).
         inlier_ratio: N_inliers / N_extracted (S_a before rho).
         s_b: clamped homogeneity.
         s_c: clamped tracked-vs-expected.
+        s_a_original: Haggart's N_extracted / nFeatures, unclamped.
+        s_b_unclamped: homogeneity as the authors' original and Option 1 builds compute it.
+        s_c_unclamped: tracked-vs-expected as the authors' original and Option 1 builds compute it.
     """
 
     n_inliers: Float[Array, "*batch"]
     inlier_ratio: Float[Array, "*batch"]
     s_b: Float[Array, "*batch"]
     s_c: Float[Array, "*batch"]
+    s_a_original: Float[Array, "*batch"]
+    s_b_unclamped: Float[Array, "*batch"]
+    s_c_unclamped: Float[Array, "*batch"]
 
 
-def frame_features(n_extracted, n_inliers, n_frustum, bins) -> FrameFeatures:
-    """FrameFeatures from raw counts (any leading shape; bins has a trailing axis of 64)."""
+def frame_features(n_extracted, n_inliers, n_frustum, bins, n_features: ArrayLike = 1000.0) -> FrameFeatures:
+    """FrameFeatures from raw counts (any leading shape; bins has a trailing axis of 64).
+
+    Arguments:
+        n_extracted, n_inliers, n_frustum: counts per frame, shape (...).
+        bins: keypoints per SVE bin, shape (..., 64).
+        n_features: ORB nFeatures of the front-end (ORBextractor.nFeatures), broadcastable to the
+            counts' shape: a scalar, or [R, 1] for a batch of R runs. 1000 (ORB-SLAM3's EuRoC
+            setting) by default.
+    """
+    shape = np.shape(n_extracted)
+    try:
+        broadcast = jnp.broadcast_shapes(np.shape(n_features), shape)
+    except ValueError:
+        broadcast = None
+    if broadcast != shape:
+        raise ValueError(
+            f"n_features has shape {np.shape(n_features)}, which does not broadcast to the counts' shape "
+            f"{shape} (pass a scalar, or [runs, 1] for counts of shape [runs, frames])"
+        )
+    s_b_raw = s_b(bins, n_extracted, clamp=False)
+    s_c_raw = s_c(n_inliers, n_frustum, clamp=False)
     return FrameFeatures(
         n_inliers=jnp.asarray(n_inliers, float),
         inlier_ratio=inlier_ratio(n_inliers, n_extracted),
-        s_b=s_b(bins, n_extracted),
-        s_c=s_c(n_inliers, n_frustum),
+        s_b=jnp.clip(s_b_raw, 0.0, 1.0),
+        s_c=jnp.clip(s_c_raw, 0.0, 1.0),
+        s_a_original=s_a_original(n_extracted, n_features),
+        s_b_unclamped=s_b_raw,
+        s_c_unclamped=s_c_raw,
     )
 
 
 def feature_metrics(features: FrameFeatures, rho: ArrayLike) -> dict[str, Float[Array, "*batch"]]:
     """The SVE metrics of the features by name: "s_a" (the inlier ratio scaled by rho, `s_a_from_ratio`),
-    then every further field of FrameFeatures ("s_b", "s_c", ...), in field order."""
+    then every further field of FrameFeatures ("s_b", "s_c", "s_a_original", "s_b_unclamped",
+    "s_c_unclamped"), in field order.
+
+    The authors' unclamped variants are included although they leave [0, 1]: they are what the
+    authors' Eq.1 and Option 1 presets combine, and a study's per-level means of them show how far.
+    """
     out = {"s_a": s_a_from_ratio(features.inlier_ratio, rho)}
     for field in dataclasses.fields(features):
         if field.name not in ("n_inliers", "inlier_ratio"):  # the inlier rule's count; S_a before rho
@@ -246,17 +363,18 @@ def feature_metrics(features: FrameFeatures, rho: ArrayLike) -> dict[str, Float[
 
 
 def sve_table(n_extracted, n_inliers, n_frustum, bins, n_features=1000) -> dict[str, Array]:
-    """Every metric and preset combination for a set of frames, as named columns (for `jsve sve`)."""
-    f = frame_features(n_extracted, n_inliers, n_frustum, bins)
-    return {
-        "s_a_original": s_a_original(n_extracted, n_features),
+    """Every metric and preset combination for a set of frames, as named columns (for `jsve sve`):
+    the metrics, then "sve_eq1", "sve_option1", "sve_option2", "jsve_eq1", "jsve_option1" (COMBINATIONS,
+    "-" written "_")."""
+    f = frame_features(n_extracted, n_inliers, n_frustum, bins, n_features)
+    metrics = {
+        "s_a_original": f.s_a_original,
         "s_a_rho025": s_a_from_ratio(f.inlier_ratio, 0.25),
         "s_a_rho050": s_a_from_ratio(f.inlier_ratio, 0.5),
         "s_b": f.s_b,
-        "s_b_unclamped": s_b(bins, n_extracted, clamp=False),
+        "s_b_unclamped": f.s_b_unclamped,
         "s_c": f.s_c,
-        "s_c_unclamped": s_c(n_inliers, n_frustum, clamp=False),
-        "sve_eq1": Combination(**EQ1)(f.inlier_ratio, f.s_b, f.s_c),
-        "sve_option1": Combination(**OPTION1)(f.inlier_ratio, f.s_b, f.s_c),
-        "sve_option2": Combination(**OPTION2)(f.inlier_ratio, f.s_b, f.s_c),
+        "s_c_unclamped": f.s_c_unclamped,
     }
+    scores = {name.replace("-", "_"): Combination(**c).score(f) for name, c in COMBINATIONS.items()}
+    return metrics | scores
