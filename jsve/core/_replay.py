@@ -51,6 +51,8 @@ class ReplayResult(eqx.Module):
         mode: MODE_OK / MODE_RECENTLY_LOST / MODE_LOST after the frame (int8; -1 on padding; the
             expected mode, rounded, when relaxed).
         segment: index of the replay's map the frame belongs to (int32; -1 before the first map).
+        reset: the replay reset its map at this frame (before inertial BA2; ORB-SLAM3 logs the frame
+            as RECENTLY_LOST, l.2149-2155, and its map's frames lose their estimates).
         lost_any: [runs] the run lost tracking at least once (a reset, an expiry, a recorded map loss).
     In a relaxed replay (SoftLogic) the flags are probabilities.
     """
@@ -64,7 +66,14 @@ class ReplayResult(eqx.Module):
     out_of_support: Array
     mode: Int[Array, "R F"]
     segment: Array
+    reset: Array
     lost_any: Array
+
+
+def as_logged_mode(result: ReplayResult) -> Array:
+    """The mode of the state ORB-SLAM3 would log for each replayed frame ([R, F] int8): the replayed
+    mode, except RECENTLY_LOST on a reset frame (the reset is requested after the state is set)."""
+    return jnp.where(result.reset > 0.5, jnp.int8(MODE_RECENTLY_LOST), result.mode)
 
 
 def _shift(x: Array, fill) -> Array:
@@ -253,14 +262,15 @@ def replay(
             position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
             accepted=out["accepted"] > 0.5, coasting=out["coasting"] > 0.5, has_estimate=has_estimate,
             out_of_support=out["out_of_support"] > 0.5, mode=mode, segment=out["segment"].astype(jnp.int32),
-            lost_any=lost_any > 0.5,
+            reset=out["reset"] > 0.5, lost_any=lost_any > 0.5,
         )  # fmt: skip
     # Relaxed: a reset's erasure of earlier frames is left out; it only concerns runs that lost
     # tracking, which the objective charges the failure penalty (docs/state-machine.md).
     return ReplayResult(
         position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
         accepted=out["accepted"], coasting=out["coasting"], has_estimate=out["has_estimate"],
-        out_of_support=out["out_of_support"], mode=mode, segment=out["segment"], lost_any=lost_any,
+        out_of_support=out["out_of_support"], mode=mode, segment=out["segment"], reset=out["reset"],
+        lost_any=lost_any,
     )  # fmt: skip
 
 
@@ -274,6 +284,7 @@ __all__ = [
     "MODE_RECENTLY_LOST",
     "MODE_LOST",
     "ReplayResult",
+    "as_logged_mode",
     "frame_data",
     "run_constants",
     "replay",

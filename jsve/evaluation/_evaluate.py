@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 
 from jsve.core._batch import LogBatch, iter_chunks, runs_per_chunk_for
 from jsve.core._machine import TIME_RECENTLY_LOST_S
-from jsve.core._replay import batch_features, replay
+from jsve.core._replay import as_logged_mode, batch_features, replay
 from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import RunError, batched_run_error
@@ -87,7 +87,7 @@ def evaluate_batch(
         error=error,
         accepted_fraction=share(result.accepted),
         coasting_fraction=share(result.coasting),
-        changed_fraction=share(result.mode != recorded_mode(batch.state)),
+        changed_fraction=share(as_logged_mode(result) != recorded_mode(batch.state)),
         unsupported_fraction=share(result.out_of_support),
         lost_any=result.lost_any,
         failed=error.failed | result.lost_any,

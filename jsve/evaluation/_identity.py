@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from jsve.core._machine import SWITCH_MODELS
-from jsve.core._replay import replay
+from jsve.core._replay import as_logged_mode, replay
 from jsve.core._rules import PRESETS, Rule, preset, rule_from_dict
 from jsve.io._batching import from_runs, recorded_mode
 from jsve.io._schema import RunLog
@@ -76,7 +76,7 @@ def identity_table(runs: Sequence[RunLog], *, rule: str | None = None, dtype=jnp
         bucket = from_runs([runs[i] for i in index], dtype=dtype)
         result = replay_jit(bucket.batch, rules[name], switch_model=model)
         valid = np.asarray(bucket.batch.valid)
-        same = (np.asarray(result.mode) == recorded_mode(np.asarray(bucket.batch.state))) & valid
+        same = (np.asarray(as_logged_mode(result)) == recorded_mode(np.asarray(bucket.batch.state))) & valid
         for j, i in enumerate(index):
             n = int(valid[j].sum())
             agreement = float(same[j].sum()) / max(n, 1)

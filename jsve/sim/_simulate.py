@@ -441,37 +441,38 @@ def _draw_run(
     )
 
 
-def _orbslam3_states(n_inliers: np.ndarray, t: np.ndarray, imu_init: np.ndarray, fps: float) -> np.ndarray:
-    """ORB-SLAM3's logged eTrackingState per frame [R, F] under its own rule (15/50/50/10), from
-    jsve.core._machine.machine_step: OK 2, RECENTLY_LOST 3, LOST 4 on the frame tracking is lost and
-    NOT_INITIALIZED 1 while a new map waits to start."""
+def _orbslam3_states(
+    n_inliers: np.ndarray, n_extracted: np.ndarray, frame_ns: np.ndarray, imu_init: np.ndarray, fps: float
+) -> np.ndarray:
+    """ORB-SLAM3's logged eTrackingState per frame [R, F] under its own rule (15/50/50/10) and switch
+    model, from jsve.core._machine.machine_step on a full-support log (one recorded map, a pose on every
+    frame): OK 2; RECENTLY_LOST 3 (also on the frame that requests a reset, as Tracking.cc l.2155 logs
+    it); LOST 4 on the frame the 5 s timer expires; NOT_INITIALIZED 1 while a new map waits."""
     import jax.numpy as jnp
 
-    from jsve.core._machine import MODE_LOST
     from jsve.core._rules import preset
 
     R, F = n_inliers.shape
     padded = max(1024, int(math.ceil(F / 1024)) * 1024)  # few distinct shapes: few compilations
-    pad = padded - F
-    score = np.pad(n_inliers.astype(np.float32), ((0, 0), (0, pad)))
-    tt = np.pad(t.astype(np.float32), (0, pad), mode="edge")
-    init = np.pad(imu_init.astype(np.float32), ((0, 0), (0, pad)), mode="edge")
-    delay = np.array([t[np.argmax(i)] if i.any() else np.inf for i in imu_init], np.float32)
-    modes = np.asarray(
-        _machine_modes(
-            jnp.asarray(score),
-            jnp.asarray(tt),
-            jnp.asarray(init),
-            jnp.float32(fps),
-            jnp.asarray(delay),
-            preset("orbslam3").thresholds,
-        )
-    )[:, :F]
-    state = np.where(
-        modes == 0, schema.STATE_OK, np.where(modes == 1, schema.STATE_RECENTLY_LOST, schema.STATE_LOST)
+    pad = ((0, 0), (0, padded - F))
+    t = (frame_ns - frame_ns[0]) / 1e9
+    ba2 = np.stack([schema.v1_defaults(frame_ns, i)["imu_ba2"] != 0 for i in imu_init])
+    first = lambda flags: np.array([t[np.argmax(f)] if f.any() else np.inf for f in flags], np.float32)  # noqa: E731
+    n_ext = np.broadcast_to(n_extracted, (R, F))
+    prev = np.concatenate([np.zeros((R, 1), n_ext.dtype), n_ext[:, :-1]], axis=1)
+    can_init = (prev > 100) & (n_ext > 100) & (n_inliers >= 100)  # MONO_INIT_* of jsve.core._machine
+    columns = [np.pad(x.astype(np.float32), pad) for x in (n_inliers, imu_init, ba2, can_init)]
+    tt = np.pad(t.astype(np.float32), (0, padded - F), mode="edge")
+    delays = (jnp.asarray(first(imu_init)), jnp.asarray(first(ba2)))
+    out = _machine_fn()(*map(jnp.asarray, columns), jnp.asarray(tt), jnp.float32(fps), *delays,
+                        preset("orbslam3").thresholds)  # fmt: skip
+    modes, reset, loss = (np.asarray(x)[:, :F] for x in out)
+    state = np.select(
+        [modes == 0, modes == 1], [schema.STATE_OK, schema.STATE_RECENTLY_LOST], schema.STATE_LOST
     )
-    was_lost = np.concatenate([np.zeros((R, 1), bool), modes[:, :-1] == MODE_LOST], axis=1)
-    state = np.where((modes == MODE_LOST) & was_lost, schema.STATE_NOT_INITIALIZED, state)
+    was_lost = np.concatenate([np.zeros((R, 1), bool), modes[:, :-1] == 2], axis=1)
+    state = np.where((modes == 2) & (was_lost | reset), schema.STATE_NOT_INITIALIZED, state)
+    state = np.where(reset, schema.STATE_RECENTLY_LOST, state)
     return state.astype(np.int64)
 
 
@@ -480,25 +481,26 @@ def _machine_fn():
     import jax
     import jax.numpy as jnp
 
-    from jsve.core._machine import HardLogic, initial_state, machine_step
+    from jsve.core._machine import FrameData, HardLogic, RunConstants, initial_state, machine_step
 
-    def one(score, t, init, fps, delay, thresholds):
+    def one(score, init, ba2, can_init, t, fps, delay, ba2_delay, thresholds):
         k = jnp.arange(t.shape[0], dtype=t.dtype)
+        zero = jnp.zeros_like(t)
+        first = (k == 0).astype(t.dtype)
+        data = FrameData(t=t, k=k, imu_init=init, imu_ba2=ba2, has_pose=zero + 1, can_init=can_init,
+                         rec_start=first, rec_loss=zero, rec_start_t=zero, rec_reloc=zero - 1)  # fmt: skip
+        run = RunConstants(fps=fps, imu_init_delay=delay, ba2_delay=ba2_delay, stereo=jnp.zeros((), t.dtype))
 
         def step(state, x):
-            sc, tt, kk, ii = x
-            state, _ = machine_step(HardLogic(), state, sc, tt, kk, ii, thresholds, fps, delay)
+            sc, fd = x
+            state, decision = machine_step(HardLogic(), state, sc, fd, run, thresholds)
             modes = jnp.stack([state.ok, state.recently_lost, state.lost])
-            return state, jnp.argmax(modes).astype(jnp.int8)
+            return state, (jnp.argmax(modes).astype(jnp.int8), decision.reset > 0.5, decision.loss > 0.5)
 
-        _, modes = jax.lax.scan(step, initial_state(t.dtype), (score, t, k, init))
-        return modes
+        _, out = jax.lax.scan(step, initial_state(t.dtype), (score, data))
+        return out
 
-    return jax.jit(jax.vmap(one, in_axes=(0, None, 0, None, 0, None)))
-
-
-def _machine_modes(score, t, init, fps, delay, thresholds):
-    return _machine_fn()(score, t, init, fps, delay, thresholds)
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None, None, 0, 0, None)))
 
 
 def _round(x: np.ndarray, decimals: int) -> np.ndarray:
@@ -534,7 +536,9 @@ def simulate_setting(
         for r in runs
     ]
     imu_init = np.stack([recording.t >= d["t_init"] for d in draws])
-    states = _orbslam3_states(np.stack([d["n_inliers"] for d in draws]), recording.t, imu_init, fps)
+    states = _orbslam3_states(
+        np.stack([d["n_inliers"] for d in draws]), counts.n_extracted, recording.frame_ns, imu_init, fps
+    )
     out = []
     dt0, dp0, dv0, dq0 = recording.preint_zero
     dt1, dp1, dv1, dq1 = recording.preint_est
