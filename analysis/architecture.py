@@ -437,6 +437,103 @@ def public_module_names(modules: Mapping[str, Path]) -> list[str]:
     )
 
 
+SCRIPT_FOLDERS = ("analysis", "sweeps")
+"""Folders of scripts that use jsve through its public names only (the packages' `__init__` exports)."""
+
+
+@dataclass(frozen=True)
+class PrivateUse:
+    """A script's import or attribute access that names a private part of jsve.
+
+    Attributes:
+        path: the script. lineno: the line.
+        name: the dotted name up to and including its first private component (`jsve.io._atomic`).
+        text: the line as written.
+    """
+
+    path: Path
+    lineno: int
+    name: str
+    text: str
+
+    def where(self, root: Path) -> str:
+        """`analysis/x.py:12: from jsve.io._atomic import write_text` for messages."""
+        try:
+            shown = self.path.relative_to(root)
+        except ValueError:
+            shown = self.path
+        return f"{shown}:{self.lineno}: {self.text}"
+
+
+def _first_private(dotted: str) -> str | None:
+    """`jsve.io._atomic.write_text` -> `jsve.io._atomic`; None when every component is public."""
+    parts = dotted.split(".")
+    if parts[0] != PACKAGE:
+        return None
+    for i, part in enumerate(parts):
+        if part.startswith("_") and not (part.startswith("__") and part.endswith("__")):
+            return ".".join(parts[: i + 1])
+    return None
+
+
+def _dotted(node: ast.expr) -> str | None:
+    """`a.b.c` for a chain of attributes on a name, else None."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name):
+        return None
+    return ".".join([node.id, *reversed(parts)])
+
+
+def private_uses(path: Path) -> list[PrivateUse]:
+    """Where a script imports or names private jsve modules or names, function-level imports included.
+
+    Counted: `import jsve.io._atomic`, `from jsve.io._atomic import x`, `from jsve.io import _schema`,
+    and attribute chains on the package (`jsve.core._batch.pad_runs`, after `import jsve`). Strings and
+    comments are not read.
+    """
+    source = Path(path).read_text(encoding="utf-8")
+    lines = source.splitlines()
+    tree = ast.parse(source, filename=str(path))
+    found: dict[tuple[int, str], PrivateUse] = {}
+
+    def add(node: ast.AST, name: str | None) -> None:
+        if name is not None:
+            found.setdefault(
+                (node.lineno, name), PrivateUse(Path(path), node.lineno, name, lines[node.lineno - 1].strip())
+            )
+
+    for node, _ in _walk_imports(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                add(node, _first_private(alias.name))
+        elif node.level == 0 and node.module:
+            private = _first_private(node.module)
+            add(node, private)
+            if private is None:
+                for alias in node.names:
+                    add(node, _first_private(f"{node.module}.{alias.name}"))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            dotted = _dotted(node)
+            if dotted is not None and _first_private(dotted) == dotted:
+                add(node, dotted)
+    return sorted(found.values(), key=lambda u: (u.lineno, u.name))
+
+
+def script_private_uses(root: Path, folders: Iterable[str] = SCRIPT_FOLDERS) -> list[PrivateUse]:
+    """`private_uses` of every Python file under the script folders of the checkout at `root`."""
+    return [
+        use
+        for folder in folders
+        for path in sorted((Path(root) / folder).rglob("*.py"))
+        if "__pycache__" not in path.parts
+        for use in private_uses(path)
+    ]
+
+
 def _subprocess_env(root: Path) -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(Path(root).resolve())

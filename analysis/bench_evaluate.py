@@ -22,30 +22,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import jsve
+from jsve.core import pad_runs, quat_conj, quat_exp, quat_mul, quat_rotate
 
 G = np.array([0.0, 0.0, -9.81])
 
 
-def _quat_from_rotvec(r: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(r, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    axis = np.divide(r, angle, out=np.zeros_like(r), where=angle > 0)
-    return np.concatenate([np.cos(half), np.sin(half) * axis], axis=-1)
-
-
-def _qmul(a, b):
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)  # fmt: skip
-
-
 def _rotate_inv(q, v):
-    """R(q)^T v."""
-    qc = q * np.array([1, -1, -1, -1])
-    u, w = qc[..., 1:], qc[..., :1]
-    uv = np.cross(u, v)
-    return v + 2 * (w * uv + np.cross(u, uv))
+    """R(q)^T v, in float64 numpy (jsve.core's quaternion algebra with xp=numpy)."""
+    return quat_rotate(quat_conj(q, xp=np), v, xp=np)
 
 
 def synthetic_chunk(n_runs: int, n_frames: int, seed: int, fps: float = 20.0) -> jsve.LogBatch:
@@ -61,11 +45,11 @@ def synthetic_chunk(n_runs: int, n_frames: int, seed: int, fps: float = 20.0) ->
     p = np.sum(amp * np.sin(arg), axis=-1)
     v = np.sum(amp * 2 * np.pi * freq * np.cos(arg), axis=-1)
     yaw = 0.1 * np.sin(0.05 * t)[None, :] + rng.uniform(-np.pi, np.pi, (n_runs, 1))
-    q = _quat_from_rotvec(np.stack([np.zeros_like(yaw), np.zeros_like(yaw), yaw], -1))
+    q = quat_exp(np.stack([np.zeros_like(yaw), np.zeros_like(yaw), yaw], -1), xp=np)
     # Exact preintegration from consecutive true states (inverse of PredictStateIMU).
     dq = np.zeros_like(q)
     dq[..., 0] = 1.0
-    dq[:, 1:] = _qmul(q[:, :-1] * np.array([1, -1, -1, -1]), q[:, 1:])
+    dq[:, 1:] = quat_mul(quat_conj(q[:, :-1], xp=np), q[:, 1:], xp=np)
     dv = np.zeros_like(p)
     dp = np.zeros_like(p)
     dv[:, 1:] = _rotate_inv(q[:, :-1], v[:, 1:] - v[:, :-1] - G * dt)
@@ -98,7 +82,7 @@ def time_jsve(n_runs: int, n_frames: int, chunk: int, rule) -> tuple[float, floa
     compile_s = 0.0
     for i, start in enumerate(range(0, n_runs, chunk)):
         size = min(chunk, n_runs - start)
-        batch = jsve.core._batch.pad_runs(synthetic_chunk(size, n_frames, seed=start), chunk)
+        batch = pad_runs(synthetic_chunk(size, n_frames, seed=start), chunk)
         features = jax.block_until_ready(jsve.batch_features(batch))
         if i == 0:
             t0 = time.perf_counter()

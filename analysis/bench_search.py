@@ -1,15 +1,15 @@
-"""Throughput of the batched search (jsve.fitting._search) in frame-settings per second.
+"""Throughput of the batched search (jsve.fitting.search) in frame-settings per second.
 
     python analysis/bench_search.py                      # all cores (one XLA CPU device per core)
     python analysis/bench_search.py --devices 1          # one device
     python analysis/bench_search.py --settings 4096 --output bench_search.json
 
-Simulates a study (procedural flights x the seed's settings, jsve.sim._simulate), prepares it once, and times
-`jsve.fitting._search.search` on Sobol designs of both rule families (inlier thresholds; SVE combination and
+Simulates a study (procedural flights x the seed's settings, jsve.sim.simulate_study), prepares it once, and
+times `jsve.fitting.search` on Sobol designs of both rule families (inlier thresholds; SVE combination and
 thresholds). A frame-setting is one frame replayed under one setting, alignment statistics included.
 Reports wall-clock and per-CPU-second rates (the machine may be shared), after one warm-up call per
-shape (compilation is timed separately). For reference it also times the generic path, jsve.core._objective's
-run_losses (replay + trajectory alignment per run) vmapped over settings.
+shape (compilation is timed separately). For reference it also times the generic path,
+jsve.core.run_losses (replay + trajectory alignment per run), vmapped over settings.
 """
 
 from __future__ import annotations
@@ -41,13 +41,9 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from jsve.core._objective import run_losses
-    from jsve.fitting._designs import sobol
-    from jsve.fitting._fit import FitData
-    from jsve.fitting._search import search
-    from jsve.fitting._space import inlier_space, sve_space
-    from jsve.sim._motion import FlightProfile
-    from jsve.sim._simulate import SimConfig, simulate_study
+    from jsve.core import run_losses
+    from jsve.fitting import FitData, inlier_space, search, sobol, sve_space
+    from jsve.sim import FlightProfile, SimConfig, simulate_study
 
     t0 = time.perf_counter()
     runs = simulate_study(

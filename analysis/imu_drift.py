@@ -2,16 +2,16 @@
 
 For each EuRoC sequence with a real imu0 stream in ../shared/data/euroc/imu (V1_01, MH_04), the
 same procedure is applied to four streams over the same smooth ground-truth trajectory
-(jsve.sim._motion.load_euroc_trajectory):
+(jsve.sim.load_euroc_trajectory):
 
     real         the recorded ADIS16448 stream
-    simulated    jsve.sim._motion.synthesize_imu with the default ImuNoise (datasheet noise and
+    simulated    jsve.sim.synthesize_imu with the default ImuNoise (datasheet noise and
                  random-walk biases plus the in-flight Gauss-Markov errors), three seeds
     datasheet    the same without the in-flight errors (ImuNoise.datasheet())
     ideal        no noise, no bias: what ORB-SLAM3's first-order preintegration at 200 Hz leaves
 
 Each stream is preintegrated per frame as the simulator logs it (ORB-SLAM3's midpoint steps,
-corrected with the biases of a 10 s trailing-window estimator: jsve.sim._motion.frame_bias_estimate),
+corrected with the biases of a 10 s trailing-window estimator: jsve.sim.frame_bias_estimate),
 and from every second after the first 10 s the true state is propagated with the preintegration
 alone (ORB-SLAM3's PredictStateIMU, the replay's IMU prediction) and compared with the ground-truth
 position after 1, 2 and 5 s. Prints median, RMS and 90th percentile of the position error (m).
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.sim._motion import (
+from jsve.sim import (
     ImuNoise,
     dead_reckoning_drift,
     frame_bias_estimate,
@@ -85,9 +85,8 @@ def drift_table(euroc: Path, sequences=SEQUENCES, seeds=(0, 1, 2)) -> pd.DataFra
 
 def flight_table(euroc: Path, n_procedural: int = 11, seed: int = 0) -> pd.DataFrame:
     """Duration, speed, acceleration and angular rate of the EuRoC ground truth (as the simulator
-    loads it) beside the procedural flights (jsve.sim._simulate's recordings proc_00 ... under `seed`)."""
-    from jsve.sim._motion import EUROC_SEQUENCES
-    from jsve.sim._simulate import make_recording, procedural_sequences
+    loads it) beside the procedural flights (jsve.sim.make_recording's proc_00 ... under `seed`)."""
+    from jsve.sim import EUROC_SEQUENCES, make_recording, procedural_sequences
 
     rows = []
 

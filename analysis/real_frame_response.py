@@ -1,8 +1,8 @@
 """Visibility response of real EuRoC frames to every disturbance level (the seed's Figures 4 to 6, measured).
 
-Applies each registered disturbance (jsve.image._disturb.DISTURBANCES, plus downsampling in its calibration
+Applies each registered disturbance (jsve.image.DISTURBANCES, plus downsampling in its calibration
 mode) at every level of its grid to the frames of one EuRoC sequence, in memory, measures the
-per-frame counts with jsve.image._measure (ORB-SLAM3-style ORB, verified frame-to-frame inliers, frustum
+per-frame counts with jsve.image.measure_frames (ORB-SLAM3-style ORB, verified frame-to-frame inliers, frustum
 stand-in, SVE bins) and summarises the SVE metrics (jsve.core via jsve.image.visibility_table) per
 level: mean and standard deviation over frames. Writes
 
@@ -36,21 +36,24 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.image._datasets import format_level
-from jsve.image._disturb import DISTURBANCES, disturb_image
-from jsve.image._measure import (
+from jsve.core._levels import SEED_DISTURBANCES  # no public name yet: see tests/test_layers.py
+from jsve.image import (
+    DISTURBANCES,
     Camera,
     FrameCounts,
+    OrbSettings,
+    disturb_image,
+    extract_orb,
+    format_level,
     measure_frames,
     read_image,
     read_sequence,
+    scale_intrinsics,
     visibility_table,
 )
-from jsve.image._orb import OrbSettings, extract_orb
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATASET = REPO.parent / "shared" / "data" / "euroc" / "V1_01_first95"
-SEED_DISTURBANCES = ("blur", "downsample", "occlusion")
 SEED = 0
 
 SUMMARY_COLUMNS = (
@@ -103,15 +106,13 @@ def _disturbed(condition: Condition, index: int) -> np.ndarray:
         condition.name,
         condition.level,
         dict(condition.parameters),
-        seed=(SEED, 0),  # as jsve.image._disturb's dataset writer seeds cam0
+        seed=(SEED, 0),  # as jsve.image.disturb_datasets seeds cam0
         frame_seed=(SEED, 0, int(_FRAMES["t_ns"][index])),
     )
 
 
 def _camera_for(image: np.ndarray, camera: Camera) -> Camera:
     """The calibration of a (possibly downsampled, calibration mode) image."""
-    from jsve.image._disturb import scale_intrinsics
-
     height, width = image.shape
     if (width, height) == (camera.width, camera.height):
         return camera

@@ -3,8 +3,9 @@
     python sweeps/threshold_sweep.py sweeps/threshold_sweep.toml
 
 Writes OUTPUT.csv / OUTPUT.parquet (one row per setting: its parameters, weighted objective, failure
-rate, coverage) and OUTPUT.npz (the per-run matrices, runs in the order of OUTPUT.runs.csv). Uses only
-jsve's public modules; the config format is documented in sweeps/threshold_sweep.toml.
+rate, coverage) and OUTPUT.npz (the per-run matrices, runs in the order of OUTPUT.runs.csv), each
+atomically (`<name>.partial`, then a rename), so a killed sweep leaves no half-written output. Uses
+jsve's public names (and jsve.io's atomic writers); the config format is in sweeps/threshold_sweep.toml.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ def main(argv=None) -> int:
     from jsve.core import ObjectiveConfig
     from jsve.evaluation import group_weights
     from jsve.fitting import FitData, design, grid_design, search, space_from_dict
+    from jsve.io._atomic import atomic_path, write_table  # no public name yet: see tests/test_layers.py
 
     seed = int(config.get("seed", 0))
     objective = dict(config.get("objective", {}))
@@ -71,18 +73,18 @@ def main(argv=None) -> int:
     table["failure_rate"] = result.failure_rate(w)
     table["coverage"] = result.coverage_mean(w)
     out = Path(config.get("output", "sweep-results/sweep"))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    table.to_csv(out.with_suffix(".csv"), index=False)
-    table.to_parquet(out.with_suffix(".parquet"), index=False)
-    data.meta.to_csv(out.with_suffix(".runs.csv"), index=False)
-    np.savez_compressed(
-        out.with_suffix(".npz"),
-        values=values,
-        loss=result.loss,
-        failed=result.failed,
-        rmse=result.rmse,
-        coverage=result.coverage,
-    )
+    write_table(table, out.with_suffix(".csv"))
+    write_table(table, out.with_suffix(".parquet"))
+    write_table(data.meta, out.with_suffix(".runs.csv"))
+    with atomic_path(out.with_suffix(".npz")) as partial, open(partial, "wb") as f:
+        np.savez_compressed(
+            f,
+            values=values,
+            loss=result.loss,
+            failed=result.failed,
+            rmse=result.rmse,
+            coverage=result.coverage,
+        )
     best = table.sort_values("objective_m").iloc[0]
     print(
         json.dumps({"settings": len(table), "runs": data.n_runs, "best": best.to_dict(), "output": str(out)})

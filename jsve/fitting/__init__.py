@@ -16,6 +16,7 @@ from jsve.fitting._fit import FitConfig as FitConfig
 from jsve.fitting._fit import FitData as FitData
 from jsve.fitting._fit import FitResult as FitResult
 from jsve.fitting._fit import fit as fit
+from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
 from jsve.fitting._fit import nelder_mead as nelder_mead
 from jsve.fitting._fit import relaxed_fit as relaxed_fit
 from jsve.fitting._search import search as search

@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 
 from jsve.core._rules import BASELINES, PRESETS
 from jsve.fitting._designs import sobol
-from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, search_design
+from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name, search_design
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, preset_point
 
@@ -113,7 +113,8 @@ class CrossValidation:
 
     Attributes:
         heldout: one row per (fold kind, run, rule): run metadata, fold_kind, fold, rule, weight, loss,
-            rmse (NaN where failed), failed, coverage. Fitted rules are named "fitted-<family>".
+            rmse (NaN where failed), failed, coverage. Fitted rules are named by
+            `fitted_rule_name` ("fitted-<family>").
         params: one row per (fold kind, fold, family): the fitted parameter values and training objective.
     """
 
@@ -176,7 +177,7 @@ def cross_validate(
         fitted = {}
         for name, space in spaces.items():
             result = fit(data, space, train, config, search_result=searches[name], progress=False)
-            fitted[f"fitted-{name}"] = rule_results(data, space, result.values)
+            fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
             params.append(
                 {
                     "fold_kind": fold.kind,

@@ -48,6 +48,17 @@ at a temperature much below the distance of most scores from the thresholds ever
 and the relaxed objective is flat (no gradient) far from the optimum."""
 
 
+def fitted_rule_name(family: str) -> str:
+    """The name of a family's fitted rule in every table, beside the presets' names: "fitted-<family>".
+
+    Arguments:
+        family: a rule family ("sve" or "inliers", jsve.core's rule kinds).
+    Returns:
+        "fitted-sve", "fitted-inliers".
+    """
+    return f"fitted-{family}"
+
+
 # ---------------------------------------------------------------------------------------------------
 # Data
 

@@ -31,7 +31,7 @@ from jsve.evaluation._aggregate import aggregate, group_weights
 from jsve.evaluation._evaluate import evaluate
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from jsve.fitting._designs import grid_design
-from jsve.fitting._fit import FitConfig, FitData, FitResult, fit
+from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, space_from_dict
 from jsve.io import _atomic as atomic
@@ -339,7 +339,8 @@ def run_study(
 
     def evaluate_fitted():
         tables = [
-            evaluate(data.buckets, r.rule, rule_name=f"fitted-{f}", **eval_kwargs) for f, r in fits.items()
+            evaluate(data.buckets, r.rule, rule_name=fitted_rule_name(f), **eval_kwargs)
+            for f, r in fits.items()
         ]
         per_run = pd.concat([read_table(out, "runs_presets")] + tables, ignore_index=True)
         write_table(per_run, out, "runs")
@@ -411,7 +412,7 @@ def run_study(
     def sve_levels():
         combos = {name: preset(name).combination for name in PRESETS if rule_kind(preset(name)) == "sve"}
         if "sve" in fits:
-            combos["fitted-sve"] = fits["sve"].rule.combination
+            combos[fitted_rule_name("sve")] = fits["sve"].rule.combination
         if {"disturbance", "level"} <= set(meta.columns):
             write_table(sve_level_table(data, combos), out, "sve_levels")
 

@@ -9,7 +9,8 @@ report is in one of them, as Parquet and CSV) and writes
                    heatmap_<family>.png (objective over the two main thresholds), heldout.png
 
 Rendering is deterministic: the same tables give byte-identical files (matplotlib's Agg backend, no
-timestamps, fixed ordering).
+timestamps, fixed ordering). Every file is written through jsve.io's atomic writers (`<name>.partial`,
+then a rename), so a killed render leaves no half-written report under its final name.
 """
 
 from __future__ import annotations
@@ -29,15 +30,22 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from jsve.core._rules import BASELINES, PRESETS, RULE_KINDS, preset  # noqa: E402
+from jsve.fitting import fitted_rule_name  # noqa: E402
+from jsve.io import _atomic as atomic  # noqa: E402
 
 log = logging.getLogger(__name__)
 
-RULE_ORDER = PRESETS + tuple(f"fitted-{kind}" for kind in RULE_KINDS)
-"""The presets, then the fitted families (jsve.fitting._crossval names them "fitted-<family>")."""
-RULE_COLORS = dict(
-    zip(RULE_ORDER, ("#444444", "#1f77b4", "#2ca02c", "#ff7f0e", "#7f7f7f", "#d62728"), strict=True)
-)
-"""One colour per rule of RULE_ORDER (a new preset must choose its own: zip is strict)."""
+RULE_ORDER = PRESETS + tuple(fitted_rule_name(kind) for kind in RULE_KINDS)
+"""The presets, then the fitted families ("fitted-<family>", jsve.fitting.fitted_rule_name)."""
+PRESET_PALETTE = ("#444444", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf")
+"""Colours of the presets, in PRESETS order (ORB-SLAM3's rule dark grey)."""
+FITTED_COLORS = {"inliers": "#7f7f7f", "sve": "#d62728"}
+"""Colour of each family's fitted rule, whatever the number of presets."""
+RULE_COLORS = dict(zip(PRESETS, PRESET_PALETTE[: len(PRESETS)], strict=True)) | {
+    fitted_rule_name(kind): FITTED_COLORS[kind] for kind in RULE_KINDS
+}
+"""One colour per rule of RULE_ORDER (presets beyond the palette, or a new family, must choose their own:
+the zip is strict)."""
 PNG_META = {"Software": None}
 
 
@@ -88,11 +96,11 @@ def _ci(mean, low, high) -> str:
 
 
 def _save(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    fig.savefig(tmp, format="png", dpi=110, metadata=PNG_META)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic.atomic_path(path) as partial:
+            fig.savefig(partial, format="png", dpi=110, metadata=PNG_META)
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -393,8 +401,6 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
     )
     written = {"markdown": out / "report.md", "html": out / "report.html"}
     for key, text in (("markdown", "\n".join(md) + "\n"), ("html", page)):
-        tmp = written[key].with_name(written[key].name + ".partial")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, written[key])
+        atomic.write_text(written[key], text)
     written.update({f"figure {k}": v for k, v in figures.items()})
     return written
