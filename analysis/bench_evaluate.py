@@ -25,6 +25,9 @@ import jsve
 from jsve.core import pad_runs, quat_conj, quat_exp, quat_mul, quat_rotate
 
 G = np.array([0.0, 0.0, -9.81])
+BA2_S = 15.0
+"""Inertial BA2 done 15 s after the first frame (one map, every frame posed, monocular-inertial): as
+jsve.io reads a v1 log (LocalMapping starts VIBA 2 once the map's inertial time exceeds 15 s)."""
 
 
 def _rotate_inv(q, v):
@@ -65,6 +68,8 @@ def synthetic_chunk(n_runs: int, n_frames: int, seed: int, fps: float = 20.0) ->
     return jsve.LogBatch(
         t=jnp.asarray(np.broadcast_to(t, (n_runs, n_frames)), f32), valid=jnp.ones((n_runs, n_frames), bool),
         state=jnp.full((n_runs, n_frames), 2, jnp.int8), imu_init=jnp.asarray(t[None] > 3.0).repeat(n_runs, 0),
+        imu_ba2=jnp.asarray(t[None] >= BA2_S).repeat(n_runs, 0), map_id=jnp.zeros((n_runs, n_frames), jnp.int32),
+        has_pose=jnp.ones((n_runs, n_frames), bool),
         n_extracted=jnp.full((n_runs, n_frames), 1000, jnp.int32), n_inliers=jnp.asarray(n_inl),
         n_frustum=jnp.asarray(n_inl + 60), bins=jnp.full((n_runs, n_frames, 64), 15, jnp.uint16),
         vis_p=jnp.asarray(vis_p, f32), vis_q=jnp.asarray(q, f32), vis_v=jnp.asarray(v, f32),
@@ -72,7 +77,8 @@ def synthetic_chunk(n_runs: int, n_frames: int, seed: int, fps: float = 20.0) ->
         imu_dq=jnp.asarray(dq, f32), gt_p=jnp.asarray(p, f32), gt_q=jnp.asarray(q, f32),
         gt_valid=jnp.ones((n_runs, n_frames), bool), fps=jnp.full((n_runs,), fps, f32),
         gravity=jnp.asarray(np.broadcast_to(G, (n_runs, 3)), f32), imu_init_delay=jnp.full((n_runs,), 3.0, f32),
-        run_index=jnp.arange(n_runs, dtype=jnp.int32),
+        ba2_delay=jnp.full((n_runs,), BA2_S, f32), n_features=jnp.full((n_runs,), 1000.0, f32),
+        stereo=jnp.zeros((n_runs,), bool), run_index=jnp.arange(n_runs, dtype=jnp.int32),
     )  # fmt: skip
 
 
