@@ -276,7 +276,9 @@ def replay(
 
 def batch_features(batch: LogBatch) -> FrameFeatures:
     """FrameFeatures of every frame of the batch, computed once and shared by all rules."""
-    return frame_features(batch.n_extracted, batch.n_inliers, batch.n_frustum, batch.bins)
+    return frame_features(
+        batch.n_extracted, batch.n_inliers, batch.n_frustum, batch.bins, batch.n_features[:, None]
+    )
 
 
 __all__ = [

@@ -49,7 +49,8 @@ class StudyConfig:
         families: the rule families to fit ("sve", "inliers"); spaces: their ParamSpace descriptions
             (None: the defaults of jsve.fitting._space).
         balance_by: metadata columns whose groups count equally in the objective ([]: every run 1).
-        failure_penalty, align, min_coverage: the objective (jsve.core._objective.ObjectiveConfig).
+        failure_penalty, align, min_coverage, switch_model: the objective
+            (jsve.core._objective.ObjectiveConfig; switch_model: docs/state-machine.md).
         fit: jsve.fitting._fit.FitConfig.
         kfold: folds of the k-fold cross-validation (0: none); leave_one_out: metadata columns to leave
             out one value at a time (skipped when a column has a single value).
@@ -65,6 +66,7 @@ class StudyConfig:
     failure_penalty: float = DEFAULT_FAILURE_PENALTY_M
     align: str = "se3"
     min_coverage: float = 0.0
+    switch_model: str = "orbslam3"
     fit: FitConfig = FitConfig()
     kfold: int = 5
     leave_one_out: tuple[str, ...] = ("sequence", "disturbance")
@@ -77,7 +79,10 @@ class StudyConfig:
 
     def objective(self) -> ObjectiveConfig:
         return ObjectiveConfig(
-            failure_penalty=self.failure_penalty, align=self.align, min_coverage=self.min_coverage
+            failure_penalty=self.failure_penalty,
+            align=self.align,
+            min_coverage=self.min_coverage,
+            switch_model=self.switch_model,
         )
 
     def space(self, family: str) -> ParamSpace:
@@ -307,7 +312,12 @@ def run_study(
         out / "study.json",
     )
     spaces = {f: config.space(f) for f in config.families}
-    eval_kwargs = dict(align=config.align, min_coverage=config.min_coverage, progress=progress)
+    eval_kwargs = dict(
+        align=config.align,
+        min_coverage=config.min_coverage,
+        switch_model=config.switch_model,
+        progress=progress,
+    )
 
     def evaluate_presets():
         tables = [evaluate(data.buckets, preset(name), rule_name=name, **eval_kwargs) for name in PRESETS]

@@ -6,6 +6,7 @@ fills it from parsed runs (pandas frames) and keeps per-run metadata in a DataFr
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -37,6 +38,10 @@ def recorded_mode(state):
     )
 
 
+RECORDED_KEYS = {"rule": "recorded_rule", "switch_model": "recorded_switch_model"}
+"""Metadata keys renamed in the run table, where `rule` and `switch_model` name what is replayed."""
+
+
 def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
     """One row per run: run_id, source, n_frames, t0_ns and every metadata key (missing -> NA)."""
     rows = []
@@ -44,7 +49,9 @@ def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
         row = {"run_id": run.run_id, "source": run.source, "n_frames": len(run.frames)}
         row["t0_ns"] = int(run.frames["t_ns"].iloc[0]) if len(run.frames) else 0
         for key, value in run.meta.items():
-            row[key] = json_cell(value)
+            # The rule the recorded run ran is not the rule a table row replays: it keeps its own name.
+            key = RECORDED_KEYS.get(key, key)
+            row[key] = json.dumps(value, sort_keys=True) if isinstance(value, dict) else json_cell(value)
         rows.append(row)
     table = pd.DataFrame(rows)
     for key in ("disturbance",):
