@@ -1,227 +1,393 @@
-"""Test oracle: ORB-SLAM3 v1.0's tracking state machine and the replay, as a plain Python loop.
+"""Test oracle: ORB-SLAM3 v1.0's tracking-state machine replayed over a log, as a plain Python loop.
 
-Written from the specification (DESIGN.md section 5 and the model stated in jsve/core/_rules.py), not from
-jsve's code: explicit if/else on integer modes, Python floats (or numpy float32 scalars, to mirror a
-float32 replay operation by operation), numpy only for the pose algebra, with its own quaternion
-product and rotation. It must not import jsve.core._rules or jsve.core._geometry.
+Written afresh from the control flow of `src/Tracking.cc` of UZ-SLAMLab/ORB_SLAM3 @4452a3c (v1.0),
+not from jsve's code; it imports nothing from jsve. Explicit if/else on integer modes, Python floats,
+numpy float64 only for the pose algebra (its own quaternion code, wxyz). Where the log cannot say
+what ORB-SLAM3 would do it follows docs/state-machine.md ("The replayed machine, frame by frame",
+"Map initialisation", "The recorded run's own map changes", "Support").
 
-The model, per frame k at time t (s since the first frame), score s:
+Tracking.cc locations followed (line numbers of v1.0):
+    l.48          constructor: mnLastRelocFrameId(0), time_recently_lost(5.0).
+    l.585, l.1158 mMaxFrames = fps, an int (Tracking.h l.302; Settings.cc l.410 reads Camera.fps as int).
+    Track(), l.1794-2330:
+      l.1903-1919   NOT_INITIALIZED: StereoInitialization / MonocularInitialization; the frame has
+                    no pose unless the map initialised on it (then mState = OK, no TrackLocalMap).
+      l.1940-1976   OK: TrackWithMotionModel / TrackReferenceKeyFrame (not logged; the log's
+                    inliers stand for them, docs/state-machine.md "What the log cannot tell").
+      l.1981-1998   RECENTLY_LOST with an IMU: bOK = true; PredictStateIMU if the map's IMU is
+                    initialised, else bOK = false (l.1986-1991); then t - mTimeStampLost >
+                    time_recently_lost -> LOST, bOK = false (l.1993-1998): expiry wins.
+      l.2017-2031   LOST: ResetActiveMap or CreateMapInAtlas, return (no pose on that frame).
+      l.2123-2129   bOK -> TrackLocalMap (the success test).
+      l.2142-2163   bOK -> OK. Else from OK with an IMU: ResetActiveMap when the IMU is not
+                    initialised or BA2 not done (l.2149-2153); mState = RECENTLY_LOST and
+                    mTimeStampLost = t (l.2155, l.2162). From RECENTLY_LOST the timer is not touched.
+      l.2272-2288   LOST after tracking: ResetActiveMap / CreateMapInAtlas, return.
+      l.2299-2320   OK and RECENTLY_LOST frames are stored in the trajectory (the estimate).
+    TrackLocalMap(), l.2949-3064, the success test l.3030-3063: relocalisation window first
+      (l.3030), then the recovery clause in RECENTLY_LOST (l.3033), then IMU_MONOCULAR (l.3037-3044,
+      threshold by Atlas::isImuInitialized) or IMU_STEREO / IMU_RGBD (l.3047-3053, one threshold).
+    StereoInitialization(), l.2335: a map needs more than 500 features (l.2337).
+    MonocularInitialization(), l.2448: a reference frame with > 100 keypoints (l.2454), then a frame
+      with > 100 keypoints (l.2483) and >= 100 matches (l.2495); mnLastRelocFrameId untouched (l.2630).
+    CreateMapInAtlas(), l.2662: a new map, mnLastRelocFrameId untouched (l.2675 is commented out).
+    ResetActiveMap(), l.3840-3925: every stored frame of the active map is marked lost
+      (l.3898-3912) and mnLastRelocFrameId = the current frame (l.3915).
 
-    imu_usable  = logged imu_init[k] and t - map_start_t >= imu_init_delay
-    in_reloc    = k < map_start_k + int(fps)      (ORB-SLAM3 mMaxFrames is an int set from Camera.fps)
-    success(rl, imu) = Tracking::TrackLocalMap:
-        in_reloc and s < reloc            -> fail
-        rl and s > recovery               -> success
-        imu: s < imu_init -> fail;  not imu: s < not_init -> fail;  else success
-    OK:   success(False, imu_usable) -> OK, visual pose
-          else if imu_usable -> RECENTLY_LOST, t_lost = t, IMU prediction
-          else -> LOST (ORB-SLAM3 resets the active map), no estimate
-    RECENTLY_LOST: t - t_lost > time_recently_lost -> LOST, no estimate (no attempt on this frame)
-          else success(True, imu_usable) -> OK, visual pose; else stay, IMU prediction
-    LOST: success(False, False) with in_reloc forced on -> new map: OK, segment + 1,
-          map_start = this frame, visual pose; else stay LOST, no estimate.
-
-Initial state: OK in map 0 that started at frame 0; the previous state is frame 0's visual
-pose and velocity. IMU prediction (PredictStateIMU), from the previous frame's replayed state:
-R2 = R1 dR; v2 = v1 + g dt + R1 dV; p2 = p1 + v1 dt + 0.5 g dt^2 + R1 dP.
+Modelling choices of docs/state-machine.md (and the precisions the JAX machine shares):
+    - The replay starts in LOST; a recorded map start (a posed frame after a pose-less one, or a
+      map_id change) starts a replay map whatever the mode: OK, estimate, no success test on it.
+      A later one counts as a loss; one that continues the map_id of the last posed frame (a
+      recorded reset) restarts the relocalisation window at that last posed frame.
+    - IMU initialised / BA2 done for the replay's map: the logged flag, and the replay's map began
+      no later than the current recorded map or is at least imu_init_delay / ba2_delay old.
+    - A natural map initialisation from LOST at frame k needs k >= k_loss + 2, a logged pose and
+      (monocular) n_extracted > 100 at k - 1 and k and n_inliers >= 100 at k (the recorded
+      inliers stand for the matches), (stereo) n_extracted > 500 at k.
+    - A reset takes the estimate from this frame and every earlier frame of the replay's map.
+    - A frame whose estimate is the logged pose but has none is without estimate, out of support.
+    - The pose state that `imu-coast` predicts from is the previous frame's: its estimate, or, on a
+      frame without one, the IMU prediction carried forward (ReplayResult's documented contents).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 OK, RECENTLY_LOST, LOST = 0, 1, 2
+"""Replayed modes after a frame (ORB-SLAM3's eTrackingState OK, RECENTLY_LOST, and LOST for
+"no map": LOST / NOT_INITIALIZED / NO_IMAGES_YET are all waiting for a new map)."""
+
+SWITCH_MODELS = ("orbslam3", "imu-coast")
+TIME_RECENTLY_LOST_S = 5.0  # Tracking.cc l.48
+
+
+# ------------------------------------------------------------------------------------------------
+# Quaternion algebra (wxyz, Hamilton, body to world) and ORB-SLAM3's PredictStateIMU
 
 
 def qmul(a, b):
-    """Hamilton product of wxyz quaternions (numpy, one pair)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
+    """Hamilton product a * b of wxyz quaternions (float64)."""
+    aw, ax, ay, az = (float(x) for x in a)
+    bw, bx, by, bz = (float(x) for x in b)
+    return np.array([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])  # fmt: skip
 
 
 def qconj(q):
+    """The conjugate (the inverse rotation of a unit quaternion)."""
+    q = np.asarray(q, float)
     return np.array([q[0], -q[1], -q[2], -q[3]])
 
 
 def qrotate(q, v):
-    """R(q) v computed as the vector part of q (0, v) q*: a different route from jsve's."""
-    return qmul(qmul(q, np.array([0.0, v[0], v[1], v[2]])), qconj(q))[1:]
-
-
-def qmatrix(q):
-    """Rotation matrix of a unit wxyz quaternion."""
-    return np.stack([qrotate(q, e) for e in np.eye(3)], axis=1)
+    """Rotate the 3-vector v by the unit quaternion q: the vector part of q (0, v) q*."""
+    return qmul(qmul(q, np.concatenate([[0.0], np.asarray(v, float)])), qconj(q))[1:]
 
 
 def imu_predict(p, v, q, dt, dp, dv, dq, g):
-    """PredictStateIMU: one step of the dead reckoning from the previous body state."""
+    """Tracking::PredictStateIMU from the previous frame (docs/state-machine.md, switch models):
+    R2 = R1 dR, v2 = v1 + g dt + R1 dV, p2 = p1 + v1 dt + g dt^2 / 2 + R1 dP.
+
+    Arguments: previous position (m), velocity (m/s), orientation (wxyz, body to world), dt (s),
+    preintegrated dp (m), dv (m/s), dq (wxyz) in the previous body frame, gravity g (m/s^2, world).
+    Returns (p2, v2, q2) as float64 arrays.
+    """
+    p, v, dp, dv, g = (np.asarray(x, float) for x in (p, v, dp, dv, g))
+    dt = float(dt)
     p2 = p + v * dt + 0.5 * g * dt * dt + qrotate(q, dp)
     v2 = v + g * dt + qrotate(q, dv)
-    q2 = qmul(q, dq)
-    return p2, v2, q2
+    return p2, v2, qmul(q, dq)
+
+
+def dead_reckon(p0, v0, q0, imu_dt, imu_dp, imu_dv, imu_dq, gravity):
+    """Frame 0's state, then imu_predict with each later frame's preintegration. Returns (P, V, Q)."""
+    n = len(imu_dt)
+    P, V, Q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
+    P[0], V[0], Q[0] = p0, v0, q0
+    for k in range(1, n):
+        P[k], V[k], Q[k] = imu_predict(P[k - 1], V[k - 1], Q[k - 1], imu_dt[k], imu_dp[k], imu_dv[k],
+                                       imu_dq[k], gravity)  # fmt: skip
+    return P, V, Q
+
+
+# ------------------------------------------------------------------------------------------------
+# The success test and the replay
+
+
+def _threshold(thresholds, name: str) -> float:
+    if isinstance(thresholds, Mapping):
+        return float(thresholds[name])
+    return float(getattr(thresholds, name))
+
+
+def success(score, thresholds, *, recently_lost: bool, imu_initialised: bool, in_reloc: bool,
+            stereo: bool) -> bool:  # fmt: skip
+    """Tracking::TrackLocalMap's decision (l.3030-3063) with the rule's score for mnMatchesInliers.
+
+    `thresholds`: a mapping or an object with imu_init, not_init, reloc, recovery.
+    """
+    s = float(score)
+    if in_reloc and s < _threshold(thresholds, "reloc"):  # l.3030
+        return False
+    if recently_lost and s > _threshold(thresholds, "recovery"):  # l.3033
+        return True
+    if stereo:  # IMU_STEREO / IMU_RGBD, l.3047-3053: the IMU state does not enter
+        return not s < _threshold(thresholds, "imu_init")
+    if imu_initialised:  # IMU_MONOCULAR, l.3037-3044
+        return not s < _threshold(thresholds, "imu_init")
+    return not s < _threshold(thresholds, "not_init")
 
 
 @dataclass
 class OracleResult:
-    """Per-frame outcome for the n frames of one run (no padding)."""
+    """The replay of one run (frames axis first).
 
-    accepted: np.ndarray  # bool [n]
-    predicted: np.ndarray  # bool [n]
-    has_estimate: np.ndarray  # bool [n]
-    mode: np.ndarray  # int8 [n], mode after the frame
-    segment: np.ndarray  # int [n]
-    lost_any: bool
-    position: np.ndarray | None = None  # [n, 3], NaN where no estimate
-    quaternion: np.ndarray | None = None  # [n, 4]
-    velocity: np.ndarray | None = None  # [n, 3]
-
-
-def success(score, th, recently_lost, imu_usable, in_reloc):
-    """Tracking::TrackLocalMap's decision with the rule's thresholds."""
-    if in_reloc and score < th["reloc"]:
-        return False
-    if recently_lost and score > th["recovery"]:
-        return True
-    if imu_usable:
-        return not (score < th["imu_init"])
-    return not (score < th["not_init"])
-
-
-@dataclass
-class State:
-    """The machine's state between frames (ORB-SLAM3: mState, mTimeStampLost, the map's start)."""
-
-    mode: int = OK
-    t_lost: float = 0.0
-    map_start_t: float = 0.0
-    map_start_k: int = 0
-    segment: int = 0
-
-
-def step(state, score, t, k, imu_init, th, fps, imu_init_delay, time_recently_lost=5.0):
-    """One frame of the machine. All of score, t, thresholds, delay and the limit must already be
-    of one scalar type (Python float, or np.float32 to mirror float32 arithmetic).
-
-    Returns (next_state, use_visual, use_imu).
+    mode: int8 OK / RECENTLY_LOST / LOST after each frame. has_estimate: bool. segment: int32, the
+    replay's map index (-1 before the first map; LOST frames keep the last map's index).
+    position, quaternion, velocity: float64, NaN where has_estimate is False. out_of_support: the
+    estimate would be the logged pose and the log has none. lost_any: the run entered LOST (a
+    reset, an expiry, or a recorded map start after the replay's first map).
+    events: (frame, name) in order; names "recorded_start", "recorded_reset", "natural_init",
+    "reset", "erase" (once per reset that erased earlier frames), "expiry", "ok_to_rl", "recovery",
+    "rl_no_imu", "out_of_support", "predicted".
     """
-    imu_usable = bool(imu_init) and (t - state.map_start_t >= imu_init_delay)
-    in_reloc = k < state.map_start_k + int(fps)
-    nxt = State(state.mode, state.t_lost, state.map_start_t, state.map_start_k, state.segment)
-    use_visual = use_imu = False
-    if state.mode == OK:
-        if success(score, th, False, imu_usable, in_reloc):
-            use_visual = True
-        elif imu_usable:
-            nxt.mode, nxt.t_lost, use_imu = RECENTLY_LOST, t, True
-        else:
-            nxt.mode = LOST  # ORB-SLAM3 resets the map before the IMU is usable
-    elif state.mode == RECENTLY_LOST:
-        if t - state.t_lost > time_recently_lost:
-            nxt.mode = LOST  # no recovery attempt on this frame
-        elif success(score, th, True, imu_usable, in_reloc):
-            nxt.mode, use_visual = OK, True
-        else:
-            use_imu = True  # the timer is not restarted
-    else:  # LOST: a new monocular map must pass the strict test without the IMU
-        if success(score, th, False, False, True):
-            nxt.mode, use_visual = OK, True
-            nxt.segment += 1
-            nxt.map_start_t, nxt.map_start_k = t, k
-    return nxt, use_visual, use_imu
+
+    mode: np.ndarray
+    has_estimate: np.ndarray
+    segment: np.ndarray
+    position: np.ndarray
+    quaternion: np.ndarray
+    velocity: np.ndarray
+    out_of_support: np.ndarray
+    lost_any: bool
+    events: list
+
+    def count(self, name: str) -> int:
+        return sum(1 for _, e in self.events if e == name)
 
 
 def replay_run(
+    *,
     score,
     t,
+    n_extracted,
+    n_inliers,
+    has_pose,
+    map_id,
     imu_init,
+    imu_ba2,
+    vis_p,
+    vis_q,
+    vis_v,
+    imu_dt,
+    imu_dp,
+    imu_dv,
+    imu_dq,
     fps,
+    gravity,
     imu_init_delay,
+    ba2_delay,
+    stereo,
     thresholds,
-    time_recently_lost=5.0,
-    poses=None,
-    real=float,
+    switch_model: str = "orbslam3",
+    time_recently_lost: float = TIME_RECENTLY_LOST_S,
 ) -> OracleResult:
-    """Replay one run frame by frame.
+    """Replay one run of n frames (arrays [n, ...], no padding) frame by frame.
 
     Arguments:
-        score, t, imu_init: per-frame sequences of the run's n frames (t in s since the first frame).
-        fps: frames per second (the relocalisation window is int(fps) frames).
-        imu_init_delay: s a map needs before its IMU is usable.
-        thresholds: dict with imu_init, not_init, reloc, recovery.
-        poses: None (decisions only) or a dict of numpy arrays vis_p, vis_q, vis_v [n, 3|4|3],
-            imu_dt [n], imu_dp, imu_dv [n, 3], imu_dq [n, 4], gravity [3].
-        real: the scalar type of the time and score arithmetic: float (IEEE double) or np.float32
-            (to mirror a float32 replay: every subtraction and comparison rounds to float32).
+        score: the rule's score per frame. t: s since the first frame. n_extracted, n_inliers: counts.
+        has_pose, map_id, imu_init, imu_ba2: the recorded run's pose flag, Atlas map id and inertial stage.
+        vis_p, vis_q, vis_v: the recorded pose (m, wxyz, m/s; world). imu_dt, imu_dp, imu_dv, imu_dq:
+            preintegration from the previous frame in the previous body frame (s, m, m/s, wxyz).
+        fps: frames per second (the window is floor(fps) frames). gravity: (3,) m/s^2, world.
+        imu_init_delay, ba2_delay: s from the first posed frame to the first imu_init / imu_ba2 frame
+            (inf if never). stereo: IMU_STEREO / IMU_RGBD rather than IMU_MONOCULAR.
+        thresholds: imu_init, not_init, reloc, recovery (mapping or attributes).
+        switch_model: "orbslam3" or "imu-coast". time_recently_lost: s (ORB-SLAM3: 5).
     """
+    if switch_model not in SWITCH_MODELS:
+        raise ValueError(f"switch_model must be one of {SWITCH_MODELS}, got {switch_model!r}")
     n = len(t)
-    th = {key: real(value) for key, value in thresholds.items()}
-    t = [real(x) for x in t]
-    score = [real(x) for x in score]
-    delay, limit = real(imu_init_delay), real(time_recently_lost)
-
-    state = State(t_lost=real(0.0), map_start_t=real(0.0))
-    accepted = np.zeros(n, bool)
-    predicted = np.zeros(n, bool)
-    modes = np.zeros(n, np.int8)
-    segments = np.zeros(n, np.int64)
-    if poses is not None:
-        g = np.asarray(poses["gravity"], float)
-        p, v, q = (np.asarray(poses[key][0], float) for key in ("vis_p", "vis_v", "vis_q"))
-        out_p, out_q, out_v = np.full((n, 3), np.nan), np.full((n, 4), np.nan), np.full((n, 3), np.nan)
-
-    for k in range(n):
-        state, use_visual, use_imu = step(state, score[k], t[k], k, imu_init[k], th, fps, delay, limit)
-        accepted[k], predicted[k] = use_visual, use_imu
-        modes[k], segments[k] = state.mode, state.segment
-        if poses is None:
-            continue
-        if use_visual:
-            p, v, q = (np.asarray(poses[key][k], float) for key in ("vis_p", "vis_v", "vis_q"))
-        elif use_imu:
-            delta = (np.asarray(poses[key][k], float) for key in ("imu_dp", "imu_dv", "imu_dq"))
-            p, v, q = imu_predict(p, v, q, float(poses["imu_dt"][k]), *delta, g)
-        # LOST frames have no estimate; the next estimate is a new map's visual pose.
-        if use_visual or use_imu:
-            out_p[k], out_v[k], out_q[k] = p, v, q
-
-    result = OracleResult(
-        accepted=accepted, predicted=predicted, has_estimate=accepted | predicted, mode=modes,
-        segment=segments, lost_any=bool(np.any(modes == LOST)),
-    )  # fmt: skip
-    if poses is not None:
-        result.position, result.quaternion, result.velocity = out_p, out_q, out_v
-    return result
-
-
-def dead_reckon(p0, v0, q0, imu_dt, imu_dp, imu_dv, imu_dq, gravity):
-    """Pure IMU integration from (p0, v0, q0) at frame 0 through frames 1..n-1 (frame 0's own
-    preintegration is applied too: it is zero in a log that starts there). Returns [n] states."""
-    n = len(imu_dt)
+    t = [float(x) for x in t]
+    score = [float(x) for x in score]
+    n_ext = [int(x) for x in n_extracted]
+    n_inl = [int(x) for x in n_inliers]
+    has_pose = [bool(x) for x in has_pose]
+    map_id = [int(x) for x in map_id]
+    imu_flag = [bool(x) for x in imu_init]
+    ba2_flag = [bool(x) for x in imu_ba2]
+    vis_p, vis_q, vis_v = (np.asarray(x, float) for x in (vis_p, vis_q, vis_v))
+    imu_dt = [float(x) for x in imu_dt]
+    imu_dp, imu_dv, imu_dq = (np.asarray(x, float) for x in (imu_dp, imu_dv, imu_dq))
     g = np.asarray(gravity, float)
-    p, v, q = np.asarray(p0, float), np.asarray(v0, float), np.asarray(q0, float)
-    P, V, Q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
+    max_frames = int(math.floor(float(fps)))  # mMaxFrames, an int (l.585)
+    stereo = bool(stereo)
+    imu_init_delay, ba2_delay = float(imu_init_delay), float(ba2_delay)
+
+    mode_out = np.full(n, LOST, np.int8)
+    has_est = np.zeros(n, bool)
+    segment_out = np.full(n, -1, np.int32)
+    oos = np.zeros(n, bool)
+    P, V, Q = np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.full((n, 4), np.nan)
+    events: list[tuple[int, str]] = []
+
+    mode = LOST  # no map before the first posed frame
+    segment = -1
+    lost_any = False
+    reloc_frame = 0  # mnLastRelocFrameId, l.48
+    t_lost = math.nan  # mTimeStampLost
+    k_loss = None  # frame of the last reset or expiry
+    map_start_k, map_start_t = None, math.nan  # the replay's current map
+    rec_start_t = math.nan  # start of the current recorded map
+    last_posed = None  # index of the last frame with a recorded pose
+    state = None  # (p, v, q) the replay holds after the previous frame
+
+    def imu_ready(flags, delay, k):
+        # docs/state-machine.md: the logged flag, and the replay's map is as old as the recorded run
+        # needed (or began with the recorded map)
+        return flags[k] and (map_start_t <= rec_start_t or t[k] - map_start_t >= delay)
+
     for k in range(n):
-        p, v, q = imu_predict(p, v, q, float(imu_dt[k]), imu_dp[k], imu_dv[k], imu_dq[k], g)
-        P[k], V[k], Q[k] = p, v, q
-    return P, V, Q
+        # What the frame gets: "logged" (the recorded pose), "predicted" (imu-coast), or None.
+        estimate = None
+        recorded_start = has_pose[k] and (k == 0 or not has_pose[k - 1] or map_id[k] != map_id[k - 1])
+
+        if recorded_start:
+            # The recorded run reset or made a new map: the replay starts its map here whatever its
+            # mode, and the frame is the map's initialisation frame (no TrackLocalMap, l.1903-1919).
+            events.append((k, "recorded_start"))
+            if last_posed is not None and map_id[last_posed] == map_id[k]:
+                # ResetActiveMap keeps the map id and sets mnLastRelocFrameId (l.3915)
+                reloc_frame = last_posed
+                events.append((k, "recorded_reset"))
+            if segment >= 0:
+                lost_any = True
+            rec_start_t = t[k]
+            segment += 1
+            map_start_k, map_start_t = k, t[k]
+            mode = OK
+            estimate = "logged"
+
+        elif mode == OK:
+            imu_ok = imu_ready(imu_flag, imu_init_delay, k)
+            ba2_ok = imu_ready(ba2_flag, ba2_delay, k)
+            in_reloc = k < reloc_frame + max_frames  # l.3030
+            if success(score[k], thresholds, recently_lost=False, imu_initialised=imu_ok, in_reloc=in_reloc,
+                       stereo=stereo):  # fmt: skip
+                estimate = "logged"  # l.2142-2143
+            elif imu_ok and ba2_ok:
+                # l.2155-2162: RECENTLY_LOST, the timer starts; the frame keeps a pose (l.2299-2320)
+                mode = RECENTLY_LOST
+                t_lost = t[k]
+                estimate = "logged" if switch_model == "orbslam3" else "predicted"
+                events.append((k, "ok_to_rl"))
+            else:
+                # l.2149-2153: ResetActiveMap; every frame of the active map is marked lost
+                # (l.3898-3912) and mnLastRelocFrameId = this frame (l.3915)
+                mode = LOST
+                lost_any = True
+                reloc_frame = k
+                k_loss = k
+                if has_est[map_start_k:k].any():
+                    events.append((k, "erase"))
+                has_est[map_start_k:k] = False
+                events.append((k, "reset"))
+
+        elif mode == RECENTLY_LOST:
+            imu_ok = imu_ready(imu_flag, imu_init_delay, k)
+            if t[k] - t_lost > time_recently_lost:
+                # l.1993-1998, then l.2272-2288: LOST, the map is kept (CreateMapInAtlas)
+                mode = LOST
+                lost_any = True
+                k_loss = k
+                events.append((k, "expiry"))
+            elif not imu_ok:
+                # l.1988-1991: no PredictStateIMU, bOK = false, no TrackLocalMap; mState stays
+                events.append((k, "rl_no_imu"))
+            else:
+                in_reloc = k < reloc_frame + max_frames
+                passes = success(score[k], thresholds, recently_lost=True, imu_initialised=imu_ok,
+                                 in_reloc=in_reloc, stereo=stereo)  # fmt: skip
+                if passes:
+                    mode = OK  # l.2142-2143
+                    estimate = "logged"
+                    events.append((k, "recovery"))
+                else:
+                    # stays RECENTLY_LOST; mTimeStampLost is set only from OK (l.2144-2162)
+                    estimate = "logged" if switch_model == "orbslam3" else "predicted"
+
+        else:  # LOST
+            # MonocularInitialization / StereoInitialization; the loss frame returned early and
+            # the next one became the reference (l.2017-2031, l.2271-2288)
+            if stereo:
+                initialises = n_ext[k] > 500  # l.2337
+            else:
+                # l.2454 (reference frame), l.2483 (current frame), l.2495 (matches)
+                initialises = n_ext[k - 1] > 100 and n_ext[k] > 100 and n_inl[k] >= 100
+            if k_loss is not None and k >= k_loss + 2 and has_pose[k] and initialises:  # k - 1 >= 0
+                segment += 1
+                map_start_k, map_start_t = k, t[k]
+                mode = OK
+                estimate = "logged"
+                events.append((k, "natural_init"))
+
+        # The frame's estimate, and the state the next frame predicts from.
+        prediction = None  # only imu-coast ever uses the carried state
+        if switch_model == "imu-coast" and state is not None and k > 0:
+            prediction = imu_predict(*state, imu_dt[k], imu_dp[k], imu_dv[k], imu_dq[k], g)
+        if estimate == "logged":
+            if has_pose[k]:
+                has_est[k] = True
+                state = (vis_p[k].copy(), vis_v[k].copy(), vis_q[k].copy())
+            else:
+                oos[k] = True
+                events.append((k, "out_of_support"))
+                state = prediction
+        elif estimate == "predicted":
+            if prediction is None:
+                raise RuntimeError(f"frame {k}: an IMU prediction without a previous state")
+            has_est[k] = True
+            state = prediction
+            events.append((k, "predicted"))
+        else:
+            state = prediction
+        if has_est[k]:
+            P[k], V[k], Q[k] = state[0], state[1], state[2]
+        mode_out[k] = mode
+        segment_out[k] = segment
+        if has_pose[k]:
+            last_posed = k
+
+    P[~has_est], V[~has_est], Q[~has_est] = np.nan, np.nan, np.nan  # frames a reset erased
+    return OracleResult(mode=mode_out, has_estimate=has_est, segment=segment_out, position=P, quaternion=Q,
+                        velocity=V, out_of_support=oos, lost_any=lost_any, events=events)  # fmt: skip
 
 
-# ----------------------------------------------------------------------------------------------
-# Random tracking logs for the property tests (numpy only; no jsve).
+def replay_arrays(logs: Mapping, i: int, n: int, *, thresholds, switch_model="orbslam3",
+                  time_recently_lost=TIME_RECENTLY_LOST_S, score=None) -> OracleResult:  # fmt: skip
+    """replay_run on run i (first n frames) of a dict of [R, F, ...] arrays named as LogBatch's
+    fields; the score defaults to n_inliers (ORB-SLAM3's own rule)."""
+    per_frame = ("t", "n_extracted", "n_inliers", "has_pose", "map_id", "imu_init", "imu_ba2", "vis_p",
+                 "vis_q", "vis_v", "imu_dt", "imu_dp", "imu_dv", "imu_dq")  # fmt: skip
+    per_run = ("fps", "gravity", "imu_init_delay", "ba2_delay", "stereo")
+    args = {key: np.asarray(logs[key][i])[:n] for key in per_frame}
+    args |= {key: np.asarray(logs[key][i]) for key in per_run}
+    s = args["n_inliers"] if score is None else np.asarray(score)[i, :n]
+    return replay_run(score=s, **args, thresholds=thresholds, switch_model=switch_model,
+                      time_recently_lost=time_recently_lost)  # fmt: skip
 
-INLIER_EDGES = (9, 10, 11, 14, 15, 16, 49, 50, 51)
-"""Inlier counts at and next to ORB-SLAM3's thresholds 10 / 15 / 50 (exact ties included)."""
-SVE_EDGES = (0.04, 0.06, 0.2)
+
+# ------------------------------------------------------------------------------------------------
+# Numpy references of the SVE scores (not the state machine; tests/test_rules.py, tests/test_replay.py)
 
 
 def random_unit_quaternions(rng, shape, scale=None):
@@ -231,20 +397,6 @@ def random_unit_quaternions(rng, shape, scale=None):
     else:
         q = np.concatenate([np.ones(shape + (1,)), rng.normal(scale=scale / 2, size=shape + (3,))], -1)
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def _regimes(rng, n):
-    """Per-frame regime labels 0 good, 1 at the thresholds, 2 between, 3 bad, in stretches; a
-    third of the bad stretches last 60-200 frames so that RECENTLY_LOST outlasts the 5 s timer."""
-    labels = np.empty(n, np.int64)
-    k = 0
-    while k < n:
-        label = rng.choice(4, p=[0.4, 0.25, 0.15, 0.2])
-        long = label == 3 and rng.random() < 0.35
-        length = int(rng.integers(60, 201)) if long else int(rng.integers(1, 40))
-        labels[k : k + length] = label
-        k += length
-    return labels
 
 
 def s_b_numpy(bins, n_extracted):
@@ -265,133 +417,3 @@ def option2_numpy(n_extracted, n_inliers, n_frustum, bins):
         sa = np.where(ext > 0, np.clip(inl / (0.25 * ext), 0, 1), 0.0)
         sc = np.where(fru > 0, np.clip(inl / fru, 0, 1), 0.0)
     return np.sqrt(sa * (0.5 * s_b_numpy(bins, ext) + 0.5 * sc))
-
-
-def random_logs(seed, n_runs, n_frames=400, min_frames=150, kind="inliers", fractional_fps=True):
-    """A batch of random logs as padded numpy arrays [runs, frames, ...] plus `length` [runs].
-
-    Scores cluster at the thresholds (with exact ties for inlier counts), stretches of bad frames
-    outlast the 5 s timer, imu_init switches on mid-run (sometimes flickers, sometimes never),
-    imu_init_delay is that switch time, 0, a random value or inf, and fps varies (10-30, some
-    fractional). kind = 'inliers' fills n_inliers around 10/15/50; kind = 'sve' fills the counts so
-    that Option 2 scores cluster around 0.04 / 0.06 / 0.2 and edge frames reuse a small palette
-    of count tuples (so that thresholds set to palette scores give exact ties).
-    """
-    rng = np.random.default_rng(seed)
-    R, F = n_runs, n_frames
-    out = dict(
-        length=np.zeros(R, np.int64), t=np.zeros((R, F)), valid=np.zeros((R, F), bool),
-        imu_init=np.zeros((R, F), bool), n_extracted=np.zeros((R, F), np.int64),
-        n_inliers=np.zeros((R, F), np.int64), n_frustum=np.zeros((R, F), np.int64),
-        vis_p=np.zeros((R, F, 3)), vis_q=np.tile([1.0, 0, 0, 0], (R, F, 1)), vis_v=np.zeros((R, F, 3)),
-        imu_dt=np.zeros((R, F)), imu_dp=np.zeros((R, F, 3)), imu_dv=np.zeros((R, F, 3)),
-        imu_dq=np.tile([1.0, 0, 0, 0], (R, F, 1)), fps=np.zeros(R), gravity=np.zeros((R, 3)),
-        imu_init_delay=np.zeros(R),
-    )  # fmt: skip
-    if kind == "sve":
-        out["bins"] = np.zeros((R, F, 64), np.int64)
-        palette = _sve_palette(rng)
-    fps_choices = [10.0, 15.0, 20.0, 20.0, 20.0, 25.0, 30.0] + ([12.5, 20.5, 29.97] if fractional_fps else [])
-    for i in range(R):
-        n = int(rng.integers(min_frames, F + 1))
-        out["length"][i] = n
-        out["valid"][i, :n] = True
-        fps = float(rng.choice(fps_choices))
-        out["fps"][i] = fps
-        step_ns = np.full(n - 1, int(round(1e9 / fps)), np.int64)
-        if rng.random() < 0.5:  # jitter and dropped frames
-            step_ns += rng.integers(-2_000_000, 2_000_001, n - 1)
-            step_ns[rng.random(n - 1) < 0.02] *= 3
-        stamps = 1_403_715_274_312_143_104 + np.concatenate([[0], np.cumsum(step_ns)])
-        t = (stamps - stamps[0]) / 1e9
-        out["t"][i, :n] = t
-        out["t"][i, n:] = t[-1]  # padding: any finite value
-        # IMU initialisation: switches on at k_init (sometimes at 0, sometimes never), may flicker.
-        u = rng.random()
-        k_init = 0 if u < 0.3 else (n if u < 0.4 else int(rng.integers(1, n // 2)))
-        init = np.arange(n) >= k_init
-        if rng.random() < 0.1:
-            init ^= rng.random(n) < 0.05
-        out["imu_init"][i, :n] = init
-        u = rng.random()
-        if u < 0.4:
-            out["imu_init_delay"][i] = t[k_init] if k_init < n else np.inf
-        elif u < 0.55:
-            out["imu_init_delay"][i] = 0.0
-        elif u < 0.65:
-            out["imu_init_delay"][i] = np.inf
-        else:
-            out["imu_init_delay"][i] = rng.uniform(0.0, 4.0)
-        regime = _regimes(rng, n)
-        if kind == "inliers":
-            inl = np.where(regime == 0, rng.integers(51, 301, n), 0)
-            inl = np.where(regime == 1, rng.choice(INLIER_EDGES, n), inl)
-            inl = np.where(regime == 2, rng.integers(16, 50, n), inl)
-            inl = np.where(regime == 3, rng.integers(0, 10, n), inl)
-            out["n_inliers"][i, :n] = inl
-            out["n_extracted"][i, :n] = 1000
-            out["n_frustum"][i, :n] = inl + rng.integers(0, 200, n)
-        else:
-            _fill_sve(rng, out, i, n, regime, palette)
-        # Poses: a random walk for the visual estimate, random preintegration, some gravity.
-        out["vis_p"][i, :n] = np.cumsum(rng.normal(scale=0.05, size=(n, 3)), 0) + rng.normal(size=3)
-        out["vis_v"][i, :n] = rng.normal(size=(n, 3))
-        out["vis_q"][i, :n] = random_unit_quaternions(rng, (n,))
-        out["imu_dt"][i, 1:n] = np.diff(t)
-        out["imu_dp"][i, 1:n] = rng.normal(scale=0.05, size=(n - 1, 3))
-        out["imu_dv"][i, 1:n] = rng.normal(scale=0.5, size=(n - 1, 3))
-        out["imu_dq"][i, 1:n] = random_unit_quaternions(rng, (n - 1,), scale=0.05)
-        out["gravity"][i] = [0.0, 0.0, -9.81] if rng.random() < 0.7 else rng.normal(scale=5.0, size=3)
-    return out
-
-
-def _sve_palette(rng, size=8):
-    """Count tuples (n_extracted, n_inliers, n_frustum, bins) whose Option 2 scores lie near the
-    SVE thresholds; edge frames draw from it so that the same score value recurs."""
-    tuples = []
-    while len(tuples) < size:
-        target = rng.choice(SVE_EDGES) + rng.normal(scale=0.004)
-        ext, fru, bins = _random_counts(rng)
-        inl = _inliers_for(target, ext, fru, bins)
-        tuples.append((ext, inl, fru, bins))
-    return tuples
-
-
-def _random_counts(rng):
-    ext = int(rng.integers(200, 1001))
-    inside = ext - int(rng.integers(0, 20))
-    bins = rng.multinomial(inside, rng.dirichlet(np.full(64, rng.uniform(0.2, 5.0))))
-    return ext, int(rng.integers(50, 600)), bins
-
-
-def _inliers_for(target, ext, fru, bins):
-    """The integer inlier count whose Option 2 score is closest to `target` (a search over all)."""
-    inl = np.arange(ext + 1)
-    scores = option2_numpy(np.full_like(inl, ext), inl, np.full_like(inl, fru), np.tile(bins, (ext + 1, 1)))
-    return int(inl[np.argmin(np.abs(scores - target))])
-
-
-def _fill_sve(rng, out, i, n, regime, palette):
-    targets = np.where(regime == 0, rng.uniform(0.25, 1.0, n), 0.0)
-    targets = np.where(regime == 1, rng.choice(SVE_EDGES, n) + rng.normal(scale=0.004, size=n), targets)
-    targets = np.where(regime == 2, rng.uniform(0.06, 0.2, n), targets)
-    targets = np.where(regime == 3, rng.uniform(0.0, 0.04, n), targets)
-    ext = rng.integers(200, 1001, n)
-    ext[rng.random(n) < 0.02] = 0  # frames without features: every metric is 0
-    fru = rng.integers(50, 600, n)
-    inside = np.maximum(ext - rng.integers(0, 20, n), 0)
-    # Bad frames get clumped keypoints (S_b near 0): Option 2 cannot go below ~0.06 sqrt(S_b / 2)
-    # with a single inlier, so low scores need a low S_b.
-    bins = rng.multinomial(inside, rng.dirichlet(np.full(64, rng.uniform(0.2, 5.0))))
-    bad = regime == 3
-    bins[bad] = rng.multinomial(inside[bad], rng.dirichlet(np.full(64, 0.03)))
-    # Closed form for the unclamped inlier count, then rounded: scores land near the targets.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a2, a1 = 0.5 / (0.25 * ext * fru), 0.5 * s_b_numpy(bins, ext) / (0.25 * ext)
-        root = (-a1 + np.sqrt(a1 * a1 + 4 * a2 * targets**2)) / (2 * a2)
-    inl = np.where(ext > 0, np.clip(np.rint(np.nan_to_num(root)), 0, ext), 0).astype(np.int64)
-    use = np.flatnonzero((regime == 1) & (rng.random(n) < 0.5))
-    for k in use:
-        ext[k], inl[k], fru[k], bins[k] = palette[int(rng.integers(len(palette)))]
-    out["n_extracted"][i, :n], out["n_inliers"][i, :n], out["n_frustum"][i, :n] = ext, inl, fru
-    out["bins"][i, :n] = bins
