@@ -10,9 +10,9 @@ Tracking.cc locations followed (line numbers of v1.0):
     l.48          constructor: mnLastRelocFrameId(0), time_recently_lost(5.0).
     l.585, l.1158 mMaxFrames = fps, an int (Tracking.h l.302; Settings.cc l.410 reads Camera.fps as int).
     Track(), l.1794-2330:
-      l.1903-1919   NOT_INITIALIZED: StereoInitialization / MonocularInitialization; the frame has
+      l.1899-1919   NOT_INITIALIZED: StereoInitialization / MonocularInitialization; the frame has
                     no pose unless the map initialised on it (then mState = OK, no TrackLocalMap).
-      l.1940-1976   OK: TrackWithMotionModel / TrackReferenceKeyFrame (not logged; the log's
+      l.1939-1976   OK: TrackWithMotionModel / TrackReferenceKeyFrame (not logged; the log's
                     inliers stand for them, docs/state-machine.md "What the log cannot tell").
       l.1981-1998   RECENTLY_LOST with an IMU: bOK = true; PredictStateIMU if the map's IMU is
                     initialised, else bOK = false (l.1986-1991); then t - mTimeStampLost >
@@ -23,7 +23,7 @@ Tracking.cc locations followed (line numbers of v1.0):
                     initialised or BA2 not done (l.2149-2153); mState = RECENTLY_LOST and
                     mTimeStampLost = t (l.2155, l.2162). From RECENTLY_LOST the timer is not touched.
       l.2272-2288   LOST after tracking: ResetActiveMap / CreateMapInAtlas, return.
-      l.2299-2320   OK and RECENTLY_LOST frames are stored in the trajectory (the estimate).
+      l.2300-2320   OK and RECENTLY_LOST frames are stored in the trajectory (the estimate).
     TrackLocalMap(), l.2949-3064, the success test l.3030-3063: relocalisation window first
       (l.3030), then the recovery clause in RECENTLY_LOST (l.3033), then IMU_MONOCULAR (l.3037-3044,
       threshold by Atlas::isImuInitialized) or IMU_STEREO / IMU_RGBD (l.3047-3053, one threshold).
@@ -44,8 +44,12 @@ Modelling choices of docs/state-machine.md (and the precisions the JAX machine s
     - A natural map initialisation from LOST at frame k needs k >= k_loss + 2, a logged pose and
       (monocular) n_extracted > 100 at k - 1 and k and n_inliers >= 100 at k (the recorded
       inliers stand for the matches), (stereo) n_extracted > 500 at k.
-    - A reset takes the estimate from this frame and every earlier frame of the replay's map.
-    - A frame whose estimate is the logged pose but has none is without estimate, out of support.
+    - A reset takes the estimate from this frame and every earlier frame of the replay's map, on the
+      failing frame (System::ResetActiveMap only raises a flag that the next frame's Track* call acts
+      on, System.cc l.509-512 and l.304-307; the replay puts the reset and mnLastRelocFrameId on the
+      failing frame k, and the new map at k + 2 at the earliest).
+    - A frame whose estimate is the logged pose but has none is without estimate, out of support
+      (decided on the frame: a later reset's erasure leaves the flag).
     - The pose state that `imu-coast` predicts from is the previous frame's: its estimate, or, on a
       frame without one, the IMU prediction carried forward (ReplayResult's documented contents).
 """
@@ -94,7 +98,7 @@ def qrotate(q, v):
 
 
 def imu_predict(p, v, q, dt, dp, dv, dq, g):
-    """Tracking::PredictStateIMU from the previous frame (docs/state-machine.md, switch models):
+    """Tracking::PredictStateIMU (l.1738) from the previous frame (docs/state-machine.md, switch models):
     R2 = R1 dR, v2 = v1 + g dt + R1 dV, p2 = p1 + v1 dt + g dt^2 / 2 + R1 dP.
 
     Arguments: previous position (m), velocity (m/s), orientation (wxyz, body to world), dt (s),
@@ -263,7 +267,7 @@ def replay_run(
 
         if recorded_start:
             # The recorded run reset or made a new map: the replay starts its map here whatever its
-            # mode, and the frame is the map's initialisation frame (no TrackLocalMap, l.1903-1919).
+            # mode, and the frame is the map's initialisation frame (no TrackLocalMap, l.1899-1919).
             events.append((k, "recorded_start"))
             if last_posed is not None and map_id[last_posed] == map_id[k]:
                 # ResetActiveMap keeps the map id and sets mnLastRelocFrameId (l.3915)
@@ -285,7 +289,7 @@ def replay_run(
                        stereo=stereo):  # fmt: skip
                 estimate = "logged"  # l.2142-2143
             elif imu_ok and ba2_ok:
-                # l.2155-2162: RECENTLY_LOST, the timer starts; the frame keeps a pose (l.2299-2320)
+                # l.2155-2162: RECENTLY_LOST, the timer starts; the frame keeps a pose (l.2300-2320)
                 mode = RECENTLY_LOST
                 t_lost = t[k]
                 estimate = "logged" if switch_model == "orbslam3" else "predicted"
@@ -372,22 +376,8 @@ def replay_run(
                         velocity=V, out_of_support=oos, lost_any=lost_any, events=events)  # fmt: skip
 
 
-def replay_arrays(logs: Mapping, i: int, n: int, *, thresholds, switch_model="orbslam3",
-                  time_recently_lost=TIME_RECENTLY_LOST_S, score=None) -> OracleResult:  # fmt: skip
-    """replay_run on run i (first n frames) of a dict of [R, F, ...] arrays named as LogBatch's
-    fields; the score defaults to n_inliers (ORB-SLAM3's own rule)."""
-    per_frame = ("t", "n_extracted", "n_inliers", "has_pose", "map_id", "imu_init", "imu_ba2", "vis_p",
-                 "vis_q", "vis_v", "imu_dt", "imu_dp", "imu_dv", "imu_dq")  # fmt: skip
-    per_run = ("fps", "gravity", "imu_init_delay", "ba2_delay", "stereo")
-    args = {key: np.asarray(logs[key][i])[:n] for key in per_frame}
-    args |= {key: np.asarray(logs[key][i]) for key in per_run}
-    s = args["n_inliers"] if score is None else np.asarray(score)[i, :n]
-    return replay_run(score=s, **args, thresholds=thresholds, switch_model=switch_model,
-                      time_recently_lost=time_recently_lost)  # fmt: skip
-
-
 # ------------------------------------------------------------------------------------------------
-# Numpy references of the SVE scores (not the state machine; tests/test_rules.py, tests/test_replay.py)
+# Not the state machine: random rotations for the tests' logs, and the numpy S_b of tests/test_rules.py
 
 
 def random_unit_quaternions(rng, shape, scale=None):
@@ -408,12 +398,3 @@ def s_b_numpy(bins, n_extracted):
         chi2 = np.sum((bins - e) ** 2 / e, axis=-1)
         value = 1.0 - chi2 / (7.0 * n)
     return np.where(n > 0, np.clip(value, 0.0, 1.0), 0.0)
-
-
-def option2_numpy(n_extracted, n_inliers, n_frustum, bins):
-    """Option 2 by hand: sqrt(S_a (0.5 S_b + 0.5 S_c)), rho = 0.25, clamped metrics, 0/0 -> 0."""
-    ext, inl, fru = (np.asarray(x, float) for x in (n_extracted, n_inliers, n_frustum))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sa = np.where(ext > 0, np.clip(inl / (0.25 * ext), 0, 1), 0.0)
-        sc = np.where(fru > 0, np.clip(inl / fru, 0, 1), 0.0)
-    return np.sqrt(sa * (0.5 * s_b_numpy(bins, ext) + 0.5 * sc))
