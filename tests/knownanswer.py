@@ -180,6 +180,8 @@ def make_run(
         "t_ns": t_ns,
         "state": np.full(n, schema.STATE_OK),
         "imu_init": np.ones(n, np.int64),
+        "map_id": np.zeros(n, np.int64),  # one map, inertial BA2 done from frame 0: a failure never resets
+        "imu_ba2": np.ones(n, np.int64),
         "n_extracted": np.full(n, N_EXTRACTED),
         "n_inliers": inliers.astype(np.int64),
         "n_frustum": frustum,

@@ -8,6 +8,7 @@ alignment, itself checked against jsve.evaluation._evaluate) for the kernel, set
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,7 @@ import knownanswer as ka
 import numpy as np
 import pytest
 
+from jsve.core._machine import SWITCH_MODELS
 from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.core._replay import batch_features
 from jsve.core._rules import Thresholds
@@ -70,19 +72,20 @@ def occlusion_data():
 def test_search_kernel_equals_replay_objective(x64, align, dtype):
     """Setting by setting, the kernel's loss is run_losses' (replay + alignment + RMSE): to 1e-12 m in
     float64; in float32 to 1e-4 relative (the moment form's error budget, ~1e-5 measured) with the same
-    failed flags. Both families, 24 Sobol settings each, failing and succeeding runs."""
+    failed flags. Both families, 24 Sobol settings each, failing and succeeding runs, under both switch
+    models."""
     runs = ka.make_study("occlusion", range(6), n_frames=300)
     batch = from_runs(runs, dtype=dtype).batch
     f = batch_features(batch)
     sb = prepare(batch, f)
-    config = ObjectiveConfig(align=align, failure_penalty=3.0)
-    for space in (inlier_space(), sve_space()):
+    configs = [ObjectiveConfig(align=align, failure_penalty=3.0, switch_model=m) for m in SWITCH_MODELS]
+    for config, space in itertools.product(configs, (inlier_space(), sve_space())):
         values = np.array(space.values_from_unit(sobol(24, space.dim, seed=4)))
         thresholds = [space.names.index(field.name) for field in dataclasses.fields(Thresholds)]
         values[-3:, thresholds] = 2.0 * space.score_scale * 1e3  # thresholds no frame passes: runs fail
         rules = space.rule(jnp.asarray(values, dtype))
         got = search_chunk(sb, rules, config)
-        ref = jax.jit(jax.vmap(lambda r: run_losses(batch, r, f, config)))(rules)
+        ref = jax.jit(jax.vmap(lambda r, c=config: run_losses(batch, r, f, c)))(rules)
         failed = np.asarray(ref.failed)
         assert np.array_equal(np.asarray(got.failed), failed)
         assert 0 < failed.mean() < 1  # both kinds of runs are checked
@@ -92,6 +95,7 @@ def test_search_kernel_equals_replay_objective(x64, align, dtype):
             # float32 positions of a few metres carry ~2e-7 m of rounding each, in both computations
             np.testing.assert_allclose(np.asarray(got.loss), np.asarray(ref.loss), rtol=1e-4, atol=2e-6)
         np.testing.assert_allclose(np.asarray(got.coverage)[~failed], 1.0)
+        np.testing.assert_allclose(np.asarray(got.coverage), np.asarray(ref.coverage), rtol=0, atol=1e-6)
         assert np.isnan(np.asarray(got.rmse)[failed]).all()
 
 

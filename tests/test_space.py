@@ -22,6 +22,7 @@ from jsve.fitting._space import (
     RuleParams,
     family_space,
     inlier_space,
+    is_space_point,
     preset_point,
     preset_values,
     space_from_dict,
@@ -32,7 +33,8 @@ from jsve.fitting._space import (
 def test_names_and_boxes_come_from_the_rule_modules():
     """The free names of a family's full space are its Modules' fields, in order; every name has a box
     and a score scale (a parameter added to Thresholds or Combination without a box fails here)."""
-    fields = lambda cls: tuple(f.name for f in dataclasses.fields(cls))  # noqa: E731
+    static = lambda f: f.metadata.get("static", False)  # noqa: E731 - e.g. Combination.inputs, not fitted
+    fields = lambda cls: tuple(f.name for f in dataclasses.fields(cls) if not static(f))  # noqa: E731
     assert sve_space().names == fields(Combination) + fields(Thresholds) == param_names("sve")
     assert inlier_space().names == fields(Thresholds) == param_names("inliers")
     for kind, boxes in BOUNDS.items():
@@ -94,6 +96,11 @@ def test_presets_as_points():
     """Every preset is a point of its family's full space that maps back to the preset's own rule
     (float32 leaves: 1e-6 relative), and the presets kept by a narrowed space are those inside it."""
     for name in PRESETS:
+        if not is_space_point(preset(name)):  # the authors' Eq.1 / Option 1 combine other inputs
+            with pytest.raises(ValueError, match=f"preset '{name}' combines .*no point of a ParamSpace"):
+                preset_point(name)
+            assert name not in preset_values(sve_space())
+            continue
         space, values = preset_point(name)
         assert space.contains(values)
         again = rule_to_dict(space.rule(jnp.asarray(values)))
@@ -105,7 +112,7 @@ def test_presets_as_points():
     space = sve_space()
     for name, v in preset_values(space).items():
         np.testing.assert_allclose(space.values_of(space.rule(jnp.asarray(v))), v, rtol=1e-6)
-        assert name.startswith("sve-")
+        assert name.startswith(("sve-", "jsve-"))
     assert list(preset_values(inlier_space())) == ["orbslam3"]
     assert set(preset_values(space.fix(rho=0.25, p=0.0))) == {"sve-option2"}  # rho 0.25 and p = 0
     assert preset_values(inlier_space(imu_init=(20.0, 30.0))) == {}  # 15 lies outside

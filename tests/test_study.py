@@ -67,7 +67,7 @@ def test_sve_level_table_is_the_mean_of_the_valid_frames(data):
             runs = [frames[i] for i in np.flatnonzero(levels == level)]
             cat = {k: np.concatenate([f[k] for f in runs]) for k in runs[0]}
             want = {
-                "sve": np.asarray(combo(cat["inlier_ratio"], cat["s_b"], cat["s_c"]), np.float64),
+                "sve": np.asarray(combo.score(FrameFeatures(n_inliers=0 * cat["s_b"], **cat)), np.float64),
                 "s_a": np.asarray(s_a_from_ratio(cat["inlier_ratio"], combo.rho), np.float64),
                 **{k: cat[k] for k in metrics},
             }

@@ -18,15 +18,18 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import equinox as eqx
+import jax
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from jsve.core._rules import BASELINES, PRESETS
+from jsve.core._objective import run_losses
+from jsve.core._rules import BASELINES, PRESETS, preset
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name, search_design
 from jsve.fitting._search import SearchResult, search
-from jsve.fitting._space import ParamSpace, preset_point
+from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +137,26 @@ def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
     )
 
 
+_run_losses = eqx.filter_jit(run_losses)
+
+
+def preset_results(data: FitData, name: str) -> SearchResult:
+    """Per-run results of a preset: by the search kernel where the preset is a point of its family's
+    space, else by the replay objective (jsve.core._objective.run_losses), which scores any rule."""
+    rule = preset(name)
+    if is_space_point(rule):
+        return rule_results(data, *preset_point(name))
+    parts = [
+        jax.tree.map(lambda x, n=n: np.asarray(x)[:n], _run_losses(batch, rule, features, data.config))
+        for batch, features, n in zip(data.batches, data.features, data.run_counts, strict=True)
+    ]
+    losses = jax.tree.map(lambda *xs: np.concatenate(xs)[None], *parts)
+    return SearchResult(
+        values=np.zeros((1, 0)), loss=losses.loss, failed=losses.failed,
+        rmse=np.where(losses.failed, np.nan, losses.rmse), coverage=losses.coverage,
+    )  # fmt: skip
+
+
 def cross_validate(
     data: FitData,
     spaces: Mapping[str, ParamSpace],
@@ -167,7 +190,7 @@ def cross_validate(
                 progress=progress,
                 desc=f"search {name}",
             )
-    per_rule = {name: rule_results(data, *preset_point(name)) for name in presets}
+    per_rule = {name: preset_results(data, name) for name in presets}
 
     rows, params = [], []
     for fold in tqdm(folds, desc="cross-validation", unit="fold", disable=not progress):

@@ -287,8 +287,10 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
         lost = jnp.maximum(lost, decision.loss * valid)
         # Coverage follows the replay: a new map closes the current one; a reset takes its estimates away.
         counted = est * gt
-        n_closed = n_closed + decision.new_map * n_map
-        n_map = (1 - decision.new_map) * (1 - decision.reset) * n_map + counted
+        # (padding frames at the end run the machine too: their resets and map starts are not the run's)
+        new_map, reset = decision.new_map * valid, decision.reset * valid
+        n_closed = n_closed + new_map * n_map
+        n_map = (1 - new_map) * (1 - reset) * n_map + counted
         n_off = n_off + jnp.abs(counted - w)  # estimates off the frames the statistics were fixed for
         e = [w * est * (p2[i] - ref[i]) for i in range(3)]
         new = (

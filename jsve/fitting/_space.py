@@ -38,6 +38,7 @@ from jsve.core._rules import (
     rule_from_params,
     rule_kind,
     rule_params,
+    rule_static,
 )
 
 SVE_BOUNDS = {
@@ -248,13 +249,20 @@ def space_from_dict(spec: dict) -> ParamSpace:
 # Presets as points
 
 
+def is_space_point(rule) -> bool:
+    """Whether a space can express the rule: its static fields (e.g. the SVE inputs) are those every
+    ParamSpace rule has. The authors' `sve-eq1` / `sve-option1` combine other inputs, so no point of a
+    space is them: they are scored by replay, never by a point that would carry their name."""
+    return rule_static(rule) == rule_static(rule_from_params(rule_kind(rule), rule_params(rule)))
+
+
 def preset_values(space: ParamSpace) -> dict[str, np.ndarray]:
-    """The presets (jsve.core._rules.PRESETS) of the space's family that lie inside its box and agree
-    with its fixed values, as free values [d] by preset name."""
+    """The presets (jsve.core._rules.PRESETS) of the space's family that are points of it (see
+    `is_space_point`), lie inside its box and agree with its fixed values, as free values [d] by name."""
     out = {}
     for name in PRESETS:
         rule = preset(name)
-        if rule_kind(rule) != space.kind:
+        if rule_kind(rule) != space.kind or not is_space_point(rule):
             continue
         params = rule_params(rule)
         values = space.values_of(rule)
@@ -264,8 +272,14 @@ def preset_values(space: ParamSpace) -> dict[str, np.ndarray]:
 
 
 def preset_point(name: str) -> tuple[ParamSpace, np.ndarray]:
-    """A preset as a point: its family's full space (default boxes) and its values there."""
+    """A preset as a point: its family's full space (default boxes) and its values there.
+
+    Raises:
+        ValueError for a preset no point of a space is (`is_space_point`).
+    """
     rule = preset(name)
+    if not is_space_point(rule):
+        raise ValueError(f"preset {name!r} combines {rule_static(rule)}: no point of a ParamSpace is it")
     space = family_space(rule_kind(rule))
     return space, space.values_of(rule)
 

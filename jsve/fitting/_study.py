@@ -180,7 +180,7 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
         for feats, batch, n_real in zip(data.features, data.batches, data.run_counts, strict=True):
             valid = np.asarray(batch.valid[:n_real], np.float64)
             values = {
-                "sve": combo(feats.inlier_ratio, feats.s_b, feats.s_c),
+                "sve": combo.score(feats),
                 **feature_metrics(feats, combo.rho),
             }
             part = {"count": valid.sum(1)}
