@@ -11,7 +11,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from jsve.core._rules import Thresholds
 
@@ -167,7 +167,7 @@ class FrameDecision(eqx.Module):
     reset: Float[Array, "*runs"]
 
 
-def tracking_succeeds(logic, score, th: Thresholds, recently_lost, imu_ok, in_reloc, stereo=0.0):
+def tracking_succeeds(logic, score, th: Thresholds, recently_lost, imu_ok, in_reloc, stereo: ArrayLike = 0.0):
     """Tracking::TrackLocalMap's success test with the rule's thresholds (ORB-SLAM3 v1.0, l.3027-3064).
 
     In order: inside the relocalisation window a score below `reloc` fails; in RECENTLY_LOST a score

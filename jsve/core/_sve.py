@@ -190,7 +190,7 @@ only defined for p = q = 1: the authors' inputs are combined linearly and other 
 
 
 def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
+    return not isinstance(x, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue] - public, untyped
 
 
 class Combination(eqx.Module):
