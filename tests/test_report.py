@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from jsve.core._rules import PRESETS
 from jsve.evaluation import group_weights
 from jsve.fitting._fit import FitConfig, FitData
 from jsve.fitting._study import StudyConfig, read_table, run_study
@@ -83,14 +84,8 @@ def test_study_writes_every_table_as_parquet_and_csv(study):
     }
     assert not list(out.glob("*.partial")) and not list(out.glob("figures/*.partial"))
     runs = read_table(out, "runs")
-    assert set(runs["rule"]) == {
-        "orbslam3",
-        "sve-eq1",
-        "sve-option1",
-        "sve-option2",
-        "fitted-sve",
-        "fitted-inliers",
-    }
+    assert set(runs["rule"]) == {*PRESETS, "fitted-sve", "fitted-inliers"}
+    assert {"orbslam3", "sve-eq1", "sve-option1", "sve-option2", "jsve-eq1"} <= set(PRESETS)
     assert (runs.groupby("rule").size() == data.n_runs).all()
 
 
