@@ -375,16 +375,13 @@ _step = jax.jit(
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("row", TABLE, ids=[row.name for row in TABLE])
-def test_machine_step_follows_the_table(row, dtype):
+def test_machine_step_follows_the_table(row, dtype, request):
     """Each row of docs/state-machine.md's table (Tracking.cc locations there): the next mode, the
     decisions, and which clocks change (all others are kept), exactly, in float32 and float64."""
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", dtype == jnp.float64)
-    try:
-        state, score, data, run = _row_inputs(row, dtype)
-        nxt, decision = _step(state, score, data, run)
-    finally:
-        jax.config.update("jax_enable_x64", previous)
+    if dtype == jnp.float64:
+        request.getfixturevalue("x64")  # the suite's one way of switching float64 on and back off
+    state, score, data, run = _row_inputs(row, dtype)
+    nxt, decision = _step(state, score, data, run)
     assert nxt.ok.dtype == dtype
     assert (float(nxt.ok), float(nxt.recently_lost), float(nxt.lost)) == MODES[row.then]
     assert {k for k in DECISIONS if float(getattr(decision, k)) == 1.0} == row.decided
