@@ -88,7 +88,9 @@ def test_pad_runs(mixed_runs):
     res = jax.jit(replay)(padded, preset("orbslam3"))
     assert not np.asarray(res.has_estimate[3:]).any() and not np.asarray(res.lost_any[3:]).any()
     assert (np.asarray(res.mode[3:]) == -1).all()
-    assert np.asarray(res.has_estimate[0, :100]).any()
+    # while the real runs are replayed (their random counts reset before BA2 again and again, which
+    # erases their estimates: docs/state-machine.md; so the mode, not the estimate, shows it)
+    assert (np.asarray(res.mode[0, :100]) >= 0).all() and (np.asarray(res.mode[0, :100]) == 0).any()
 
 
 def test_iter_chunks():
