@@ -299,12 +299,6 @@ def test_relaxed_gradient_is_finite_with_no_features_at_all(x64, occlusion_runs)
         assert np.isfinite(float(value)) and np.all(np.isfinite(np.asarray(grad.z))), (p, q)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="jsve.core._machine: the relaxed reloc_k is the mean over all mass, so the 10 % that resets at "
-    "frame 20 moves the never-lost mass's relocalisation window to 2 + 20 frames: frame 21 needs reloc "
-    "(60) and lost_any comes out 0.99999973 instead of 1 - prod(s) = 0.9145",
-)
 def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
     """IMU never initialised: a failed frame in OK resets the map (LOST), and LOST mass never comes back
     (no frame has the 100 inliers a new map needs). After the first map's relocalisation window (20

@@ -289,7 +289,7 @@ def test_sve_rule_scores_its_combination():
 
 ORB_TH = dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0)
 MODES = {"O": (1.0, 0.0, 0.0), "R": (0.0, 1.0, 0.0), "L": (0.0, 0.0, 1.0)}
-CLOCKS = ("t_lost", "map_start_t", "k_loss", "reloc_k", "segment")
+CLOCKS = ("t_lost", "map_start_t", "k_loss", "reloc_k", "lost_reloc_k", "segment")
 DECISIONS = ("tracked", "coasting", "new_map", "loss", "reset")
 
 
@@ -301,6 +301,7 @@ def _machine_inputs(mode, clocks, frame, run, dtype=jnp.float64):
     ok, rl, lost = MODES[mode]
     state = dict(ok=ok, recently_lost=rl, lost=lost, t_lost=0.0, map_start_t=0.0, k_loss=-2.0, reloc_k=0.0,
                  segment=0.0) | clocks  # fmt: skip
+    state = {"lost_reloc_k": state["reloc_k"]} | state  # the hard machine has one mnLastRelocFrameId
     data = dict(t=10.0, k=200.0, imu_init=1.0, imu_ba2=1.0, has_pose=1.0, can_init=0.0, rec_start=0.0,
                 rec_loss=0.0, rec_start_t=0.0, rec_reloc=-1.0) | frame  # fmt: skip
     constants = dict(fps=20.0, imu_init_delay=0.0, ba2_delay=0.0, stereo=0.0) | run
@@ -314,7 +315,10 @@ def _machine_inputs(mode, clocks, frame, run, dtype=jnp.float64):
 def _row(name, mode, score, then, decided=(), *, clocks=None, frame=None, run=None, changed=None):
     """One row: from `mode` with `clocks`, the frame (`frame`, `run` overrides) and `score` lead to mode
     `then` with the decisions `decided` set (the others 0) and the clocks `changed` (the others kept)."""
-    overrides = dict(clocks=clocks or {}, frame=frame or {}, run=run or {}, changed=changed or {})
+    changed = dict(changed or {})
+    if "reloc_k" in changed:  # the hard machine has one mnLastRelocFrameId: both mass clocks follow it
+        changed.setdefault("lost_reloc_k", changed["reloc_k"])
+    overrides = dict(clocks=clocks or {}, frame=frame or {}, run=run or {}, changed=changed)
     return SimpleNamespace(name=name, mode=mode, score=score, then=then, decided=set(decided), **overrides)
 
 
@@ -473,6 +477,7 @@ def test_soft_step_conserves_probability(x64):
         ok=arr(w[:, 0]), recently_lost=arr(w[:, 1]), lost=arr(w[:, 2]),
         t_lost=arr(rng.uniform(0, 10, n)), map_start_t=arr(rng.uniform(0, 10, n)),
         k_loss=arr(rng.integers(0, 200, n)), reloc_k=arr(rng.integers(0, 200, n)),
+        lost_reloc_k=arr(rng.integers(0, 200, n)),
         segment=arr(rng.uniform(0, 3, n)),
     )  # fmt: skip
     rec_start = flag(0.1)

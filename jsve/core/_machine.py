@@ -126,7 +126,11 @@ class MachineState(eqx.Module):
             Relaxed, each clock is the mass-weighted mean over the mass that owns it (`_mass_mean`).
         map_start_t: s, time of the first frame of the replay's current map.
         k_loss: frame index of the last loss (reset or expiry); a map initialises two frames later.
-        reloc_k: mnLastRelocFrameId: frame index the relocalisation window counts from.
+        reloc_k: mnLastRelocFrameId of the tracking (OK + RECENTLY_LOST) mass: frame index the
+            relocalisation window counts from.
+        lost_reloc_k: mnLastRelocFrameId of the LOST mass (a reset restarts it there, and the mass
+            carries it into its next map). The hard machine has one mnLastRelocFrameId: the two clocks
+            are equal there.
         segment: index of the replay's current map (-1 before the first).
     """
 
@@ -137,6 +141,7 @@ class MachineState(eqx.Module):
     map_start_t: Float[Array, "*runs"]
     k_loss: Float[Array, "*runs"]
     reloc_k: Float[Array, "*runs"]
+    lost_reloc_k: Float[Array, "*runs"]
     segment: Float[Array, "*runs"]
 
 
@@ -145,7 +150,7 @@ def initial_state(dtype=float) -> MachineState:
     first recorded map start begins map 0."""
     one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
     return MachineState(ok=zero, recently_lost=zero, lost=one, t_lost=zero, map_start_t=zero,
-                        k_loss=-2 * one, reloc_k=zero, segment=-one)  # fmt: skip
+                        k_loss=-2 * one, reloc_k=zero, lost_reloc_k=zero, segment=-one)  # fmt: skip
 
 
 class FrameDecision(eqx.Module):
@@ -224,28 +229,35 @@ def machine_step(
     tracked = state.ok * ok_pass + rl_pass + lost_init
     coasting = ok_to_rl + rl_stay
     loss = ok_reset + rl_expire
+    still_tracking = tracked + coasting + rl_blind - lost_init  # OK or RECENTLY_LOST before and after
+    lost_stay = state.lost * (1 - init)
+    reloc_hard = ok_reset * k + (1 - ok_reset) * state.reloc_k
     natural = MachineState(
         ok=tracked,
         recently_lost=coasting + rl_blind,
-        lost=loss + state.lost * (1 - init),
-        t_lost=_mass_mean(ok_to_rl, rl_stay + rl_blind, t, state.t_lost,
+        lost=loss + lost_stay,
+        t_lost=_mass_mean([(ok_to_rl, t), (rl_stay + rl_blind, state.t_lost)],
                           ok_to_rl * t + (1 - ok_to_rl) * state.t_lost),
         # The map start belongs to the OK + RECENTLY_LOST mass: the mass starting a map now, and the
         # rest of the tracking mass, which keeps its own.
-        map_start_t=_mass_mean(lost_init, tracked + coasting + rl_blind - lost_init, t, state.map_start_t,
+        map_start_t=_mass_mean([(lost_init, t), (still_tracking, state.map_start_t)],
                                lost_init * t + (1 - lost_init) * state.map_start_t),
-        k_loss=_mass_mean(loss, state.lost * (1 - init), k, state.k_loss,
-                          loss * k + (1 - loss) * state.k_loss),
-        reloc_k=_mass_mean(ok_reset, 1 - ok_reset, k, state.reloc_k,
-                           ok_reset * k + (1 - ok_reset) * state.reloc_k),
+        k_loss=_mass_mean([(loss, k), (lost_stay, state.k_loss)], loss * k + (1 - loss) * state.k_loss),
+        # mnLastRelocFrameId: a reset restarts the window of the mass it sends to LOST, which takes its
+        # window into its next map; an expiry keeps it.
+        reloc_k=_mass_mean([(still_tracking, state.reloc_k), (lost_init, state.lost_reloc_k)], reloc_hard),
+        lost_reloc_k=_mass_mean([(ok_reset, k), (rl_expire, state.reloc_k), (lost_stay, state.lost_reloc_k)],
+                                reloc_hard),
         segment=state.segment + lost_init,
     )  # fmt: skip
     # The recorded run starts a map here (exact): every replayed world ends its map and starts this one.
     rs = frame.rec_start
-    reloc = jnp.where(frame.rec_reloc >= 0, frame.rec_reloc, state.reloc_k)
+    reloc_now = _mass_mean([(state.ok + state.recently_lost, state.reloc_k), (state.lost, state.lost_reloc_k)],
+                           state.reloc_k)  # fmt: skip
+    reloc = jnp.where(frame.rec_reloc >= 0, frame.rec_reloc, reloc_now) + 0 * tracked
     forced = MachineState(ok=jnp.ones_like(tracked), recently_lost=jnp.zeros_like(tracked),
                           lost=jnp.zeros_like(tracked), t_lost=state.t_lost, map_start_t=t + 0 * tracked,
-                          k_loss=state.k_loss, reloc_k=reloc + 0 * tracked,
+                          k_loss=state.k_loss, reloc_k=reloc, lost_reloc_k=reloc,
                           segment=jnp.round(state.segment) + 1)  # fmt: skip
     next_state = jax.tree.map(lambda f, n: rs * f + (1 - rs) * n, forced, natural)
     decision = FrameDecision(
@@ -258,20 +270,21 @@ def machine_step(
     return next_state, decision
 
 
-def _mass_mean(entering, staying, now, old, hard_update):
-    """A per-mass clock after a step: the mass-weighted mean of `now` (for the `entering` mass) and of
-    `old` (the clock the `staying` mass already had).
+def _mass_mean(parts, hard_update):
+    """A per-mass clock after a step: the mass-weighted mean of the clocks each part of the mass brings,
+    `parts` a sequence of (mass, clock) pairs (e.g. the mass entering a mode now with `t`, and the mass
+    staying with the clock it already had).
 
     The relaxed machine holds probabilities, and the RECENTLY_LOST timer, the map start and the loss
     frame belong to parts of that mass, not to all of it: blending them with the clocks of the other
     modes (a LOST mass's stale map start, an OK mass's stale timer) would make recently lost mass
-    expire at once or a new map look old (tests/test_replay.py). With exact flags this is `now` on
-    entry and `old` while staying, bit for bit (1 * now / 1, 0 * now + 1 * old); when no mass holds
+    expire at once or a new map look old (tests/test_replay.py). With exact flags one part has mass 1
+    and the others 0, and this is that part's clock, bit for bit (1 * c / 1); when no mass holds
     the clock it is irrelevant and follows the hard machine's own update `hard_update`. The clocks
     feed only exact comparisons (expiry, relocalisation window, IMU age, initialisation), so they
     carry no gradient (stopped, which also keeps 1 / mass out of the backward pass).
     """
-    mass = entering + staying
+    mass = sum(m for m, _ in parts)
     some = mass > 0
-    mean = (entering * now + staying * old) / jnp.where(some, mass, 1.0)
+    mean = sum(m * c for m, c in parts) / jnp.where(some, mass, 1.0)
     return jax.lax.stop_gradient(jnp.where(some, mean, hard_update))

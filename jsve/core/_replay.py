@@ -165,7 +165,13 @@ def _scan_frames(
             visual = decision.tracked * posed
             estimate = visual + decision.coasting
             out_of_support = decision.tracked * (1 - posed)
-            a = (visual / jnp.where(estimate > 0, estimate, 1.0))[..., None]
+            # The visual share of the estimate mass. Its gradient -visual / estimate^2 (at most
+            # 1 / estimate in size) overflows, and 0 * inf = NaN backwards, where estimate^2 underflows:
+            # below sqrt(tiny) (~1e-154 in float64, ~1e-19 in float32) the share keeps its value but
+            # carries no gradient; such a frame weighs nothing in any loss. Both branches stay finite.
+            big = estimate > jnp.sqrt(jnp.finfo(dtype).tiny)
+            share = visual / jnp.where(estimate > 0, estimate, 1.0)
+            a = jnp.where(big, visual / jnp.where(big, estimate, 1.0), jax.lax.stop_gradient(share))[..., None]
             p2, v2, q2 = (
                 a * vp + (1 - a) * pp,
                 a * vv + (1 - a) * pv,
