@@ -21,8 +21,7 @@ import pandas as pd
 
 from jsve.core import quat_to_matrix
 from jsve.evaluation import bootstrap_ci
-from jsve.io import schema
-from jsve.io._atomic import write_text  # no public name yet: see tests/test_layers.py
+from jsve.io import schema, write_text
 from jsve.masks import PosePair, table_one, to_markdown
 from jsve.sim import DrivingConfig, simulate_sequence
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.core._levels import SEED_DISTURBANCES  # no public name yet: see tests/test_layers.py
+from jsve.core import SEED_DISTURBANCES
 from jsve.image import (
     DISTURBANCES,
     Camera,

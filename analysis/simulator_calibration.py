@@ -29,8 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.core import s_b
-from jsve.core._levels import SEED_DISTURBANCES  # no public name yet: see tests/test_layers.py
+from jsve.core import SEED_DISTURBANCES, s_b
 from jsve.sim import Scene, VisionParams, degradation, extract, make_scene
 
 REPO = Path(__file__).resolve().parents[1]

@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     from jsve.core import ObjectiveConfig
     from jsve.evaluation import group_weights
     from jsve.fitting import FitData, design, grid_design, search, space_from_dict
-    from jsve.io._atomic import atomic_path, write_table  # no public name yet: see tests/test_layers.py
+    from jsve.io import atomic_path, write_table
 
     seed = int(config.get("seed", 0))
     objective = dict(config.get("objective", {}))

@@ -42,10 +42,6 @@ KNOWN = {
 KNOWN_SCRIPT_USES = {
     # (script, private name) -> why the script still names it: no public export exists yet. The entry goes
     # when the package exports the name; test_known_script_uses_are_still_there fails once it is unused.
-    ("analysis/masked_driving.py", "jsve.io._atomic"): "jsve.io does not export its atomic writers",
-    ("sweeps/threshold_sweep.py", "jsve.io._atomic"): "jsve.io does not export its atomic writers",
-    ("analysis/real_frame_response.py", "jsve.core._levels"): "jsve.core does not export SEED_DISTURBANCES",
-    ("analysis/simulator_calibration.py", "jsve.core._levels"): "jsve.core does not export SEED_DISTURBANCES",
 }
 
 

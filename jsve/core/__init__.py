@@ -23,6 +23,8 @@ from jsve.core._geometry import quat_rotate as quat_rotate
 from jsve.core._geometry import quat_to_matrix as quat_to_matrix
 from jsve.core._geometry import so3_exp as so3_exp
 from jsve.core._imu import imu_predict as imu_predict
+from jsve.core._levels import LEVELS as LEVELS
+from jsve.core._levels import SEED_DISTURBANCES as SEED_DISTURBANCES
 from jsve.core._machine import HardLogic as HardLogic
 from jsve.core._machine import SoftLogic as SoftLogic
 from jsve.core._machine import machine_step as machine_step

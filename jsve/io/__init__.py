@@ -2,10 +2,17 @@
 side files.
 
 Every reader raises `LogFormatError` naming file, line, column and value; every writer writes to a
-temporary name and renames, so no half-written output is ever left under the final name.
+temporary name and renames, so no half-written output is ever left under the final name; scripts write
+their own outputs through the same writers (`atomic_path`, `write_text`, `write_json`, `write_table`, ...).
 """
 
 from jsve.io import _schema as schema  # noqa: F401  (jsve.io.schema: the v1 names)
+from jsve.io._atomic import PARTIAL_SUFFIX as PARTIAL_SUFFIX
+from jsve.io._atomic import atomic_path as atomic_path
+from jsve.io._atomic import write_bytes as write_bytes
+from jsve.io._atomic import write_json as write_json
+from jsve.io._atomic import write_table as write_table
+from jsve.io._atomic import write_text as write_text
 from jsve.io._batching import Bucket as Bucket
 from jsve.io._batching import buckets as buckets
 from jsve.io._batching import from_runs as from_runs
