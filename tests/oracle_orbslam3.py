@@ -28,8 +28,11 @@ Tracking.cc locations followed (line numbers of v1.0):
       (l.3030), then the recovery clause in RECENTLY_LOST (l.3033), then IMU_MONOCULAR (l.3037-3044,
       threshold by Atlas::isImuInitialized) or IMU_STEREO / IMU_RGBD (l.3047-3053, one threshold).
     StereoInitialization(), l.2335: a map needs more than 500 features (l.2337).
-    MonocularInitialization(), l.2448: a reference frame with > 100 keypoints (l.2454), then a frame
-      with > 100 keypoints (l.2483) and >= 100 matches (l.2495); mnLastRelocFrameId untouched (l.2630).
+    MonocularInitialization(), l.2448: without a reference (mbReadyToInitializate false) a frame with
+      > 100 keypoints becomes it (l.2451-2476); with one, a frame with <= 100 keypoints drops it
+      (l.2483-2488), as do < 100 matches (l.2495-2499); else ReconstructWithTwoViews decides (l.2504):
+      success makes the map. A dropping frame is no reference. mnLastRelocFrameId untouched (l.2630).
+      CreateMapInAtlas (l.2680) and ResetActiveMap (l.3879) clear mbReadyToInitializate.
     CreateMapInAtlas(), l.2662: a new map, mnLastRelocFrameId untouched (l.2675 is commented out).
     ResetActiveMap(), l.3840-3925: every stored frame of the active map is marked lost
       (l.3898-3912) and mnLastRelocFrameId = the current frame (l.3915).
@@ -41,9 +44,13 @@ Modelling choices of docs/state-machine.md (and the precisions the JAX machine s
       recorded reset) restarts the relocalisation window at that last posed frame.
     - IMU initialised / BA2 done for the replay's map: the logged flag, and the replay's map began
       no later than the current recorded map or is at least imu_init_delay / ba2_delay old.
-    - A natural map initialisation from LOST at frame k needs k >= k_loss + 2, a logged pose and
-      (monocular) n_extracted > 100 at k - 1 and k and n_inliers >= 100 at k (the recorded
-      inliers stand for the matches), (stereo) n_extracted > 500 at k.
+    - A natural map initialisation from LOST: (stereo) a frame after the loss frame with
+      n_extracted > 500 and a logged pose; (monocular) MonocularInitialization above, with the
+      recorded inliers standing for the matches and a logged pose for ReconstructWithTwoViews'
+      success; without a pose the reference is dropped (ORB-SLAM3 keeps it for up to 1 s when only
+      the reconstruction fails; the next posed frame is a recorded map start either way). The loss
+      frame itself returns early: the next frame is the first that can be a reference, so a
+      monocular map starts two frames after the loss at the earliest.
     - A reset takes the estimate from this frame and every earlier frame of the replay's map, on the
       failing frame (System::ResetActiveMap only raises a flag that the next frame's Track* call acts
       on, System.cc l.509-512 and l.304-307; the replay puts the reset and mnLastRelocFrameId on the
@@ -249,7 +256,7 @@ def replay_run(
     lost_any = False
     reloc_frame = 0  # mnLastRelocFrameId, l.48
     t_lost = math.nan  # mTimeStampLost
-    k_loss = None  # frame of the last reset or expiry
+    ready = False  # mbReadyToInitializate
     map_start_k, map_start_t = None, math.nan  # the replay's current map
     rec_start_t = math.nan  # start of the current recorded map
     last_posed = None  # index of the last frame with a recorded pose
@@ -276,6 +283,7 @@ def replay_run(
             if segment >= 0:
                 lost_any = True
             rec_start_t = t[k]
+            ready = False
             segment += 1
             map_start_k, map_start_t = k, t[k]
             mode = OK
@@ -300,7 +308,7 @@ def replay_run(
                 mode = LOST
                 lost_any = True
                 reloc_frame = k
-                k_loss = k
+                ready = False  # l.3879
                 if has_est[map_start_k:k].any():
                     events.append((k, "erase"))
                 has_est[map_start_k:k] = False
@@ -312,7 +320,7 @@ def replay_run(
                 # l.1993-1998, then l.2272-2288: LOST, the map is kept (CreateMapInAtlas)
                 mode = LOST
                 lost_any = True
-                k_loss = k
+                ready = False  # l.2680
                 events.append((k, "expiry"))
             elif not imu_ok:
                 # l.1988-1991: no PredictStateIMU, bOK = false, no TrackLocalMap; mState stays
@@ -330,14 +338,22 @@ def replay_run(
                     estimate = "logged" if switch_model == "orbslam3" else "predicted"
 
         else:  # LOST
-            # MonocularInitialization / StereoInitialization; the loss frame returned early and
-            # the next one became the reference (l.2017-2031, l.2271-2288)
+            # StereoInitialization / MonocularInitialization; the loss frame returned early
+            # (l.2017-2031, l.2271-2288), so this is a later frame
+            initialises = False
             if stereo:
-                initialises = n_ext[k] > 500  # l.2337
+                initialises = n_ext[k] > 500 and has_pose[k]  # l.2337
+            elif not ready:
+                if n_ext[k] > 100:  # l.2454: this frame becomes the reference
+                    ready = True
+                    events.append((k, "reference"))
+            elif n_ext[k] > 100 and n_inl[k] >= 100 and has_pose[k]:
+                initialises = True  # l.2483, l.2495, l.2504 (the recorded pose: the reconstruction)
             else:
-                # l.2454 (reference frame), l.2483 (current frame), l.2495 (matches)
-                initialises = n_ext[k - 1] > 100 and n_ext[k] > 100 and n_inl[k] >= 100
-            if k_loss is not None and k >= k_loss + 2 and has_pose[k] and initialises:  # k - 1 >= 0
+                ready = False  # l.2483-2499: the reference is dropped; this frame is no reference
+                events.append((k, "reference_dropped"))
+            if initialises:
+                ready = False
                 segment += 1
                 map_start_k, map_start_t = k, t[k]
                 mode = OK

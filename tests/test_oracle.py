@@ -221,8 +221,9 @@ def sc_monocular_ignores_imu_state():
 
 
 def sc_monocular_init_conditions():
-    """Reset at 20. Frame 21 is too early; 22 follows a frame of 100 features; 23 has 99 inliers;
-    24 initialises (101 features at 23 and 24, 100 inliers)."""
+    """Reset at 20. Frame 21 (100 features) cannot be the reference; 22 is; 23 (101 features but 99
+    inliers) drops it and is no reference itself (l.2495-2499); 24 (101 features) is the next one;
+    25 initialises."""
     log = clean_log(40)
     log["imu_ba2"][:] = False
     log["ba2_delay"] = math.inf
@@ -231,6 +232,17 @@ def sc_monocular_init_conditions():
     log["n_extracted"][23:25] = 101
     log["n_inliers"][23] = 99
     log["n_inliers"][24] = 100
+    return log, ORB
+
+
+def sc_stereo_init_after_reset():
+    """No IMU: 5 inliers at frame 20 reset the map (stereo: < imu_init 15); 1000 features after."""
+    log = clean_log(40, stereo=True)
+    log["imu_init"][:] = False
+    log["imu_ba2"][:] = False
+    log["imu_init_delay"] = math.inf
+    log["ba2_delay"] = math.inf
+    log["n_inliers"][20] = 5
     return log, ORB
 
 
@@ -430,8 +442,20 @@ def test_stereo_test_ignores_the_imu_state():
 
 def test_monocular_initialisation_conditions():
     res = run_oracle(*sc_monocular_init_conditions())
-    assert res.mode[20:24].tolist() == [LOST] * 4 and res.mode[24] == OK and res.segment[24] == 1
+    assert res.mode[20:25].tolist() == [LOST] * 5 and res.mode[25] == OK and res.segment[25] == 1
     assert res.count("natural_init") == 1
+    assert [k for k, e in res.events if e.startswith("reference")] == [22, 23, 24]
+
+
+def test_stereo_initialises_on_the_frame_after_the_loss():
+    """StereoInitialization needs no reference frame: the frame after the reset starts the map; a
+    monocular map needs that frame as its reference and starts one frame later."""
+    log, th = sc_stereo_init_after_reset()
+    res = run_oracle(log, th)
+    assert res.mode[20] == LOST and res.mode[21] == OK and res.segment[21] == 1
+    log["stereo"] = False
+    res = run_oracle(log, th)
+    assert res.mode[20:22].tolist() == [LOST, LOST] and res.mode[22] == OK and res.segment[22] == 1
 
 
 def test_imu_coast_dead_reckons_recently_lost_frames():
@@ -587,7 +611,7 @@ examples = st.tuples(st.lists(run_specs, min_size=RUNS_PER_EXAMPLE, max_size=RUN
                      st.sampled_from(range(len(TH_ORDERS))))  # fmt: skip
 
 EVENTS = ("recorded_start", "recorded_reset", "natural_init", "reset", "erase", "expiry", "ok_to_rl",
-          "recovery", "rl_no_imu", "out_of_support", "predicted")  # fmt: skip
+          "recovery", "rl_no_imu", "out_of_support", "predicted", "reference", "reference_dropped")  # fmt: skip
 
 
 def event_counts(results, logs) -> collections.Counter:

@@ -211,8 +211,8 @@ def test_frame_data_marks_recorded_map_starts():
     """A recorded map starts at the first posed frame, at a map_id change and at a pose after frames
     without one; every start but the log's first is a recorded loss. A start in the map of the last
     posed frame (a reset: the pose-less gap keeps the map id) restarts the relocalisation window at
-    that posed frame; a new map id does not. A map can initialise where the frame and the one before
-    have > 100 keypoints and the frame >= 100 inliers (mono) or > 500 keypoints (stereo), with a pose."""
+    that posed frame; a new map id does not. A frame has the keypoints of an initialisation frame with
+    > 100 (mono) or > 500 (stereo), and the matches to a monocular reference with >= 100 inliers."""
     has_pose = [False, True, True, True, False, False, True, True, True, True]
     map_id = [0, 0, 0, 0, 0, 0, 0, 0, 1, 1]
     ext = [1000, 1000, 101, 1000, 1000, 1000, 1000, 100, 1000, 600]
@@ -223,11 +223,13 @@ def test_frame_data_marks_recorded_map_starts():
     assert get("rec_start") == [0, 1, 0, 0, 0, 0, 1, 0, 1, 0]
     assert get("rec_loss") == [0, 0, 0, 0, 0, 0, 1, 0, 1, 0]
     assert get("rec_reloc") == [-1, -1, -1, -1, -1, -1, 3, -1, -1, -1]
-    assert get("can_init") == [0, 1, 1, 0, 0, 0, 1, 0, 0, 1]
+    assert get("init_keys") == [1, 1, 1, 1, 1, 1, 1, 0, 1, 1]
+    assert get("init_matches") == [1, 1, 1, 0, 1, 1, 1, 1, 1, 1]
     t = np.asarray(batch.t[0])
     assert get("rec_start_t") == t[[0, 1, 1, 1, 1, 1, 6, 6, 8, 8]].tolist()
     stereo = frame_data(log_batch(inl, has_pose=has_pose, map_id=map_id, n_extracted=ext, stereo=True))
-    assert np.asarray(stereo.can_init[0]).tolist() == [0, 1, 0, 1, 0, 0, 1, 0, 1, 1]
+    assert np.asarray(stereo.init_keys[0]).tolist() == [1, 1, 0, 1, 1, 1, 1, 0, 1, 1]
+    assert np.asarray(stereo.init_matches[0]).tolist() == [1] * 10
 
 
 # ------------------------------------------------------------------------------------------------
@@ -740,8 +742,8 @@ def test_soft_logic_converges_to_hard_logic(x64):
 
 def _frame(t, k, **flags) -> FrameData:
     """One frame's FrameData (float64 scalars): IMU initialised and BA2 done, posed, no recorded start."""
-    values = dict(t=t, k=k, imu_init=1.0, imu_ba2=1.0, has_pose=1.0, can_init=0.0, rec_start=0.0,
-                  rec_loss=0.0, rec_start_t=0.0, rec_reloc=-1.0) | flags  # fmt: skip
+    values = dict(t=t, k=k, imu_init=1.0, imu_ba2=1.0, has_pose=1.0, init_keys=0.0, init_matches=0.0,
+                  rec_start=0.0, rec_loss=0.0, rec_start_t=0.0, rec_reloc=-1.0) | flags  # fmt: skip
     return FrameData(**{key: jnp.asarray(value, jnp.float64) for key, value in values.items()})
 
 
@@ -752,7 +754,7 @@ def _run(**constants) -> RunConstants:
 
 def _state(ok=1.0, recently_lost=0.0, lost=0.0, **clocks) -> MachineState:
     """A machine state in the log's first map (started at t = 0, frame 0)."""
-    values = dict(ok=ok, recently_lost=recently_lost, lost=lost, t_lost=0.0, map_start_t=0.0, k_loss=-2.0,
+    values = dict(ok=ok, recently_lost=recently_lost, lost=lost, lost_ready=0.0, t_lost=0.0, map_start_t=0.0,
                   reloc_k=0.0, lost_reloc_k=0.0, segment=0.0) | clocks  # fmt: skip
     return MachineState(**{key: jnp.asarray(value, jnp.float64) for key, value in values.items()})
 
@@ -787,8 +789,9 @@ def test_relaxed_map_start_belongs_to_the_new_map_mass(x64):
     th = Thresholds(**dict(ORB, reloc=0.0))
     logic = SoftLogic(jnp.asarray(0.5))
     run = _run(imu_init_delay=2.0, ba2_delay=2.0)
-    state = _state(ok=0.6, lost=0.4, k_loss=100.0)
-    state, decision = machine_step(logic, state, 0.0, _frame(10.0, 200.0, imu_ba2=0.0, can_init=1.0), run, th)
+    state = _state(ok=0.6, lost=0.4, lost_ready=0.4)  # the LOST mass holds a reference frame
+    frame = _frame(10.0, 200.0, imu_ba2=0.0, init_keys=1.0, init_matches=1.0)
+    state, decision = machine_step(logic, state, 0.0, frame, run, th)
     np.testing.assert_allclose(float(decision.new_map), 0.4, rtol=1e-12)
     np.testing.assert_allclose(float(decision.reset), 0.6, rtol=1e-9)
     np.testing.assert_allclose(float(state.map_start_t), 10.0, rtol=1e-9)

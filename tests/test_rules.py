@@ -289,7 +289,7 @@ def test_sve_rule_scores_its_combination():
 
 ORB_TH = dict(imu_init=15.0, not_init=50.0, reloc=50.0, recovery=10.0)
 MODES = {"O": (1.0, 0.0, 0.0), "R": (0.0, 1.0, 0.0), "L": (0.0, 0.0, 1.0)}
-CLOCKS = ("t_lost", "map_start_t", "k_loss", "reloc_k", "lost_reloc_k", "segment")
+CLOCKS = ("lost_ready", "t_lost", "map_start_t", "reloc_k", "lost_reloc_k", "segment")  # and the ready mass
 DECISIONS = ("tracked", "coasting", "new_map", "loss", "reset")
 
 
@@ -299,11 +299,11 @@ def _machine_inputs(mode, clocks, frame, run, dtype=jnp.float64):
     start, unless `clocks`, `frame` or `run` say otherwise."""
     arr = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     ok, rl, lost = MODES[mode]
-    state = dict(ok=ok, recently_lost=rl, lost=lost, t_lost=0.0, map_start_t=0.0, k_loss=-2.0, reloc_k=0.0,
+    state = dict(ok=ok, recently_lost=rl, lost=lost, lost_ready=0.0, t_lost=0.0, map_start_t=0.0, reloc_k=0.0,
                  segment=0.0) | clocks  # fmt: skip
     state = {"lost_reloc_k": state["reloc_k"]} | state  # the hard machine has one mnLastRelocFrameId
-    data = dict(t=10.0, k=200.0, imu_init=1.0, imu_ba2=1.0, has_pose=1.0, can_init=0.0, rec_start=0.0,
-                rec_loss=0.0, rec_start_t=0.0, rec_reloc=-1.0) | frame  # fmt: skip
+    data = dict(t=10.0, k=200.0, imu_init=1.0, imu_ba2=1.0, has_pose=1.0, init_keys=0.0, init_matches=0.0,
+                rec_start=0.0, rec_loss=0.0, rec_start_t=0.0, rec_reloc=-1.0) | frame  # fmt: skip
     constants = dict(fps=20.0, imu_init_delay=0.0, ba2_delay=0.0, stereo=0.0) | run
     return (
         MachineState(**{k: arr(v) for k, v in state.items()}),
@@ -322,8 +322,9 @@ def _row(name, mode, score, then, decided=(), *, clocks=None, frame=None, run=No
     return SimpleNamespace(name=name, mode=mode, score=score, then=then, decided=set(decided), **overrides)
 
 
-RESET = {"k_loss": 200.0, "reloc_k": 200.0}  # a reset at frame 200: the loss and the window count from it
+RESET = {"reloc_k": 200.0}  # a reset at frame 200: the window counts from it
 NO_IMU, NO_BA2, STEREO = {"imu_init": 0.0}, {"imu_ba2": 0.0}, {"stereo": 1.0}
+READY, INIT = {"lost_ready": 1.0}, {"init_keys": 1.0, "init_matches": 1.0}
 TABLE = [
     _row("OK passes", "O", 20.0, "O", ["tracked"]),
     _row("OK passes at imu_init", "O", 15.0, "O", ["tracked"]),
@@ -349,14 +350,22 @@ TABLE = [
     _row("RECENTLY_LOST fails: timer kept", "R", 10.0, "R", ["coasting"], clocks={"t_lost": 8.0}),
     _row("RECENTLY_LOST at exactly 5 s is not expired", "R", 11.0, "O", ["tracked"], clocks={"t_lost": 5.0}),
     _row("RECENTLY_LOST after 5 s: LOST, no recovery tried", "R", 200.0, "L", ["loss"],
-         clocks={"t_lost": 4.75}, changed={"k_loss": 200.0}),
+         clocks={"t_lost": 4.75}),
     _row("RECENTLY_LOST without IMU: no estimate, no recovery", "R", 200.0, "R", clocks={"t_lost": 8.0},
          frame=NO_IMU),
-    _row("LOST: a map initialises two frames after the loss", "L", 0.0, "O", ["tracked", "new_map"],
-         clocks={"k_loss": 198.0}, frame={"can_init": 1.0}, changed={"map_start_t": 10.0, "segment": 1.0}),
-    _row("LOST: not on the frame after it", "L", 200.0, "L", clocks={"k_loss": 199.0},
-         frame={"can_init": 1.0}),
-    _row("LOST: not without the data", "L", 200.0, "L", clocks={"k_loss": 100.0}),
+    _row("LOST with a reference: a frame with keypoints, matches and a pose initialises a map", "L", 0.0, "O",
+         ["tracked", "new_map"], clocks=READY, frame=INIT, changed={"lost_ready": 0.0, "map_start_t": 10.0,
+         "segment": 1.0}),
+    _row("LOST without a reference: the frame becomes the reference", "L", 200.0, "L", frame=INIT,
+         changed={"lost_ready": 1.0}),
+    _row("... not with 100 keypoints or fewer", "L", 200.0, "L", frame={"init_matches": 1.0}),
+    _row("LOST with a reference: too few matches drop it, the frame is no reference", "L", 200.0, "L",
+         clocks=READY, frame={"init_keys": 1.0}, changed={"lost_ready": 0.0}),
+    _row("... as does a frame without a recorded pose", "L", 200.0, "L", clocks=READY,
+         frame=INIT | {"has_pose": 0.0}, changed={"lost_ready": 0.0}),
+    _row("stereo LOST: a frame with keypoints and a pose initialises, no reference", "L", 0.0, "O",
+         ["tracked", "new_map"], frame=INIT, run=STEREO, changed={"map_start_t": 10.0, "segment": 1.0}),
+    _row("stereo LOST: not without the keypoints", "L", 0.0, "L", frame={"init_matches": 1.0}, run=STEREO),
     _row("a recorded reset: a new map, the window from the recorded reset", "R", 0.0, "O",
          ["tracked", "new_map", "loss"], clocks={"t_lost": 8.0},
          frame={"rec_start": 1.0, "rec_loss": 1.0, "rec_reloc": 190.0, "rec_start_t": 10.0},
@@ -476,7 +485,7 @@ def test_soft_step_conserves_probability(x64):
     state = MachineState(
         ok=arr(w[:, 0]), recently_lost=arr(w[:, 1]), lost=arr(w[:, 2]),
         t_lost=arr(rng.uniform(0, 10, n)), map_start_t=arr(rng.uniform(0, 10, n)),
-        k_loss=arr(rng.integers(0, 200, n)), reloc_k=arr(rng.integers(0, 200, n)),
+        lost_ready=arr(w[:, 2] * rng.random(n)), reloc_k=arr(rng.integers(0, 200, n)),
         lost_reloc_k=arr(rng.integers(0, 200, n)),
         segment=arr(rng.uniform(0, 3, n)),
     )  # fmt: skip
@@ -484,7 +493,7 @@ def test_soft_step_conserves_probability(x64):
     rec_reloc = jnp.where(flag(0.5) > 0, arr(rng.integers(150, 200, n)), -1.0)
     data = FrameData(
         t=arr(rng.uniform(10, 16, n)), k=arr(rng.integers(200, 300, n)), imu_init=flag(0.7),
-        imu_ba2=flag(0.6), has_pose=flag(0.9), can_init=flag(0.5), rec_start=rec_start,
+        imu_ba2=flag(0.6), has_pose=flag(0.9), init_keys=flag(0.7), init_matches=flag(0.6), rec_start=rec_start,
         rec_loss=rec_start * flag(0.8), rec_start_t=arr(rng.uniform(0, 10, n)), rec_reloc=rec_reloc,
     )  # fmt: skip
     run = RunConstants(fps=arr(rng.choice([10.0, 20.0, 20.5], n)), imu_init_delay=arr(rng.uniform(0, 3, n)),
@@ -499,6 +508,8 @@ def test_soft_step_conserves_probability(x64):
     tracked, coasting = np.asarray(decision.tracked), np.asarray(decision.coasting)
     assert (tracked >= 0).all() and (coasting >= 0).all() and (tracked + coasting <= 1 + 1e-14).all()
     np.testing.assert_allclose(tracked, np.asarray(nxt.ok), atol=1e-15)
+    ready, lost = np.asarray(nxt.lost_ready), np.asarray(nxt.lost)
+    assert (ready >= 0).all() and (ready <= lost + 1e-15).all() and ready.max() > 0.1  # a part of LOST
     assert 0.05 < tracked.mean() < 0.95 and coasting.max() > 0.1  # mixed: not a trivial case
 
 

@@ -32,6 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--runs", type=int, help="runs per sequence and setting (default 2)")
     p.add_argument("--seed", type=int, help="simulator seed (default 0)")
     p.add_argument("--workers", type=int, metavar="N", help="simulator processes (default: all cores)")
+    common.add_switch_model_option(p)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -59,6 +60,8 @@ def run(args) -> int:
             if v is not None
         }
         config = replace(config, **changes)
+        if args.switch_model is not None:
+            config = replace(config, study=replace(config.study, switch_model=args.switch_model))
     except (ValueError, TypeError) as err:
         return common.fail("demo", err)
     timings = run_demo(args.output, config, progress=not args.no_progress, workers=args.workers)

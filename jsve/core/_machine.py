@@ -79,8 +79,10 @@ class FrameData(eqx.Module):
         t: s since the log's first frame. k: frame index (float).
         imu_init, imu_ba2: the recorded map's inertial stage (Atlas::isImuInitialized, GetIniertialBA2).
         has_pose: the recorded run posed the frame (its logged pose exists).
-        can_init: a map could initialise on this frame, data part (keypoints, matches, a pose);
-            the machine adds "at least two frames after the loss".
+        init_keys: the frame has the keypoints of an initialisation frame (monocular: > 100, a reference
+            or a second frame; stereo: > 500).
+        init_matches: the frame has the matches to a monocular reference (the recorded inliers stand in:
+            >= 100); 1 for stereo, which needs no reference.
         rec_start: the recorded run starts a map here (a new map_id, or a pose after frames without one).
         rec_loss: rec_start, and not the log's first map: the recorded run lost its map.
         rec_start_t: s, start time of the recorded map the frame belongs to.
@@ -93,7 +95,8 @@ class FrameData(eqx.Module):
     imu_init: Array
     imu_ba2: Array
     has_pose: Array
-    can_init: Array
+    init_keys: Array
+    init_matches: Array
     rec_start: Array
     rec_loss: Array
     rec_start_t: Array
@@ -122,10 +125,11 @@ class MachineState(eqx.Module):
     Attributes:
         ok, recently_lost, lost: mode flags, exactly one is 1 in the hard machine. LOST means no map:
             waiting for one to initialise (also before the log's first map).
+        lost_ready: the part of `lost` that holds a monocular reference frame
+            (mbReadyToInitializate): the next frame may initialise a map.
         t_lost: s, time of the frame that entered RECENTLY_LOST (the timer is never restarted there).
             Relaxed, each clock is the mass-weighted mean over the mass that owns it (`_mass_mean`).
         map_start_t: s, time of the first frame of the replay's current map.
-        k_loss: frame index of the last loss (reset or expiry); a map initialises two frames later.
         reloc_k: mnLastRelocFrameId of the tracking (OK + RECENTLY_LOST) mass: frame index the
             relocalisation window counts from.
         lost_reloc_k: mnLastRelocFrameId of the LOST mass (a reset restarts it there, and the mass
@@ -137,9 +141,9 @@ class MachineState(eqx.Module):
     ok: Float[Array, "*runs"]
     recently_lost: Float[Array, "*runs"]
     lost: Float[Array, "*runs"]
+    lost_ready: Float[Array, "*runs"]
     t_lost: Float[Array, "*runs"]
     map_start_t: Float[Array, "*runs"]
-    k_loss: Float[Array, "*runs"]
     reloc_k: Float[Array, "*runs"]
     lost_reloc_k: Float[Array, "*runs"]
     segment: Float[Array, "*runs"]
@@ -149,8 +153,8 @@ def initial_state(dtype=float) -> MachineState:
     """No map yet (LOST), relocalisation window from frame 0 (mnLastRelocFrameId starts at 0): the
     first recorded map start begins map 0."""
     one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
-    return MachineState(ok=zero, recently_lost=zero, lost=one, t_lost=zero, map_start_t=zero,
-                        k_loss=-2 * one, reloc_k=zero, lost_reloc_k=zero, segment=-one)  # fmt: skip
+    return MachineState(ok=zero, recently_lost=zero, lost=one, lost_ready=zero, t_lost=zero, map_start_t=zero,
+                        reloc_k=zero, lost_reloc_k=zero, segment=-one)  # fmt: skip
 
 
 class FrameDecision(eqx.Module):
@@ -218,35 +222,51 @@ def machine_step(
     ok_fail = state.ok * (1 - ok_pass)
     ok_to_rl = ok_fail * imu_ok * ba2_ok  # l.2142-2163: RECENTLY_LOST, timer set
     ok_reset = ok_fail * (1 - imu_ok * ba2_ok)  # l.2149-2153: ResetActiveMap before BA2
-    rl_expire = state.recently_lost * expired  # l.1993-1997
+    # l.1993-1997, then CreateMapInAtlas (l.2286). The reset of l.2279-2284 (IMU not initialised)
+    # cannot be reached: RECENTLY_LOST is entered only with the IMU initialised, which a map keeps.
+    rl_expire = state.recently_lost * expired
     rl_live = state.recently_lost * (1 - expired)
     rl_blind = rl_live * (1 - imu_ok)  # l.1988-1991: no PredictStateIMU, no TrackLocalMap
     rl_pass = rl_live * imu_ok * tracking_succeeds(logic, score, th, 1.0, imu_ok, in_reloc, run.stereo)
     rl_stay = rl_live * imu_ok - rl_pass
-    init = frame.can_init * flag(k >= state.k_loss + 2)
-    lost_init = state.lost * init
+    # Map initialisation from LOST (data facts only: exact). The frame that lost the map returned
+    # early (l.2272-2288; a reset runs at the next frame's start, System.cc), so it never starts one.
+    mono = 1 - run.stereo
+    ready = state.lost_ready
+    unready = state.lost - ready
+    # Monocular (l.2448-2500): an unready mass takes this frame as its reference if it has the
+    # keypoints; a ready one initialises a map if the frame has the keypoints and the matches (and a
+    # recorded pose, standing for ReconstructWithTwoViews' success), and else drops its reference
+    # without taking this frame as the next one. (ORB-SLAM3 keeps the reference when only the
+    # reconstruction fails, for up to 1 s; in the log that is a frame without a pose, and the next
+    # posed frame starts a recorded map anyway, so the difference cannot show.)
+    becomes_ready = mono * unready * frame.init_keys
+    attempt = frame.init_keys * frame.init_matches * frame.has_pose
+    # Stereo (l.2335-2337): any frame after the loss with the keypoints (and a recorded pose).
+    lost_init = mono * ready * attempt + run.stereo * state.lost * frame.init_keys * frame.has_pose
 
     tracked = state.ok * ok_pass + rl_pass + lost_init
     coasting = ok_to_rl + rl_stay
+    reset = ok_reset
     loss = ok_reset + rl_expire
     still_tracking = tracked + coasting + rl_blind - lost_init  # OK or RECENTLY_LOST before and after
-    lost_stay = state.lost * (1 - init)
-    reloc_hard = ok_reset * k + (1 - ok_reset) * state.reloc_k
+    lost_stay = state.lost - lost_init
+    reloc_hard = reset * k + (1 - reset) * state.reloc_k
     natural = MachineState(
         ok=tracked,
         recently_lost=coasting + rl_blind,
         lost=loss + lost_stay,
+        lost_ready=becomes_ready,
         t_lost=_mass_mean([(ok_to_rl, t), (rl_stay + rl_blind, state.t_lost)],
                           ok_to_rl * t + (1 - ok_to_rl) * state.t_lost),
         # The map start belongs to the OK + RECENTLY_LOST mass: the mass starting a map now, and the
         # rest of the tracking mass, which keeps its own.
         map_start_t=_mass_mean([(lost_init, t), (still_tracking, state.map_start_t)],
                                lost_init * t + (1 - lost_init) * state.map_start_t),
-        k_loss=_mass_mean([(loss, k), (lost_stay, state.k_loss)], loss * k + (1 - loss) * state.k_loss),
         # mnLastRelocFrameId: a reset restarts the window of the mass it sends to LOST, which takes its
         # window into its next map; an expiry keeps it.
         reloc_k=_mass_mean([(still_tracking, state.reloc_k), (lost_init, state.lost_reloc_k)], reloc_hard),
-        lost_reloc_k=_mass_mean([(ok_reset, k), (rl_expire, state.reloc_k), (lost_stay, state.lost_reloc_k)],
+        lost_reloc_k=_mass_mean([(reset, k), (rl_expire, state.reloc_k), (lost_stay, state.lost_reloc_k)],
                                 reloc_hard),
         segment=state.segment + lost_init,
     )  # fmt: skip
@@ -255,9 +275,9 @@ def machine_step(
     reloc_now = _mass_mean([(state.ok + state.recently_lost, state.reloc_k), (state.lost, state.lost_reloc_k)],
                            state.reloc_k)  # fmt: skip
     reloc = jnp.where(frame.rec_reloc >= 0, frame.rec_reloc, reloc_now) + 0 * tracked
-    forced = MachineState(ok=jnp.ones_like(tracked), recently_lost=jnp.zeros_like(tracked),
-                          lost=jnp.zeros_like(tracked), t_lost=state.t_lost, map_start_t=t + 0 * tracked,
-                          k_loss=state.k_loss, reloc_k=reloc, lost_reloc_k=reloc,
+    zero = jnp.zeros_like(tracked)
+    forced = MachineState(ok=zero + 1, recently_lost=zero, lost=zero, lost_ready=zero, t_lost=state.t_lost,
+                          map_start_t=t + zero, reloc_k=reloc, lost_reloc_k=reloc,
                           segment=jnp.round(state.segment) + 1)  # fmt: skip
     next_state = jax.tree.map(lambda f, n: rs * f + (1 - rs) * n, forced, natural)
     decision = FrameDecision(
@@ -265,7 +285,7 @@ def machine_step(
         coasting=(1 - rs) * coasting,
         new_map=rs + (1 - rs) * lost_init,
         loss=frame.rec_loss + (1 - rs) * loss,
-        reset=(1 - rs) * ok_reset,
+        reset=(1 - rs) * reset,
     )
     return next_state, decision
 

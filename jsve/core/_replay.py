@@ -97,11 +97,10 @@ def frame_data(batch: LogBatch) -> FrameData:
     last_posed = _shift(jax.lax.cummax(jnp.where(has, idx, -1), axis=1), -1)
     same_map = jnp.take_along_axis(batch.map_id, jnp.maximum(last_posed, 0), axis=1) == batch.map_id
     rec_reloc = jnp.where(rec_start & (last_posed >= 0) & same_map, last_posed, -1)
-    n_ext = batch.n_extracted
-    mono = ((_shift(n_ext, 0) > MONO_INIT_MIN_KEYPOINTS) & (n_ext > MONO_INIT_MIN_KEYPOINTS)
-            & (batch.n_inliers >= MONO_INIT_MIN_MATCHES))  # fmt: skip
-    stereo = n_ext > STEREO_INIT_MIN_KEYPOINTS
-    can_init = has & jnp.where(batch.stereo[:, None], stereo, mono)
+    stereo = batch.stereo[:, None]
+    min_keys = jnp.where(stereo, STEREO_INIT_MIN_KEYPOINTS, MONO_INIT_MIN_KEYPOINTS)
+    init_keys = batch.valid & (batch.n_extracted > min_keys)
+    init_matches = stereo | (batch.n_inliers >= MONO_INIT_MIN_MATCHES)
     f = lambda x: x.astype(dtype)  # noqa: E731
     return FrameData(
         t=batch.t,
@@ -109,7 +108,8 @@ def frame_data(batch: LogBatch) -> FrameData:
         imu_init=f(batch.imu_init),
         imu_ba2=f(batch.imu_ba2),
         has_pose=f(has),
-        can_init=f(can_init),
+        init_keys=f(init_keys),
+        init_matches=f(init_matches),
         rec_start=f(rec_start),
         rec_loss=f(rec_loss),
         rec_start_t=rec_start_t,

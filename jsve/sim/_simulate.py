@@ -459,9 +459,8 @@ def _orbslam3_states(
     ba2 = np.stack([schema.v1_defaults(frame_ns, i)["imu_ba2"] != 0 for i in imu_init])
     first = lambda flags: np.array([t[np.argmax(f)] if f.any() else np.inf for f in flags], np.float32)  # noqa: E731
     n_ext = np.broadcast_to(n_extracted, (R, F))
-    prev = np.concatenate([np.zeros((R, 1), n_ext.dtype), n_ext[:, :-1]], axis=1)
-    can_init = (prev > 100) & (n_ext > 100) & (n_inliers >= 100)  # MONO_INIT_* of jsve.core._machine
-    columns = [np.pad(x.astype(np.float32), pad) for x in (n_inliers, imu_init, ba2, can_init)]
+    init_keys, init_matches = n_ext > 100, n_inliers >= 100  # MONO_INIT_* of jsve.core._machine
+    columns = [np.pad(x.astype(np.float32), pad) for x in (n_inliers, imu_init, ba2, init_keys, init_matches)]
     tt = np.pad(t.astype(np.float32), (0, padded - F), mode="edge")
     delays = (jnp.asarray(first(imu_init)), jnp.asarray(first(ba2)))
     out = _machine_fn()(*map(jnp.asarray, columns), jnp.asarray(tt), jnp.float32(fps), *delays,
@@ -483,12 +482,13 @@ def _machine_fn():
 
     from jsve.core._machine import FrameData, HardLogic, RunConstants, initial_state, machine_step
 
-    def one(score, init, ba2, can_init, t, fps, delay, ba2_delay, thresholds):
+    def one(score, init, ba2, init_keys, init_matches, t, fps, delay, ba2_delay, thresholds):
         k = jnp.arange(t.shape[0], dtype=t.dtype)
         zero = jnp.zeros_like(t)
         first = (k == 0).astype(t.dtype)
-        data = FrameData(t=t, k=k, imu_init=init, imu_ba2=ba2, has_pose=zero + 1, can_init=can_init,
-                         rec_start=first, rec_loss=zero, rec_start_t=zero, rec_reloc=zero - 1)  # fmt: skip
+        data = FrameData(t=t, k=k, imu_init=init, imu_ba2=ba2, has_pose=zero + 1,
+                         init_keys=init_keys, init_matches=init_matches, rec_start=first, rec_loss=zero,
+                         rec_start_t=zero, rec_reloc=zero - 1)  # fmt: skip
         run = RunConstants(fps=fps, imu_init_delay=delay, ba2_delay=ba2_delay, stereo=jnp.zeros((), t.dtype))
 
         def step(state, x):
@@ -500,7 +500,7 @@ def _machine_fn():
         _, out = jax.lax.scan(step, initial_state(t.dtype), (score, data))
         return out
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None, None, 0, 0, None)))
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None, None, 0, 0, None)))
 
 
 def _round(x: np.ndarray, decimals: int) -> np.ndarray:
