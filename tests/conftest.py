@@ -1,10 +1,13 @@
-"""Shared fixtures: the real data in ../shared/data (skipped when absent) and float64 switching."""
+"""Shared fixtures: the real data in ../shared/data (skipped when absent), float64 switching, and jsve's
+own shape errors with jaxtyping's runtime checker (on for jsve.core through pyproject's addopts) off."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import jax
+import jaxtyping
 import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -35,6 +38,30 @@ def x64():
     jax.config.update("jax_enable_x64", True)
     yield
     jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.fixture
+def unchecked():
+    """A context without jaxtyping's runtime checker, for a test of jsve's own error for a wrong shape.
+
+    pyproject's addopts check every annotation of jsve.core at test time; a call whose shapes contradict
+    the annotations is then rejected by the checker (a TypeCheckError) before jsve's own check runs. Users
+    run without the checker and get jsve's ValueError naming the argument; that is what such a test asserts:
+
+        with unchecked(), pytest.raises(ValueError, match="ref_p has 9 frames"):
+            align(est_p, ref_p[:9], mask, method="se3")
+    """
+
+    @contextlib.contextmanager
+    def off():
+        previous = jaxtyping.config.jaxtyping_disable
+        jaxtyping.config.update("jaxtyping_disable", True)
+        try:
+            yield
+        finally:
+            jaxtyping.config.update("jaxtyping_disable", previous)
+
+    return off
 
 
 @pytest.fixture

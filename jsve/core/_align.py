@@ -38,19 +38,19 @@ class Transform(eqx.Module):
     """A similarity transform mapping estimate coordinates to reference coordinates: `p -> scale * R p + t`.
 
     Attributes:
-        rotation: [3, 3] rotation matrix R (det +1), estimate world frame -> reference world frame.
-        translation: [3] translation t, metres, reference world frame.
-        scale: [] scale factor (1 except for sim3), dimensionless.
-        degenerate: [] True when the alignment was not possible (fewer than 3 frames, or all estimated or all
-            reference points identical; for "origin", no frame at all). The transform is then the identity and
-            the caller must flag the result (run_error marks the run failed).
-    Leaves may carry leading batch axes (one transform per run, or per frame).
+        rotation: [*batch, 3, 3] rotation matrix R (det +1), estimate world frame -> reference world frame.
+        translation: [*batch, 3] translation t, metres, reference world frame.
+        scale: [*batch] scale factor (1 except for sim3), dimensionless.
+        degenerate: [*batch] True when the alignment was not possible (fewer than 3 frames, or all estimated
+            or all reference points identical; for "origin", no frame at all). The transform is then the
+            identity and the caller must flag the result (run_error marks the run failed).
+    `batch` is empty for one transform; leading axes hold one transform per run (or per setting and run).
     """
 
-    rotation: Float[Array, "3 3"]
-    translation: Float[Array, " 3"]
-    scale: Float[Array, ""]
-    degenerate: Bool[Array, ""]
+    rotation: Float[Array, "*batch 3 3"]
+    translation: Float[Array, "*batch 3"]
+    scale: Float[Array, "*batch"]
+    degenerate: Bool[Array, "*batch"]
 
     @classmethod
     def identity(cls, dtype: DTypeLike = float) -> Transform:

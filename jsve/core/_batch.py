@@ -10,7 +10,7 @@ carries only arrays, so jit caches depend on shapes alone.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator, Sequence
 
 import equinox as eqx
 import jax
@@ -88,7 +88,7 @@ def padded_length(n: int, multiple: int) -> int:
 
 
 def bucket_by_length(
-    lengths: Iterable[int], *, max_padding: float = 0.1, pad_multiple: int = 64
+    lengths: Sequence[int] | Int[np.ndarray, " R"], *, max_padding: float = 0.1, pad_multiple: int = 64
 ) -> list[np.ndarray]:
     """Group run indices so that the padding a group adds stays within `max_padding` of its frames.
 

@@ -71,8 +71,8 @@ RULE_KINDS: dict[str, type[InlierRule] | type[SVERule]] = {"inliers": InlierRule
 """A rule family's name (the "kind" of `rule_to_dict`, the families of jsve.fitting) -> its rule class."""
 
 
-def rule_kind(rule: Rule) -> str:
-    """The family name of a rule ("inliers" or "sve")."""
+def rule_kind(rule: object) -> str:
+    """The family name of a rule ("inliers" or "sve"); a TypeError naming the type for anything else."""
     for kind, cls in RULE_KINDS.items():
         if isinstance(rule, cls):
             return kind
