@@ -217,6 +217,24 @@ def make_run(
     )
 
 
+def lose_map(run: RunLog, start: int, stop: int | None = None, *, blind: bool = True) -> RunLog:
+    """The run with its recorded map lost on frames [start, stop): state LOST and no pose there (the
+    recorded run's rule gave up where a more permissive one could have kept tracking). Frames from
+    `stop` on, if any, are a new recorded map (map_id + 1). `blind`: no inlier matches on the lost
+    frames (n_inliers = n_frustum = 0, as when ORB-SLAM3 does not track them); otherwise they keep
+    their counts, so a rule that would have kept tracking needs poses the log does not have."""
+    frames = run.frames.copy()
+    stop = len(frames) if stop is None else stop
+    rows = slice(start, stop - 1)  # .loc slices include their end
+    frames.loc[rows, list(schema.VIS_COLUMNS)] = np.nan
+    frames.loc[rows, "state"] = schema.STATE_LOST
+    if blind:
+        frames.loc[rows, ["n_inliers", "n_frustum"]] = 0
+    if stop < len(frames):
+        frames.loc[stop:, "map_id"] = frames["map_id"].iloc[0] + 1
+    return RunLog(meta=run.meta, frames=frames, source=f"{run.source} lost {start}-{stop}")
+
+
 def make_study(kind: str, seeds, **kwargs) -> list[RunLog]:
     """Runs of `kind` for every seed, spread over 3 sequences and 2 'levels' (metadata for CV tests)."""
     runs = []

@@ -158,6 +158,8 @@ def test_weighted_objective_and_group_weights():
         rmse=jnp.asarray([1.0, 2.0, 3.0, 0.5]),
         failed=jnp.asarray([False, False, False, True]),
         coverage=jnp.asarray([1.0, 1.0, 1.0, 0.5]),
+        unsupported=jnp.asarray([False, False, False, False]),
+        included=jnp.ones(4),
     )
     value = weighted_objective(losses, jnp.asarray(w))
     assert float(value.value) == pytest.approx(np.sum(w * [1, 2, 3, 10]) / np.sum(w))
@@ -363,3 +365,102 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
     assert lost_mass[0] == 0.0 and lost_mass[19] < 1e-12  # the first map started at frame 0 and held
     naive = 1 - np.prod(1 - np.array(lost_mass))
     assert naive > expected + 0.05, (naive, expected)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Support
+
+
+def _lossy_counts_runs(counts_runs):
+    """counts_runs (400 frames) with the recorded map lost on the last 20 frames with their counts
+    (runs 0, 1: a rule at K keeps tracking there, on frames without a recorded pose), the last 60
+    without matches (runs 2, 3: a rule at K coasts there, a pose under "orbslam3", none needed under
+    "imu-coast"), and runs 4-7 as recorded (never lost)."""
+    return (
+        [ka.lose_map(r, 380, blind=False) for r in counts_runs[:2]]
+        + [ka.lose_map(r, 340) for r in counts_runs[2:4]]
+        + list(counts_runs[4:])
+    )
+
+
+@pytest.mark.parametrize("switch_model", SWITCH_MODELS)
+def test_unsupported_runs_are_never_scored_as_good_runs(x64, counts_runs, switch_model):
+    """The rule at K keeps tracking (or, under "orbslam3", coasting on logged poses) where the recorded run
+    lost its map: the replay has no estimate there and evaluate's table calls the run a success with a
+    plain RMSE (failed False, unsupported_fraction > 0). The objective does not: under "penalise" the
+    run fails and costs the penalty; under "exclude" it weighs nothing, and the value is the weighted
+    mean over the other runs. Under "imu-coast" a coasting frame needs no recorded pose, so the runs
+    lost without matches stay in support and are scored."""
+    batch, features, _ = _batch(_lossy_counts_runs(counts_runs), jnp.float64)
+    rule = RULES["at K"]
+    ev = evaluate_batch(batch, rule, features, switch_model=switch_model)
+    expected = np.array([True] * 4 + [False] * 4)
+    if switch_model == "imu-coast":
+        expected[2:4] = False
+    unsupported_fraction = np.asarray(ev.unsupported_fraction)
+    np.testing.assert_array_equal(unsupported_fraction > 0, expected)
+    assert not np.asarray(ev.failed).any()  # the replay's own facts: every run kept tracking
+    w = jnp.asarray(np.arange(1.0, 9.0))
+    losses = eqx.filter_jit(run_losses)
+    rmse = np.asarray(ev.error.stats.rmse)
+    for support in ("penalise", "exclude"):
+        config = ObjectiveConfig(failure_penalty=2.5, switch_model=switch_model, support=support)
+        got = losses(batch, rule, features, config)
+        np.testing.assert_array_equal(np.asarray(got.unsupported), expected)
+        np.testing.assert_array_equal(np.asarray(got.failed), expected)  # never a good run
+        np.testing.assert_allclose(np.asarray(got.loss), np.where(expected, 2.5, rmse), rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(np.asarray(got.included), (~expected) if support == "exclude" else 1.0)
+        value = weighted_objective(got, w)
+        keep = np.ones(8, bool) if support == "penalise" else ~expected
+        loss = np.where(expected, 2.5, rmse)
+        np.testing.assert_allclose(float(value.value), np.sum((w * loss)[keep]) / np.sum(w[keep]), rtol=1e-12)
+        np.testing.assert_allclose(float(value.unsupported_rate), np.sum(w[expected]) / np.sum(w), rtol=1e-12)
+        np.testing.assert_allclose(
+            float(value.excluded),
+            np.sum(w[expected]) / np.sum(w) if support == "exclude" else 0.0,
+            atol=1e-15,
+        )
+    # every run excluded: the value is the penalty, what "penalise" gives (no evidence for the rule)
+    config = ObjectiveConfig(failure_penalty=2.5, switch_model=switch_model, support="exclude")
+    only = jnp.asarray(np.where(expected, 1.0, 0.0))
+    assert float(weighted_objective(losses(batch, rule, features, config), only).value) == 2.5
+
+
+@pytest.mark.parametrize("support", ["penalise", "exclude"])
+def test_relaxed_support_converges_to_the_hard_one(x64, counts_runs, support):
+    """On logs that leave the support, as the temperature falls the relaxed objective tends to the hard
+    one under either policy (to 1e-9 m at T = 0.01 inliers, where every sigmoid is within e^-50 of its
+    limit), the relaxed probability of leaving the support to the hard flag, and its gradient stays
+    finite. Under "orbslam3" the relaxed value equals the hard one already at T = 1 on these logs: the
+    mass in OK and in RECENTLY_LOST both need the recorded pose, so where the recorded run lost its map
+    all of it leaves the support, whatever the temperature."""
+    batch, features, _ = _batch(_lossy_counts_runs(counts_runs), jnp.float64)
+    w = jnp.ones(batch.n_runs)
+    for model in SWITCH_MODELS:
+        config = ObjectiveConfig(switch_model=model, support=support)
+        rule = InlierRule(Thresholds(**OFF_TIE))
+        hard_losses = run_losses(batch, rule, features, config)
+        hard = float(weighted_objective(hard_losses, w).value)
+        soft = eqx.filter_jit(run_losses)(batch, rule, features, config, logic=SoftLogic(jnp.asarray(0.01)))
+        np.testing.assert_allclose(
+            np.asarray(soft.unsupported), np.asarray(hard_losses.unsupported), atol=1e-9
+        )
+        np.testing.assert_allclose(np.asarray(soft.included), np.asarray(hard_losses.included), atol=1e-9)
+        gaps = [abs(float(_relaxed(batch, features, rule, t, config).value) - hard) for t in (1.0, 0.01)]
+        assert gaps[1] < 1e-9, (model, gaps)
+        if model == "imu-coast":  # (under "orbslam3" every tracked or coasting mass needs the pose)
+            assert gaps[0] > 1e-6, gaps  # the relaxation is not trivially the hard objective
+
+        def f(params, config=config):
+            return objective(
+                batch, params.rule(), w, features, config, logic=SoftLogic(jnp.asarray(2.0))
+            ).value
+
+        params = RuleParams.from_values(inlier_space(), [K - 0.5, 49.5, 49.5, K - 1.5])
+        value, grad = eqx.filter_jit(eqx.filter_value_and_grad(f))(params)
+        assert np.isfinite(float(value)) and np.all(np.isfinite(np.asarray(grad.z)))
+
+
+def test_support_policy_is_checked():
+    with pytest.raises(ValueError, match="support must be one of \\('penalise', 'exclude'\\), got 'drop'"):
+        ObjectiveConfig(support="drop")

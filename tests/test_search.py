@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 
 from jsve.core._machine import SWITCH_MODELS
-from jsve.core._objective import ObjectiveConfig, run_losses
-from jsve.core._replay import batch_features
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig, run_losses, weighted_objective
+from jsve.core._replay import batch_features, replay
 from jsve.core._rules import Thresholds
 from jsve.core._sve import feature_logs
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import FitData
 from jsve.fitting._search import (
+    _scan,
     prepare,
     score_columns,
     search,
@@ -143,3 +144,139 @@ def test_search_chunks_and_vmap_equal_a_loop(occlusion_data):
     w = np.arange(1, data.n_runs + 1, dtype=float)
     np.testing.assert_allclose(a.objective(w), (a.loss @ w) / w.sum())
     np.testing.assert_allclose(a.objective(np.stack([w, w])), np.stack([a.objective(w)] * 2))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Logs whose replay can leave the support
+
+
+def _lossy_runs(n_frames: int = 300) -> list:
+    """Occlusion runs whose recorded run lost its map: at the end (3 s without matches; 1 s with its
+    counts, where every tracking rule needs poses the log lacks), in the middle followed by a new map,
+    and two runs that never lost it."""
+    runs = ka.make_study("occlusion", range(6), n_frames=n_frames)
+    return [
+        ka.lose_map(runs[0], n_frames - 60),
+        ka.lose_map(runs[1], 150, 200),
+        ka.lose_map(runs[2], n_frames - 20, blind=False),
+        runs[3],
+        ka.lose_map(runs[4], n_frames - 50),
+        runs[5],
+    ]
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, pytest.param(jnp.float32, marks=pytest.mark.slow)])
+def test_search_kernel_equals_replay_objective_out_of_support(x64, dtype):
+    """On logs whose recorded run lost its map, setting by setting, the kernel equals run_losses (loss
+    to 1e-12 m in float64, 1e-4 relative in float32; failed, unsupported, included and coverage
+    identical) under both switch models and both support policies. Both supported and unsupported
+    runs occur; an unsupported run always costs the penalty, counts as failed, and is left out exactly
+    under "exclude". Under "imu-coast" runs that keep tracking also coast on the IMU over frames
+    without a recorded pose (in support: a prediction needs no pose), which the kernel's fixed
+    alignment statistics do not cover: its corrections do (the kernel refused such runs before)."""
+    batch = from_runs(_lossy_runs(), dtype=dtype).batch
+    f = batch_features(batch)
+    sb = prepare(batch, f)
+    cases = itertools.product(SWITCH_MODELS, ("penalise", "exclude"), (inlier_space(), sve_space()))
+    for model, support, space in cases:
+        config = ObjectiveConfig(failure_penalty=3.0, switch_model=model, support=support)
+        values = np.array(space.values_from_unit(sobol(24, space.dim, seed=4)))
+        thresholds = [space.names.index(field.name) for field in dataclasses.fields(Thresholds)]
+        values[-3:, thresholds] = 2.0 * space.score_scale * 1e3  # LOST before the recorded run: supported
+        rules = space.rule(jnp.asarray(values, dtype))
+        got = search_chunk(sb, rules, config)
+        ref = jax.jit(jax.vmap(lambda r, c=config: run_losses(batch, r, f, c)))(rules)
+        unsupported = np.asarray(ref.unsupported)
+        assert 0 < unsupported.mean() < 1, (model, space.kind)
+        assert np.array_equal(np.asarray(got.unsupported), unsupported)
+        assert np.array_equal(np.asarray(got.failed), np.asarray(ref.failed))
+        assert np.array_equal(np.asarray(got.included), np.asarray(ref.included) > 0.5)
+        assert np.asarray(got.failed)[unsupported].all()
+        np.testing.assert_array_equal(np.asarray(got.loss)[unsupported], 3.0)
+        expected_included = ~unsupported if support == "exclude" else np.ones_like(unsupported)
+        assert np.array_equal(np.asarray(got.included), expected_included)
+        if dtype == jnp.float64:
+            np.testing.assert_allclose(np.asarray(got.loss), np.asarray(ref.loss), rtol=0, atol=1e-12)
+        else:
+            np.testing.assert_allclose(np.asarray(got.loss), np.asarray(ref.loss), rtol=1e-4, atol=2e-6)
+        np.testing.assert_allclose(np.asarray(got.coverage), np.asarray(ref.coverage), rtol=0, atol=1e-6)
+        if model == "imu-coast":
+            estimated = np.asarray(
+                jax.jit(jax.vmap(lambda r: replay(batch, r, f, switch_model="imu-coast").has_estimate))(rules)
+            )
+            off_pose = (estimated & ~np.asarray(batch.has_pose)[None] & np.asarray(batch.gt_valid)[None]).any(
+                -1
+            )
+            assert (off_pose & ~np.asarray(ref.failed)).sum() >= 10, space.kind
+
+
+def test_search_kernel_reruns_exactly_where_orbslam3_misses_posed_frames(x64):
+    """Under "orbslam3" the kernel first scans without the alignment corrections; a log whose IMU flag
+    drops for a few frames inside a map (RECENTLY_LOST without an initialised IMU keeps no estimate on
+    posed frames, and recovers) leaves runs that never lost tracking with posed frames and no estimate:
+    the kernel scans again with the corrections and equals run_losses to 1e-12 m."""
+    runs = []
+    for run in ka.make_study("counts", range(6), n_frames=300):
+        frames = run.frames.copy()
+        bad = np.flatnonzero(frames["n_inliers"].to_numpy() < 40)
+        bad = bad[bad > 40]  # after the relocalisation window
+        if bad.size:  # the frame after a bad episode's first: RECENTLY_LOST under the rule at K
+            frames.loc[bad[0] + 1 : bad[0] + 6, ["imu_init", "imu_ba2"]] = 0
+        runs.append(type(run)(meta=run.meta, frames=frames, source=run.source))
+    batch = from_runs(runs, dtype=jnp.float64).batch
+    f = batch_features(batch)
+    sb = prepare(batch, f)
+    space = inlier_space()
+    values = np.array(space.values_from_unit(sobol(24, space.dim, seed=4)))
+    values[0] = [39.5, 49.5, 49.5, 38.5]  # the known-answer rule: recovers from every bad episode
+    rules = space.rule(jnp.asarray(values))
+    config = ObjectiveConfig()
+    fast = _scan(sb, jax.tree.map(lambda x: x[:, None], rules), config, exact=False)
+    got = search_chunk(sb, rules, config)
+    ref = jax.jit(jax.vmap(lambda r: run_losses(batch, r, f, config)))(rules)
+    assert np.array_equal(np.asarray(got.failed), np.asarray(ref.failed))
+    # scored runs that the first scan's fixed statistics do not cover: the rerun is needed
+    inexact = (np.asarray(fast.lost) < 0.5) & (np.asarray(fast.n_off) > 0.5) & ~np.asarray(ref.failed)
+    assert inexact.sum() >= 5, inexact.sum()
+    np.testing.assert_allclose(np.asarray(got.loss), np.asarray(ref.loss), rtol=0, atol=1e-12)
+
+
+def test_search_result_weighs_included_runs_only(x64):
+    """search() scores logs the kernel once refused; SearchResult's weighted means equal
+    jsve.core._objective.weighted_objective of run_losses under both policies, for any run weights; under
+    "exclude" the objective is the mean over each setting's supported runs, and a setting supported by
+    no run scores the penalty ("penalise"'s value: no evidence for it)."""
+    runs = _lossy_runs()
+    data = {
+        s: FitData.from_runs(runs, ObjectiveConfig(support=s), dtype=jnp.float64)
+        for s in ("penalise", "exclude")
+    }
+    space = inlier_space()
+    values = np.array(space.values_from_unit(sobol(8, space.dim, seed=5)))
+    values[0] = [0.5, 0.5, 0.5, 0.0]  # keeps tracking wherever there is a match: unsupported on lossy runs
+    w = np.arange(1.0, len(runs) + 1)
+    results = {}
+    for support, d in data.items():
+        res = search(d.parts, space, values, d.config, run_counts=d.run_counts, progress=False)
+        results[support] = res
+        for i in range(len(values)):
+            rule = space.rule(jnp.asarray(values[i]))
+            losses = [run_losses(b, rule, f, d.config) for b, f in zip(d.batches, d.features, strict=True)]
+            losses = jax.tree.map(
+                lambda *xs, c=d.run_counts: jnp.concatenate([x[:n] for x, n in zip(xs, c, strict=True)]),
+                *losses,
+            )
+            ref = weighted_objective(losses, jnp.asarray(w))
+            np.testing.assert_allclose(res.objective(w)[i], float(ref.value), rtol=1e-12)
+            np.testing.assert_allclose(res.failure_rate(w)[i], float(ref.failure_rate), rtol=1e-12)
+            np.testing.assert_allclose(res.unsupported_rate(w)[i], float(ref.unsupported_rate), rtol=1e-12)
+            np.testing.assert_allclose(res.excluded_share(w)[i], float(ref.excluded), rtol=0, atol=1e-12)
+    pen, exc = results["penalise"], results["exclude"]
+    np.testing.assert_array_equal(pen.unsupported[0], [True, True, True, False, True, False])  # lossy runs
+    assert np.array_equal(pen.unsupported, exc.unsupported)
+    keep = ~exc.unsupported[0]
+    np.testing.assert_allclose(exc.objective(w)[0], np.sum(w[keep] * exc.loss[0, keep]) / np.sum(w[keep]))
+    assert exc.objective(w)[0] < pen.objective(w)[0]  # penalised, the unsupported runs cost 1 m each
+    np.testing.assert_allclose(pen.excluded_share(w), 0.0)
+    only_lossy = np.where(exc.unsupported[0], 1.0, 0.0)  # weights on the unsupported runs only
+    np.testing.assert_allclose(exc.objective(only_lossy)[0], DEFAULT_FAILURE_PENALTY_M)

@@ -45,6 +45,21 @@ def add_switch_model_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_support_option(parser: argparse.ArgumentParser) -> None:
+    """--support: what the objective does with a run whose replay leaves the log's support
+    (jsve.core._objective.SUPPORT_POLICIES)."""
+    from jsve.core._objective import SUPPORT_POLICIES
+
+    parser.add_argument(
+        "--support",
+        choices=SUPPORT_POLICIES,
+        default=None,
+        help="a run whose replay needs a recorded pose the log lacks has an unknown outcome: penalise "
+        "(default) scores it as failed, exclude drops the run-rule pair from the objective "
+        "(docs/fitting.md)",
+    )
+
+
 def add_segments_option(parser: argparse.ArgumentParser) -> None:
     """--segments: which map segment of a run is scored (jsve.core._trajectory.run_error)."""
     from jsve.core._trajectory import SEGMENT_MODES

@@ -38,6 +38,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--failure-penalty", type=float, metavar="M", help="metres charged for a failed run")
     common.add_switch_model_option(p)
+    common.add_support_option(p)
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument("--seed", type=int, help="seed of designs, folds and bootstraps")
     p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
@@ -85,6 +86,7 @@ def run(args) -> int:
             families=tuple(args.family) if args.family else None,
             failure_penalty=args.failure_penalty,
             switch_model=args.switch_model,
+            support=args.support,
             relaxed=args.relaxed or None,
             seed=args.seed,
         )

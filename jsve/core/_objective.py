@@ -16,10 +16,28 @@ were evaluated, or its coverage is below `min_coverage`. A run that never lost t
 so its RMSE equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard objective is therefore
 exactly mean(where(failed, penalty, rmse)) of the per-run table (tests/test_objective.py).
 
+Support (docs/state-machine.md): a run whose replay needs the recorded pose of a frame the recorded run
+did not pose (the rule kept tracking where the recorded run had lost its map) has left the log's
+support: what that run would have done is unknown. Such a run is never scored as a good one. Under
+`support="penalise"` (the default) it counts as failed and costs the penalty; under `support="exclude"`
+it also carries the penalty as its loss but weighs nothing: the run-rule pair leaves the mean, and
+`ObjectiveValue.excluded` says how much weight was dropped (the remaining runs differ from rule to rule,
+so compare rules under "exclude" only on the runs every one of them supports; jsve.fitting does).
+Should every run of a rule be excluded, its value is that of "penalise" (the penalty): a rule
+supported by no run has no evidence for it.
+
+    unsupported_r = any frame of run r out of support
+    loss_r  = failure_penalty              if run r failed or unsupported_r
+    w'_r    = w_r (penalise),  w_r (1 - unsupported_r) (exclude)
+    J       = sum_r w'_r loss_r / sum_r w'_r
+
 Relaxed (SoftLogic with a temperature): the replay's flags are probabilities. The loss is the expected one,
 P(ever LOST) x penalty + (1 - P) x RMSE, with the RMSE taken over frames weighted by the probability that
-they have an estimate (a weighted Umeyama alignment, a smooth statistic). As the temperature falls every
-probability tends to its hard 0/1 value and the relaxed objective to the hard one.
+they have an estimate (a weighted Umeyama alignment, a smooth statistic). P(unsupported) is the largest
+per-frame probability of being out of support (exact when the out-of-support mass is one mass, as where
+the recorded run lost its map; a lower bound otherwise); failure, loss of tracking and leaving the support
+combine as independent events. As the temperature falls every probability tends to its hard 0/1 value
+and the relaxed objective to the hard one.
 """
 
 from __future__ import annotations
@@ -47,6 +65,17 @@ below it (ORB-SLAM3's EuRoC ATE is centimetres); a run that reaches LOST costs m
 keeps tracking with a plausible error. Configurable: it sets the exchange rate between failures and
 metres of error, which is a choice the user owns (docs/fitting.md)."""
 
+SUPPORT_POLICIES = ("penalise", "exclude")
+"""What the objective does with a run whose replay leaves the log's support (see the module docstring):
+"penalise" (default) scores it as failed; "exclude" drops the run-rule pair from the mean."""
+
+
+def check_support(support: str) -> str:
+    """`support` if it is one of SUPPORT_POLICIES, else a ValueError naming the choices."""
+    if support not in SUPPORT_POLICIES:
+        raise ValueError(f"support must be one of {SUPPORT_POLICIES}, got {support!r}")
+    return support
+
 
 class ObjectiveConfig(eqx.Module):
     """How runs are scored (all static: a new value compiles once).
@@ -59,6 +88,9 @@ class ObjectiveConfig(eqx.Module):
         time_recently_lost: s in RECENTLY_LOST before LOST (ORB-SLAM3: 5).
         switch_model: the pose of a frame in RECENTLY_LOST, "orbslam3" (the logged pose, default) or
             "imu-coast" (IMU prediction); see docs/state-machine.md.
+        support: a run whose replay leaves the log's support (needs a recorded pose that does not
+            exist) has an unknown outcome: "penalise" (default) scores it as failed, "exclude" drops
+            it from the mean (SUPPORT_POLICIES; the module docstring).
     """
 
     failure_penalty: float = eqx.field(static=True, default=DEFAULT_FAILURE_PENALTY_M)
@@ -66,9 +98,11 @@ class ObjectiveConfig(eqx.Module):
     min_coverage: float = eqx.field(static=True, default=0.0)
     time_recently_lost: float = eqx.field(static=True, default=TIME_RECENTLY_LOST_S)
     switch_model: str = eqx.field(static=True, default="orbslam3")
+    support: str = eqx.field(static=True, default="penalise")
 
     def __check_init__(self):
         check_switch_model(self.switch_model)
+        check_support(self.support)
         if not (np.isfinite(self.failure_penalty) and self.failure_penalty >= 0):
             raise ValueError(
                 f"failure_penalty must be a finite number of metres >= 0, got {self.failure_penalty}"
@@ -85,33 +119,64 @@ class RunLoss(eqx.Module):
     Attributes:
         loss: metres; failure_penalty where failed.
         rmse: ATE RMSE over the evaluated frames, metres (also for failed runs, for reference).
-        failed: the run failed (bool), or its probability of failing (relaxed).
+        failed: the run failed (bool), or its probability of failing (relaxed); a run out of support
+            counts as failed under both policies.
         coverage: evaluated frames / valid frames with ground truth.
+        unsupported: the replay left the log's support on some frame (bool; relaxed: the largest
+            per-frame probability).
+        included: the run counts in the objective: 1 under "penalise", 1 - unsupported under "exclude"
+            (a float in [0, 1], multiplying the run's weight).
     """
 
     loss: Float[Array, " R"]
     rmse: Float[Array, " R"]
     failed: Array
     coverage: Float[Array, " R"]
+    unsupported: Array
+    included: Float[Array, " R"]
 
 
 class ObjectiveValue(eqx.Module):
     """A weighted objective with its diagnostics (scalars).
 
     Attributes:
-        value: sum_r w_r loss_r / sum_r w_r, metres.
-        coverage: weighted mean coverage. failure_rate: weighted mean of failed.
-        rmse_ok: weighted mean RMSE of the runs that did not fail (NaN-free: 0 when all failed).
+        value: sum_r w'_r loss_r / sum_r w'_r, metres, over the included runs (w' = w x included).
+        coverage: weighted mean coverage. failure_rate: weighted mean of failed (both over the
+            included runs).
+        rmse_ok: weighted mean RMSE of the included runs that did not fail (NaN-free: 0 when all failed).
+        unsupported_rate: weighted share of all runs whose replay left the log's support.
+        excluded: weighted share of all runs dropped from the mean (0 under "penalise").
     """
 
     value: Float[Array, ""]
     coverage: Float[Array, ""]
     failure_rate: Float[Array, ""]
     rmse_ok: Float[Array, ""]
+    unsupported_rate: Float[Array, ""]
+    excluded: Float[Array, ""]
 
 
-def _one_run_loss(est_p, est_q, has_estimate, lost_any, gt_p, gt_q, gt_valid, valid, config, hard):
-    """Loss of one replayed run ([T, ...] arrays; has_estimate and lost_any are flags or probabilities)."""
+def support_outcome(unsupported, failed, config: ObjectiveConfig, hard: bool):
+    """(failed, included) of runs once the support policy applies ([R] or [S, R] flags, or probabilities
+    when not `hard`): an unsupported run counts as failed; under "exclude" it is also left out.
+
+    The one home of the policy: the replay objective (`run_losses`) and the search kernel
+    (jsve.fitting._search) both call it.
+    """
+    if hard:
+        failed = failed | unsupported
+        included = jnp.ones(failed.shape, bool) if config.support == "penalise" else ~unsupported
+        return failed, included
+    failed = 1 - (1 - failed) * (1 - unsupported)
+    included = jnp.ones_like(failed) if config.support == "penalise" else 1 - unsupported
+    return failed, included
+
+
+def _one_run_loss(
+    est_p, est_q, has_estimate, out_of_support, lost_any, gt_p, gt_q, gt_valid, valid, config, hard
+):
+    """Loss of one replayed run ([T, ...] arrays; has_estimate, out_of_support and lost_any are flags or
+    probabilities)."""
     dtype = est_p.dtype
     with_gt = (gt_valid & valid).astype(dtype)
     weight = has_estimate.astype(dtype) * with_gt
@@ -126,12 +191,19 @@ def _one_run_loss(est_p, est_q, has_estimate, lost_any, gt_p, gt_q, gt_valid, va
     # Data facts, exact in both modes (their probability is 0 or 1).
     broken = transform.degenerate | (count < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
     if hard:
-        failed = broken | (lost_any > 0.5)
+        unsupported = jnp.any(out_of_support & valid)
+        failed, included = support_outcome(unsupported, broken | (lost_any > 0.5), config, hard)
         loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), rmse)
+        included = included.astype(dtype)
     else:
+        # (the replay's out_of_support is 0 on padding frames already)
+        unsupported = jnp.max(out_of_support.astype(dtype), initial=0.0)
         failed = 1 - (1 - lost_any.astype(dtype)) * (1 - broken.astype(dtype))
+        failed, included = support_outcome(unsupported, failed, config, hard)
         loss = failed * config.failure_penalty + (1 - failed) * rmse
-    return RunLoss(loss=loss, rmse=rmse, failed=failed, coverage=coverage)
+    return RunLoss(
+        loss=loss, rmse=rmse, failed=failed, coverage=coverage, unsupported=unsupported, included=included
+    )
 
 
 def run_losses(
@@ -163,6 +235,7 @@ def run_losses(
         result.position,
         result.quaternion if with_q else None,
         result.has_estimate,
+        result.out_of_support,
         result.lost_any,
         batch.gt_p,
         batch.gt_q if with_q else None,
@@ -172,17 +245,25 @@ def run_losses(
 
 
 def weighted_objective(losses: RunLoss, weights: Float[Array, " R"]) -> ObjectiveValue:
-    """The weighted means of a RunLoss (weights >= 0, not all 0; padding runs get 0)."""
-    w = jnp.asarray(weights, losses.loss.dtype)
+    """The weighted means of a RunLoss (weights >= 0, not all 0; padding runs get 0) over its included
+    runs; where no weight is included (every run excluded), over all runs, whose losses are then the
+    penalty: the value "penalise" gives."""
+    dtype = losses.loss.dtype
+    w_all = jnp.asarray(weights, dtype)
+    w_in = w_all * losses.included.astype(dtype)
+    total_all, total_in = jnp.sum(w_all), jnp.sum(w_in)
+    w = jnp.where(total_in > 0, w_in, w_all)
     total = jnp.sum(w)
     mean = lambda x: safe_divide(jnp.sum(w * x), total)  # noqa: E731
-    failed = losses.failed.astype(w.dtype)
+    failed = losses.failed.astype(dtype)
     ok = w * (1 - failed)
     return ObjectiveValue(
         value=mean(losses.loss),
         coverage=mean(losses.coverage),
         failure_rate=mean(failed),
         rmse_ok=safe_divide(jnp.sum(ok * losses.rmse), jnp.sum(ok)),
+        unsupported_rate=safe_divide(jnp.sum(w_all * losses.unsupported.astype(dtype)), total_all),
+        excluded=safe_divide(total_all - total_in, total_all),
     )
 
 

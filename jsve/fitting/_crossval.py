@@ -116,7 +116,9 @@ class CrossValidation:
 
     Attributes:
         heldout: one row per (fold kind, run, rule): run metadata, fold_kind, fold, rule, weight, loss,
-            rmse (NaN where failed), failed, coverage. Fitted rules are named by
+            rmse (NaN where failed), failed, coverage, unsupported (the rule's replay left the log's
+            support), included. Under support="exclude" a pair that is not included has a NaN loss:
+            `compare` then scores every rule on the runs all of them support. Fitted rules are named by
             `fitted_rule_name` ("fitted-<family>").
         params: one row per (fold kind, fold, family): the fitted parameter values and training objective.
     """
@@ -154,6 +156,7 @@ def preset_results(data: FitData, name: str) -> SearchResult:
     return SearchResult(
         values=np.zeros((1, 0)), loss=losses.loss, failed=losses.failed,
         rmse=np.where(losses.failed, np.nan, losses.rmse), coverage=losses.coverage,
+        unsupported=losses.unsupported, included=losses.included > 0.5,
     )  # fmt: skip
 
 
@@ -216,10 +219,18 @@ def cross_validate(
             table.insert(0, "run_index", held)
             table["fold_kind"], table["fold"], table["rule"] = fold.kind, fold.name, rule
             table["weight"] = w[held]
-            for key in ("loss", "rmse", "failed", "coverage"):
+            for key in ("loss", "rmse", "failed", "coverage", "unsupported", "included"):
                 table[key] = getattr(res, key)[0, held]
+            table["loss"] = table["loss"].where(table["included"])
             rows.append(table)
     return CrossValidation(heldout=pd.concat(rows, ignore_index=True), params=pd.DataFrame(params))
+
+
+def _weighted_mean(values: pd.Series, weight: np.ndarray) -> float:
+    """sum w x / sum w of a column (booleans as 0 / 1); NaN without runs."""
+    if not len(values):
+        return float("nan")
+    return float(np.sum(weight * values.to_numpy(np.float64)) / np.sum(weight))
 
 
 def compare(
@@ -233,19 +244,28 @@ def compare(
     """Held-out comparison per fold kind: every rule's weighted mean loss with a bootstrap CI, its failure
     rate and coverage, and its paired difference to each baseline (negative: better than the baseline).
 
-    The bootstrap resamples runs (one set of resamples per fold kind, shared by all rules: paired).
+    The bootstrap resamples runs (one set of resamples per fold kind, shared by all rules: paired). Only
+    runs every rule was scored on count (a NaN loss, a pair excluded for leaving the log's support,
+    drops the run for every rule); `n_runs` says how many. `unsupported` is each rule's weighted share of
+    all the fold kind's runs on which its replay left the log's support (when the table says).
     """
     out = []
     for kind, part in heldout.groupby("fold_kind", sort=False):
-        wide = part.pivot_table(index="run_index", columns="rule", values="loss", aggfunc="first")
-        fail = part.pivot_table(index="run_index", columns="rule", values="failed", aggfunc="first")
-        cov = part.pivot_table(index="run_index", columns="rule", values="coverage", aggfunc="first")
+        pivot = lambda col, p=part: p.pivot_table(  # noqa: E731
+            index="run_index", columns="rule", values=col, aggfunc="first", dropna=False
+        )
+        wide, fail, cov = pivot("loss"), pivot("failed"), pivot("coverage")
+        all_weight = part.groupby("run_index")["weight"].first()
+        unsupported = pivot("unsupported") if "unsupported" in part else None
         wide = wide.dropna(axis=0)  # runs every rule was scored on
-        weight = part.groupby("run_index")["weight"].first().reindex(wide.index).to_numpy()
-        index = np.random.default_rng(seed).integers(0, len(wide), size=(n_boot, len(wide)))
+        weight = all_weight.reindex(wide.index).to_numpy()
+        index = np.random.default_rng(seed).integers(0, max(len(wide), 1), size=(n_boot, len(wide)))
         for rule in wide.columns:
             x = wide[rule].to_numpy()
-            mean, low, high = bootstrap_weighted_mean(x, weight, index=index, level=level)
+            if len(x):
+                mean, low, high = bootstrap_weighted_mean(x, weight, index=index, level=level)
+            else:  # no run is supported by every rule (support="exclude")
+                mean = low = high = float("nan")
             row = {
                 "fold_kind": kind,
                 "rule": rule,
@@ -253,13 +273,15 @@ def compare(
                 "mean_loss": mean,
                 "ci_low": low,
                 "ci_high": high,
-                "failure_rate": float(
-                    np.sum(weight * fail.loc[wide.index, rule].to_numpy()) / np.sum(weight)
-                ),
-                "coverage": float(np.sum(weight * cov.loc[wide.index, rule].to_numpy()) / np.sum(weight)),
+                "failure_rate": _weighted_mean(fail.loc[wide.index, rule], weight),
+                "coverage": _weighted_mean(cov.loc[wide.index, rule], weight),
             }
+            if unsupported is not None:
+                row["unsupported"] = _weighted_mean(
+                    unsupported[rule], all_weight.reindex(unsupported.index).to_numpy()
+                )
             for base in baselines:
-                if base in wide.columns and base != rule:
+                if base in wide.columns and base != rule and len(x):
                     d, dl, dh = bootstrap_weighted_mean(
                         x - wide[base].to_numpy(), weight, index=index, level=level
                     )

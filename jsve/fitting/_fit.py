@@ -177,24 +177,32 @@ def _default_weights(data: FitData, weights) -> np.ndarray:
 # Objectives of one setting
 
 
+def _included_mean(parts):
+    """sum w x loss / sum w over the included runs of (loss, included, w) per part; over all runs where
+    none is included (whose losses are then the penalty), as jsve.core._objective.weighted_objective."""
+    num_in = sum(jnp.sum(w * inc * loss) for loss, inc, w in parts)
+    den_in = sum(jnp.sum(w * inc) for _, inc, w in parts)
+    num_all = sum(jnp.sum(w * loss) for loss, _, w in parts)
+    den_all = sum(jnp.sum(w) for _, _, w in parts)
+    return jnp.where(den_in > 0, num_in / jnp.where(den_in > 0, den_in, 1.0), num_all / den_all)
+
+
 def _hard_value(z, parts, weights, space: ParamSpace, config: ObjectiveConfig):
     """Weighted mean hard loss of the setting with unconstrained coordinates z (the search kernel, S = 1)."""
     rule = space.rule(space.values_from_z(z)[None])
-    total = sum(
-        jnp.sum(w * search_chunk(sb, rule, config).loss[0]) for sb, w in zip(parts, weights, strict=True)
-    )
-    return total / sum(jnp.sum(w) for w in weights)
+    results = [(search_chunk(sb, rule, config), w) for sb, w in zip(parts, weights, strict=True)]
+    return _included_mean([(r.loss[0], r.included[0].astype(w.dtype), w) for r, w in results])
 
 
 def _relaxed_value(z, batches, features, weights, temperature, space: ParamSpace, config: ObjectiveConfig):
     """Weighted mean relaxed loss (SoftLogic(temperature x score scale)); differentiable in z."""
     rule = space.rule(space.values_from_z(z))
     logic = SoftLogic(temperature * space.score_scale)
-    total = sum(
-        jnp.sum(w * run_losses(b, rule, f, config, logic=logic).loss)
+    losses = [
+        (run_losses(b, rule, f, config, logic=logic), w)
         for b, f, w in zip(batches, features, weights, strict=True)
-    )
-    return total / sum(jnp.sum(w) for w in weights)
+    ]
+    return _included_mean([(r.loss, r.included, w) for r, w in losses])
 
 
 def hard_objective(data: FitData, space: ParamSpace, values, weights=None) -> float:
@@ -357,9 +365,13 @@ class FitResult:
 
     Attributes:
         space: the ParamSpace. values: [d] fitted free values. rule: the fitted rule.
-        objective: hard objective (metres) on the fitting weights; failure_rate, coverage: weighted.
+        objective: hard objective (metres) on the fitting weights; failure_rate, coverage: weighted,
+            over the runs the objective includes.
         stages: one dict per stage (search, nelder_mead, relaxed) with its objective and values.
         search: the batched search (per-run matrices), for reuse.
+        unsupported_rate: weighted share of the fitting runs on which the fitted rule's replay leaves
+            the log's support; n_unsupported: how many runs (of those with weight > 0).
+        n_excluded: runs (with weight > 0) dropped from the objective (support="exclude"; else 0).
     """
 
     space: ParamSpace
@@ -369,6 +381,9 @@ class FitResult:
     coverage: float
     stages: list[dict]
     search: SearchResult | None = None
+    unsupported_rate: float = 0.0
+    n_unsupported: int = 0
+    n_excluded: int = 0
 
     @property
     def rule(self):
@@ -473,6 +488,18 @@ def fit(
     final = search(
         data.parts, space, best_values[None], data.config, run_counts=data.run_counts, progress=False
     )
+    weighted = w > 0
+    n_unsupported = int(np.sum(final.unsupported[0] & weighted))
+    n_excluded = int(np.sum(~final.included[0] & weighted))
+    if n_unsupported:
+        log.info(
+            "%s fit: the fitted rule leaves the logs' support on %d of %d runs (%s: %d excluded)",
+            space.kind,
+            n_unsupported,
+            int(weighted.sum()),
+            data.config.support,
+            n_excluded,
+        )
     return FitResult(
         space=space,
         values=np.asarray(best_values, np.float64),
@@ -481,6 +508,9 @@ def fit(
         coverage=float(final.coverage_mean(w)[0]),
         stages=stages,
         search=search_result,
+        unsupported_rate=float(final.unsupported_rate(w)[0]),
+        n_unsupported=n_unsupported,
+        n_excluded=n_excluded,
     )
 
 

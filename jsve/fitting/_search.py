@@ -8,18 +8,26 @@ The kernel (`search_chunk`) walks the frames once for a chunk of settings x runs
 as the vector lanes of every scan step: ORB-SLAM3's state machine (jsve.core._machine.machine_step, the same
 code the replay runs), ORB-SLAM3's IMU prediction (jsve.core._imu, on columns) and, instead of storing the
 trajectory, the sufficient statistics of its alignment to ground truth. With e_k = p_k - g_k - o (the
-estimate's offset from ground truth, less the run's mean visual offset o) and g_c the centred ground
-truth, it accumulates sum e, M = sum e g_c^T and sum |e|^2; the per-run Gram matrix G = sum g_c g_c^T is
-fixed. Then the alignment method's solver (jsve.core._align, Umeyama 1991) runs on the moments, with
-cov = (G + M^T) / n, and, with A = I - cR, the alignment residual is
+estimate's offset from ground truth, less the run's mean visual offset o) and g_c the ground truth centred
+on the run's posed frames, it accumulates sum e, M = sum e g_c^T and sum |e|^2 over the frames with an
+estimate; the per-run Gram matrix G = sum g_c g_c^T over the posed frames is fixed. A lane whose estimated
+frames differ from the posed ones (a frame coasting on the IMU where the recorded run has no pose, under
+"imu-coast") also accumulates, over the difference (+1 for an extra frame, -1 for a missing one), its
+count, sum g_c and sum g_c g_c^T, which recentre G and M on its own frames (G' = G + dG - a a^T / n',
+M' = M - (sum e) a^T / n'; both corrections vanish, exactly, for the usual lane). Then the alignment
+method's solver (jsve.core._align, Umeyama 1991) runs on the moments, with cov = (G' + M'^T) / n', and,
+with A = I - cR, the alignment residual is
 
-    E = tr(A^T A G) - 2c tr(A^T R M) + c^2 D,      D = sum |e - mean e|^2,
+    E = tr(A^T A G') - 2c tr(A^T R M') + c^2 D,      D = sum |e - mean e|^2,
 
 a sum of small terms (A is of the order of the error over the trajectory's extent), so float32 keeps it
 to ~1e-5 relative where the textbook form sum|y|^2 + sum|x|^2 - 2 tr(...) would cancel to ~1e-2.
-A run that never reached LOST has an estimate on every frame (docs/state-machine.md), so its RMSE is over
-all frames with ground truth, as in jsve.evaluation._evaluate; a run that did is failed and costs the penalty.
-tests/test_fit.py checks the kernel against jsve.core._objective.run_losses setting by setting.
+A run that never reached LOST is aligned over all its frames with an estimate and ground truth, as in
+jsve.evaluation._evaluate; a run that did is failed and costs the penalty. The support policy of the
+objective (ObjectiveConfig.support: a run whose replay needs a recorded pose that does not exist is
+penalised or excluded) is jsve.core._objective.support_outcome, applied to the same per-frame
+out-of-support flag as the replay's. tests/test_search.py checks the kernel against
+jsve.core._objective.run_losses setting by setting.
 
 Everything per frame is spelled out in coordinate columns ([F, R] arrays) rather than [..., 3] rows:
 XLA on CPU vectorises the former and not the latter (measured 2x for the pose update and 7x for the
@@ -28,6 +36,7 @@ power means; analysis/bench_search.py).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -45,7 +54,7 @@ from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES, Moments, fit_moment
 from jsve.core._batch import LogBatch
 from jsve.core._imu import imu_predict_columns
 from jsve.core._machine import FrameData, HardLogic, RunConstants, initial_state, machine_step
-from jsve.core._objective import ObjectiveConfig
+from jsve.core._objective import ObjectiveConfig, support_outcome
 from jsve.core._replay import frame_data, run_constants
 from jsve.core._rules import InlierRule, Rule
 from jsve.core._sve import FrameFeatures, combination_from_logs, feature_logs
@@ -87,7 +96,7 @@ class SearchBatch(eqx.Module):
     run: RunConstants  # [R] leaves
     valid: Array
     gt: Array  # frame exists and has ground truth
-    weight: Array  # ... and a recorded pose
+    weight: Array  # ... and a recorded pose: the frames the alignment statistics are fixed for
     vis_p: tuple
     vis_q: tuple
     vis_v: tuple
@@ -96,12 +105,12 @@ class SearchBatch(eqx.Module):
     imu_dv: tuple
     imu_dq: tuple
     ref: tuple  # ground truth + the run's mean visual offset
-    g_c: tuple  # centred ground truth, 0 where weight is 0
+    g_c: tuple  # ground truth less its mean over the weight frames; 0 where gt is 0
     gravity: tuple  # [R] each
     offset: Array  # [3, R]
     g_mean: Array  # [3, R]
-    gram: Array  # [3, 3, R]
-    n_eval: Array  # [R] frames with ground truth and a recorded pose
+    gram: Array  # [3, 3, R] over the weight frames
+    n_eval: Array  # [R] weight frames
     n_gt: Array  # [R] frames with ground truth
 
     @property
@@ -119,16 +128,17 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
     dtype = batch.t.dtype
     fm = lambda x: jnp.swapaxes(x, 0, 1).astype(dtype)  # noqa: E731
     cols = lambda x: tuple(fm(x[..., i]) for i in range(x.shape[-1]))  # noqa: E731
-    # Frames a run that keeps tracking has an estimate on: posed by the recorded run (under both switch
-    # models; search_chunk refuses a lane whose estimates differ from these frames).
-    weight = (batch.valid & batch.gt_valid & batch.has_pose).astype(dtype)  # [R, F]
+    # Frames a run that keeps tracking usually has an estimate on: posed by the recorded run (a lane
+    # whose estimates differ from these frames corrects the statistics in search_chunk).
+    gt = (batch.valid & batch.gt_valid).astype(dtype)
+    weight = gt * batch.has_pose.astype(dtype)  # [R, F]
     n = jnp.sum(weight, axis=1)
     n_safe = jnp.maximum(n, 1.0)
     mean = lambda x: jnp.sum(weight[..., None] * x, axis=1) / n_safe[:, None]  # noqa: E731
     g_mean = mean(batch.gt_p)  # [R, 3]
     offset = mean(batch.vis_p - batch.gt_p)
-    g_c = (batch.gt_p - g_mean[:, None]) * weight[..., None]
-    gram = jnp.einsum("rfi,rfj->ijr", g_c, g_c)
+    g_c = (batch.gt_p - g_mean[:, None]) * gt[..., None]
+    gram = jnp.einsum("rfi,rfj->ijr", g_c * weight[..., None], g_c)
     logs = feature_logs(fm(features.inlier_ratio), fm(features.s_b), fm(features.s_c))
     return SearchBatch(
         n_inliers=fm(features.n_inliers),
@@ -142,7 +152,7 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
         data=jax.tree.map(fm, frame_data(batch)),
         run=run_constants(batch),
         valid=fm(batch.valid),
-        gt=fm(batch.valid & batch.gt_valid),
+        gt=fm(gt),
         weight=fm(weight),
         vis_p=cols(batch.vis_p),
         vis_q=cols(batch.vis_q),
@@ -158,7 +168,7 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
         g_mean=g_mean.T,
         gram=gram,
         n_eval=n,
-        n_gt=jnp.sum((batch.valid & batch.gt_valid).astype(dtype), axis=1),
+        n_gt=jnp.sum(gt, axis=1),
     )
 
 
@@ -167,26 +177,34 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
 
 
 class ChunkResult(eqx.Module):
-    """Kernel output, leaves [S, R]: loss (m), failed, rmse (m; NaN where failed), coverage.
-
-    A lane the kernel cannot score exactly (a run that kept tracking but whose estimates are not exactly
-    its posed frames with ground truth: the alignment statistics were fixed for those) has a NaN loss;
-    `search` refuses it with a message rather than returning a number.
+    """Kernel output, leaves [S, R]: loss (m), failed, rmse (m; NaN where failed), coverage, unsupported
+    (the replay left the log's support), included (the pair counts in the objective: False only for an
+    unsupported run under support="exclude"), as jsve.core._objective.RunLoss.
     """
 
     loss: Array
     failed: Array
     rmse: Array
     coverage: Array
+    unsupported: Array
+    included: Array
 
 
 _MOMENTS = 3 + 9 + 1  # sum e, sum e_i g_c,j, sum |e|^2
+_CORRECTIONS = 1 + 3 + 6  # over (estimated - weight) frames: count, sum g_c, sum g_c g_c^T (upper triangle)
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
-    """RMSE of the aligned estimate from the alignment statistics (lanes [S, R]); and degeneracy."""
+def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, corrections, method: str):
+    """RMSE of the aligned estimate from the alignment statistics (lanes [S, R]); the lanes' frame
+    counts; and degeneracy.
+
+    corrections: sums over (estimated - weight) frames (+1 / -1 per frame): count, sum g_c (3) and
+    sum g_c g_c^T (the _PAIRS entries), all 0 where a lane's estimated frames are its weight frames.
+    """
     dtype = s_ee.dtype
-    n = sb.n_eval
+    d_n, d_g, d_gg = corrections[0], corrections[1:4], corrections[4:]
+    n = sb.n_eval + d_n
     n_safe = jnp.maximum(n, 1.0)
     aligner = ALIGNERS[method]
     if aligner.solve is None:  # the identity (search_chunk refuses first-pose methods): sum |e + o|^2
@@ -195,21 +213,29 @@ def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
             + 2 * sum(sb.offset[i] * s_e[i] for i in range(3))
             + n * sum(sb.offset[i] ** 2 for i in range(3))
         )
-        return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), jnp.zeros(s_ee.shape, bool)
+        return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), n, jnp.zeros(s_ee.shape, bool)
     mu = [s / n_safe for s in s_e]  # mean of e (shifted offsets)
     d_c = s_ee - n * sum(x * x for x in mu)  # sum |e - mean e|^2
-    gram = sb.gram  # [3, 3, R]; symmetric
+    # Recentre on the lane's frames: their ground-truth mean is g_mean + shift, shift = sum g_c / n
+    # (sum g_c is 0 over the weight frames); G' = sum (g_c - shift)(g_c - shift)^T, M' = M - s_e shift^T.
+    shift = [d / n_safe for d in d_g]
+    pair = {ij: k for k, ij in enumerate(_PAIRS)}
+    gram = [
+        [sb.gram[i, j] + d_gg[pair[min(i, j), max(i, j)]] - d_g[i] * shift[j] for j in range(3)]
+        for i in range(3)
+    ]  # [3][3] of [S, R]; symmetric
+    m = [[m[j][i] - s_e[j] * shift[i] for i in range(3)] for j in range(3)]
     # The moments of the pairs (estimate x = g + o + e, truth y = g): M[j][i] = sum e_j g_c,i and
     # cov[i][j] = (G[i][j] + M[j][i]) / n (Umeyama eq. 38), var_x = (tr G + 2 tr M + D) / n.
     cov = jnp.stack(
-        [jnp.stack([(gram[i, j] + m[j][i]) / n_safe for j in range(3)], -1) for i in range(3)], -2
+        [jnp.stack([(gram[i][j] + m[j][i]) / n_safe for j in range(3)], -1) for i in range(3)], -2
     )
-    tr_g = gram[0, 0] + gram[1, 1] + gram[2, 2]
+    tr_g = gram[0][0] + gram[1][1] + gram[2][2]
     tr_m = m[0][0] + m[1][1] + m[2][2]
     moments = Moments(
         count=n,
-        mu_x=jnp.stack([sb.g_mean[i] + sb.offset[i] + mu[i] for i in range(3)], -1),
-        mu_y=sb.g_mean.T,
+        mu_x=jnp.stack([sb.g_mean[i] + shift[i] + sb.offset[i] + mu[i] for i in range(3)], -1),
+        mu_y=jnp.stack([sb.g_mean[i] + shift[i] for i in range(3)], -1),
         var_x=jnp.maximum((tr_g + 2 * tr_m + d_c) / n_safe, 0.0),
         var_y=tr_g / n_safe,
         cov=cov,
@@ -219,31 +245,39 @@ def _umeyama_residual(sb: SearchBatch, s_e, m, s_ee, method: str):
     transform = fit_moments(moments, aligner.solve)
     rot, scale = transform.rotation, transform.scale
     a_mat = jnp.eye(3, dtype=dtype) - scale[..., None, None] * rot
-    g = jnp.moveaxis(gram, -1, 0)  # [R, 3, 3], broadcast over settings
-    m_mat = jnp.stack([jnp.stack([m[j][i] for i in range(3)], -1) for j in range(3)], -2)  # [S, R, 3, 3] = M
+    g = jnp.stack([jnp.stack(row, -1) for row in gram], -2)  # [S, R, 3, 3] = G'
+    m_mat = jnp.stack([jnp.stack([m[j][i] for i in range(3)], -1) for j in range(3)], -2)  # [S, R, 3, 3] = M'
     term_g = jnp.sum((a_mat @ g) * a_mat, axis=(-2, -1))  # tr(A G A^T) = tr(A^T A G)
     term_m = jnp.trace(jnp.swapaxes(a_mat, -1, -2) @ rot @ m_mat, axis1=-2, axis2=-1)
     e2 = term_g - 2 * scale * term_m + scale * scale * d_c
-    return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), transform.degenerate
+    return jnp.sqrt(jnp.maximum(e2, 0.0) / n_safe), n, transform.degenerate
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008
-    """Hard objective of S rule settings (leaves [S]) on every run of a SearchBatch: [S, R] results."""
-    if ALIGNERS[config.align].first_pose:
-        raise ValueError(
-            f"the search kernel aligns from sufficient statistics; align={config.align!r} needs the first "
-            "pose: use jsve.core._objective.run_losses"
-        )
+class _LaneSums(eqx.Module):
+    """What one pass of the kernel's scan accumulates per lane ([S, R] leaves)."""
+
+    lost: Array  # ever lost tracking (0 / 1)
+    unsupported: Array  # ever out of the log's support (0 / 1)
+    n_closed: Array  # estimates with ground truth in closed maps
+    n_map: Array  # ... in the current map
+    moments: tuple  # _MOMENTS sums over the estimated frames
+    corrections: tuple  # _CORRECTIONS sums over (estimated - weight) frames (0 when not accumulated)
+    n_off: Array  # frames off the weight frames (accumulated when the corrections are not)
+
+
+def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneSums:
+    """The frames scan of search_chunk for lanes [S, R] (rule leaves [S, 1]); `exact` (static) also
+    accumulates the corrections for estimated frames other than the weight frames, else only counts
+    those frames."""
     dtype = sb.t.dtype
-    S = jax.tree.leaves(rules)[0].shape[0]
-    lanes = (S, sb.n_runs)
-    rule = jax.tree.map(lambda x: x.astype(dtype)[:, None], rules)  # leaves [S, 1] broadcast over runs
+    lanes = (jax.tree.leaves(rule)[0].shape[0], sb.n_runs)
     state0 = jax.tree.map(lambda x: jnp.broadcast_to(x, lanes), initial_state(dtype))
     first = lambda cols: tuple(jnp.broadcast_to(c[0], lanes) for c in cols)  # noqa: E731
     zeros = jnp.zeros(lanes, dtype)
-    counts = (zeros, zeros, zeros)  # estimates in closed maps, in the current map, off the fixed frames
-    start = (state0, first(sb.vis_p), first(sb.vis_v), first(sb.vis_q), zeros, counts, (zeros,) * _MOMENTS)
+    counts = (zeros, zeros)  # estimates in closed maps, in the current map
+    flags = (zeros, zeros, zeros)  # ever lost, ever out of support, frames off the weight frames
+    n_sums = _MOMENTS + (_CORRECTIONS if exact else 0)
+    start = (state0, first(sb.vis_p), first(sb.vis_v), first(sb.vis_q), flags, counts, (zeros,) * n_sums)
     xs = (
         sb.n_inliers,
         (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c),
@@ -265,7 +299,7 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
     coast = config.switch_model == "imu-coast"
 
     def step(carry, x):
-        state, p, v, q, lost, (n_closed, n_map, n_off), mom = carry
+        state, p, v, q, (lost, unsupported, n_off), (n_closed, n_map), mom = carry
         n_inl, feats, fd, valid, gt, w, vp, vq, vv, dt, dp, dv, dq, ref, g_c = x
         score = score_columns(rule, n_inl, *feats)
         state, decision = machine_step(
@@ -276,42 +310,94 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
         posed = fd.has_pose > 0.5
         if coast:
             pp, pv, pq = imu_predict_columns(p, v, q, dt, dp, dv, dq, sb.gravity)
-            a = (decision.tracked > 0.5) & posed
+            tracked = decision.tracked > 0.5
+            a = tracked & posed
             sel = lambda vis, pred: tuple(jnp.where(a, u, z) for u, z in zip(vis, pred, strict=True))  # noqa: E731
             p2, v2, q2 = sel(vp, pp), sel(vv, pv), sel(vq, pq)
             est = (a | (decision.coasting > 0.5)).astype(dtype)
+            needs_pose = tracked  # as jsve.core._replay: a coasting frame needs no recorded pose
         else:
             keep = lambda vis, old: tuple(jnp.where(posed, u, z) for u, z in zip(vis, old, strict=True))  # noqa: E731
             p2, v2, q2 = keep(vp, p), keep(vv, v), keep(vq, q)
-            est = ((decision.tracked + decision.coasting > 0.5) & posed).astype(dtype)
+            needs_pose = decision.tracked + decision.coasting > 0.5
+            est = (needs_pose & posed).astype(dtype)
         lost = jnp.maximum(lost, decision.loss * valid)
+        unsupported = jnp.maximum(unsupported, (needs_pose & ~posed).astype(dtype) * valid)
         # Coverage follows the replay: a new map closes the current one; a reset takes its estimates away.
         counted = est * gt
         # (padding frames at the end run the machine too: their resets and map starts are not the run's)
         new_map, reset = decision.new_map * valid, decision.reset * valid
         n_closed = n_closed + new_map * n_map
         n_map = (1 - new_map) * (1 - reset) * n_map + counted
-        n_off = n_off + jnp.abs(counted - w)  # estimates off the frames the statistics were fixed for
-        e = [w * est * (p2[i] - ref[i]) for i in range(3)]
-        new = (
-            e
-            + [e[j] * g_c[i] for j in range(3) for i in range(3)]
-            + [e[0] * e[0] + e[1] * e[1] + e[2] * e[2]]
-        )
+        e = [counted * (p2[i] - ref[i]) for i in range(3)]
+        off = counted - w  # +1 / -1 on frames off those the statistics were fixed for; usually 0
+        new = [
+            *e,
+            *(e[j] * g_c[i] for j in range(3) for i in range(3)),
+            e[0] * e[0] + e[1] * e[1] + e[2] * e[2],
+        ]
+        if exact:
+            off_g = [off * g_c[i] for i in range(3)]
+            new += [off] + off_g + [off_g[i] * g_c[j] for i, j in _PAIRS]
+        else:
+            n_off = n_off + jnp.abs(off)
         mom = tuple(acc + d for acc, d in zip(mom, new, strict=True))
-        return (state, p2, v2, q2, lost, (n_closed, n_map, n_off), mom), None
+        return (state, p2, v2, q2, (lost, unsupported, n_off), (n_closed, n_map), mom), None
 
-    (_, _, _, _, lost, (n_closed, n_map, n_off), mom), _ = jax.lax.scan(step, start, xs)
-    s_e, s_ee = mom[:3], mom[12]
-    m = [[mom[3 + 3 * j + i] for i in range(3)] for j in range(3)]  # m[j][i] = sum e_j g_c,i
-    rmse, degenerate = _umeyama_residual(sb, s_e, m, s_ee, config.align)
-    n = sb.n_eval
+    (_, _, _, _, (lost, unsupported, n_off), (n_closed, n_map), mom), _ = jax.lax.scan(step, start, xs)
+    return _LaneSums(
+        lost=lost,
+        unsupported=unsupported,
+        n_closed=n_closed,
+        n_map=n_map,
+        moments=mom[:_MOMENTS],
+        corrections=mom[_MOMENTS:] if exact else (jnp.zeros(lanes, dtype),) * _CORRECTIONS,
+        n_off=n_off,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008
+    """Hard objective of S rule settings (leaves [S]) on every run of a SearchBatch: [S, R] results.
+
+    Under "imu-coast" a lane coasts on the IMU over frames the recorded run did not pose, so the scan
+    always accumulates the corrections for estimated frames off the weight frames. Under "orbslam3" a
+    lane that keeps tracking has an estimate exactly on the weight frames (docs/state-machine.md: a
+    tracked frame needs the recorded pose; a posed frame without an estimate is LOST, a loss), so the
+    scan runs without them (10 sums fewer per lane, measured ~25 % of its time) and runs again with
+    them only if some lane that never lost has frames off the weight frames (a log whose IMU flag drops
+    inside a map, for one).
+    """
+    if ALIGNERS[config.align].first_pose:
+        raise ValueError(
+            f"the search kernel aligns from sufficient statistics; align={config.align!r} needs the first "
+            "pose: use jsve.core._objective.run_losses"
+        )
+    dtype = sb.t.dtype
+    rule = jax.tree.map(lambda x: x.astype(dtype)[:, None], rules)  # leaves [S, 1] broadcast over runs
+    if config.switch_model == "imu-coast":
+        sums = _scan(sb, rule, config, exact=True)
+    else:
+        fast = _scan(sb, rule, config, exact=False)
+        inexact = jnp.any((fast.lost < 0.5) & (fast.n_off > 0.5))
+        sums = jax.lax.cond(inexact, lambda: _scan(sb, rule, config, exact=True), lambda: fast)
+    s_e, s_ee = sums.moments[:3], sums.moments[12]
+    m = [[sums.moments[3 + 3 * j + i] for i in range(3)] for j in range(3)]  # m[j][i] = sum e_j g_c,i
+    rmse, n, degenerate = _umeyama_residual(sb, s_e, m, s_ee, sums.corrections, config.align)
     n_gt = sb.n_gt
-    coverage = jnp.where(n_gt > 0, (n_closed + n_map) / jnp.maximum(n_gt, 1.0), 0.0)
-    failed = (lost > 0.5) | degenerate | (n < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
+    coverage = jnp.where(n_gt > 0, (sums.n_closed + sums.n_map) / jnp.maximum(n_gt, 1.0), 0.0)
+    failed = (sums.lost > 0.5) | degenerate | (n < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
+    unsupported = sums.unsupported > 0.5
+    failed, included = support_outcome(unsupported, failed, config, hard=True)
     loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), rmse)
-    loss = jnp.where(~failed & (n_off > 0.5), jnp.nan, loss)
-    return ChunkResult(loss=loss, failed=failed, rmse=jnp.where(failed, jnp.nan, rmse), coverage=coverage)
+    return ChunkResult(
+        loss=loss,
+        failed=failed,
+        rmse=jnp.where(failed, jnp.nan, rmse),
+        coverage=coverage,
+        unsupported=unsupported,
+        included=included,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -325,6 +411,13 @@ class SearchResult:
     Attributes:
         values: [S, d] the settings' free parameter values (in the space's order).
         loss, failed, rmse, coverage: [S, R]; rmse is NaN where failed.
+        unsupported: [S, R] the setting's replay of the run left the log's support.
+        included: [S, R] the pair counts in the objective (False only where unsupported under
+            support="exclude"; jsve.core._objective).
+
+    The weighted means below are over the included pairs of each setting; a setting with no included
+    weight gets the mean over all runs (every loss then the penalty), as
+    jsve.core._objective.weighted_objective.
     """
 
     values: np.ndarray
@@ -332,19 +425,41 @@ class SearchResult:
     failed: np.ndarray
     rmse: np.ndarray
     coverage: np.ndarray
+    unsupported: np.ndarray
+    included: np.ndarray
+
+    def _mean(self, x: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """[..., S] weighted means of x [S, R] over each setting's included runs (two matrix products,
+        so bootstrap weights [n_boot, R] never make an [n_boot, S, R] array)."""
+        w = np.asarray(weights, np.float64)
+        x = np.asarray(x, np.float64)
+        every = (w @ x.T) / w.sum(axis=-1, keepdims=True)
+        if self.included.all():
+            return every
+        inc = self.included.astype(np.float64)
+        num, den = w @ (inc * x).T, w @ inc.T
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den > 0, num / np.where(den > 0, den, 1.0), every)
 
     def objective(self, weights: np.ndarray) -> np.ndarray:
         """[S] weighted mean loss for run weights [R] (or [..., R] for many weightings: [..., S])."""
-        w = np.asarray(weights, np.float64)
-        return (w @ self.loss.T.astype(np.float64)) / w.sum(axis=-1, keepdims=True)
+        return self._mean(self.loss, weights)
 
     def failure_rate(self, weights: np.ndarray) -> np.ndarray:
-        w = np.asarray(weights, np.float64)
-        return (w @ self.failed.T.astype(np.float64)) / w.sum(axis=-1, keepdims=True)
+        return self._mean(self.failed, weights)
 
     def coverage_mean(self, weights: np.ndarray) -> np.ndarray:
+        return self._mean(self.coverage, weights)
+
+    def unsupported_rate(self, weights: np.ndarray) -> np.ndarray:
+        """[..., S] weighted share of all runs whose replay left the log's support."""
         w = np.asarray(weights, np.float64)
-        return (w @ self.coverage.T.astype(np.float64)) / w.sum(axis=-1, keepdims=True)
+        return (w @ self.unsupported.T.astype(np.float64)) / w.sum(axis=-1, keepdims=True)
+
+    def excluded_share(self, weights: np.ndarray) -> np.ndarray:
+        """[..., S] weighted share of all runs dropped from the objective (0 under "penalise")."""
+        w = np.asarray(weights, np.float64)
+        return 1.0 - (w @ self.included.T.astype(np.float64)) / w.sum(axis=-1, keepdims=True)
 
     def concat(self, other: SearchResult) -> SearchResult:
         """Both sets of settings (same runs)."""
@@ -353,7 +468,7 @@ class SearchResult:
         )
 
     def as_tuple(self):
-        return (self.values, self.loss, self.failed, self.rmse, self.coverage)
+        return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
 
 
 LANES_PER_CALL = 8192
@@ -421,16 +536,14 @@ def search(
             bar.update(n * n_real)
     merged = [jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *chunks) for chunks in per_part]
     merged = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *merged)
-    inexact = np.isnan(merged.loss)
-    if inexact.any():
-        setting, run = (int(i[0]) for i in np.nonzero(inexact))
-        raise ValueError(
-            f"search: run {run} under setting {setting} kept tracking but has estimates on frames other "
-            f"than its posed frames with ground truth ({int(inexact.sum())} setting-run pairs): the fixed "
-            "alignment statistics do not apply; score such logs with jsve.core._objective.run_losses"
-        )
     return SearchResult(
-        values=values, loss=merged.loss, failed=merged.failed, rmse=merged.rmse, coverage=merged.coverage
+        values=values,
+        loss=merged.loss,
+        failed=merged.failed,
+        rmse=merged.rmse,
+        coverage=merged.coverage,
+        unsupported=merged.unsupported,
+        included=merged.included,
     )
 
 

@@ -49,8 +49,9 @@ class StudyConfig:
         families: the rule families to fit ("sve", "inliers"); spaces: their ParamSpace descriptions
             (None: the defaults of jsve.fitting._space).
         balance_by: metadata columns whose groups count equally in the objective ([]: every run 1).
-        failure_penalty, align, min_coverage, switch_model: the objective
-            (jsve.core._objective.ObjectiveConfig; switch_model: docs/state-machine.md).
+        failure_penalty, align, min_coverage, switch_model, support: the objective
+            (jsve.core._objective.ObjectiveConfig; switch_model: docs/state-machine.md; support: what
+            the fit does with a run whose replay leaves the log's support, "penalise" or "exclude").
         fit: jsve.fitting._fit.FitConfig.
         kfold: folds of the k-fold cross-validation (0: none); leave_one_out: metadata columns to leave
             out one value at a time (skipped when a column has a single value).
@@ -67,6 +68,7 @@ class StudyConfig:
     align: str = "se3"
     min_coverage: float = 0.0
     switch_model: str = "orbslam3"
+    support: str = "penalise"
     fit: FitConfig = FitConfig()
     kfold: int = 5
     leave_one_out: tuple[str, ...] = ("sequence", "disturbance")
@@ -83,6 +85,7 @@ class StudyConfig:
             align=self.align,
             min_coverage=self.min_coverage,
             switch_model=self.switch_model,
+            support=self.support,
         )
 
     def space(self, family: str) -> ParamSpace:
@@ -237,6 +240,9 @@ def _fit_record(name: str, result: FitResult) -> dict:
         "objective": result.objective,
         "failure_rate": result.failure_rate,
         "coverage": result.coverage,
+        "unsupported_rate": result.unsupported_rate,
+        "n_unsupported": result.n_unsupported,
+        "n_excluded": result.n_excluded,
         "stages": result.stages,
     }
 
@@ -244,21 +250,12 @@ def _fit_record(name: str, result: FitResult) -> dict:
 def _save_search(result: SearchResult, path: Path) -> None:
     # A file object, so that numpy does not append ".npz" to the temporary name.
     with atomic.atomic_path(path) as partial, open(partial, "wb") as f:
-        np.savez_compressed(
-            f,
-            values=result.values,
-            loss=result.loss,
-            failed=result.failed,
-            rmse=result.rmse,
-            coverage=result.coverage,
-        )
+        np.savez_compressed(f, **{k.name: getattr(result, k.name) for k in fields(SearchResult)})
 
 
 def _load_search(path: Path) -> SearchResult:
     with np.load(path) as z:
-        return SearchResult(
-            values=z["values"], loss=z["loss"], failed=z["failed"], rmse=z["rmse"], coverage=z["coverage"]
-        )
+        return SearchResult(**{k.name: z[k.name] for k in fields(SearchResult)})
 
 
 def _folds(meta: pd.DataFrame, config: StudyConfig):
@@ -345,6 +342,9 @@ def run_study(
             coverage=record["coverage"],
             stages=record["stages"],
             search=_load_search(search_path),
+            unsupported_rate=record["unsupported_rate"],
+            n_unsupported=record["n_unsupported"],
+            n_excluded=record["n_excluded"],
         )
 
     def evaluate_fitted():
