@@ -155,9 +155,8 @@ def test_cli_sve_matches_sve_table(runs, log_dir, tmp_path):
     table = pd.read_csv(out)
     f = run.frames
     bins = f[list(jsve.io.schema.BIN_COLUMNS)].to_numpy()
-    expected = jsve.sve_table(
-        f["n_extracted"], f["n_inliers"], f["n_frustum"], bins, n_features=run.meta["n_features"]
-    )
+    counts = (f[name].to_numpy() for name in ("n_extracted", "n_inliers", "n_frustum"))  # arrays, as the CLI
+    expected = jsve.sve_table(*counts, bins, n_features=run.meta["n_features"])
     assert table["t_ns"].tolist() == f["t_ns"].tolist()  # int64 stamps exact
     for name, values in expected.items():
         np.testing.assert_allclose(table[name], np.asarray(values), rtol=1e-6, atol=1e-7, err_msg=name)
