@@ -295,3 +295,45 @@ def test_report_from_tables_is_deterministic_and_self_contained(tmp_path):
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     write_report(tmp_path, title="fake")
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_report_shows_switch_model_support_policy_and_support_columns(tmp_path):
+    """The configuration section names the switch model and the support policy; the per-level tables carry
+    the summary's support columns (changed, out of support, runs out of support) for every rule, with the
+    tables' numbers; the fit section and the held-out table say how many runs left the logs' support. A
+    study written before these existed renders without them ("not recorded" in the configuration)."""
+    from jsve.fitting._study import write_json, write_table
+
+    _fake_study(tmp_path)
+    old = write_report(tmp_path, title="fake")["markdown"].read_text()
+    assert "| switch model | not recorded |" in old and "runs out of support" not in old
+    study = json.loads((tmp_path / "study.json").read_text())
+    study["config"] |= {"switch_model": "imu-coast", "support": "exclude"}
+    write_json(study, tmp_path / "study.json")
+    summary = read_table(tmp_path, "summary")
+    summary["mean_changed"] = 0.0125 * (summary["level"] + 1)
+    summary["mean_unsupported"] = 0.00375 * summary["level"]
+    summary["share_unsupported_runs"] = np.where(summary["rule"] == "fitted-sve", 0.5, 0.0)
+    write_table(summary, tmp_path, "summary")
+    heldout = read_table(tmp_path, "heldout_summary")
+    heldout["unsupported"] = [0.375, 0.0]
+    write_table(heldout, tmp_path, "heldout_summary")
+    fitted = json.loads((tmp_path / "fitted_sve.json").read_text())
+    fitted |= {"unsupported_rate": 0.25, "n_unsupported": 2, "n_excluded": 1}
+    write_json(fitted, tmp_path / "fitted_sve.json")
+
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    assert "| switch model | imu-coast | a frame in RECENTLY_LOST takes the IMU prediction" in md
+    assert (
+        "| support policy | exclude | a run whose replay needs a recorded pose the log lacks is left out"
+        in md
+    )
+    section = md.split("## Per level: occlusion")[1].split("##")[0]
+    head = next(line for line in section.splitlines() if line.startswith("| level |"))
+    assert head.endswith("| failure rate | coverage | changed | out of support | runs out of support |")
+    # level 50, fitted-sve: changed 0.6375, out of support 0.1875, runs out of support 0.5
+    assert "| 50 | fitted-sve | 2 |" in section and "| 0.6375 | 0.1875 | 0.5 |" in section
+    assert "| 50 | orbslam3 | 2 |" in section and "| 0.6375 | 0.1875 | 0 |" in section
+    assert "leaves the logs' support on 2 runs (weighted share 0.25); 1 run excluded" in md
+    assert "| runs out of support |" in md.split("## Held-out comparison")[1].split("##")[0]
+    assert "| 0.375 |" in md and "all rules support" in md

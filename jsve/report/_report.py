@@ -73,11 +73,20 @@ def markdown_table(table: pd.DataFrame) -> str:
     return "\n".join([head, rule, *rows])
 
 
+def _html_cell(value) -> str:
+    """A table cell: numbers right-aligned (the page's default), words left-aligned, and short words
+    (rule names, settings) kept on one line."""
+    text = _fmt(value)
+    if isinstance(value, str):
+        kind = "w" if len(text) <= 24 else "t"
+        return f'<td class="{kind}">{html.escape(text)}</td>'
+    return f"<td>{html.escape(text)}</td>"
+
+
 def html_table(table: pd.DataFrame) -> str:
     cells = "".join(f"<th>{html.escape(str(c))}</th>" for c in table.columns)
     body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>"
-        for row in table.itertuples(index=False)
+        "<tr>" + "".join(_html_cell(v) for v in row) + "</tr>" for row in table.itertuples(index=False)
     )
     return f"<table><thead><tr>{cells}</tr></thead><tbody>{body}</tbody></table>"
 
@@ -209,6 +218,44 @@ def _read(out: Path, name: str) -> pd.DataFrame | None:
     return pd.read_parquet(path) if path.is_file() else None
 
 
+SWITCH_MODEL_TEXT = {
+    "orbslam3": "a tracked or RECENTLY_LOST frame keeps its logged (optimised) pose, as ORB-SLAM3 v1.0",
+    "imu-coast": "a frame in RECENTLY_LOST takes the IMU prediction from the previous replayed state",
+}
+"""The switch models in words (docs/state-machine.md)."""
+SUPPORT_TEXT = {
+    "penalise": "a run whose replay needs a recorded pose the log lacks counts as failed (the penalty)",
+    "exclude": "a run whose replay needs a recorded pose the log lacks is left out of that rule's objective",
+}
+"""The support policies in words (jsve.core._objective)."""
+
+
+def _config_view(study: dict) -> pd.DataFrame:
+    """The study's configuration as (setting, value, meaning) rows; "not recorded" for a setting an older
+    study.json lacks."""
+    cfg = study.get("config", {})
+    fit = cfg.get("fit", {})
+    missing = "not recorded"
+
+    def get(key, table=cfg):
+        return table.get(key, missing)
+
+    model, support = get("switch_model"), get("support")
+    rows = [
+        ("switch model", model, SWITCH_MODEL_TEXT.get(model, "")),
+        ("support policy", support, SUPPORT_TEXT.get(support, "")),
+        ("alignment", get("align"), "before the ATE RMSE (jsve.core.align)"),
+        ("failure penalty, m", get("failure_penalty"), "the loss of a failed run"),
+        ("coverage floor", get("min_coverage"), "runs below it fail"),
+        ("run weighting", ", ".join(study.get("balance_by", [])) or "none", "each group counts equally"),
+        ("families", ", ".join(get("families")) if "families" in cfg else missing, "rule families fitted"),
+        ("search", f"{get('design', fit)}, {get('n_search', fit)} settings", "plus the presets"),
+        ("k-fold", get("kfold"), "folds of the k-fold cross-validation"),
+        ("bootstrap resamples", get("n_boot"), f"{get('level')} intervals"),
+    ]
+    return pd.DataFrame(rows, columns=["setting", "value", "meaning"])
+
+
 def _heldout_view(summary: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for d in summary.to_dict("records"):
@@ -220,6 +267,8 @@ def _heldout_view(summary: pd.DataFrame) -> pd.DataFrame:
             "failure rate": d["failure_rate"],
             "coverage": d["coverage"],
         }
+        if "unsupported" in d:
+            row["runs out of support"] = d["unsupported"]
         for base in BASELINES.values():
             key = f"diff_vs_{base}"
             present = key in d and pd.notna(d[key])
@@ -244,6 +293,16 @@ def _params_view(params: pd.DataFrame) -> pd.DataFrame:
     )
 
 
+SUPPORT_COLUMNS = {
+    "mean_changed": "changed",
+    "mean_unsupported": "out of support",
+    "share_unsupported_runs": "runs out of support",
+}
+"""The summary's support columns (jsve.evaluation.aggregate) and their headings in the per-level tables:
+the mean share of frames whose replayed state differs from the logged one, the mean share of frames
+where the replay needs a recorded pose the log lacks, and the share of runs with any such frame."""
+
+
 def _levels_view(summary: pd.DataFrame, disturbance: str) -> pd.DataFrame:
     part = summary[summary["disturbance"].astype(str) == disturbance]
     rows = []
@@ -253,19 +312,19 @@ def _levels_view(summary: pd.DataFrame, disturbance: str) -> pd.DataFrame:
             if g.empty:
                 continue
             r = g.iloc[0]
-            rows.append(
-                {
-                    "level": level,
-                    "rule": rule,
-                    "runs": int(r["n_runs"]),
-                    "ATE RMSE, m (mean ± std, runs that kept tracking)": _pm(
-                        r["rmse_mean_nonfailed"], r["rmse_std_nonfailed"]
-                    ),
-                    "ATE RMSE, m (all runs)": _pm(r["rmse_mean_all"], r["rmse_std_all"]),
-                    "failure rate": r["failure_rate"],
-                    "coverage": r["mean_coverage"],
-                }
-            )
+            row = {
+                "level": level,
+                "rule": rule,
+                "runs": int(r["n_runs"]),
+                "ATE RMSE, m (mean ± std, runs that kept tracking)": _pm(
+                    r["rmse_mean_nonfailed"], r["rmse_std_nonfailed"]
+                ),
+                "ATE RMSE, m (all runs)": _pm(r["rmse_mean_all"], r["rmse_std_all"]),
+                "failure rate": r["failure_rate"],
+                "coverage": r["mean_coverage"],
+            }
+            row.update({head: r[key] for key, head in SUPPORT_COLUMNS.items() if key in r})
+            rows.append(row)
     return pd.DataFrame(rows)
 
 
@@ -322,15 +381,26 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
     if facts:
         intro += " Data: " + ", ".join(f"{k} = {v}" for k, v in facts.items()) + "."
     sections.append(("Study", intro, None))
-    if heldout_summary is not None:
-        sections.append(
-            (
-                "Held-out comparison",
-                "Each run is held out once per fold kind; fitted rules are refitted without it. Bootstrap "
-                "95% intervals over runs; differences are paired (negative: the rule beats the baseline).",
-                _heldout_view(heldout_summary),
-            )
+    sections.append(
+        (
+            "Configuration",
+            "How every rule was replayed and scored (study.json). The switch model decides the pose of a "
+            "frame the rule rejects; the support policy, what the objective does with a run whose "
+            "replay leaves the log's support (docs/state-machine.md, docs/fitting.md).",
+            _config_view(study),
         )
+    )
+    if heldout_summary is not None:
+        text = (
+            "Each run is held out once per fold kind; fitted rules are refitted without it. Bootstrap "
+            "95% intervals over runs; differences are paired (negative: the rule beats the baseline)."
+        )
+        if cfg.get("support") == "exclude":
+            text += (
+                " Support policy exclude: every rule is scored on the held-out runs all rules support "
+                "(runs); runs out of support is each rule's share of all held-out runs."
+            )
+        sections.append(("Held-out comparison", text, _heldout_view(heldout_summary)))
     if params is not None:
         sections.append(
             (
@@ -351,23 +421,29 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
                 for s in rec["stages"]
             ]
         )
-        sections.append(
-            (
-                f"Fit of the {family} family",
-                f"Rule: `{json.dumps(rec['rule'], sort_keys=True)}`; objective {_fmt(rec['objective'])} m, "
-                f"failure rate {_fmt(rec['failure_rate'])}, coverage {_fmt(rec['coverage'])}.",
-                stages,
-            )
+        text = (
+            f"Rule: `{json.dumps(rec['rule'], sort_keys=True)}`; objective {_fmt(rec['objective'])} m, "
+            f"failure rate {_fmt(rec['failure_rate'])}, coverage {_fmt(rec['coverage'])}."
         )
+        if "n_unsupported" in rec:
+            runs = lambda n: f"{n} run" + ("" if n == 1 else "s")  # noqa: E731
+            text += (
+                f" The rule's replay leaves the logs' support on {runs(rec['n_unsupported'])} (weighted "
+                f"share {_fmt(rec['unsupported_rate'])}); {runs(rec['n_excluded'])} excluded from the "
+                "objective."
+            )
+        sections.append((f"Fit of the {family} family", text, stages))
     if {"disturbance", "level"} <= set(summary.columns):
         for dist in sorted(summary["disturbance"].astype(str).unique()):
-            sections.append(
-                (
-                    f"Per level: {dist}",
-                    "ATE RMSE in metres; failure rate and coverage per rule.",
-                    _levels_view(summary, dist),
+            text = "ATE RMSE in metres; failure rate and coverage per rule."
+            if "mean_changed" in summary.columns:
+                text += (
+                    " Support (shares, mean over runs): changed, frames whose replayed state differs from "
+                    "the logged one; out of support, frames where the replay needs a recorded pose the log "
+                    "lacks (they count as without an estimate here); runs out of support, runs with any "
+                    "such frame (the objective applies the support policy to them)."
                 )
-            )
+            sections.append((f"Per level: {dist}", text, _levels_view(summary, dist)))
     for name, path in figures.items():
         sections.append((name, "", path))
 
@@ -391,7 +467,8 @@ def write_report(out_dir: str | os.PathLike, *, title: str = "jsve threshold rep
     style = (
         "body{font-family:sans-serif;max-width:70em;margin:2em auto;padding:0 1em}"
         "table{border-collapse:collapse;margin:1em 0;font-size:90%}td,th{border:1px solid #ccc;"
-        "padding:2px 6px;text-align:right}th{background:#f4f4f4}img{max-width:100%}"
+        "padding:2px 6px;text-align:right}th{background:#f4f4f4}td.t,td.w{text-align:left}"
+        "td.w{white-space:nowrap}img{max-width:100%}"
     )
     page = (
         f'<!DOCTYPE html>\n<html><head><meta charset="utf-8"><title>{html.escape(title)}</title>'
