@@ -39,6 +39,28 @@ def test_config_round_trip_and_unknown_keys():
         StudyConfig.from_dict({"fit": {"steps": 3}})
 
 
+def test_support_policy_keys_the_study_and_reaches_the_objective():
+    """`support` is a study setting: it reaches the objective, a study resumed under the other policy
+    starts over (the stages' fingerprint changes), `jsve fit --support` sets it, and a wrong value is
+    refused when the study is configured."""
+    from jsve.cli import build_parser
+    from jsve.cli.fit import load_study_config
+    from jsve.fitting._study import fingerprint
+
+    default, exclude = StudyConfig(), StudyConfig(support="exclude")
+    assert default.objective().support == "penalise" and exclude.objective().support == "exclude"
+    assert StudyConfig.from_dict(exclude.to_dict()) == exclude
+    assert fingerprint(default.to_dict()) != fingerprint(exclude.to_dict())
+    assert load_study_config(None, support="exclude") == exclude
+    assert load_study_config(None, support=None) == default
+    args = build_parser().parse_args(["fit", "logs", "-o", "out", "--support", "exclude"])
+    assert args.support == "exclude"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["fit", "logs", "-o", "out", "--support", "drop"])
+    with pytest.raises(ValueError, match="support must be one of"):
+        StudyConfig.from_dict({"support": "drop"})
+
+
 @pytest.fixture(scope="module")
 def data():
     return FitData.from_runs(ka.make_study("occlusion", range(6), n_frames=200))

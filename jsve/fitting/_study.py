@@ -79,6 +79,9 @@ class StudyConfig:
     heatmap: tuple = ("imu_init", "recovery", 25)
     seed: int = 0
 
+    def __post_init__(self):
+        self.objective()  # the objective's settings are checked when the study is configured
+
     def objective(self) -> ObjectiveConfig:
         return ObjectiveConfig(
             failure_penalty=self.failure_penalty,
