@@ -3,9 +3,10 @@
     python sweeps/threshold_sweep.py sweeps/threshold_sweep.toml
 
 Writes OUTPUT.csv / OUTPUT.parquet (one row per setting: its parameters, weighted objective, failure
-rate, coverage) and OUTPUT.npz (the per-run matrices, runs in the order of OUTPUT.runs.csv), each
-atomically (`<name>.partial`, then a rename), so a killed sweep leaves no half-written output. Uses
-jsve's public names (and jsve.io's atomic writers); the config format is in sweeps/threshold_sweep.toml.
+rate, coverage, the weighted shares of runs out of the logs' support and excluded) and OUTPUT.npz (the
+per-run matrices, runs in the order of OUTPUT.runs.csv), each atomically (`<name>.partial`, then a
+rename), so a killed sweep leaves no half-written output. Uses jsve's public names (and jsve.io's atomic
+writers); the config format is in sweeps/threshold_sweep.toml.
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ def main(argv=None) -> int:
     table["objective_m"] = result.objective(w)
     table["failure_rate"] = result.failure_rate(w)
     table["coverage"] = result.coverage_mean(w)
+    table["unsupported"] = result.unsupported_rate(w)
+    table["excluded"] = result.excluded_share(w)
     out = Path(config.get("output", "sweep-results/sweep"))
     write_table(table, out.with_suffix(".csv"))
     write_table(table, out.with_suffix(".parquet"))
@@ -84,6 +87,8 @@ def main(argv=None) -> int:
             failed=result.failed,
             rmse=result.rmse,
             coverage=result.coverage,
+            unsupported=result.unsupported,
+            included=result.included,
         )
     best = table.sort_values("objective_m").iloc[0]
     print(
