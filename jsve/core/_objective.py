@@ -114,7 +114,8 @@ class ObjectiveConfig(eqx.Module):
 
 
 class RunLoss(eqx.Module):
-    """Per-run loss and the facts behind it (leaves [R]; probabilities where relaxed).
+    """Per-run loss and the facts behind it (leaves [R], or scalars for one run inside the vmapped
+    kernel; probabilities where relaxed).
 
     Attributes:
         loss: metres; failure_penalty where failed.
@@ -128,12 +129,12 @@ class RunLoss(eqx.Module):
             (a float in [0, 1], multiplying the run's weight).
     """
 
-    loss: Float[Array, " R"]
-    rmse: Float[Array, " R"]
+    loss: Float[Array, "*R"]
+    rmse: Float[Array, "*R"]
     failed: Array
-    coverage: Float[Array, " R"]
+    coverage: Float[Array, "*R"]
     unsupported: Array
-    included: Float[Array, " R"]
+    included: Float[Array, "*R"]
 
 
 class ObjectiveValue(eqx.Module):
