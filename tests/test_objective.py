@@ -326,7 +326,7 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
         n_extracted=jnp.full((R, F), 1000, jnp.int32),
         n_inliers=jnp.zeros((R, F), jnp.int32),
         n_frustum=jnp.zeros((R, F), jnp.int32),
-        bins=jnp.zeros((R, 1, 64), jnp.uint16),
+        bins=jnp.zeros((R, F, 64), jnp.uint16),
         vis_p=jnp.zeros((R, F, 3), f64),
         vis_q=jnp.zeros((R, F, 4), f64).at[..., 0].set(1),
         vis_v=jnp.zeros((R, F, 3), f64),
