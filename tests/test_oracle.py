@@ -611,7 +611,8 @@ examples = st.tuples(st.lists(run_specs, min_size=RUNS_PER_EXAMPLE, max_size=RUN
                      st.sampled_from(range(len(TH_ORDERS))))  # fmt: skip
 
 EVENTS = ("recorded_start", "recorded_reset", "natural_init", "reset", "erase", "expiry", "ok_to_rl",
-          "recovery", "rl_no_imu", "out_of_support", "predicted", "reference", "reference_dropped")  # fmt: skip
+          "recovery", "rl_no_imu", "out_of_support", "predicted",
+          "reference", "reference_dropped")  # fmt: skip
 
 
 def event_counts(results, logs) -> collections.Counter:

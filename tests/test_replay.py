@@ -150,7 +150,7 @@ def log_batch(
         return jnp.asarray(x, dtype) if np.issubdtype(np.asarray(x).dtype, np.floating) else jnp.asarray(x)
 
     runs = dict(
-        fps=fps,
+        fps=float(fps),
         gravity=gravity,
         imu_init_delay=imu_init_delay,
         ba2_delay=ba2_delay,
@@ -550,7 +550,7 @@ def random_log(rng, n, n_frames, *, kind="inliers", dtype=jnp.float32, seed=0) -
                 rng.multinomial(int(e * 0.95), rng.dirichlet(np.full(64, a)))
                 for e, a in zip(ext, spread, strict=True)
             ]
-        )
+        ).astype(np.uint16)
         extra["n_frustum"] = np.round(score / rng.uniform(0.5, 0.95, n)).astype(np.int32)
     return log_batch(
         score,

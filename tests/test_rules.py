@@ -493,7 +493,8 @@ def test_soft_step_conserves_probability(x64):
     rec_reloc = jnp.where(flag(0.5) > 0, arr(rng.integers(150, 200, n)), -1.0)
     data = FrameData(
         t=arr(rng.uniform(10, 16, n)), k=arr(rng.integers(200, 300, n)), imu_init=flag(0.7),
-        imu_ba2=flag(0.6), has_pose=flag(0.9), init_keys=flag(0.7), init_matches=flag(0.6), rec_start=rec_start,
+        imu_ba2=flag(0.6), has_pose=flag(0.9), init_keys=flag(0.7), init_matches=flag(0.6),
+        rec_start=rec_start,
         rec_loss=rec_start * flag(0.8), rec_start_t=arr(rng.uniform(0, 10, n)), rec_reloc=rec_reloc,
     )  # fmt: skip
     run = RunConstants(fps=arr(rng.choice([10.0, 20.0, 20.5], n)), imu_init_delay=arr(rng.uniform(0, 3, n)),

@@ -272,8 +272,9 @@ def machine_step(
     )  # fmt: skip
     # The recorded run starts a map here (exact): every replayed world ends its map and starts this one.
     rs = frame.rec_start
-    reloc_now = _mass_mean([(state.ok + state.recently_lost, state.reloc_k), (state.lost, state.lost_reloc_k)],
-                           state.reloc_k)  # fmt: skip
+    tracking_before = state.ok + state.recently_lost
+    windows = [(tracking_before, state.reloc_k), (state.lost, state.lost_reloc_k)]
+    reloc_now = _mass_mean(windows, state.reloc_k)
     reloc = jnp.where(frame.rec_reloc >= 0, frame.rec_reloc, reloc_now) + 0 * tracked
     zero = jnp.zeros_like(tracked)
     forced = MachineState(ok=zero + 1, recently_lost=zero, lost=zero, lost_ready=zero, t_lost=state.t_lost,

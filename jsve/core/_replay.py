@@ -171,7 +171,8 @@ def _scan_frames(
             # carries no gradient; such a frame weighs nothing in any loss. Both branches stay finite.
             big = estimate > jnp.sqrt(jnp.finfo(dtype).tiny)
             share = visual / jnp.where(estimate > 0, estimate, 1.0)
-            a = jnp.where(big, visual / jnp.where(big, estimate, 1.0), jax.lax.stop_gradient(share))[..., None]
+            a = jnp.where(big, visual / jnp.where(big, estimate, 1.0), jax.lax.stop_gradient(share))
+            a = a[..., None]
             p2, v2, q2 = (
                 a * vp + (1 - a) * pp,
                 a * vv + (1 - a) * pv,
