@@ -210,11 +210,13 @@ def test_search_kernel_equals_replay_objective_out_of_support(x64, dtype):
             assert (off_pose & ~np.asarray(ref.failed)).sum() >= 10, space.kind
 
 
-def test_search_kernel_reruns_exactly_where_orbslam3_misses_posed_frames(x64):
-    """Under "orbslam3" the kernel first scans without the alignment corrections; a log whose IMU flag
-    drops for a few frames inside a map (RECENTLY_LOST without an initialised IMU keeps no estimate on
-    posed frames, and recovers) leaves runs that never lost tracking with posed frames and no estimate:
-    the kernel scans again with the corrections and equals run_losses to 1e-12 m."""
+@pytest.mark.parametrize("switch_model", SWITCH_MODELS)
+def test_search_kernel_reruns_exactly_where_lanes_miss_posed_frames(x64, switch_model):
+    """On logs with a pose on every frame the kernel first scans without the alignment corrections
+    (under either switch model); a log whose IMU flag drops for a few frames inside a map (RECENTLY_LOST
+    without an initialised IMU keeps no estimate on posed frames, and recovers) leaves runs that never
+    lost tracking with posed frames and no estimate: the kernel scans again with the corrections and
+    equals run_losses to 1e-12 m."""
     runs = []
     for run in ka.make_study("counts", range(6), n_frames=300):
         frames = run.frames.copy()
@@ -230,7 +232,8 @@ def test_search_kernel_reruns_exactly_where_orbslam3_misses_posed_frames(x64):
     values = np.array(space.values_from_unit(sobol(24, space.dim, seed=4)))
     values[0] = [39.5, 49.5, 49.5, 38.5]  # the known-answer rule: recovers from every bad episode
     rules = space.rule(jnp.asarray(values))
-    config = ObjectiveConfig()
+    config = ObjectiveConfig(switch_model=switch_model)
+    assert bool(jnp.all(batch.has_pose | ~batch.valid))
     fast = _scan(sb, jax.tree.map(lambda x: x[:, None], rules), config, exact=False)
     got = search_chunk(sb, rules, config)
     ref = jax.jit(jax.vmap(lambda r: run_losses(batch, r, f, config)))(rules)

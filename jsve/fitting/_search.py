@@ -360,13 +360,14 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
 def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008
     """Hard objective of S rule settings (leaves [S]) on every run of a SearchBatch: [S, R] results.
 
-    Under "imu-coast" a lane coasts on the IMU over frames the recorded run did not pose, so the scan
-    always accumulates the corrections for estimated frames off the weight frames. Under "orbslam3" a
-    lane that keeps tracking has an estimate exactly on the weight frames (docs/state-machine.md: a
-    tracked frame needs the recorded pose; a posed frame without an estimate is LOST, a loss), so the
-    scan runs without them (10 sums fewer per lane, measured ~25 % of its time) and runs again with
-    them only if some lane that never lost has frames off the weight frames (a log whose IMU flag drops
-    inside a map, for one).
+    The alignment corrections (estimated frames other than the posed ones) cost ~20-30 % of a scan and
+    are rarely needed, so the scan runs without them where it can and checks afterwards. A lane that
+    keeps tracking is estimated exactly on its posed frames with ground truth (a tracked frame needs the
+    recorded pose; a posed frame without an estimate is LOST, a loss), except where a lane coasts on the
+    IMU over frames the recorded run did not pose ("imu-coast") or sits in RECENTLY_LOST with the IMU
+    flag dropped (a log whose imu_init falls inside a map). So under "imu-coast" on runs with unposed
+    frames with ground truth the scan carries the corrections from the start; otherwise it runs
+    without them and again with them only if some lane that never lost has frames off its posed ones.
     """
     if ALIGNERS[config.align].first_pose:
         raise ValueError(
@@ -375,12 +376,18 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
         )
     dtype = sb.t.dtype
     rule = jax.tree.map(lambda x: x.astype(dtype)[:, None], rules)  # leaves [S, 1] broadcast over runs
-    if config.switch_model == "imu-coast":
-        sums = _scan(sb, rule, config, exact=True)
-    else:
+    exact = lambda: _scan(sb, rule, config, exact=True)  # noqa: E731
+
+    def fast_then_exact():
         fast = _scan(sb, rule, config, exact=False)
         inexact = jnp.any((fast.lost < 0.5) & (fast.n_off > 0.5))
-        sums = jax.lax.cond(inexact, lambda: _scan(sb, rule, config, exact=True), lambda: fast)
+        return jax.lax.cond(inexact, exact, lambda: fast)
+
+    if config.switch_model == "imu-coast":
+        unposed = jnp.any((sb.gt > 0.5) & (sb.weight < 0.5))  # frames with ground truth and no pose
+        sums = jax.lax.cond(unposed, exact, fast_then_exact)
+    else:
+        sums = fast_then_exact()
     s_e, s_ee = sums.moments[:3], sums.moments[12]
     m = [[sums.moments[3 + 3 * j + i] for i in range(3)] for j in range(3)]  # m[j][i] = sum e_j g_c,i
     rmse, n, degenerate = _umeyama_residual(sb, s_e, m, s_ee, sums.corrections, config.align)
