@@ -356,7 +356,6 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
     )
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
 def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008
     """Hard objective of S rule settings (leaves [S]) on every run of a SearchBatch: [S, R] results.
 
@@ -368,12 +367,25 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
     flag dropped (a log whose imu_init falls inside a map). So under "imu-coast" on runs with unposed
     frames with ground truth the scan carries the corrections from the start; otherwise it runs
     without them and again with them only if some lane that never lost has frames off its posed ones.
+
+    Two compiled calls (one under an enclosing jit): the scan (`_lane_sums`), then the alignment from
+    its sums (`_chunk_result`), which `search` runs one at a time (see there).
     """
+    _check_align(config)
+    return _chunk_result(sb, _lane_sums(sb, rules, config), config)
+
+
+def _check_align(config: ObjectiveConfig) -> None:
     if ALIGNERS[config.align].first_pose:
         raise ValueError(
             f"the search kernel aligns from sufficient statistics; align={config.align!r} needs the first "
             "pose: use jsve.core._objective.run_losses"
         )
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSums:
+    """The scan of search_chunk: per-lane sums ([S, R] leaves), with the corrections where needed."""
     dtype = sb.t.dtype
     rule = jax.tree.map(lambda x: x.astype(dtype)[:, None], rules)  # leaves [S, 1] broadcast over runs
     exact = lambda: _scan(sb, rule, config, exact=True)  # noqa: E731
@@ -385,9 +397,14 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
 
     if config.switch_model == "imu-coast":
         unposed = jnp.any((sb.gt > 0.5) & (sb.weight < 0.5))  # frames with ground truth and no pose
-        sums = jax.lax.cond(unposed, exact, fast_then_exact)
-    else:
-        sums = fast_then_exact()
+        return jax.lax.cond(unposed, exact, fast_then_exact)
+    return fast_then_exact()
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _chunk_result(sb: SearchBatch, sums: _LaneSums, config: ObjectiveConfig) -> ChunkResult:
+    """search_chunk's results from the lanes' sums: the alignment, coverage, failure and support."""
+    dtype = sb.t.dtype
     s_e, s_ee = sums.moments[:3], sums.moments[12]
     m = [[sums.moments[3 + 3 * j + i] for i in range(3)] for j in range(3)]  # m[j][i] = sum e_j g_c,i
     rmse, n, degenerate = _umeyama_residual(sb, s_e, m, s_ee, sums.corrections, config.align)
@@ -514,11 +531,16 @@ def search(
     values = np.asarray(values, np.float64)
     if values.ndim != 2 or values.shape[1] != space.dim:
         raise ValueError(f"values must have shape (S, {space.dim}) for {space.names}, got {values.shape}")
+    _check_align(config)
     n_settings = values.shape[0]
     run_counts = list(run_counts) if run_counts is not None else [p.n_runs for p in parts]
-    # Calls are dispatched asynchronously, round-robin over the local devices: with several CPU devices
-    # (XLA_FLAGS=--xla_force_host_platform_device_count=N, which `jsve fit` / `jsve demo` set to the
-    # number of cores) the calls run on all cores at once; the results are collected afterwards.
+    # The scans are dispatched asynchronously, round-robin over the local devices: with several CPU
+    # devices (XLA_FLAGS=--xla_force_host_platform_device_count=N, which `jsve fit` / `jsve demo` set to
+    # the number of cores) they run on all cores at once. The alignments from their sums then run one at
+    # a time: the batched LAPACK SVD of an alignment may run on a worker of the thread pool the host
+    # devices share and wait there for tasks of that same pool; two at once on a 2-thread pool left no
+    # worker to run those tasks and the process hung (jaxlib 0.10.2, 2 devices on 2 cores). One at a
+    # time, a waiting SVD leaves the other workers free. They cost ~1 % of a scan.
     devices = jax.local_devices()
     pending = []
     for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
@@ -533,11 +555,12 @@ def search(
             rules = space.rule(jnp.asarray(chunk, part.t.dtype))
             if len(copies) > 1:
                 rules = jax.device_put(rules, devices[k])
-            pending.append((p, sl, n_real, search_chunk(copies[k], rules, config)))
+            pending.append((p, sl, n_real, copies[k], _lane_sums(copies[k], rules, config)))
     per_part: list[list] = [[] for _ in parts]
     total = n_settings * sum(run_counts)
     with tqdm(total=total, desc=desc, unit="run-setting", unit_scale=True, disable=not progress) as bar:
-        for p, sl, n_real, res in pending:
+        for p, sl, n_real, part, sums in pending:
+            res = jax.block_until_ready(_chunk_result(part, sums, config))
             n = sl.stop - sl.start
             per_part[p].append(jax.tree.map(lambda x, n=n, r=n_real: np.asarray(x)[:n, :r], res))
             bar.update(n * n_real)
