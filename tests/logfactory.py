@@ -76,7 +76,8 @@ def make_run(
         gt_missing: fraction of frames (drawn at random) with no ground truth (all seven gt_* NaN).
         t0_ns: stamp of frame 0, ns.
         period_ns: mean frame spacing, ns (default 1e9 / fps); each step is jittered by up to +-10 %.
-        awkward_floats: put -0.0, the smallest subnormal, 1e300 and 0.1 into vis_v* of frames 1-4
+        awkward_floats: put -0.0, the smallest subnormal, the largest float32 (schema.FLOAT_MAX, the
+            largest value a log may hold) and 0.1 into vis_v* of frames 1-4
             (needs n_frames >= 5): values that a careless writer would not round-trip.
         no_pose: fraction of frames (drawn at random among those not in states 2, 3, 5, and never
             frames 1-4 with awkward_floats) without a pose: all ten vis_* NaN.
@@ -138,7 +139,7 @@ def make_run(
     if awkward_floats:
         if n < 5:
             raise ValueError("awkward_floats needs n_frames >= 5")
-        cols["vis_vx"][1:5] = [-0.0, 5e-324, 1e300, 0.1]
+        cols["vis_vx"][1:5] = [-0.0, 5e-324, schema.FLOAT_MAX, 0.1]
     if map_id is not None:
         cols["map_id"] = np.asarray(map_id, dtype=np.int64)
     if no_pose:

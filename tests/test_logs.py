@@ -137,10 +137,10 @@ def test_gt_missing_frames_are_empty_fields(tmp_path):
 
 @settings(max_examples=40, deadline=None)
 @given(
-    values=st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=6, max_size=6),
+    values=st.lists(st.floats(-schema.FLOAT_MAX, schema.FLOAT_MAX), min_size=6, max_size=6),
     steps=st.lists(st.integers(0, 2**20), min_size=5, max_size=5),
 )
-def test_any_finite_double_and_int64_round_trips(values, steps, tmp_path_factory):
+def test_any_double_in_range_and_int64_round_trips(values, steps, tmp_path_factory):
     run = make_run(6, 1, with_gt=False)
     t = np.cumsum(np.array([2**62, *steps], dtype=np.int64) + 1)
     frames = run.frames.assign(vis_vx=np.array(values), t_ns=t)
@@ -791,3 +791,116 @@ def test_v1_logs_keep_the_v1_rules(tmp_path):
     path.write_bytes(good)
     set_field(path, 9, "imu_dt", "-0.05")
     expect(path, LogFormatError, 9, column="imu_dt", value="-0.05", reason="must be >= 0")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Values a computation cannot hold, repeated metadata keys, file containers (issue 12)
+
+
+@pytest.mark.parametrize(
+    "column, text",
+    [("vis_px", "1e300"), ("gt_pz", "-3.5e38"), ("imu_dt", "1e39"), ("vis_qw", "4e38")],
+)
+def test_finite_values_beyond_float32_are_refused(log, column, text):
+    # float32 (what `jsve evaluate` computes in) turns these into inf: they would score as if finite.
+    set_field(log, 9, column, text)
+    expect(log, LogFormatError, 9, column=column, value=text, reason="beyond float32's range")
+
+
+def test_the_largest_float32_is_accepted(log):
+    set_field(log, 9, "vis_vy", repr(schema.FLOAT_MAX))
+    set_field(log, 10, "imu_dpx", repr(-schema.FLOAT_MAX))
+    frames = logs.read_log(log).frames
+    assert frames["vis_vy"][6] == schema.FLOAT_MAX and frames["imu_dpx"][7] == -schema.FLOAT_MAX
+
+
+@pytest.mark.parametrize("column", ["n_extracted", "n_inliers", "n_frustum"])
+def test_counts_beyond_int32_are_refused(log, column):
+    # int32 is what LogBatch holds: 2^32 + 1000 would wrap around to 1000 there.
+    huge = str(2**32 + 1000)
+    set_field(log, 9, column, huge)
+    expect(log, LogFormatError, 9, column=column, value=huge, reason=f"must be <= {2**31 - 1}")
+
+
+def test_a_bin_beyond_uint16_is_refused(log):
+    set_field(log, 9, "n_extracted", str(10**6))
+    set_field(log, 9, "bin_7", "65536")
+    expect(log, LogFormatError, 9, column="bin_7", value="65536", reason="must be <= 65535")
+
+
+def test_bins_whose_int64_sum_overflows_are_refused(log):
+    # Two bins of 2^62 sum to 2^63, which wraps around to -2^63 in int64: the sum check alone passed it.
+    set_field(log, 12, "n_extracted", str(2**62))
+    set_field(log, 12, "bin_3", str(2**62))
+    set_field(log, 12, "bin_4", str(2**62))
+    expect(log, LogFormatError, 12, column="n_extracted", value=str(2**62), reason="must be <= 2147483647")
+    set_field(log, 12, "n_extracted", "1000")
+    expect(log, LogFormatError, 12, column="bin_3", value=str(2**62), reason="must be <= 65535")
+
+
+def test_in_memory_runs_follow_the_same_range_rules(tmp_path):
+    run = make_run(N, 3)
+    frames = run.frames.assign(vis_pz=run.frames["vis_pz"].where(run.frames.index != 5, 1e300))
+    with pytest.raises(LogFormatError, match=r"frame 5: column 'vis_pz' = '1e\+300': beyond float32"):
+        logs.write_log(dataclasses.replace(run, frames=frames), tmp_path / "a.csv")
+    assert not (tmp_path / "a.csv").exists()
+
+
+@pytest.mark.parametrize(
+    "meta, key",
+    [
+        ('{"sequence": "X", "run": 1, "fps": 20, "run": 2}', "run"),  # would change the run id
+        ('{"sequence": "X", "run": 1, "fps": 20, "rule": {"kind": "sve", "kind": "inliers"}}', "kind"),
+    ],
+)
+def test_a_repeated_metadata_key_is_refused(log, meta, key):
+    edit_line(log, 1, schema.MAGIC + meta)
+    err = expect(log, LogFormatError, 1, column=key, reason="appears twice")
+    assert str(err).startswith(f"{log}:1: metadata key '{key}': appears twice")
+
+
+def test_a_utf8_byte_order_mark_is_accepted(log, tmp_path):
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + log.read_bytes())
+    back, clean = logs.read_log(bom), logs.read_log(log)
+    assert same_bits(back.frames, clean.frames) and back.meta == clean.meta
+
+
+def test_gzip_logs_read_the_same(log, tmp_path):
+    import gzip
+
+    packed = tmp_path / "r7.csv.gz"
+    packed.write_bytes(gzip.compress(log.read_bytes()))
+    back = logs.read_log(packed)
+    assert same_bits(back.frames, logs.read_log(log).frames) and back.source == str(packed)
+    # The rules and the line numbers are those of the decompressed text.
+    set_field(log, 9, "imu_dt", "nan")
+    packed.write_bytes(gzip.compress(log.read_bytes()))
+    expect(packed, LogFormatError, 9, column="imu_dt", value="nan")
+
+
+def test_a_truncated_gzip_log_is_incomplete_and_garbage_is_named(log, tmp_path):
+    import gzip
+
+    data = gzip.compress(log.read_bytes())
+    cut = tmp_path / "cut.csv.gz"
+    cut.write_bytes(data[: len(data) // 2])
+    expect(cut, LogIncompleteError, None, reason="incomplete: its gzip stream ends early")
+    bad = tmp_path / "bad.csv.gz"
+    bad.write_bytes(data[:10] + b"\x00" * 40)
+    expect(bad, LogFormatError, None, reason="not a readable gzip file")
+
+
+@pytest.mark.parametrize("at", [3, 10, LAST])  # after the header, mid-file, right before the end marker
+def test_an_inserted_empty_line_is_named_not_an_incomplete_log(log, at):
+    lines = read_lines(log)
+    lines.insert(at - 1, "")  # the empty line becomes line `at`
+    write_lines(log, lines)
+    expect(log, LogFormatError, at, reason="empty line")
+
+
+def test_an_empty_header_line_is_named(log):
+    lines = read_lines(log)
+    lines.insert(1, "")
+    write_lines(log, lines)
+    expect(log, LogFormatError, 2, reason="empty line (line 2 is the header)")

@@ -253,6 +253,7 @@ def parse_keypoints(data: bytes, source: str = "<memory>") -> KeypointLog:
         LogIncompleteError: empty, no end marker, or a count that disagrees with the rows.
         LogFormatError: any other defect, naming file, line, column and value.
     """
+    data = text.file_bytes(data, source)
     if not data:
         raise LogIncompleteError(source, 1, "empty file (0 bytes): the keypoint file is incomplete")
     parts = text.cut(data)

@@ -66,6 +66,11 @@ _POSED = ", ".join(f"{s} ({schema.STATE_NAMES[s]})" for s in schema.POSED_STATES
 
 _MISSING = object()  # a metadata key that is absent
 
+_TOO_LARGE = (
+    f"beyond float32's range (|x| <= {schema.FLOAT_MAX:.8g}), the range jsve computes in: "
+    "no real metre, second or m/s is this large"
+)
+
 
 def _check_meta(meta, source: str, line: int | None) -> None:
     """Validate a metadata object against schema.REQUIRED_METADATA / OPTIONAL_METADATA / GT_METADATA."""
@@ -82,14 +87,17 @@ def _check_meta(meta, source: str, line: int | None) -> None:
             fail(key, f"required key missing (every log has {required})", _MISSING)
         if not text.is_type(meta[key], types):
             fail(key, f"must be {text.type_name(types)}, got {type(meta[key]).__name__}", meta[key])
-    if not (math.isfinite(meta["fps"]) and meta["fps"] > 0):
-        fail("fps", "must be a positive number of frames per second", meta["fps"])
+    if not (math.isfinite(meta["fps"]) and 0 < meta["fps"] <= schema.FLOAT_MAX):
+        fail("fps", "must be a positive number of frames per second (within float32's range)", meta["fps"])
     for key, types in {**schema.OPTIONAL_METADATA, **GT_METADATA}.items():
         if key in meta and not text.is_type(meta[key], types):
             fail(key, f"must be {text.type_name(types)}, got {type(meta[key]).__name__}", meta[key])
     gravity = meta.get("gravity")
-    if gravity is not None and (len(gravity) != 3 or not all(text.is_type(g, (int, float)) for g in gravity)):
-        fail("gravity", "must be a list of 3 numbers (world gravity, m/s^2)", gravity)
+    if gravity is not None and (
+        len(gravity) != 3
+        or not all(text.is_type(g, (int, float)) and abs(g) <= schema.FLOAT_MAX for g in gravity)
+    ):
+        fail("gravity", "must be a list of 3 numbers (world gravity, m/s^2, within float32's range)", gravity)
     size = meta.get("image_size")
     if size is not None and (len(size) != 2 or not all(text.is_type(s, int) and s > 0 for s in size)):
         fail("image_size", "must be [width, height] in pixels", size)
@@ -238,16 +246,24 @@ def _find_problem(
     ints = cols
     other_floats = [c for c in schema.FLOAT_COLUMNS if c not in _VIS_SET]
 
-    # NaN / inf anywhere (an empty gt_* or vis_* field is a missing value, not NaN).
-    per_cell(~np.isfinite(block(other_floats)), other_floats, "NaN or inf is not allowed")
-    vis = block(schema.VIS_COLUMNS)
+    # NaN / inf anywhere (an empty gt_* or vis_* field is a missing value, not NaN), and finite values
+    # that float32, which jsve computes in, cannot hold.
+    def finite_in_range(names: Sequence[str], missing: np.ndarray | None, no_value: str) -> None:
+        values = block(names)
+        absent = np.zeros(values.shape, bool) if missing is None else missing
+        per_cell(~np.isfinite(values) & ~absent, names, "NaN or inf is not allowed" + no_value)
+        with np.errstate(invalid="ignore"):
+            huge = np.abs(values) > schema.FLOAT_MAX
+        per_cell(huge & np.isfinite(values), names, _TOO_LARGE)
+
+    finite_in_range(other_floats, None, "")
     if vis_missing is None:
-        per_cell(~np.isfinite(vis), schema.VIS_COLUMNS, "NaN or inf is not allowed")
+        finite_in_range(schema.VIS_COLUMNS, None, "")
     else:
-        per_cell(
-            ~np.isfinite(vis) & ~vis_missing,
+        finite_in_range(
             schema.VIS_COLUMNS,
-            "NaN or inf is not allowed (leave all ten vis_* fields empty for a frame without a pose)",
+            vis_missing,
+            " (leave all ten vis_* fields empty for a frame without a pose)",
         )
         n_vis = len(schema.VIS_COLUMNS)
         n_missing = vis_missing.sum(axis=1)
@@ -286,11 +302,10 @@ def _find_problem(
                 )
             )
     if gt_missing is not None:
-        gt = block(schema.GT_COLUMNS)
-        per_cell(
-            ~np.isfinite(gt) & ~gt_missing,
+        finite_in_range(
             schema.GT_COLUMNS,
-            "NaN or inf is not allowed (leave all seven gt_* fields empty for a frame without ground truth)",
+            gt_missing,
+            " (leave all seven gt_* fields empty for a frame without ground truth)",
         )
         n_missing = gt_missing.sum(axis=1)
         partial = (n_missing > 0) & (n_missing < len(schema.GT_COLUMNS))
@@ -346,10 +361,21 @@ def _find_problem(
     count_names = schema.COUNT_COLUMNS + schema.BIN_COLUMNS
     counts = block(count_names)
     per_cell(counts < 0, count_names, "must be >= 0 (a count)")
+    per_cell(
+        counts[:, : len(schema.COUNT_COLUMNS)] > schema.COUNT_MAX,
+        schema.COUNT_COLUMNS,
+        f"must be <= {schema.COUNT_MAX} (ORB-SLAM3 counts in int; jsve holds counts as int32)",
+    )
+    per_cell(
+        counts[:, len(schema.COUNT_COLUMNS) :] > schema.BIN_MAX,
+        schema.BIN_COLUMNS,
+        f"must be <= {schema.BIN_MAX} (keypoints of one SVE bin; jsve holds bins as uint16)",
+    )
 
     n_ext, n_inl = ints["n_extracted"], ints["n_inliers"]
     per_cell(n_inl > n_ext, ("n_inliers",), lambda r: f"must be <= n_extracted ({int(n_ext[r])})")
-    bin_sum = counts[:, len(schema.COUNT_COLUMNS) :].sum(axis=1)
+    # Clipped so that the sum cannot wrap around int64: a bin out of [0, BIN_MAX] is reported above.
+    bin_sum = np.clip(counts[:, len(schema.COUNT_COLUMNS) :], 0, schema.BIN_MAX + 1).sum(axis=1)
     hit = first_cell(bin_sum > n_ext)
     if hit is not None:
         r = hit[0]
@@ -587,6 +613,7 @@ def parse_log(data: bytes, source: str = "<memory>") -> RunLog:
 
 
 def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
+    data = text.file_bytes(data, source)
     if not data:
         raise LogIncompleteError(
             source, 1, "empty file (0 bytes): the log is incomplete (its writer wrote nothing)"
@@ -618,6 +645,8 @@ def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
         header = parts.header.decode("utf-8")
     except UnicodeDecodeError:
         raise LogFormatError(source, 2, "header line is not UTF-8 text") from None
+    if not header.strip():
+        raise LogFormatError(source, 2, "empty line (line 2 is the header)")
     columns = _check_header(header.split(","), source, 2, version)
 
     region = parts.rows
@@ -629,6 +658,12 @@ def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
             n_lines,
             f"the log is incomplete: the end marker says {count} frames but the file has no rows",
         )
+    # Arrow reads a blank line as a row of empty fields: found first, it is reported as itself rather than
+    # as a frame count that disagrees with the rows.
+    blank = _BLANK_LINE.search(region)
+    if blank is not None:
+        line = region.count(b"\n", 0, blank.start()) + 3
+        raise LogFormatError(source, line, f"empty line (a row has {len(columns)} comma-separated fields)")
     table = _parse_rows(region, columns, source)
     if table.num_rows != count:
         raise LogIncompleteError(
@@ -685,6 +720,9 @@ def with_v1_defaults(frames: pd.DataFrame) -> pd.DataFrame:
     for k, c in enumerate(schema.MAP_COLUMNS):
         out.insert(at + k, c, defaults[c])
     return out
+
+
+_BLANK_LINE = re.compile(rb"^[ \t\r]*\n", re.MULTILINE)
 
 
 def _parse_rows(region: bytes, columns: list[str], source: str) -> pa.Table:

@@ -139,6 +139,17 @@ QUATERNION_GROUPS = {"vis_q": VIS_QUATERNION, "imu_dq": IMU_DQ, "gt_q": GT_QUATE
 UNIT_QUATERNION_TOLERANCE = 1e-6
 """Largest accepted | |q| - 1 | for a logged quaternion (doubles written with 17 digits are far tighter)."""
 
+FLOAT_MAX = float(np.finfo(np.float32).max)
+"""Largest magnitude of a value in a float column (3.4028234663852886e38): jsve computes in float32
+(LogBatch), where a larger value becomes inf; no metre, second or m/s of a real run comes near it."""
+
+COUNT_MAX = int(np.iinfo(np.int32).max)
+"""Largest count (n_extracted, n_inliers, n_frustum): ORB-SLAM3 counts in `int`, LogBatch in int32."""
+
+BIN_MAX = int(np.iinfo(np.uint16).max)
+"""Largest count of one SVE bin (65535): LogBatch holds bins as uint16. It also bounds the sum of the
+64 bins far inside int64."""
+
 UNITS = {
     "t_ns": "ns (int64, sensor clock)",
     "state": "ORB-SLAM3 eTrackingState (-1..5)",

@@ -15,8 +15,11 @@ authors' files too). The messages of each format stay in its own module; the rul
 
 from __future__ import annotations
 
+import codecs
+import gzip
 import json
 import re
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -24,7 +27,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
-from jsve.io._errors import LogFormatError
+from jsve.io._errors import LogFormatError, LogIncompleteError
 
 # --------------------------------------------------------------------------------------------------
 # Numbers
@@ -78,14 +81,42 @@ def _reject_constant(name: str):
     raise ValueError(f"{name} is not valid JSON (metadata values must be finite)")
 
 
+class _RepeatedKey(ValueError):
+    def __init__(self, key: str, first, second):
+        super().__init__(key)
+        self.key, self.first, self.second = key, first, second
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    # JSON allows a repeated key and Python's json keeps the last value: a repeated `run` would change
+    # the run id without a word.
+    seen: dict = {}
+    for key, value in pairs:
+        if key in seen:
+            raise _RepeatedKey(key, seen[key], value)
+        seen[key] = value
+    return seen
+
+
 def load_meta(text: str, source: str, line: int | None = 1):
-    """Parse metadata JSON strictly: NaN and Infinity (which Python's json accepts) are errors.
+    """Parse metadata JSON strictly: NaN and Infinity (which Python's json accepts) are errors, and so
+    is a key that appears twice in one object (at any depth).
 
     Raises:
-        LogFormatError: `source:line: metadata is not valid JSON: ...`.
+        LogFormatError: `source:line: metadata is not valid JSON: ...`, or `source:line: metadata key
+            'run': appears twice ...`.
     """
     try:
-        return json.loads(text, parse_constant=_reject_constant)
+        return json.loads(text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+    except _RepeatedKey as e:
+        shown = f"{json.dumps(e.first, default=repr)}, then {json.dumps(e.second, default=repr)}"
+        raise LogFormatError(
+            source,
+            line,
+            f"appears twice in one object of the metadata ({shown}); each key may appear once",
+            column=e.key,
+            what="metadata key",
+        ) from None
     except ValueError as e:
         raise LogFormatError(source, line, f"metadata is not valid JSON: {e}") from None
 
@@ -116,6 +147,35 @@ def type_name(types) -> str:
     types = types if isinstance(types, tuple) else (types,)
     names = {int: "an integer", float: "a number", str: "a string", list: "a list", dict: "an object"}
     return " or ".join(names.get(t) or t.__name__ for t in types)
+
+
+# --------------------------------------------------------------------------------------------------
+# The bytes of a file
+
+GZIP_MAGIC = b"\x1f\x8b"
+"""The first two bytes of a gzip stream (RFC 1952)."""
+
+UTF8_BOM = codecs.BOM_UTF8
+
+
+def file_bytes(data: bytes, source: str) -> bytes:
+    """The text of a file as its parsers read it: a gzip stream (recognised by its magic bytes, whatever
+    the file's name) decompressed, and a UTF-8 byte-order mark before line 1 dropped.
+
+    Raises:
+        LogIncompleteError: a gzip stream that ends early (its writer, or a copy, stopped mid-file).
+        LogFormatError: bytes that are not a valid gzip stream.
+    """
+    if data.startswith(GZIP_MAGIC):
+        try:
+            data = gzip.decompress(data)
+        except EOFError:
+            raise LogIncompleteError(
+                source, None, "the file is incomplete: its gzip stream ends early (the file was cut short)"
+            ) from None
+        except (OSError, zlib.error) as e:  # gzip.BadGzipFile is an OSError
+            raise LogFormatError(source, None, f"not a readable gzip file: {e}") from None
+    return data.removeprefix(UTF8_BOM)
 
 
 # --------------------------------------------------------------------------------------------------
