@@ -408,3 +408,44 @@ def test_parquet_of_an_unknown_format_is_refused(tmp_path):
     _rewrite(out, tmp_path / "y.parquet", b"2", ["imu_ba2"])
     with pytest.raises(LogFormatError, match="without the column.*imu_ba2"):
         ingest.read_parquet(tmp_path / "y.parquet")
+
+
+# ---------------------------------------------------------------------------------------------------
+# What a directory search finds (issue 12)
+
+
+def test_a_folder_search_finds_gzip_and_upper_case_logs_and_names_the_rest(tmp_path, caplog):
+    import gzip
+
+    plain = logs.write_log(make_run(N, 1), tmp_path / "a.csv")
+    upper = logs.write_log(make_run(N, 2), tmp_path / "B.CSV")
+    packed = tmp_path / "sub" / "c.csv.gz"
+    packed.parent.mkdir()
+    packed.write_bytes(gzip.compress(logs.write_log(make_run(N, 3), tmp_path / "c.tmp").read_bytes()))
+    cut = tmp_path / "d.csv.gz.partial"
+    cut.write_bytes(b"")
+    (tmp_path / "a.keypoints.csv").write_text("side file\n")  # jsve's own: skipped without a word
+    (tmp_path / "notes.txt").write_text("not a log\n")
+    with caplog.at_level("WARNING", logger="jsve.io._ingest"):
+        found = ingest.find_logs(tmp_path)
+    assert found == sorted(map(str, [plain, upper, packed, cut]))
+    (record,) = caplog.records
+    assert f"{tmp_path}: skipped 2 files that are not logs" in record.getMessage()
+    assert "c.tmp, notes.txt" in record.getMessage()  # named, relative to the folder
+
+    result = ingest.read_logs(tmp_path, on_error="quarantine", workers=1, progress=False)
+    assert [r.meta["run"] for r in result.runs] == [2, 1, 3]  # sorted by path: B.CSV, a.csv, sub/c.csv.gz
+    (q,) = result.quarantined
+    assert q.path == str(cut) and q.incomplete
+
+
+@pytest.mark.parametrize(
+    "name, is_log",
+    [
+        ("r1.csv", True), ("R1.CSV", True), ("r1.csv.gz", True), ("r1.CSV.GZ", True),
+        ("r1.csv.partial", True), ("r1.csv.gz.partial", True), ("r1.tsv", False), ("r1.gz", False),
+        ("r1.keypoints.csv", False), ("out.quarantine.csv", False), ("r1.keypoints.csv.gz", False),
+    ],
+)  # fmt: skip
+def test_log_names(name, is_log):
+    assert ingest.is_log_name(name) is is_log

@@ -63,8 +63,16 @@ say "1" and have no map_id / imu_ba2: read_parquet fills v1 defaults)."""
 
 _V1_SHOWN = 3  # v1 logs named in the summary warning of a batch
 
-_NOT_LOGS = tuple(s + p for s in (".quarantine.csv", ".keypoints.csv") for p in ("", PARTIAL_SUFFIX))
-"""CSV files a directory search skips: quarantine reports and keypoint side files (jsve.io._keypoints)."""
+LOG_SUFFIXES = (".csv", ".csv.gz")
+"""Name endings of a log in a directory, compared without case (`.CSV` too); each also with
+PARTIAL_SUFFIX (an unfinished log, reported as incomplete). A gzip log is read whatever its name
+(jsve.io._text.file_bytes)."""
+
+_SIDE_FILES = (".quarantine.csv", ".keypoints.csv")
+"""jsve's own CSV files that a directory search skips without a word: quarantine reports and keypoint
+side files (jsve.io._keypoints), gzipped or not."""
+
+_SKIPPED_SHOWN = 5  # files that are not logs named in the warning of a directory search
 
 _ROW_GROUP_ROWS = 262_144  # Parquet row group target: ~70 runs of 3,600 frames, ~200 MB in memory
 _MIN_LOGS_PER_WORKER = 8  # below 16 logs in all, starting processes (~1 s) costs more than it saves
@@ -134,9 +142,10 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
     """The log files of `source`, sorted.
 
     Arguments:
-        source: a directory (searched recursively for `*.csv` and `*.csv.partial`, skipping jsve's own
-            `*.quarantine.csv` reports and `*.keypoints.csv` side files), a single file, a glob pattern
-            ('**' recursive), or a list of paths (taken as given).
+        source: a directory (searched recursively for `*.csv` and `*.csv.gz` in any case, and both
+            with `.partial`, skipping jsve's own `*.quarantine.csv` reports and `*.keypoints.csv` side
+            files; any other file is named in one warning), a single file, a glob pattern ('**'
+            recursive), or a list of paths (taken as given).
 
     Raises:
         FileNotFoundError: the path does not exist or the pattern matches nothing.
@@ -145,13 +154,7 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
         text = os.fspath(source)
         path = Path(text)
         if path.is_dir():
-            files = [
-                os.fspath(p)
-                for p in path.rglob("*")
-                if p.is_file()
-                and (p.name.endswith(".csv") or p.name.endswith(".csv" + PARTIAL_SUFFIX))
-                and not p.name.endswith(_NOT_LOGS)
-            ]
+            files = _logs_in(path)
         elif path.exists():
             files = [text]
         elif any(ch in text for ch in "*?["):
@@ -163,6 +166,33 @@ def find_logs(source: str | os.PathLike | Sequence[str | os.PathLike]) -> list[s
     else:
         files = [os.fspath(p) for p in source]
     return sorted(set(files))
+
+
+def is_log_name(name: str) -> bool:
+    """Whether a file name is a log's in a directory search: `*.csv` or `*.csv.gz` (any case), or either
+    with PARTIAL_SUFFIX, and not one of jsve's side files (`*.quarantine.csv`, `*.keypoints.csv`)."""
+    name = name.lower().removesuffix(PARTIAL_SUFFIX)
+    return name.endswith(LOG_SUFFIXES) and not name.removesuffix(".gz").endswith(_SIDE_FILES)
+
+
+def _logs_in(folder: Path) -> list[str]:
+    """The logs under `folder` (recursive); the other files are named in one warning, never dropped
+    without a word (a log archived under a name the search does not know would be lost)."""
+    logs, others = [], []
+    for p in folder.rglob("*"):
+        if not p.is_file():
+            continue
+        if is_log_name(p.name):
+            logs.append(os.fspath(p))
+        elif not p.name.lower().removesuffix(".gz").endswith(_SIDE_FILES):
+            others.append(os.fspath(p.relative_to(folder)))
+    if others:
+        others.sort()
+        shown = ", ".join(others[:_SKIPPED_SHOWN])
+        more = f" and {len(others) - _SKIPPED_SHOWN} more" if len(others) > _SKIPPED_SHOWN else ""
+        what = "1 file that is not a log" if len(others) == 1 else f"{len(others)} files that are not logs"
+        logger.warning("%s: skipped %s (a log is named *.csv or *.csv.gz): %s%s", folder, what, shown, more)
+    return logs
 
 
 def _read_one(path: str, ground_truth) -> tuple[RunLog, int] | LogFormatError:
@@ -319,8 +349,9 @@ def read_logs(
     """Read and validate many logs in parallel.
 
     Arguments:
-        source: a directory (recursive `*.csv` and `*.csv.partial`), a glob, a file or a list of paths
-            (see `find_logs`). `.partial` files are always reported as incomplete, never skipped.
+        source: a directory (recursive `*.csv`, `*.csv.gz` and both with `.partial`), a glob, a file
+            or a list of paths (see `find_logs`). `.partial` files are always reported as incomplete,
+            never skipped.
         on_error: "raise" stops at the first bad log in sorted path order with its LogFormatError;
             "quarantine" sets bad logs aside in ReadResult.quarantined (nothing is dropped silently).
         workers: processes (default os.cpu_count()); 1, or fewer than 16 logs, reads in this process.
@@ -493,7 +524,9 @@ def ingest(
     """
     paths = find_logs(source)
     if not paths:
-        raise FileNotFoundError(f"no tracking logs (*.csv, *.csv.partial) in {os.fspath(source)!r}")
+        raise FileNotFoundError(
+            f"no tracking logs (*.csv, *.csv.gz, with or without .partial) in {os.fspath(source)!r}"
+        )
     out = Path(out_path)
     quarantined: list[Quarantined] = []
     v1: list[str] = []
