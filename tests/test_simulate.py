@@ -10,12 +10,16 @@ jsve.sim._motion and jsve.sim._vision have their own files (test_motion.py, test
 
 from __future__ import annotations
 
+import shutil
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from jsve.io import _schema as schema
 from jsve.io import read_log, write_log
+from jsve.io._resume import StaleOutputError
 from jsve.sim import _motion as sm
 from jsve.sim import _simulate as sim
 from jsve.sim import _vision as sv
@@ -127,6 +131,66 @@ def test_write_study_is_resumable(tmp_path):
     )
     assert (second.written, second.skipped) == (1, 3)
     assert path.read_bytes() == original and not stale.exists()
+
+
+def _study(out, **kw):
+    options = dict(procedural=1, disturbances="blur:0:40", runs=2, workers=1, config=SHORT, progress=False)
+    return sim.write_study(out, **{**options, **kw})
+
+
+def test_resume_refuses_logs_of_another_seed_or_configuration(tmp_path):
+    """A folder of logs simulated under one generator key (seed, SimConfig, input files) is never
+    completed under another: StaleOutputError naming the folder and the difference, the logs untouched;
+    force=True replaces them with the logs a clean run under the new key writes."""
+    out = tmp_path / "study"
+    _study(out, runs=1)
+    path = sim.log_path(out, "proc_00", sim.Setting("blur", 40.0), 0)
+    before = {p: p.read_bytes() for p in out.rglob("*.csv")}
+    assert read_log(path).meta["generator"] == sim.generator_key(sim.SequenceSpec("proc_00"), 0, SHORT)
+    with pytest.raises(StaleOutputError, match=r"study holds outputs of another job \(2 logs .* seed 0 != 1"):
+        _study(out, seed=1)  # two more runs asked for, too: nothing is written before the check
+    slower = replace(SHORT, tracking=replace(SHORT.tracking, recovery_s=0.5))
+    with pytest.raises(StaleOutputError, match=r"config \"[0-9a-f]+\" != \"[0-9a-f]+\""):
+        _study(out, config=slower)
+    with pytest.raises(StaleOutputError, match='imu_source "synthetic" != "real"'):
+        _study(out, config=replace(SHORT, imu_source="real"))
+    assert {p: p.read_bytes() for p in out.rglob("*.csv")} == before
+    # a log of another sequence in the folder counts too (one folder, one study)
+    other = sim.log_path(out, "proc_07", sim.Setting("none", 0.0), 0)
+    other.parent.mkdir(parents=True)
+    other.write_bytes(path.read_bytes().replace(b'"generator": {"seed": 0', b'"generator": {"seed": 5', 1))
+    with pytest.raises(StaleOutputError, match="proc_07/none-0/run_000.csv: seed 5 != 0"):
+        _study(out)
+    other.unlink()
+    # a log written before the key existed
+    legacy = path.read_bytes().replace(b', "generator": ', b', "was": ', 1)
+    path.write_bytes(legacy)
+    with pytest.raises(StaleOutputError, match="no generator key"):
+        _study(out, runs=1)
+    forced = _study(out, seed=1, force=True)
+    assert (forced.written, forced.skipped) == (4, 0)
+    clean = _study(tmp_path / "clean", seed=1)
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.csv")} == {
+        p.relative_to(tmp_path / "clean"): p.read_bytes() for p in (tmp_path / "clean").rglob("*.csv")
+    }
+    assert (clean.written, _study(out, seed=1).skipped) == (4, 4)
+
+
+def test_the_generator_key_covers_the_input_files(tmp_path):
+    """An EuRoC sequence's key changes with its ground-truth file's content, not with its path or
+    modification time alone."""
+    gt = tmp_path / "gt"
+    gt.mkdir()
+    rows = "\n".join(f"{1403636580000000000 + k * 50_000_000} {k * 0.01} 0 0 1 0 0 0" for k in range(5))
+    (gt / "MH01_GT.txt").write_text("#t x y z qw qx qy qz\n" + rows + "\n")
+    spec = sim.euroc_sequences(["MH_01"], gt)[0]
+    first = sim.generator_key(spec, 0, SHORT)
+    copy = tmp_path / "copy"
+    shutil.copytree(gt, copy)
+    assert sim.generator_key(sim.euroc_sequences(["MH_01"], copy)[0], 0, SHORT) == first
+    (gt / "MH01_GT.txt").write_text("#t x y z qw qx qy qz\n" + rows.replace(" 0.01 ", " 0.02 ") + "\n")
+    assert sim.generator_key(spec, 0, SHORT)["inputs"] != first["inputs"]
+    assert sim.generator_key(sim.SequenceSpec("proc_00"), 0, SHORT)["inputs"] == "procedural"
 
 
 def test_cli(tmp_path, capsys):

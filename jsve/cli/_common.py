@@ -8,7 +8,9 @@ helper pays for the import of the constants its choices come from, and only when
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -21,8 +23,56 @@ def fail(command: str, message) -> int:
     return 2
 
 
+FORCE_HINT = "--force discards them and recomputes"
+
+
+def guarded(command: str) -> Callable:
+    """Decorator of a subcommand's `run`: the two errors of its outputs as one line and exit status 2,
+    never a traceback.
+
+    - jsve.io._atomic.OutputError (an output that cannot be written: read-only folder, full disk, a
+      path of the wrong kind): `jsve COMMAND: cannot write PATH: REASON`. Commands write through
+      jsve.io._atomic, which leaves no partial file (and, inside all_or_nothing, no partial set).
+    - jsve.io._resume.StaleOutputError (a resumed job whose folder holds outputs of other inputs or
+      another configuration): `jsve COMMAND: FOLDER holds outputs of another job (WHAT); --force ...`.
+    """
+
+    def decorate(run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+        @functools.wraps(run)
+        def checked(args: argparse.Namespace) -> int:
+            try:
+                return run(args)
+            except OSError as error:
+                from jsve.io._atomic import OutputError  # here: `jsve --help` imports no pandas
+
+                if isinstance(error, OutputError):
+                    return fail(command, error)
+                raise
+            except Exception as error:
+                from jsve.io._resume import StaleOutputError
+
+                if isinstance(error, StaleOutputError):
+                    return fail(command, f"{error}; {FORCE_HINT}")
+                raise
+
+        return checked
+
+    return decorate
+
+
 # --------------------------------------------------------------------------------------------------
 # Options
+
+
+def add_force_option(parser: argparse.ArgumentParser) -> None:
+    """--force: discard outputs of another job (other inputs or configuration) in the output folder
+    instead of stopping (jsve.io._resume)."""
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="the output folder holds outputs of other inputs or another configuration: discard them "
+        "and recompute (without it the command stops, exit 2; it never mixes the two)",
+    )
 
 
 def add_align_option(parser: argparse.ArgumentParser, help: str | None = None) -> None:

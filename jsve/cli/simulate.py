@@ -6,7 +6,9 @@
 
 A thin layer over jsve.sim._simulate.write_study: one log per sequence x setting x run under
 OUT/<sequence>/<disturbance>-<level>/run_<k>.csv, in parallel processes; a re-run skips logs that
-are already complete. docs/simulator.md describes the model.
+are already complete and were simulated under the same seed, --imu, configuration and input files
+(their `generator` metadata); a folder holding logs of another key stops the command (exit 2) unless
+--force discards them. docs/simulator.md describes the model.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ def register(subparsers) -> None:
         help=HELP,
         description="Simulate ORB-SLAM3 + logger on EuRoC ground-truth trajectories or procedural flights, "
         "under the seed paper's disturbances (or more), and write one format-v1 log per run. Deterministic "
-        "under --seed; resumable (complete logs are skipped). See docs/simulator.md.",
+        "under --seed; resumable (complete logs of the same seed and configuration are skipped; logs of "
+        "another stop the command unless --force). See docs/simulator.md.",
     )
     p.add_argument("-o", "--out", required=True, metavar="OUTDIR", help="output folder")
     source = p.add_mutually_exclusive_group()
@@ -55,9 +58,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("--parquet", action="store_true", help="also consolidate the logs into OUT/study.parquet")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_force_option(p)
     p.set_defaults(func=run)
 
 
+@common.guarded("simulate")
 def run(args: argparse.Namespace) -> int:
     from jsve.sim._simulate import SimConfig, settings, write_study
 
@@ -79,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
             config=SimConfig(imu_source=args.imu),
             progress=not args.no_progress,
             parquet=args.parquet,
+            force=args.force,
         )
     except (ValueError, FileNotFoundError) as err:
         return common.fail("simulate", err)

@@ -34,6 +34,7 @@ from jsve.image._disturb import (
     disturbance_parameters,
     scale_intrinsics,
 )
+from jsve.io._workers import process_pool
 
 # The name users configure for the disturbance tools' messages (jsve disturb).
 logger = logging.getLogger(__name__)
@@ -371,9 +372,7 @@ def run_parallel(function: Callable, items: Sequence, workers: int, progress: bo
                 bar.update()
             return results
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(
-            workers, mp_context=context, initializer=_init_worker
-        ) as pool:
+        with process_pool(workers, context, initializer=_init_worker) as pool:
             futures = {pool.submit(function, item): index for index, item in enumerate(items)}
             for future in concurrent.futures.as_completed(futures):
                 results[futures[future]] = future.result()

@@ -4,16 +4,26 @@ The one home of jsve's "never leave a half-written output" rule, and of writing 
 leaves at most a `.partial` file, which readers report as incomplete and re-runs redo.
 
     atomic_path(path)             a context: the temporary name to write, renamed on success
+    all_or_nothing()              a context: every output written inside appears together, or none does
+    make_dir(path)                an output folder, or OutputError
+    check_writable(folder)        fail early (OutputError) when a folder cannot take outputs
     write_bytes / write_text      bytes or UTF-8 text
     write_json(path, obj)         indented, sorted keys, numpy values as numbers
     write_table(table, path)      a DataFrame as Parquet (`.parquet`) or CSV (any other suffix)
+
+An output that cannot be written (read-only folder, full disk, a path whose parent is a file, a target
+that is a folder) raises `OutputError`, an OSError whose message is `cannot write PATH: REASON` and
+names the final path, never the temporary one; `jsve` prints it as one line and exits with status 2.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import errno
 import json
 import os
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,18 +33,143 @@ from jsve.io._text import json_default
 
 PARTIAL_SUFFIX = ".partial"
 
+# errno values that only a write produces: an OSError with one of them inside atomic_path is the
+# output's, whatever file it names.
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+class OutputError(OSError):
+    """An output that cannot be written: `filename` is the final path, `strerror` the reason."""
+
+    def __str__(self) -> str:
+        return f"cannot write {self.filename}: {self.strerror}"
+
+
+def _reason(error: OSError, path: Path) -> str:
+    if isinstance(error, FileExistsError) or (
+        path.exists() and not path.is_dir() and error.errno == errno.EEXIST
+    ):
+        return "exists and is not a folder"
+    if error.strerror:
+        return error.strerror
+    if error.errno:
+        return os.strerror(error.errno)
+    return str(error) or type(error).__name__
+
+
+def output_error(error: OSError, path: str | os.PathLike) -> OutputError:
+    """`error`, raised while writing `path`, as an OutputError naming `path`."""
+    if isinstance(error, OutputError):
+        return error
+    path = Path(path)
+    return OutputError(error.errno, _reason(error, path), os.fspath(path))
+
+
+def make_dir(path: str | os.PathLike) -> Path:
+    """Create the folder `path` (and its parents) unless it exists.
+
+    Raises:
+        OutputError: it cannot be created, or exists and is not a folder.
+    """
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise output_error(error, path) from error
+    return path
+
+
+def check_writable(folder: str | os.PathLike) -> Path:
+    """Create `folder` if needed and create and remove a file in it, so that a long job fails before
+    it starts rather than at its first output.
+
+    Raises:
+        OutputError: the folder cannot be created or written (read-only, not a folder, no space).
+    """
+    folder = make_dir(folder)
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".jsve-probe-"):
+            pass
+    except OSError as error:
+        raise output_error(error, folder) from error
+    return folder
+
+
+# The outputs of the innermost all_or_nothing() block: (partial, final) pairs waiting for their rename.
+_group: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar(
+    "jsve_atomic_group", default=None
+)
+
+
+@contextlib.contextmanager
+def all_or_nothing() -> Iterator[None]:
+    """Every output written through this module inside the block is renamed into place when the block
+    ends without an error; on an error every one of them is removed, so a command leaves all its
+    outputs or none (files it replaces keep their old contents).
+
+    Raises:
+        OutputError: a rename at the end failed (the outputs renamed before it stay).
+    """
+    pending: list[tuple[Path, Path]] = []
+    token = _group.set(pending)
+    try:
+        yield
+    except BaseException:
+        for partial, _ in pending:
+            with contextlib.suppress(OSError):
+                partial.unlink(missing_ok=True)
+        raise
+    finally:
+        _group.reset(token)
+    for partial, path in pending:
+        try:
+            os.replace(partial, path)
+        except OSError as error:
+            for rest, _ in pending:
+                with contextlib.suppress(OSError):
+                    rest.unlink(missing_ok=True)
+            raise output_error(error, path) from error
+
+
+def _is_output_error(error: OSError, partial: Path, path: Path) -> bool:
+    """Whether an OSError raised while writing `partial` is the output's (not a read of another file)."""
+    return (
+        isinstance(error, OutputError)
+        or error.errno in _WRITE_ERRNOS
+        or error.filename in (None, os.fspath(partial), os.fspath(path))
+    )
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield the temporary path to write; on success rename it to `path`, on error remove it."""
+    """Yield the temporary path to write; on success rename it to `path` (at the end of an enclosing
+    all_or_nothing block, if any), on error remove it.
+
+    Raises:
+        OutputError: the folder cannot be created, or the write or the rename failed (read-only folder,
+            full disk, `path` a folder, a parent a file); other errors of the block pass unchanged.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dir(path.parent)
     partial = path.with_name(path.name + PARTIAL_SUFFIX)
+    group = _group.get()
     try:
         yield partial
-        os.replace(partial, path)
+        if path.is_dir():  # os.replace would say "Is a directory" of the temporary name on some systems
+            raise IsADirectoryError(errno.EISDIR, "is a folder", os.fspath(path))
+        if group is None:
+            os.replace(partial, path)
+        else:
+            group.append((partial, path))
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            partial.unlink(missing_ok=True)
+        if _is_output_error(error, partial, path):
+            raise output_error(error, path) from error
+        raise
     except BaseException:
-        partial.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            partial.unlink(missing_ok=True)
         raise
 
 

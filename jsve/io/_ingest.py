@@ -14,7 +14,6 @@ v1 logs read with `schema.v1_defaults`; a batch gives one `LogVersionWarning` fo
 from __future__ import annotations
 
 import collections
-import concurrent.futures as cf
 import glob as globlib
 import json
 import logging
@@ -46,6 +45,7 @@ from jsve.io._logs import (
     with_v1_defaults,
 )
 from jsve.io._schema import RunLog
+from jsve.io._workers import process_pool
 
 # The log reader's logger: read_log's warnings in worker processes are collected from it (_read_chunk)
 # and re-logged here, and users configure one name for all of them.
@@ -273,7 +273,7 @@ def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_
             return
         chunk = max(1, min(16, math.ceil(len(paths) / (4 * workers))))
         chunks = iter([paths[i : i + chunk] for i in range(0, len(paths), chunk)])
-        executor = cf.ProcessPoolExecutor(max_workers=min(workers, len(paths)), mp_context=_mp_context())
+        executor = process_pool(min(workers, len(paths)), _mp_context())
         try:
             pending = collections.deque()
             # A bounded window of chunks in flight keeps memory flat however many logs there are.

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import functools
+import json
 import logging
 import math
 import multiprocessing
@@ -30,7 +31,7 @@ import os
 import time
 import zlib
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,9 @@ import pandas as pd
 
 from jsve.core._levels import LEVELS, SEED_DISTURBANCES
 from jsve.io import _schema as schema
+from jsve.io._resume import StaleOutputError, differences, file_digest, fingerprint
 from jsve.io._schema import RunLog
+from jsve.io._workers import process_pool
 from jsve.sim._motion import (
     EUROC_CAM0_T_BS,
     EUROC_SEQUENCES,
@@ -255,6 +258,35 @@ def euroc_sequences(names: Sequence[str], euroc_gt: str | os.PathLike) -> list[S
             )
         )
     return out
+
+
+def input_files(spec: SequenceSpec, config: SimConfig = SimConfig()) -> list[Path]:
+    """The files make_recording reads for `spec` under `config`: the ground truth and, where used, the
+    frame stamp list and the real IMU stream; none for a procedural flight."""
+    if spec.procedural:
+        return []
+    stem = euroc_file_stem(spec.name)
+    files = [Path(spec.euroc_gt) / f"{stem}_GT.txt"]
+    for folder, used in ((spec.timestamps, True), (spec.imu, config.imu_source == "real")):
+        if used and folder is not None and (Path(folder) / f"{stem}.txt").is_file():
+            files.append(Path(folder) / f"{stem}.txt")
+    return files
+
+
+def generator_key(spec: SequenceSpec, seed: int, config: SimConfig = SimConfig()) -> dict:
+    """What a simulated log is a function of besides its sequence name, setting and run: the study
+    seed, the simulator model (FRONTEND), the IMU source, a fingerprint of the whole SimConfig, and a
+    digest of the content of the input files (input_files: "procedural" for a procedural flight).
+    Written into every log's metadata as `generator`; write_study resumes a log only under an equal key.
+    """
+    files = input_files(spec, config)
+    return {
+        "seed": int(seed),
+        "model": FRONTEND,
+        "imu_source": config.imu_source,
+        "config": fingerprint(asdict(config)),
+        "inputs": file_digest(files) if files else "procedural",
+    }
 
 
 @dataclass(frozen=True)
@@ -516,8 +548,13 @@ def simulate_setting(
     seed: int = 0,
     config: SimConfig = SimConfig(),
 ) -> list[RunLog]:
-    """All runs of one (sequence, setting): extraction once, then each run's tracking draws."""
+    """All runs of one (sequence, setting): extraction once, then each run's tracking draws.
+
+    `seed` and `config` are the recording's (make_recording's arguments); each log's metadata records
+    them as `generator` (generator_key).
+    """
     deg = degradation(setting.disturbance, setting.level, config.vision, seed=seed)
+    generator = generator_key(recording.spec, seed, config)
     counts = extract(recording.scene, deg, config.vision, n_features=config.n_features)
     F = recording.n_frames
     # EuRoC's stamps alternate 50,000,128 and 49,999,872 ns: fps to the millihertz (20.0).
@@ -585,6 +622,7 @@ def simulate_setting(
             "seed": int(seed),
             "trajectory": Path(recording.trajectory.source).name,  # file names: logs do not
             "imu": Path(recording.imu_source).name,  # depend on where the data sits
+            "generator": generator,  # what write_study checks before resuming
         }
         out.append(
             RunLog(meta=meta, frames=frames, source=f"<simulated {recording.spec.name}/{setting.label}/{r}>")
@@ -769,6 +807,38 @@ def _sequence_size(spec: SequenceSpec) -> float:
         return 0.0
 
 
+def _recorded_generator(path: Path) -> dict | None:
+    """The `generator` metadata of a log's line 1 (None when it has none or the line is unreadable)."""
+    try:
+        with open(path, "rb") as f:
+            line = f.readline(1 << 20)
+        meta = json.loads(line[line.index(b"{") :])
+    except (OSError, ValueError):
+        return None
+    return meta.get("generator") if isinstance(meta, dict) else None
+
+
+def _stale_logs(out_dir: Path, keys: dict[str, dict]) -> list[tuple[Path, str]]:
+    """(log, what differs) for every complete log under out_dir whose generator is not the job's: for
+    the job's sequences the whole key (keys[name]), for others all but the input files (a folder holds
+    one study: one seed, model and configuration)."""
+    if not out_dir.is_dir():
+        return []
+    some = next(iter(keys.values()))
+    stale = []
+    for path in sorted(out_dir.glob("*/*/run_*.csv")):
+        if not _is_complete(path):
+            continue  # rewritten anyway
+        expected = keys.get(path.parent.parent.name)
+        recorded = _recorded_generator(path) or {}
+        if expected is None:
+            recorded = {k: v for k, v in recorded.items() if k != "inputs"}
+            expected = {k: v for k, v in some.items() if k != "inputs"}
+        if recorded != expected:
+            stale.append((path, differences(recorded, expected) if recorded else "no generator key"))
+    return stale
+
+
 def write_study(
     out_dir: str | os.PathLike,
     sequences: Sequence[str] | str | None = None,
@@ -782,37 +852,67 @@ def write_study(
     config: SimConfig = SimConfig(),
     progress: bool = True,
     parquet: bool = False,
+    force: bool = False,
 ) -> StudyResult:
     """Simulate a study and write one format-v2 log per run under out_dir (see log_path).
 
-    Resumable: logs already complete are skipped (a re-run after an interruption finishes the rest;
-    jsve.io._logs.write_log writes `.partial` files and renames them, and stale ones are removed).
+    Resumable: a complete log is kept when it was simulated under the same generator key (generator_key:
+    seed, model, SimConfig, input files' content; recorded in its metadata), so a re-run after an
+    interruption finishes the rest (jsve.io._logs.write_log writes `.partial` files and renames them,
+    and stale ones are removed). A folder that holds a log of another key (another seed, --imu,
+    configuration or ground truth; or a log written before the key existed) is never mixed with new
+    logs: StaleOutputError, unless force=True, which deletes those logs (and out_dir/study.parquet)
+    and simulates them again where the study includes them.
     Parallel: one job per sequence (its recording built once) in `workers` processes (default: all
     cores), longest first; the progress bar advances as sequences finish. parquet=True then consolidates
     all logs into out_dir/study.parquet with jsve.io._logs.ingest.
+
+    Raises:
+        StaleOutputError: out_dir holds logs of another generator key (and force is False).
+        OutputError: out_dir or a log cannot be written.
     """
     from tqdm.auto import tqdm
+
+    from jsve.io import _atomic as atomic
 
     started = time.perf_counter()
     out_dir = Path(out_dir)
     specs = _as_specs(sequences, euroc_gt, procedural)
     grid = settings(disturbances)
     run_ids = list(range(runs)) if isinstance(runs, int) else list(runs)
-    for stale in out_dir.rglob("*.partial") if out_dir.is_dir() else ():
-        stale.unlink(missing_ok=True)
+    keys = {spec.name: generator_key(spec, seed, config) for spec in specs}
+    stale = _stale_logs(out_dir, keys)
+    if stale and not force:
+        path, what = stale[0]
+        raise StaleOutputError(
+            out_dir,
+            f"{len(stale)} logs simulated under another generator key, "
+            f"e.g. {path.relative_to(out_dir)}: {what}",
+        )
+    redo = {path for path, _ in stale}
     result = StudyResult()
     jobs = []
     for spec in specs:
         todo = []
         for setting in grid:
-            runs_left = tuple(
-                r for r in run_ids if not _is_complete(log_path(out_dir, spec.name, setting, r))
-            )
+            paths = {r: log_path(out_dir, spec.name, setting, r) for r in run_ids}
+            runs_left = tuple(r for r in run_ids if paths[r] in redo or not _is_complete(paths[r]))
             result.skipped += len(run_ids) - len(runs_left)
             if runs_left:
                 todo.append((setting, runs_left))
         if todo:
             jobs.append(_Job(spec, tuple(todo), str(out_dir), int(seed), config))
+    partials = list(out_dir.rglob("*.partial")) if out_dir.is_dir() else []
+    if jobs or stale or partials or parquet:
+        atomic.check_writable(out_dir)  # before any work: a folder that cannot take the logs fails now
+    deleted = [*redo, *([out_dir / "study.parquet"] if stale else []), *partials]
+    for path in deleted:
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as error:
+            raise atomic.output_error(error, path) from error
+    if stale:
+        logger.info("%s: %d logs of another generator key deleted (force)", out_dir, len(stale))
     # One job per sequence (each recording built once), the biggest first so that the processes
     # finish together (longest-processing-time-first scheduling).
     jobs.sort(key=lambda j: -sum(len(r) for _, r in j.todo) * _sequence_size(j.spec))
@@ -826,9 +926,7 @@ def write_study(
                 bar.update(outcomes[-1][0])
         else:
             context = multiprocessing.get_context("spawn")
-            with concurrent.futures.ProcessPoolExecutor(
-                workers, mp_context=context, initializer=_init_worker
-            ) as pool:
+            with process_pool(workers, context, initializer=_init_worker) as pool:
                 futures = [pool.submit(_run_job, job) for job in jobs]
                 outcomes = []
                 for future in concurrent.futures.as_completed(futures):
