@@ -179,3 +179,44 @@ def test_cli_ingest_with_ground_truth(shared_data, tmp_path, capsys):
     assert jsve_main([*argv, "--no-progress"]) == 0
     (run,) = ingest.read_parquet(out)
     assert run.has_ground_truth and run.meta["gt_missing_frames"] == 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# Values evo reads without a word (issue 12)
+
+
+def _euroc_file(path: Path, n: int = 8) -> Path:
+    rows = ["#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z"]
+    rows += [f"{1_403_715_274_000_000_000 + i * 50_000_000},{0.1 * i},0,1,1,0,0,0" for i in range(n)]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "row, reason",
+    [
+        ("1403715274150000000,0.3,nan,1,1,0,0,0", "column 'p_y' = 'nan': NaN or inf is not allowed"),
+        ("1403715274150000000,0.3,0,1e300,1,0,0,0", "column 'p_z' = '1e300': beyond float32's range"),
+        ("1403715274150000000,0.3,0,1,0,0,0,0", "columns 'q_w..q_z' = '0 0 0 0': not a unit quaternion"),
+        ("1403715274150000000,0.3,0,1,NaN,0,0,0", "column 'q_w' = 'NaN': NaN or inf is not allowed"),
+    ],
+)
+def test_nan_and_degenerate_ground_truth_is_refused_with_line_and_column(tmp_path, row, reason):
+    # A NaN quaternion passed the old norm check (NaN > 1e-3 is False) and NaN positions were never checked.
+    path = _euroc_file(tmp_path / "gt.csv")
+    lines = path.read_text().splitlines()
+    lines[4] = row  # line 5: the fourth pose
+    path.write_text("\n".join(lines) + "\n")
+    run = with_stamps(1_403_715_274_000_000_000 + 50_000_000 * np.arange(8))
+    with pytest.raises(ValueError) as info:
+        groundtruth.associate_ground_truth(run, path, "euroc")
+    assert str(info.value).startswith(f"{path}:5: {reason}"), str(info.value)
+
+
+def test_clean_ground_truth_still_associates(tmp_path):
+    path = _euroc_file(tmp_path / "gt.csv")
+    run = groundtruth.associate_ground_truth(
+        with_stamps(1_403_715_274_000_000_000 + 50_000_000 * np.arange(8)), path
+    )
+    assert run.meta["gt_missing_frames"] == 0
+    np.testing.assert_array_equal(run.frames["gt_px"].to_numpy(), 0.1 * np.arange(8))

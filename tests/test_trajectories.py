@@ -122,3 +122,81 @@ def test_pose_pair_checks_shapes():
         PosePair("x", np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
     with pytest.raises(ValueError, match=r"x: t must have shape \(3,\)"):
         PosePair("x", np.zeros((3, 4, 4)), np.zeros((3, 4, 4)), t=np.zeros(2))
+
+
+# ---------------------------------------------------------------------------------------------------
+# Values evo reads without a word (issue 12)
+
+
+def _edit(path, line: int, field: int, text: str, delimiter: str = " ") -> None:
+    """Set field `field` (0-based) of line `line` (1-based) of a text file."""
+    lines = open(path).read().split("\n")
+    fields = lines[line - 1].split(delimiter)
+    fields[field] = text
+    lines[line - 1] = delimiter.join(fields)
+    open(path, "w").write("\n".join(lines))
+
+
+@pytest.mark.parametrize(
+    "field, text, column, reason",
+    [
+        (2, "nan", "ty", "NaN or inf is not allowed"),
+        (0, "inf", "timestamp", "NaN or inf is not allowed"),
+        (3, "1e300", "tz", "beyond float32's range"),
+    ],
+)
+def test_a_nan_or_huge_tum_value_is_refused_with_line_and_column(tum, field, text, column, reason):
+    # evo reads these; jsve's APE scored a NaN estimate 0.000000 m.
+    ref_path, a, _ = tum
+    _edit(a, 13, field, text)
+    with pytest.raises(TrajectoryFileError) as info:
+        trajectories.read_pose_pairs(ref_path, [a], "tum")
+    assert str(info.value).startswith(f"{a}:13: column '{column}' = '{text}': {reason}")
+
+
+@pytest.mark.parametrize("q", [("0", "0", "0", "0"), ("0.5", "0", "0", "0.5")])
+def test_a_zero_or_far_from_unit_tum_quaternion_is_refused(tum, q):
+    # evo turns a zero quaternion into the identity (with --align origin: 5.58 m instead of 0.02 m).
+    ref_path, a, _ = tum
+    for k, text in enumerate(q):
+        _edit(a, 1, 4 + k, text)
+    with pytest.raises(TrajectoryFileError) as info:
+        trajectories.read_trajectory(a, "tum")
+    assert str(info.value).startswith(f"{a}:1: columns 'qx..qw' = '{' '.join(q)}': not a unit quaternion")
+
+
+def test_a_bad_euroc_line_is_named_after_its_comments(tmp_path):
+    path = tmp_path / "gt.csv"
+    rows = ["#timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z"] + [
+        f"{1000 + i}000000,{i},0,0,1,0,0,0" for i in range(5)
+    ]
+    path.write_text("\n".join(rows) + "\n")
+    assert trajectories.read_trajectory(path, "euroc").num_poses == 5
+    _edit(path, 4, 5, "NaN", ",")
+    with pytest.raises(TrajectoryFileError, match=rf"^{path}:4: column 'q_x' = 'NaN': NaN or inf"):
+        trajectories.read_trajectory(path, "euroc")
+
+
+def test_a_kitti_pose_that_is_not_a_rotation_is_refused(tmp_path):
+    path = tmp_path / "est.txt"
+    rng = np.random.default_rng(2)
+    file_interface.write_kitti_poses_file(str(path), PosePath3D(poses_se3=list(poses(rng, 6))))
+    trajectories.read_trajectory(path, "kitti")
+    lines = path.read_text().splitlines()
+    lines[2] = " ".join(["0"] * 3 + [lines[2].split()[3]] + ["0"] * 3 + ["1"] + ["0"] * 3 + ["2"])
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(
+        TrajectoryFileError, match=rf"^{path}:3: columns 'r11..r33' = '0 0 0 0 0 0 0 0 0': not a"
+    ):
+        trajectories.read_trajectory(path, "kitti")
+
+
+def test_a_nan_kitti_time_is_refused(tmp_path):
+    ref = tmp_path / "ref.txt"
+    file_interface.write_kitti_poses_file(
+        str(ref), PosePath3D(poses_se3=list(poses(np.random.default_rng(1), 4)))
+    )
+    times = tmp_path / "times.txt"
+    times.write_text("0.0\n0.1\n\nnan\n0.3\n")
+    with pytest.raises(TrajectoryFileError, match=rf"^{times}:4: column 'time' = 'nan': NaN or inf"):
+        trajectories.read_pose_pairs(ref, [ref], "kitti", kitti_times=times)

@@ -14,6 +14,29 @@ def shorten(text: str) -> str:
     return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 3] + "..."
 
 
+def located(
+    path: str,
+    line: int | None,
+    reason: str,
+    column: str | None = None,
+    value: str | None = None,
+    what: str = "column",
+    frame: int | None = None,
+) -> str:
+    """The message of a defect at a place in a file: `path:line: column 'name' = 'value': reason`,
+    leaving out the parts that are None (`path: frame 12: ...` for runs in memory)."""
+    loc = path
+    if line is not None:
+        loc = f"{loc}:{line}"
+    elif frame is not None:
+        loc = f"{loc}: frame {frame}"
+    if column is None:
+        return f"{loc}: {reason}"
+    if value is None:
+        return f"{loc}: {what} '{column}': {reason}"
+    return f"{loc}: {what} '{column}' = '{shorten(value)}': {reason}"
+
+
 class LogFormatError(ValueError):
     """A tracking log (or jsve Parquet file) that does not follow its format (v2, or v1 when it says v1).
 
@@ -50,16 +73,7 @@ class LogFormatError(ValueError):
         super().__init__(self._message())
 
     def _message(self) -> str:
-        loc = self.path
-        if self.line is not None:
-            loc = f"{loc}:{self.line}"
-        elif self.frame is not None:
-            loc = f"{loc}: frame {self.frame}"
-        if self.column is None:
-            return f"{loc}: {self.reason}"
-        if self.value is None:
-            return f"{loc}: {self.what} '{self.column}': {self.reason}"
-        return f"{loc}: {self.what} '{self.column}' = '{shorten(self.value)}': {self.reason}"
+        return located(self.path, self.line, self.reason, self.column, self.value, self.what, self.frame)
 
     def __reduce__(self):
         # Exceptions pickle through self.args by default, which does not fit this signature; worker
@@ -85,5 +99,20 @@ def _rebuild_error(cls, path, line, reason, kwargs):
 
 class TrajectoryFileError(ValueError):
     """A trajectory file (TUM, EuRoC, KITTI) that cannot be read, or an estimate that cannot be matched
-    with its reference. evo's readers report no line, so the message names the file(s) and the cause:
-    `cannot read est.txt as kitti: ...`, `b.tum holds no poses`."""
+    with its reference. Where evo reads a file it reports no line: the message names the file(s) and the
+    cause (`cannot read est.txt as kitti: ...`, `b.tum holds no poses`); a value jsve refuses (NaN, a
+    zero quaternion) is named as in LogFormatError: `est.txt:12: columns 'qx..qw' = '0 0 0 0': ...`
+    (see `at`)."""
+
+    @classmethod
+    def at(
+        cls,
+        path: str | os.PathLike,
+        line: int | None,
+        reason: str,
+        column: str,
+        value: str,
+        what: str = "column",
+    ) -> TrajectoryFileError:
+        """The error of a value at a line of a file, in LogFormatError's words."""
+        return cls(located(os.fspath(path), line, reason, column, value, what))

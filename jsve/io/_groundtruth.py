@@ -25,7 +25,7 @@ import pandas as pd
 from jsve.io import _schema as schema
 from jsve.io._errors import shorten
 from jsve.io._schema import RunLog
-from jsve.io._trajectories import TRAJECTORY_FORMATS, evo_reader
+from jsve.io._trajectories import TRAJECTORY_FORMATS, check_poses, evo_reader
 
 # The log reader's logger: users configure one name for the warnings of reading logs, and the worker
 # processes of jsve.io._ingest forward what is logged there.
@@ -111,14 +111,10 @@ def _read_stamps_ns(path: str, delimiter: str | None, exponent: int) -> np.ndarr
     return np.asarray(stamps, dtype=np.int64)
 
 
-def _unit_quaternions(q: np.ndarray, path: str) -> np.ndarray:
-    norm = np.linalg.norm(q, axis=1)
-    bad = np.abs(norm - 1.0) > 1e-3
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise ValueError(f"{path}: pose {k} has a quaternion of norm {norm[k]:.6g}: not a rotation")
-    # Files store ~10 digits; normalising moves values by < 1e-9 and keeps the v1 tolerance.
-    return q / norm[:, None]
+def _unit_quaternions(q: np.ndarray) -> np.ndarray:
+    # check_poses has refused norms off by more than ROTATION_TOLERANCE; files store ~10 digits, and
+    # normalising moves their values by < 1e-9.
+    return q / np.linalg.norm(q, axis=1)[:, None]
 
 
 def _file_key(path: str | None):
@@ -158,6 +154,9 @@ def _load_cached(gt_path, fmt, kitti_times, _key, _times_key) -> _Trajectory:
         evo_traj = evo_reader(fmt)(gt_path)
     except file_interface.FileInterfaceException as e:
         raise ValueError(f"{gt_path}: not a readable {fmt} ground-truth file: {e}") from None
+    # NaN, inf, values float32 cannot hold, zero or non-unit quaternions, KITTI rotations that are not
+    # rotations: refused with line and column (TrajectoryFileError, a ValueError).
+    check_poses(evo_traj, gt_path, fmt)
     if fmt == "euroc":
         stamps = _read_stamps_ns(gt_path, ",", 0)
     elif fmt == "tum":
@@ -165,7 +164,7 @@ def _load_cached(gt_path, fmt, kitti_times, _key, _times_key) -> _Trajectory:
     else:
         stamps = None if kitti_times is None else _read_stamps_ns(kitti_times, None, 9)
     p = np.array(evo_traj.positions_xyz, dtype=np.float64)
-    q = _unit_quaternions(np.array(evo_traj.orientations_quat_wxyz, dtype=np.float64), gt_path)
+    q = _unit_quaternions(np.array(evo_traj.orientations_quat_wxyz, dtype=np.float64))
     if stamps is not None:
         source = kitti_times if fmt == "kitti" else gt_path
         if len(stamps) != len(p):

@@ -18,11 +18,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from jsve.io import _schema as schema
 from jsve.io._errors import TrajectoryFileError
 
 TRAJECTORY_FORMATS: tuple[str, ...] = ("euroc", "tum", "kitti")
 """Trajectory file formats: "euroc" (CSV, int ns stamps, p, q wxyz), "tum" (s stamps, p, q xyzw), "kitti"
 (3x4 poses, no stamps)."""
+
+_FIELDS = {
+    "tum": ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"),
+    "euroc": ("timestamp", "p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z"),
+    "kitti": ("r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32", "r33", "tz"),
+}
+"""The fields of a line that jsve reads, per format (EuRoC's further fields are not read)."""
+
+ROTATION_TOLERANCE = 1e-3
+"""Largest accepted | |q| - 1 | of a file's quaternion, and largest entry of |R R^T - I| of a KITTI
+rotation. evo normalises a non-unit quaternion and turns a zero one into the identity without a word
+(with `--align origin` a zero first quaternion moved every error); files written with 6 decimals are
+within 1e-5 of unit."""
 
 _EVO_READERS = {
     "euroc": "read_euroc_csv_trajectory",
@@ -90,7 +104,79 @@ def read_trajectory(path: str | os.PathLike, fmt: str):
         raise TrajectoryFileError(f"cannot read {os.fspath(path)} as {fmt}: {error}") from error
     if traj.num_poses == 0:
         raise TrajectoryFileError(f"{os.fspath(path)} holds no poses")
+    check_poses(traj, path, fmt)
     return traj
+
+
+def check_poses(traj, path: str | os.PathLike, fmt: str) -> None:
+    """Refuse what evo reads without a word: a stamp or pose value that is NaN, infinite or beyond
+    float32's range (schema.FLOAT_MAX: jsve computes logs in float32, where it would be inf), a
+    quaternion that is not unit (zero ones included) or a KITTI rotation that is not a rotation
+    (ROTATION_TOLERANCE).
+
+    Arguments:
+        traj: what evo read from `path` (rows in file order).
+        path: the file, for the message; fmt: its format (TRAJECTORY_FORMATS).
+
+    Raises:
+        TrajectoryFileError: `path:line: column 'name' = 'value': reason`, the first bad line.
+    """
+    n = traj.num_poses
+    if fmt == "kitti":
+        rows = np.stack(traj.poses_se3)[:, :3, :].reshape(n, 12)  # r11 r12 r13 tx r21 ... tz, as written
+    else:
+        stamps = np.asarray(traj.timestamps, np.float64).reshape(n, 1)
+        q = np.asarray(traj.orientations_quat_wxyz, np.float64)
+        q_as_written = q[:, [1, 2, 3, 0]] if fmt == "tum" else q  # tum writes xyzw
+        rows = np.concatenate([stamps, np.asarray(traj.positions_xyz, np.float64), q_as_written], axis=1)
+    names = _FIELDS[fmt]
+    with np.errstate(invalid="ignore"):
+        bad_value = ~np.isfinite(rows) | (np.abs(rows) > schema.FLOAT_MAX)
+    if fmt == "kitti":
+        r = rows[:, [0, 1, 2, 4, 5, 6, 8, 9, 10]].reshape(n, 3, 3)
+        with np.errstate(invalid="ignore", over="ignore"):
+            off = np.abs(r @ np.swapaxes(r, 1, 2) - np.eye(3)).max(axis=(1, 2))
+            bad_rotation = ~(off <= ROTATION_TOLERANCE) | ~(np.linalg.det(r) > 0)
+        group, what = (0, 1, 2, 4, 5, 6, 8, 9, 10), "not a rotation: |R R^T - I| = {:.3g} or det R <= 0"
+        size = off
+    else:
+        with np.errstate(invalid="ignore", over="ignore"):
+            size = np.linalg.norm(q, axis=1)
+            bad_rotation = ~(np.abs(size - 1.0) <= ROTATION_TOLERANCE)
+        group, what = (4, 5, 6, 7), "not a unit quaternion: |q| = {:.6g}"
+    bad = bad_value.any(axis=1) | bad_rotation
+    if not bad.any():
+        return
+    k = int(np.argmax(bad))
+    line, fields = _data_line(path, k, "," if fmt == "euroc" else " ")
+    if bad_value[k].any():
+        c = int(np.argmax(bad_value[k]))
+        text = fields[c] if c < len(fields) else repr(float(rows[k, c]))
+        reason = (
+            "NaN or inf is not allowed"
+            if not np.isfinite(rows[k, c])
+            else f"beyond float32's range (|x| <= {schema.FLOAT_MAX:.8g}), the range jsve computes in"
+        )
+        raise TrajectoryFileError.at(path, line, reason, names[c], text)
+    shown = " ".join(fields[c] for c in group if c < len(fields))
+    reason = what.format(float(size[k])) + f" (tolerance {ROTATION_TOLERANCE:g})"
+    raise TrajectoryFileError.at(
+        path, line, reason, f"{names[group[0]]}..{names[group[-1]]}", shown, "columns"
+    )
+
+
+def _data_line(path: str | os.PathLike, k: int, delimiter: str) -> tuple[int | None, list[str]]:
+    """(1-based line number, fields) of the k-th row evo's csv_read_matrix reads from `path`: the lines
+    that do not start with '#', after a UTF-8 byte-order mark."""
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        row = -1
+        for number, text in enumerate(f, start=1):
+            if text.startswith("#"):
+                continue
+            row += 1
+            if row == k:
+                return number, text.rstrip("\r\n").split(delimiter)
+    return None, []
 
 
 def associate(ref, est, ref_path: str, est_path: str, fmt: str, t_max_diff: float = 0.01):
@@ -136,6 +222,14 @@ def read_kitti_times(path: str | os.PathLike, n_poses: int) -> np.ndarray:
         raise TrajectoryFileError(
             f"cannot read {os.fspath(path)} as KITTI times (seconds, one per line): {error}"
         ) from error
+    finite = np.isfinite(times)
+    if not finite.all():
+        k = int(np.argmax(~finite))
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
+            # np.loadtxt skips blank lines and '#' comments.
+            lines = [(i, t.strip()) for i, t in enumerate(f, start=1) if t.strip() and not t.startswith("#")]
+        line, text = lines[k] if k < len(lines) else (None, repr(float(times[k])))
+        raise TrajectoryFileError.at(path, line, "NaN or inf is not allowed (seconds)", "time", text)
     if times.shape != (n_poses,):
         raise TrajectoryFileError(
             f"{os.fspath(path)} has {times.size} times but the reference has {n_poses} poses"
