@@ -159,3 +159,59 @@ def test_cli_levels_and_parameters(source, tmp_path, capsys):
     assert manifest["parameters"] == {"angle": 90, "seed": 0}
     bad = parser.parse_args(["disturb", str(source), "-o", str(tmp_path / "o"), "--param", "blur.angle=1"])
     assert bad.func(bad) == 2
+
+
+def test_rerun_refuses_datasets_of_another_seed_source_or_parameters(tmp_path):
+    """A finished dataset is resumed only under the key it was made under (source path and content,
+    disturbance, level, parameters, seed): another seed or an edited source image stops the run before
+    anything is written (StaleOutputError naming the folder and the difference); force rewrites exactly
+    the stale datasets, to the bytes a clean run writes."""
+    from jsve.io._resume import StaleOutputError
+
+    source = _write_source(tmp_path / "SEQ", n_frames=2, stereo=False)
+    out = tmp_path / "out"
+    levels = {"noise": [5, 10]}
+    datasets.disturb_datasets([source], out, ["noise"], levels, seed=0, progress=False)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(
+        StaleOutputError, match=r"out holds outputs of another job \(2 datasets .*parameters.seed 0 != 1"
+    ):
+        datasets.disturb_datasets([source], out, ["noise"], {"noise": [5, 10, 15]}, seed=1, progress=False)
+    assert not (out / "SEQ" / "noise-15").exists()
+    image = next((source / "mav0" / "cam0" / "data").iterdir())
+    pixels = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    pixels[0, 0] ^= 1
+    image.unlink()  # a new file (the outputs hard-link the source's untouched files)
+    cv2.imwrite(str(image), pixels)
+    with pytest.raises(StaleOutputError, match='source_hash "sha256:[0-9a-f]+" != "sha256:[0-9a-f]+"'):
+        datasets.disturb_datasets([source], out, ["noise"], levels, seed=0, progress=False)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    # a dataset written before the key had the source's hash
+    manifest = json.loads((out / "SEQ" / "noise-5" / datasets.MANIFEST_NAME).read_text())
+    del manifest["source_hash"]
+    (out / "SEQ" / "noise-5" / datasets.MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(StaleOutputError, match="source_hash absent != "):
+        datasets.disturb_datasets([source], out, ["noise"], {"noise": [5]}, seed=0, progress=False)
+    forced = datasets.disturb_datasets([source], out, ["noise"], levels, seed=1, force=True, progress=False)
+    assert [r.status for r in forced] == ["redone", "redone"]
+    clean = datasets.disturb_datasets([source], tmp_path / "clean", ["noise"], levels, seed=1, progress=False)
+    assert [r.manifest["content_hash"] for r in forced] == [r.manifest["content_hash"] for r in clean]
+    again = datasets.disturb_datasets([source], out, ["noise"], levels, seed=1, progress=False)
+    assert [r.status for r in again] == ["skipped", "skipped"]
+
+
+def test_unwritable_output_is_one_error_and_leaves_nothing(source, tmp_path, monkeypatch):
+    """A full disk while writing images is an OutputError naming the dataset; no .partial folder and no
+    dataset are left."""
+    import errno
+
+    from jsve.io._atomic import OutputError
+
+    def full(path, image, *args):
+        raise OSError(errno.ENOSPC, "No space left on device", path)
+
+    monkeypatch.setattr(datasets.cv2, "imwrite", full)
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match=r"cannot write .*SEQ/blur-5: No space left on device"):
+        datasets.disturb_datasets([source], out, ["blur"], {"blur": [5]}, progress=False)
+    assert [p.name for p in (out / "SEQ").iterdir()] == []

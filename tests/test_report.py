@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import time
+from dataclasses import replace
 
 import knownanswer as ka
 import numpy as np
@@ -19,7 +21,8 @@ import pytest
 from jsve.core._rules import PRESETS
 from jsve.evaluation import group_weights
 from jsve.fitting._fit import FitConfig, FitData
-from jsve.fitting._study import StudyConfig, read_table, run_study
+from jsve.fitting._study import StudyConfig, data_fingerprint, fingerprint, read_table, run_study, study_files
+from jsve.io._resume import StaleOutputError
 from jsve.report._report import markdown_table, write_report
 
 SMALL = StudyConfig(
@@ -111,13 +114,54 @@ def test_rerun_skips_finished_stages_and_changes_nothing(study):
     run_study(data, out, SMALL, progress=False, data_description={"source": "tests/knownanswer.py"})
     assert time.perf_counter() - started < 0.25 * first
     assert {p.name: p.read_bytes() for p in out.glob("*.parquet")} == before
-    # another configuration (or other data) starts from scratch
-    from jsve.fitting._study import Stages, fingerprint
-
     record = json.loads((out / "stages.json").read_text())
     assert record["key"]["config"] == fingerprint(SMALL.to_dict()) and len(record["done"]) == 8
+
+
+@pytest.mark.slow
+def test_rerun_on_other_data_or_configuration_stops_and_force_starts_over(study, tmp_path):
+    """A study folder is resumed only under its key: other logs with the same run ids and frame counts
+    (one frame's inlier count changed), or another configuration, stop before anything is written
+    (StaleOutputError naming the folder and what differs; the files keep their bytes). force=True deletes
+    the study's files and writes the tables a clean run of the new study writes; `jsve fit` says the
+    same in one line (exit 2) and takes --force."""
+    out, data, _, _, _ = study
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    runs = ka.make_study("occlusion", range(12), n_frames=300)
+    frames = runs[5].frames.copy()
+    frames.loc[150, "n_inliers"] += 1
+    runs[5] = replace(runs[5], frames=frames)
+    other = FitData.from_runs(runs, SMALL.objective())
+    assert (other.n_runs, other.n_frames, list(other.meta["run_id"])) == (
+        data.n_runs,
+        data.n_frames,
+        list(data.meta["run_id"]),
+    )
+    assert data_fingerprint(other) != data_fingerprint(data)
+    assert data_fingerprint(FitData.from_runs(ka.make_study("occlusion", range(12), n_frames=300))) == (
+        data_fingerprint(data)
+    )
+    with pytest.raises(
+        StaleOutputError, match=r"holds outputs of another job \(data: fingerprint \"[0-9a-f]+\" != "
+    ):
+        run_study(other, out, SMALL, progress=False, data_description={"source": "tests/knownanswer.py"})
     changed = StudyConfig(**{**SMALL.__dict__, "failure_penalty": 2.0})
-    assert Stages(out, fingerprint(changed.to_dict()), record["key"]["data"]).done == {}
+    with pytest.raises(StaleOutputError, match=r"\(configuration: failure_penalty 1.0 != 2.0\)"):
+        run_study(data, out, changed, progress=False)
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+    # every file a study and its report write is one force deletes
+    assert {p for p in out.rglob("*") if p.is_file()} == set(study_files(out))
+
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "notes.txt").write_text("mine")
+    lean = replace(SMALL, families=("inliers",), heatmap=("imu_init", "recovery", 2), n_boot=50)
+    run_study(data, copy, lean, progress=False, force=True)
+    clean = tmp_path / "clean"
+    run_study(data, clean, lean, progress=False)
+    assert sorted(p.name for p in copy.iterdir()) == sorted([*(p.name for p in clean.iterdir()), "notes.txt"])
+    for table in ("runs", "summary", "heldout", "params", "heatmap"):
+        pd.testing.assert_frame_equal(read_table(copy, table), read_table(clean, table))
 
 
 @pytest.mark.slow

@@ -40,9 +40,9 @@ def test_config_round_trip_and_unknown_keys():
 
 
 def test_support_policy_keys_the_study_and_reaches_the_objective():
-    """`support` is a study setting: it reaches the objective, a study resumed under the other policy
-    starts over (the stages' fingerprint changes), `jsve fit --support` sets it, and a wrong value is
-    refused when the study is configured."""
+    """`support` is a study setting: it reaches the objective, it keys the study (a study resumed under
+    the other policy stops, or starts over with --force: tests/test_report.py), `jsve fit --support`
+    sets it, and a wrong value is refused when the study is configured."""
     from jsve.cli import build_parser
     from jsve.cli.fit import load_study_config
     from jsve.fitting._study import fingerprint

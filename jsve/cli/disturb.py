@@ -1,7 +1,9 @@
 """`jsve disturb DATASET... -o OUT`: write disturbed copies of EuRoC datasets, one per (disturbance, level).
 
 A thin layer over jsve.image._datasets.disturb_datasets: parallel, with a progress bar, resumable (finished
-datasets are skipped, stale `.partial` folders redone). `--list` shows the registered disturbances.
+datasets made from the same source content, parameters and seed are skipped, stale `.partial` folders
+redone; a finished dataset of another seed, source or parameters stops the command, exit 2, unless
+--force rewrites it). `--list` shows the registered disturbances.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ def register(subparsers) -> None:
             "Write one disturbed copy of each EuRoC DATASET (a folder holding mav0/) per disturbance and "
             "level, as OUT/<dataset>/<disturbance>-<level>/ with a manifest. Camera images (cam0, cam1) are "
             "disturbed; IMU, ground truth and everything else is hard-linked (or copied) untouched. "
-            "Re-running skips finished datasets."
+            "Re-running skips finished datasets made from the same source content, parameters and seed; "
+            "one made otherwise stops the command unless --force."
         ),
     )
     parser.add_argument("datasets", metavar="DATASET", nargs="*", help="EuRoC dataset folder(s)")
@@ -63,6 +66,7 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--list", action="store_true", help="list the disturbances and their levels, and exit"
     )
+    common.add_force_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -102,6 +106,7 @@ def _parse_params(items: list[str]) -> dict[str, dict[str, object]]:
     return params
 
 
+@common.guarded("disturb")
 def run(args: argparse.Namespace) -> int:
     from jsve.image._datasets import DatasetError, disturb_datasets, format_level
     from jsve.image._disturb import DISTURBANCES
@@ -127,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             workers=args.workers,
             progress=not args.no_progress,
+            force=args.force,
         )
     except (ValueError, DatasetError) as error:
         return common.fail("disturb", error)

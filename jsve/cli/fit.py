@@ -5,6 +5,8 @@
 LOGS is a folder of format-v1 logs, a log, or a Parquet file from `jsve ingest`; the logs need ground
 truth. Runs every stage of jsve.fitting._study (presets, fits, cross-validation, bootstrap, heat map, SVE per
 level) into OUT, resumably, then writes OUT/report.md and OUT/report.html (`jsve report OUT` re-renders).
+A study folder is resumed only for the same data content and configuration; another stops the command
+(exit 2, one line naming the folder and what differs) unless --force deletes the old study's files.
 """
 
 from __future__ import annotations
@@ -28,7 +30,13 @@ def register(subparsers) -> None:
         "and a report.",
     )
     p.add_argument("logs", metavar="LOGS", help="folder of logs, a log, or a Parquet file from `jsve ingest`")
-    p.add_argument("-o", "--output", required=True, metavar="DIR", help="study folder (resumed if it exists)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="DIR",
+        help="study folder (resumed if it holds a study of the same data and configuration)",
+    )
     p.add_argument("--config", metavar="TOML", help="study settings (see sweeps/fit.toml)")
     p.add_argument(
         "--family",
@@ -45,6 +53,7 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, metavar="N")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--no-report", action="store_true", help="write the tables only")
+    common.add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -76,9 +85,12 @@ def load_study_config(path: str | None, **overrides):
     return StudyConfig.from_dict(base, source=path or "<defaults>")
 
 
+@common.guarded("fit")
 def run(args) -> int:
     from jsve.fitting._search import use_all_cores
+    from jsve.io._atomic import check_writable
 
+    check_writable(args.output)  # before reading the logs: an unwritable folder fails at once
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
     try:
         config = load_study_config(
@@ -107,7 +119,12 @@ def run(args) -> int:
         return common.fail("fit", err)
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
     run_study(
-        data, args.output, config, progress=not args.no_progress, data_description={"source": str(args.logs)}
+        data,
+        args.output,
+        config,
+        progress=not args.no_progress,
+        data_description={"source": str(args.logs)},
+        force=args.force,
     )
     if not args.no_report:
         written = write_report(args.output)

@@ -4,7 +4,9 @@
 `OUT/<source name>/<disturbance>-<level>[_<param>=<value>...]`, every camera frame passed through
 jsve.image._disturb's registered image function. Each is built in a sibling folder ending in `.partial` and
 renamed when complete, with a manifest (`jsve_manifest.json`) written last; a re-run skips finished
-datasets and discards stale `.partial` folders.
+datasets made under the same key (generator_key: the source's path and content, disturbance, level,
+parameters and seed; recorded in the manifest), stops with StaleOutputError at a dataset of another key
+(or, with force, deletes and rewrites it), and discards stale `.partial` folders.
 
 Also the EuRoC reading helpers jsve.image._measure shares (`camera_dirs`, `read_frame_list`,
 `read_yaml_list`) and the process pool of both (`run_parallel`).
@@ -13,6 +15,7 @@ Also the EuRoC reading helpers jsve.image._measure shares (`camera_dirs`, `read_
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import hashlib
 import json
 import logging
@@ -21,7 +24,7 @@ import os
 import re
 import shutil
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -34,6 +37,8 @@ from jsve.image._disturb import (
     disturbance_parameters,
     scale_intrinsics,
 )
+from jsve.io import _atomic as atomic
+from jsve.io._resume import StaleOutputError, differences
 from jsve.io._workers import process_pool
 
 # The name users configure for the disturbance tools' messages (jsve disturb).
@@ -56,7 +61,10 @@ class DatasetError(Exception):
 
 @dataclass(frozen=True)
 class Job:
-    """One dataset to write: `source` disturbed by `name` at `level` into `target`."""
+    """One dataset to write: `source` disturbed by `name` at `level` into `target`.
+
+    `source_hash` is content_hash(source)'s digest, computed once per source by disturb_datasets (None:
+    computed when needed)."""
 
     source: Path
     target: Path
@@ -64,6 +72,7 @@ class Job:
     level: float
     parameters: tuple[tuple[str, object], ...]
     seed: int
+    source_hash: str | None = None
 
 
 @dataclass(frozen=True)
@@ -195,6 +204,28 @@ def read_manifest(dataset: Path) -> dict | None:
         return json.load(stream)
 
 
+def generator_key(job: Job) -> dict:
+    """What a disturbed dataset is a function of: the source (resolved path and content hash: every
+    file's bytes, so an edited or replaced image counts), the disturbance, its level and its parameters
+    with the seed. The manifest records each; a finished dataset is kept only under an equal key."""
+    source = Path(job.source)
+    key = {
+        "source": str(source.resolve()),
+        "source_hash": job.source_hash or content_hash(source)[0],
+        "disturbance": job.name,
+        "level": job.level,
+        "parameters": {**disturbance_parameters(job.name), **dict(job.parameters), "seed": job.seed},
+    }
+    return json.loads(json.dumps(key))  # as the manifest reads back (tuples as lists)
+
+
+def _stale(job: Job, manifest: dict) -> str | None:
+    """What differs between a finished dataset's manifest and the job's key, or None."""
+    key = generator_key(job)
+    recorded = {k: manifest[k] for k in key if k in manifest}
+    return None if recorded == key else differences(recorded, key)
+
+
 def _jsve_version() -> str:
     try:
         from importlib.metadata import version
@@ -256,7 +287,10 @@ def _write_dataset(job: Job, partial: Path) -> dict:
             )
             sizes.add((image.shape[1], image.shape[0], out.shape[1], out.shape[0]))
             if not cv2.imwrite(str(out_cam / "data" / filename), out):
-                raise DatasetError(f"{out_cam / 'data' / filename}: cannot write image")
+                # OpenCV says no more than False (a full disk, a read-only folder)
+                raise atomic.OutputError(
+                    None, "OpenCV could not write the image", str(out_cam / "data" / filename)
+                )
         # Images not listed in data.csv are not part of the sequence and are not written.
         sensor = cam / "sensor.yaml"
         if sensor.is_file():
@@ -272,12 +306,9 @@ def _write_dataset(job: Job, partial: Path) -> dict:
     digest, file_count = content_hash(partial)
     manifest = {
         "jsve_manifest": MANIFEST_VERSION,
-        "source": str(source.resolve()),
+        **generator_key(job),
         "dataset": source.name,
-        "disturbance": job.name,
-        "level": job.level,
         "unit": DISTURBANCES[job.name].unit,
-        "parameters": {**disturbance_parameters(job.name), **parameters, "seed": job.seed},
         "jsve_version": _jsve_version(),
         "frames": n_frames,
         "file_count": file_count,
@@ -288,29 +319,52 @@ def _write_dataset(job: Job, partial: Path) -> dict:
     return manifest
 
 
-def disturb_dataset(job: Job) -> JobResult:
+def disturb_dataset(job: Job, *, force: bool = False) -> JobResult:
     """Write one disturbed dataset, atomically and resumably.
 
-    A finished dataset (target folder with a manifest) is skipped. Otherwise the dataset is built in
-    `<target>.partial/` (a stale one from a crashed run is discarded first), its manifest written last,
-    and the folder renamed to `target`. A target folder without a manifest is not jsve's and raises.
+    A finished dataset (target folder with a manifest) made under the job's key (generator_key) is
+    skipped; one made under another key raises StaleOutputError, or with force=True is deleted and
+    written again (status "redone"). Otherwise the dataset is built in `<target>.partial/` (a stale one
+    from a crashed run is discarded first), its manifest written last, and the folder renamed to
+    `target`. A target folder without a manifest is not jsve's and raises.
+
+    Raises:
+        StaleOutputError: a finished dataset of another key (and force is False).
+        OutputError: the dataset cannot be written (nothing is left of it).
+        DatasetError: the source cannot be read, or the target is not jsve's.
     """
     target = Path(job.target)
     manifest = read_manifest(target)
+    status = "written"
     if manifest is not None:
-        return JobResult(target, "skipped", manifest)
-    if target.exists():
+        what = _stale(job, manifest)
+        if what is None:
+            return JobResult(target, "skipped", manifest)
+        if not force:
+            raise StaleOutputError(target.parent.parent, f"{target.parent.name}/{target.name}: {what}")
+        logger.info("discarding %s, written under another key (%s)", target, what)
+        shutil.rmtree(target)
+        status = "redone"
+    elif target.exists():
         raise DatasetError(
             f"{target}: exists but has no {MANIFEST_NAME}; not overwriting a folder jsve did not write"
         )
     partial = target.with_name(target.name + PARTIAL_SUFFIX)
-    status = "written"
     if partial.exists():
         logger.info("discarding stale %s", partial)
         shutil.rmtree(partial)
         status = "redone"
-    manifest = _write_dataset(job, partial)
-    os.replace(partial, target)
+    try:
+        manifest = _write_dataset(job, partial)
+        os.replace(partial, target)
+    except OSError as error:
+        shutil.rmtree(partial, ignore_errors=True)
+        if atomic.is_write_error(error, partial, target):
+            raise atomic.output_error(error, target) from error
+        raise
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     return JobResult(target, status, manifest)
 
 
@@ -390,13 +444,34 @@ def disturb_datasets(
     seed: int = 0,
     workers: int = 1,
     progress: bool = True,
+    force: bool = False,
 ) -> list[JobResult]:
     """Write every (source, disturbance, level) dataset, in parallel, skipping finished ones.
 
     See make_jobs for the arguments; `workers` processes write datasets side by side and a tqdm bar
-    counts finished datasets. Returns one JobResult per job, in job order.
+    counts finished datasets. A finished dataset is kept only when made under the job's key (see
+    disturb_dataset; each source's content is hashed once per call); any made under another raises
+    StaleOutputError before anything is written, unless force=True (then they are written again).
+
+    Returns:
+        One JobResult per job, in job order.
+
+    Raises:
+        StaleOutputError, OutputError, DatasetError: as disturb_dataset.
     """
     jobs = make_jobs(sources, out_dir, disturbances, levels, parameters, seed)
+    hashes = {source: content_hash(source)[0] for source in {job.source for job in jobs}}
+    jobs = [replace(job, source_hash=hashes[job.source]) for job in jobs]
+    # Every finished dataset is checked before any is written: a folder never mixes two keys.
+    stale = [(job, what) for job in jobs if (m := read_manifest(job.target)) and (what := _stale(job, m))]
+    if stale and not force:
+        job, what = stale[0]
+        raise StaleOutputError(
+            out_dir,
+            f"{len(stale)} datasets written under another key, e.g. "
+            f"{job.target.relative_to(out_dir).as_posix()}: {what}",
+        )
+    atomic.check_writable(out_dir)
     for job in jobs:
-        job.target.parent.mkdir(parents=True, exist_ok=True)
-    return run_parallel(disturb_dataset, jobs, workers, progress, "disturb")
+        atomic.make_dir(job.target.parent)
+    return run_parallel(functools.partial(disturb_dataset, force=force), jobs, workers, progress, "disturb")

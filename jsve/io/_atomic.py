@@ -6,6 +6,7 @@ leaves at most a `.partial` file, which readers report as incomplete and re-runs
     atomic_path(path)             a context: the temporary name to write, renamed on success
     all_or_nothing()              a context: every output written inside appears together, or none does
     make_dir(path)                an output folder, or OutputError
+    output_error, is_write_error  an OSError of writing as OutputError; whether it is one
     check_writable(folder)        fail early (OutputError) when a folder cannot take outputs
     write_bytes / write_text      bytes or UTF-8 text
     write_json(path, obj)         indented, sorted keys, numpy values as numbers
@@ -131,13 +132,14 @@ def all_or_nothing() -> Iterator[None]:
             raise output_error(error, path) from error
 
 
-def _is_output_error(error: OSError, partial: Path, path: Path) -> bool:
-    """Whether an OSError raised while writing `partial` is the output's (not a read of another file)."""
-    return (
-        isinstance(error, OutputError)
-        or error.errno in _WRITE_ERRNOS
-        or error.filename in (None, os.fspath(partial), os.fspath(path))
-    )
+def is_write_error(error: OSError, *outputs: str | os.PathLike) -> bool:
+    """Whether an OSError raised while writing `outputs` (files or folders) is theirs, not a read of an
+    input: an OutputError, an errno only writes produce (full disk, quota, read-only file system), no
+    file name, or a file name at or under one of `outputs`."""
+    if isinstance(error, OutputError) or error.errno in _WRITE_ERRNOS or error.filename is None:
+        return True
+    name = Path(os.fspath(error.filename))
+    return any(name == Path(p) or Path(p) in name.parents for p in outputs)
 
 
 @contextlib.contextmanager
@@ -164,7 +166,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     except OSError as error:
         with contextlib.suppress(OSError):
             partial.unlink(missing_ok=True)
-        if _is_output_error(error, partial, path):
+        if is_write_error(error, partial, path):
             raise output_error(error, path) from error
         raise
     except BaseException:
