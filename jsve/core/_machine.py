@@ -208,6 +208,9 @@ def machine_step(
     """
     dtype = jnp.result_type(frame.t, float)
     flag = lambda c: c.astype(dtype)  # noqa: E731 - data comparisons stay exact when relaxed
+    # Exact flags put all of a mode's mass in one part, whose clock is the hard update: skip the
+    # mass-weighted means (a third of the step's arithmetic in the search kernel's scan).
+    clock = _hard_clock if isinstance(logic, HardLogic) else _mass_mean
     t, k = frame.t, frame.k
     # The replay's map is younger than the recorded one when it started later: it then waits the
     # recorded run's delays again before its IMU counts as initialised (and BA2 as done).
@@ -257,16 +260,16 @@ def machine_step(
         recently_lost=coasting + rl_blind,
         lost=loss + lost_stay,
         lost_ready=becomes_ready,
-        t_lost=_mass_mean([(ok_to_rl, t), (rl_stay + rl_blind, state.t_lost)],
+        t_lost=clock([(ok_to_rl, t), (rl_stay + rl_blind, state.t_lost)],
                           ok_to_rl * t + (1 - ok_to_rl) * state.t_lost),
         # The map start belongs to the OK + RECENTLY_LOST mass: the mass starting a map now, and the
         # rest of the tracking mass, which keeps its own.
-        map_start_t=_mass_mean([(lost_init, t), (still_tracking, state.map_start_t)],
+        map_start_t=clock([(lost_init, t), (still_tracking, state.map_start_t)],
                                lost_init * t + (1 - lost_init) * state.map_start_t),
         # mnLastRelocFrameId: a reset restarts the window of the mass it sends to LOST, which takes its
         # window into its next map; an expiry keeps it.
-        reloc_k=_mass_mean([(still_tracking, state.reloc_k), (lost_init, state.lost_reloc_k)], reloc_hard),
-        lost_reloc_k=_mass_mean([(reset, k), (rl_expire, state.reloc_k), (lost_stay, state.lost_reloc_k)],
+        reloc_k=clock([(still_tracking, state.reloc_k), (lost_init, state.lost_reloc_k)], reloc_hard),
+        lost_reloc_k=clock([(reset, k), (rl_expire, state.reloc_k), (lost_stay, state.lost_reloc_k)],
                                 reloc_hard),
         segment=state.segment + lost_init,
     )  # fmt: skip
@@ -274,7 +277,7 @@ def machine_step(
     rs = frame.rec_start
     tracking_before = state.ok + state.recently_lost
     windows = [(tracking_before, state.reloc_k), (state.lost, state.lost_reloc_k)]
-    reloc_now = _mass_mean(windows, state.reloc_k)
+    reloc_now = clock(windows, state.reloc_k)
     reloc = jnp.where(frame.rec_reloc >= 0, frame.rec_reloc, reloc_now) + 0 * tracked
     zero = jnp.zeros_like(tracked)
     forced = MachineState(ok=zero + 1, recently_lost=zero, lost=zero, lost_ready=zero, t_lost=state.t_lost,
@@ -289,6 +292,13 @@ def machine_step(
         reset=(1 - rs) * reset,
     )
     return next_state, decision
+
+
+def _hard_clock(parts, hard_update):
+    """The hard machine's clock update: `_mass_mean` with exact flags, without its arithmetic. (The two
+    relocalisation clocks are equal there, so the hard update of either serves both.)"""
+    del parts
+    return hard_update
 
 
 def _mass_mean(parts, hard_update):
