@@ -664,6 +664,23 @@ def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
     if blank is not None:
         line = region.count(b"\n", 0, blank.start()) + 3
         raise LogFormatError(source, line, f"empty line (a row has {len(columns)} comma-separated fields)")
+    # Arrow also ends a row at a bare '\r': the row would be cut in two and every line after it shifted.
+    bare_cr = _BARE_CR.search(region)
+    if bare_cr is not None:
+        line = region.count(b"\n", 0, bare_cr.start()) + 3
+        raise LogFormatError(
+            source, line, "a carriage return ('\\r') inside the row: lines end in '\\n' or '\\r\\n'"
+        )
+    # Arrow's int64 parser reads hexadecimal ('0x10' = 16); an integer field is digits with an optional '-'.
+    hex_number = _HEX.search(region)
+    if hex_number is not None:
+        row = region.count(b"\n", 0, hex_number.start())
+        raw = text.raw_line(region, row)
+        start = region.rfind(b"\n", 0, hex_number.start()) + 1
+        k = raw.count(b",", 0, hex_number.start() - start)
+        c = columns[min(k, len(columns) - 1)]
+        reason = "not an integer" if c in _INT_SET else "not a number"
+        raise LogFormatError(source, row + 3, reason, column=c, value=text.raw_field(raw, k))
     table = _parse_rows(region, columns, source)
     if table.num_rows != count:
         raise LogIncompleteError(
@@ -723,6 +740,8 @@ def with_v1_defaults(frames: pd.DataFrame) -> pd.DataFrame:
 
 
 _BLANK_LINE = re.compile(rb"^[ \t\r]*\n", re.MULTILINE)
+_BARE_CR = re.compile(rb"\r(?!\n)")
+_HEX = re.compile(rb"[xX]")  # no number of a log has an x: a hexadecimal one, or garbage
 
 
 def _parse_rows(region: bytes, columns: list[str], source: str) -> pa.Table:

@@ -253,7 +253,7 @@ def write_rows(table: pa.Table) -> bytes:
 
 def read_rows(rows: bytes, columns: Sequence[str], int_columns: frozenset[str] | set[str]) -> pa.Table:
     """Parse the rows with one explicit type per column: int64 for `int_columns` (never through a float),
-    float64 (correctly rounded) for the others; an empty field is null.
+    float64 (correctly rounded) for the others; an empty field is null; a quote is an ordinary character.
 
     Raises:
         pyarrow.ArrowInvalid: a row that does not parse; the caller locates it for its message.
@@ -262,7 +262,9 @@ def read_rows(rows: bytes, columns: Sequence[str], int_columns: frozenset[str] |
     return pacsv.read_csv(
         pa.py_buffer(rows),
         read_options=pacsv.ReadOptions(column_names=list(columns), use_threads=False),
-        parse_options=pacsv.ParseOptions(ignore_empty_lines=False),
+        # Fields are never quoted (docs/log-format.md): a quote is part of a value, which then does not
+        # convert; quoting would also let one row span lines and shift every line number after it.
+        parse_options=pacsv.ParseOptions(ignore_empty_lines=False, quote_char=False),
         convert_options=pacsv.ConvertOptions(
             column_types=types,
             null_values=[""],
