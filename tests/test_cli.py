@@ -172,3 +172,142 @@ def test_n_to_align():
 def test_fail_names_the_command(capsys):
     assert common.fail("ape", ValueError("b.tum holds no poses")) == 2
     assert capsys.readouterr().err == "jsve ape: b.tum holds no poses\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# Outputs that cannot be written: one line, exit 2, nothing left (common.guarded, jsve.io._atomic)
+
+
+def _tum(path, shift: float = 0.0):
+    rows = [f"{1.0 + 0.1 * k:.1f} {0.1 * k + shift} {0.02 * k} 0 0 0 0 1" for k in range(20)]
+    path.write_text("\n".join(rows) + "\n")
+    return str(path)
+
+
+def _logs(folder, n: int = 2):
+    from jsve.io import write_log
+
+    for k in range(n):
+        write_log(make_run(60, seed=k, sequence="S", run=k), folder / f"r{k}.csv")
+    return str(folder)
+
+
+def _dataset(root):
+    import cv2
+    import numpy as np
+
+    data = root / "mav0" / "cam0" / "data"
+    data.mkdir(parents=True)
+    t = 1403715273262142976
+    cv2.imwrite(str(data / f"{t}.png"), np.random.default_rng(0).integers(0, 255, (48, 64), np.uint8))
+    (root / "mav0" / "cam0" / "data.csv").write_text(f"#t,filename\n{t},{t}.png\n")
+    return str(root)
+
+
+def _argv(command: str, tmp, out) -> list[str]:
+    """A call of `command` that writes to `out` (its inputs made under `tmp`)."""
+    ref, est = _tum(tmp / "ref.txt"), _tum(tmp / "est.txt", 0.01)
+    if command in ("ingest", "evaluate", "fit"):
+        logs = _logs(tmp / "logs") if not (tmp / "logs").exists() else str(tmp / "logs")
+    return {
+        "ingest": lambda: ["ingest", logs, "-o", str(out / "study.parquet"), "--no-progress",
+                           "--workers", "1"],
+        "simulate": lambda: ["simulate", "-o", str(out), "--procedural", "1", "--disturbances",
+                             "occlusion:450", "--runs", "1", "--workers", "1", "--no-progress"],
+        "evaluate": lambda: ["evaluate", logs, "--rule", "orbslam3", "-o", str(out), "--no-progress"],
+        "ape": lambda: ["ape", ref, est, "-o", str(out / "ape.csv")],
+        "fit": lambda: ["fit", logs, "-o", str(out), "--no-progress", "--no-report"],
+        "table1": lambda: ["table1", "--ref", ref, "--original", est, "--masked", est, "--format", "tum",
+                           "-o", str(out), "--no-plots"],
+        "disturb": lambda: ["disturb", _dataset(tmp / "SEQ"), "-o", str(out), "--disturbance", "blur",
+                            "--levels", "5", "--workers", "1", "--no-progress"],
+    }[command]()  # fmt: skip
+
+
+WRITERS = ("ingest", "simulate", "evaluate", "ape", "fit", "table1", "disturb")
+
+
+def _one_error_line(capsys, command: str, path, reason: str) -> None:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"jsve {command}: cannot write {path}"), err
+    assert err[-1].endswith(reason) and "Traceback" not in "\n".join(err), err
+
+
+@pytest.mark.parametrize("command", WRITERS)
+def test_an_output_under_a_file_is_one_line_and_exit_2(command, tmp_path, capsys):
+    """-o naming a path whose parent is a regular file (how tests running as root make a folder
+    unwritable: chmod does not stop root)."""
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file, not a folder")
+    out = blocker / "out"
+    assert main(_argv(command, tmp_path, out)) == 2
+    _one_error_line(capsys, command, out, "Not a directory")
+    assert blocker.read_text() == "a file, not a folder"
+
+
+@pytest.mark.parametrize("command", ["fit", "evaluate", "table1", "disturb"])
+def test_an_output_folder_that_is_a_file_is_one_line_and_exit_2(command, tmp_path, capsys):
+    out = tmp_path / "taken"
+    out.write_text("mine")
+    assert main(_argv(command, tmp_path, out)) == 2
+    _one_error_line(capsys, command, out, "exists and is not a folder")
+    assert out.read_text() == "mine"
+
+
+def test_an_output_file_that_is_a_folder_is_one_line_and_exit_2(tmp_path, capsys):
+    out = tmp_path / "ape.csv"
+    out.mkdir()
+    argv = _argv("ape", tmp_path, tmp_path)
+    assert main(argv) == 2
+    _one_error_line(capsys, "ape", out, "is a folder")
+    assert out.is_dir() and not list(out.iterdir())
+
+
+@pytest.mark.parametrize("command", WRITERS)
+def test_a_full_disk_is_one_line_exit_2_and_no_partial_output(command, tmp_path, capsys, monkeypatch):
+    """ENOSPC from the writer (every output's rename, jsve.io._atomic._commit; OpenCV's imwrite for
+    disturb's images): one line naming the output, exit 2, and no file left in the output folder."""
+    import errno
+
+    from jsve.image import _datasets
+    from jsve.io import _atomic as atomic
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    out = tmp_path / "out"
+    argv = _argv(command, tmp_path, out)  # the inputs, written before the disk fills
+    monkeypatch.setattr(atomic, "_commit", full)
+    monkeypatch.setattr(_datasets.cv2, "imwrite", full)
+    assert main(argv) == 2
+    _one_error_line(capsys, command, out, "No space left on device")
+    assert [p for p in out.rglob("*") if p.is_file()] == []
+
+
+def test_a_missing_gt_file_is_the_gt_files_error_and_nothing_is_quarantined(tmp_path, capsys):
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    from jsve.io import write_log
+
+    for k in range(2):
+        write_log(make_run(30, seed=k, with_gt=False, sequence="S", run=k), logs / f"r{k}.csv")
+    missing = tmp_path / "V101_GT.txt"
+    out = tmp_path / "study.parquet"
+    for mode in ("raise", "quarantine"):
+        argv = [
+            "ingest",
+            str(logs),
+            "-o",
+            str(out),
+            "--gt",
+            str(missing),
+            "--on-error",
+            mode,
+            "--no-progress",
+        ]
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [
+            f"jsve ingest: --gt: {missing}: cannot read the ground-truth file: No such file or directory"
+        ]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["logs"]

@@ -625,3 +625,25 @@ def test_cli_mask_logs(tmp_path):
     logs.write_log(schema.RunLog(run.meta, frames), log_path)
     assert cli_main(["mask-logs", str(log_path), "--png", str(folder), "-o", str(tmp_path / "out2")]) == 2
     assert not (tmp_path / "out2" / "r12.csv").exists()
+
+
+def test_cli_mask_logs_refuses_two_inputs_of_one_file_name(tmp_path, capsys):
+    """Two logs named r.csv in different folders would both be written to OUT/r.csv (the second
+    silently replacing the first): exit 2, one line naming both, nothing written."""
+    folder = tmp_path / "png"
+    folder.mkdir()
+    paths = []
+    for k, name in enumerate(("a", "b")):
+        run, kp, _ = consistent_pair(3, seed=20 + k)
+        path = logs.write_log(run, tmp_path / name / "r.csv")
+        kpio.write_keypoints(kp, kpio.keypoints_path(path))
+        paths.append(str(path))
+    for f in range(3):
+        cv2.imwrite(str(folder / f"{f:06d}.png"), np.zeros((64, 96), np.uint8))
+    out = tmp_path / "out"
+    assert cli_main(["mask-logs", *paths, "--png", str(folder), "-o", str(out)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"jsve mask-logs: {paths[0]} and {paths[1]} would both be written to {out / 'r.csv'}; "
+        "mask logs of the same file name into different folders (one run each)"
+    ]
+    assert not out.exists()

@@ -52,7 +52,8 @@ def guarded(command: str) -> Callable:
                 from jsve.io._resume import StaleOutputError
 
                 if isinstance(error, StaleOutputError):
-                    return fail(command, f"{error}; {FORCE_HINT}")
+                    hint = FORCE_HINT if hasattr(args, "force") else "use another output folder"
+                    return fail(command, f"{error}; {hint}")
                 raise
 
         return checked

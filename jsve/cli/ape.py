@@ -46,6 +46,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+@common.guarded("ape")
 def run(args: argparse.Namespace) -> int:
     import jax
     import pandas as pd

@@ -37,6 +37,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+@common.guarded("demo")
 def run(args) -> int:
     from jsve.fitting._search import use_all_cores
 

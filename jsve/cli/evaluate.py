@@ -71,6 +71,7 @@ def load_rules(names: list[str] | None):
     return pairs
 
 
+@common.guarded("evaluate")
 def run(args) -> int:
     import jax
 
@@ -85,6 +86,8 @@ def run(args) -> int:
     from jsve.io._batching import buckets
 
     progress = not args.no_progress
+    if args.output:
+        atomic.check_writable(args.output)  # before the replay: an unwritable folder fails at once
     try:
         rules = load_rules(args.rule)
         runs = common.load_runs(
@@ -121,9 +124,10 @@ def run(args) -> int:
     summary = aggregate(per_run, by)
     if args.output:
         out = Path(args.output)
-        atomic.write_table(per_run, out / "runs.parquet")
-        atomic.write_table(per_run, out / "runs.csv")
-        atomic.write_table(summary, out / "summary.csv")
+        with atomic.all_or_nothing():  # the three tables, or none
+            atomic.write_table(per_run, out / "runs.parquet")
+            atomic.write_table(per_run, out / "runs.csv")
+            atomic.write_table(summary, out / "summary.csv")
     shown = [
         *by,
         "n_runs",

@@ -66,10 +66,12 @@ def register(subparsers) -> None:
     p.set_defaults(func=run, _parser=p)
 
 
+@common.guarded("ingest")
 def run(args: argparse.Namespace) -> int:
     """Run `jsve ingest`; returns the exit status."""
+    from jsve.io import _atomic as atomic
     from jsve.io._groundtruth import GroundTruth
-    from jsve.io._ingest import ingest
+    from jsve.io._ingest import check_ground_truth, ingest
 
     parser = args._parser
     if args.quarantine_report and args.on_error != "quarantine":
@@ -81,24 +83,29 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         parser.error("--workers must be >= 1")
     ground_truth = None
-    if args.gt is not None:
-        ground_truth = GroundTruth(
-            args.gt,
-            args.gt_format,
-            kitti_times=args.kitti_times,
-            max_gap_ns=int(round(args.gt_max_gap_ms * 1e6)),
-            interpolate=not args.no_interpolate,
-        )
     try:
-        summary = ingest(
-            args.logdir,
-            args.output,
-            on_error=args.on_error,
-            workers=args.workers,
-            progress=not args.no_progress,
-            ground_truth=ground_truth,
-            quarantine_report=args.quarantine_report,
-        )
+        if args.gt is not None:
+            ground_truth = GroundTruth(
+                args.gt,
+                args.gt_format,
+                kitti_times=args.kitti_times,
+                max_gap_ns=int(round(args.gt_max_gap_ms * 1e6)),
+                interpolate=not args.no_interpolate,
+            )
+            check_ground_truth(ground_truth)  # the --gt file's own error, before any log is read
+    except ValueError as e:  # LogFormatError, TrajectoryFileError: the file, its line
+        return common.fail("ingest", f"--gt: {e}")
+    try:
+        with atomic.all_or_nothing():  # the Parquet file and its quarantine report, or neither
+            summary = ingest(
+                args.logdir,
+                args.output,
+                on_error=args.on_error,
+                workers=args.workers,
+                progress=not args.no_progress,
+                ground_truth=ground_truth,
+                quarantine_report=args.quarantine_report,
+            )
     except (ValueError, FileNotFoundError) as e:  # LogFormatError is a ValueError
         return common.fail("ingest", e)
     print(summary.line())

@@ -3,7 +3,8 @@
 For each LOG, reads its keypoint side file (`<log>.keypoints.csv`, docs/masks.md), removes the keypoints
 that Algorithm 1 puts on a dynamic object of the masks, and writes the log with n_extracted, n_inliers
 and bin_0..bin_63 recomputed to OUT/<log name>, so that SVE and replay can be evaluated with and without
-dynamic features. A thin layer over jsve.masks._masks.apply_masks. Exit code 2 when a file cannot be used.
+dynamic features. A thin layer over jsve.masks._masks.apply_masks. Exit code 2 when a file cannot be used
+or written (then no masked log is written), or when two LOGs share a file name.
 """
 
 from __future__ import annotations
@@ -61,7 +62,9 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+@common.guarded("mask-logs")
 def run(args: argparse.Namespace) -> int:
+    from jsve.io import _atomic as atomic
     from jsve.io._keypoints import keypoints_path, read_keypoints
     from jsve.io._logs import LogFormatError, read_log, write_log
     from jsve.masks import _masks as masks
@@ -78,25 +81,39 @@ def run(args: argparse.Namespace) -> int:
         return common.fail("mask-logs", f"cannot read the masks: {error}")
 
     out = Path(args.output)
+    # Each log is written to OUT/<its file name>: two inputs of one name would overwrite each other.
+    targets: dict[str, str] = {}
     for path in args.logs:
-        try:
-            run_log = read_log(path)
-            keypoints = read_keypoints(keypoints_path(path))
-            result = masks.apply_masks(
-                run_log,
-                keypoints,
-                source,
-                key=args.key,
-                verify=not args.no_verify,
-                verify_bins=not args.no_verify_bins,
+        name = Path(path).name
+        if name in targets:
+            return common.fail(
+                "mask-logs",
+                f"{targets[name]} and {path} would both be written to {out / name}; "
+                "mask logs of the same file name into different folders (one run each)",
             )
-            target = write_log(result.log, out / Path(path).name)
-        except (LogFormatError, ValueError, OSError) as error:
-            return common.fail("mask-logs", error)
-        n_kp = len(keypoints.keypoints)
-        share = result.removed.sum() / n_kp if n_kp else 0.0
-        print(
-            f"{path} -> {target}: removed {int(result.removed.sum())} of {n_kp} keypoints ({share:.1%}) "
-            f"over {len(run_log.frames)} frames"
-        )
+        targets[name] = path
+    lines = []
+    with atomic.all_or_nothing():  # every masked log, or none
+        for path in args.logs:
+            try:
+                run_log = read_log(path)
+                keypoints = read_keypoints(keypoints_path(path))
+                result = masks.apply_masks(
+                    run_log,
+                    keypoints,
+                    source,
+                    key=args.key,
+                    verify=not args.no_verify,
+                    verify_bins=not args.no_verify_bins,
+                )
+                target = write_log(result.log, out / Path(path).name)
+            except (LogFormatError, ValueError, OSError) as error:
+                return common.fail("mask-logs", error)
+            n_kp = len(keypoints.keypoints)
+            share = result.removed.sum() / n_kp if n_kp else 0.0
+            lines.append(
+                f"{path} -> {target}: removed {int(result.removed.sum())} of {n_kp} keypoints ({share:.1%}) "
+                f"over {len(run_log.frames)} frames"
+            )
+    print("\n".join(lines))
     return 0

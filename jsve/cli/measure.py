@@ -52,6 +52,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+@common.guarded("measure")
 def run(args: argparse.Namespace) -> int:
     from jsve.image._datasets import DatasetError
     from jsve.image._measure import measure_datasets

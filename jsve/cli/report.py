@@ -22,6 +22,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+@common.guarded("report")
 def run(args) -> int:
     from jsve.report._report import write_report
 

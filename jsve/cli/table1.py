@@ -50,6 +50,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+@common.guarded("table1")
 def run(args: argparse.Namespace) -> int:
     import jax
 
@@ -81,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
 
     with jax.enable_x64(True):  # evo computes in float64; so do we, to match it to 1e-6
         table = table_one.table_one(groups, align=args.align, n_first=n_first)
-    table_one.write_report(table, args.output, formats=formats, plots=not args.no_plots)
+    from jsve.io import _atomic as atomic
+
+    with atomic.all_or_nothing():  # every table, figure and pose file, or none
+        table_one.write_report(table, args.output, formats=formats, plots=not args.no_plots)
     print(table_one.to_markdown(table), end="")
     return 0

@@ -96,6 +96,11 @@ def check_writable(folder: str | os.PathLike) -> Path:
     return folder
 
 
+def _commit(partial: Path, path: Path) -> None:
+    """The rename that makes an output appear (one place, so that tests can make it fail)."""
+    os.replace(partial, path)
+
+
 # The outputs of the innermost all_or_nothing() block: (partial, final) pairs waiting for their rename.
 _group: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar(
     "jsve_atomic_group", default=None
@@ -124,7 +129,7 @@ def all_or_nothing() -> Iterator[None]:
         _group.reset(token)
     for partial, path in pending:
         try:
-            os.replace(partial, path)
+            _commit(partial, path)
         except OSError as error:
             for rest, _ in pending:
                 with contextlib.suppress(OSError):
@@ -160,7 +165,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         if path.is_dir():  # os.replace would say "Is a directory" of the temporary name on some systems
             raise IsADirectoryError(errno.EISDIR, "is a folder", os.fspath(path))
         if group is None:
-            os.replace(partial, path)
+            _commit(partial, path)
         else:
             group.append((partial, path))
     except OSError as error:

@@ -22,7 +22,7 @@ import multiprocessing
 import os
 import sys
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 from jsve.io import _atomic as atomic
 from jsve.io import _schema as schema
 from jsve.io._errors import LogVersionWarning
-from jsve.io._groundtruth import GroundTruthSpec
+from jsve.io._groundtruth import GroundTruth, GroundTruthSpec, load_ground_truth
 from jsve.io._logs import (
     PARTIAL_SUFFIX,
     LogFormatError,
@@ -371,8 +371,31 @@ def read_logs(
     return _read_logs(source, on_error, workers, progress, ground_truth, stacklevel=3)
 
 
+def check_ground_truth(spec: GroundTruthSpec | None) -> None:
+    """Read every ground-truth file of `spec` once, in this process, before any log is read: a missing or
+    malformed file is that file's error, never blamed on each log (or quarantining every log).
+
+    Raises:
+        LogFormatError: `GT_FILE: cannot read the ground-truth file: REASON`, or the reader's error naming
+            the file's line.
+    """
+    if spec is None:
+        return
+    specs = list(spec.values()) if isinstance(spec, Mapping) else [spec]
+    for gt in specs:
+        gt = gt if isinstance(gt, GroundTruth) else GroundTruth(os.fspath(gt))
+        try:
+            load_ground_truth(gt.path, gt.fmt, kitti_times=gt.kitti_times)
+        except OSError as e:
+            name = e.filename if e.filename is not None else gt.path
+            raise LogFormatError(
+                os.fspath(name), None, f"cannot read the ground-truth file: {e.strerror or e}"
+            ) from None
+
+
 def _read_logs(source, on_error, workers, progress, ground_truth, *, stacklevel: int) -> ReadResult:
     paths = find_logs(source)
+    check_ground_truth(ground_truth)
     quarantined: list[Quarantined] = []
     read = list(
         _good_runs(
@@ -516,8 +539,10 @@ def ingest(
         IngestSummary.
 
     Raises:
-        LogFormatError: the first bad log, with on_error='raise' (nothing is written).
+        LogFormatError: the first bad log, with on_error='raise' (nothing is written); a ground-truth
+            file that cannot be read, whatever on_error (check_ground_truth; nothing is written).
         FileNotFoundError: no logs in `source`.
+        OutputError: the Parquet file or the report cannot be written (nothing is left of them).
 
     Warns:
         LogVersionWarning: once, when v1 logs were read (see `read_logs`).
@@ -527,6 +552,7 @@ def ingest(
         raise FileNotFoundError(
             f"no tracking logs (*.csv, *.csv.gz, with or without .partial) in {os.fspath(source)!r}"
         )
+    check_ground_truth(ground_truth)
     out = Path(out_path)
     quarantined: list[Quarantined] = []
     v1: list[str] = []

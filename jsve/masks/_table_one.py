@@ -410,8 +410,7 @@ def write_report(
     Returns:
         The paths written.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = atomic.make_dir(out_dir)
     written = [
         atomic.write_text(out / "table1.md", to_markdown(table)),
         atomic.write_table(table.summary, out / "table1.csv"),

@@ -263,7 +263,7 @@ def euroc_sequences(names: Sequence[str], euroc_gt: str | os.PathLike) -> list[S
 def input_files(spec: SequenceSpec, config: SimConfig = SimConfig()) -> list[Path]:
     """The files make_recording reads for `spec` under `config`: the ground truth and, where used, the
     frame stamp list and the real IMU stream; none for a procedural flight."""
-    if spec.procedural:
+    if spec.euroc_gt is None:  # procedural
         return []
     stem = euroc_file_stem(spec.name)
     files = [Path(spec.euroc_gt) / f"{stem}_GT.txt"]
