@@ -1,0 +1,146 @@
+// jsve's hook for ORB-SLAM3 v1.0: one format-v2 log row per frame, written through jsve_log.hpp.
+//
+// `jsve frontend build` copies ORB-SLAM3, includes this header in src/Tracking.cc (with
+// JSVE_HOOK_IMPLEMENTATION defined) and adds four one-line calls at anchored places
+// (jsve/frontend/_build.py, docs/frontend.md section 4):
+//   SearchLocalPoints  JSVE_HOOK_FRUSTUM(nToMatch)           the frustum count of this frame
+//   TrackLocalMap      JSVE_HOOK_INLIERS(mnMatchesInliers)   the inliers its success test reads
+//   GrabImageMonocular JSVE_HOOK_BEGIN_FRAME() before Track(), JSVE_HOOK_LOG_FRAME() after it
+// Nothing in ORB-SLAM3's decisions changes: the hook only copies values. Logging after Track()
+// returns catches every frame once, whichever early return Track() took.
+//
+// The driver (jsve_orbslam3.cc) opens and closes the log through open_log / close_log. One tracker
+// per process: the hook's state is a process-wide singleton, used from the tracking thread only.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "jsve_log.hpp"
+
+namespace jsve_hook {
+
+struct HookState {
+    std::unique_ptr<jsve::LogWriter> log;
+    int n_inliers = 0;  // Tracking::mnMatchesInliers of this frame (0 when TrackLocalMap did not run)
+    int n_frustum = 0;  // nToMatch of this frame's SearchLocalPoints (0 when it did not run)
+    double log_seconds = 0.0;  // time spent in log_frame, s (the hook's cost, reported by the driver)
+};
+
+// The process's hook state (defined in Tracking.cc's translation unit).
+HookState& state();
+
+// Opens `path` (format v2, via jsve::LogWriter; refuses an existing file unless `overwrite`).
+// Returns false with `*error` set on failure.
+bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error);
+
+// Closes the log: writes the end marker and renames `<path>.partial` to `<path>`.
+bool close_log(std::string* error);
+
+}  // namespace jsve_hook
+
+#define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
+#define JSVE_HOOK_INLIERS(count) (::jsve_hook::state().n_inliers = static_cast<int>(count))
+#define JSVE_HOOK_BEGIN_FRAME() (::jsve_hook::state().n_inliers = ::jsve_hook::state().n_frustum = 0)
+// Expands inside a Tracking member function: reads its protected members.
+#define JSVE_HOOK_LOG_FRAME() ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas)
+
+#ifdef JSVE_HOOK_IMPLEMENTATION
+
+#include <chrono>
+
+namespace jsve_hook {
+
+HookState& state() {
+    static HookState s;
+    return s;
+}
+
+bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error) {
+    jsve::Options options;
+    options.overwrite = overwrite;
+    options.on_error = jsve::OnError::kReturn;
+    auto writer = std::make_unique<jsve::LogWriter>();
+    if (writer->open(path, meta, options) != jsve::Status::kOk) {
+        if (error) *error = writer->last_error();
+        return false;
+    }
+    state().log = std::move(writer);
+    return true;
+}
+
+bool close_log(std::string* error) {
+    HookState& s = state();
+    if (!s.log) return true;
+    const bool ok = s.log->close() == jsve::Status::kOk;
+    if (!ok && error) *error = s.log->last_error();
+    s.log.reset();
+    return ok;
+}
+
+// The exact int64 stamp from an image named `<t_ns>.png` (EuRoC), else the double stamp rounded
+// (a double at 1.4e9 s is spaced 2.4e-7 s: the name is the exact source when there is one).
+inline std::int64_t stamp_ns(const std::string& name, double t_s) {
+    const std::size_t slash = name.find_last_of('/');
+    std::string stem = name.substr(slash == std::string::npos ? 0 : slash + 1);
+    stem = stem.substr(0, stem.find('.'));
+    bool digits = !stem.empty() && stem.size() <= 18;
+    for (char c : stem) digits = digits && c >= '0' && c <= '9';
+    return digits ? std::stoll(stem) : std::llround(t_s * 1e9);
+}
+
+template <class Vec>
+void copy3(double out[3], const Vec& v) {
+    for (int i = 0; i < 3; ++i) out[i] = static_cast<double>(v(i));
+}
+
+// wxyz of a rotation matrix, normalised in double precision.
+template <class Mat>
+void copy_quaternion(double out[4], const Mat& r) {
+    const Eigen::Quaterniond q = Eigen::Quaterniond(r.template cast<double>()).normalized();
+    out[0] = q.w(); out[1] = q.x(); out[2] = q.y(); out[3] = q.z();
+}
+
+// One log row for the frame Track() just processed (docs/frontend.md section 3 maps each field).
+// A frame the writer refuses fails the writer (jsve::LogError is thrown: the run stops, the log
+// stays `.partial`): a silently dropped frame would bias every replay where tracking struggles.
+inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::Atlas* atlas) {
+    HookState& s = state();
+    if (!s.log) return;
+    const auto start = std::chrono::steady_clock::now();
+    jsve::Frame f;
+    f.t_ns = stamp_ns(frame.mNameFile, frame.mTimeStamp);
+    f.state = tracking_state;
+    ORB_SLAM3::Map* map = atlas->GetCurrentMap();
+    f.imu_init = atlas->isImuInitialized();
+    f.map_id = map ? static_cast<std::int64_t>(map->GetId()) : 0;
+    f.imu_ba2 = f.imu_init && map && map->GetIniertialBA2();
+    f.has_pose = frame.isSet();
+    f.n_extracted = frame.N;
+    f.n_inliers = s.n_inliers;
+    f.n_frustum = s.n_frustum;
+    jsve::fill_bins_from_grid(f, [&](int c, int r) { return frame.mGrid[c][r].size(); });
+    if (f.has_pose) {
+        copy3(f.vis_p, frame.GetImuPosition());
+        copy_quaternion(f.vis_q, frame.GetImuRotation());
+        if (frame.HasVelocity()) copy3(f.vis_v, frame.GetVelocity());
+    }
+    // The log's first frame carries no preintegration (the format's rule); later frames the one
+    // from the previous frame, corrected to this frame's bias estimate.
+    ORB_SLAM3::IMU::Preintegrated* pre = frame.mpImuPreintegratedFrame;
+    if (s.log->frames() > 0 && pre != nullptr) {
+        f.imu_dt = pre->dT;
+        copy3(f.imu_dp, pre->GetDeltaPosition(frame.mImuBias));
+        copy3(f.imu_dv, pre->GetDeltaVelocity(frame.mImuBias));
+        copy_quaternion(f.imu_dq, pre->GetDeltaRotation(frame.mImuBias));
+    }
+    const jsve::Status status = s.log->write(f);
+    s.log_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (status != jsve::Status::kOk) throw jsve::LogError(status, s.log->last_error());
+}
+
+}  // namespace jsve_hook
+
+#endif  // JSVE_HOOK_IMPLEMENTATION

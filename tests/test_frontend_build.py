@@ -1,0 +1,78 @@
+"""jsve frontend build's source staging: the hook's anchored edits on ORB-SLAM3 v1.0 (the archive in
+../shared/third_party when present), loud failures on other sources, and idempotence (no rewrite, so
+`make` rebuilds nothing). The compile itself is opt-in: scripts/frontend_smoke.sh."""
+
+from __future__ import annotations
+
+import tarfile
+from pathlib import Path
+
+import pytest
+
+from jsve.frontend._build import EDITS, HOOK_TAG, BuildError, patch_text, stage_source
+
+ARCHIVE = (
+    Path(__file__).resolve().parents[1].parent / "shared" / "third_party" / "ORB_SLAM3-v1.0-4452a3c.tar.gz"
+)
+
+
+@pytest.fixture(scope="module")
+def orbslam3(tmp_path_factory) -> Path:
+    if not ARCHIVE.is_file():
+        pytest.skip(f"ORB-SLAM3 archive not found at {ARCHIVE}")
+    root = tmp_path_factory.mktemp("orbslam3")
+    with tarfile.open(ARCHIVE) as tar:
+        tar.extractall(root, filter="data")
+    (tree,) = root.iterdir()
+    return tree
+
+
+def test_hook_edits_apply_once_each_to_v1(orbslam3, tmp_path):
+    changed = stage_source(orbslam3, tmp_path / "ORB_SLAM3")
+    assert {
+        "src/Tracking.cc",
+        "CMakeLists.txt",
+        "include/jsve_orbslam3_hook.hpp",
+        "include/jsve_log.hpp",
+    } <= set(changed)
+    tracking = (tmp_path / "ORB_SLAM3" / "src" / "Tracking.cc").read_text()
+    original = (orbslam3 / "src" / "Tracking.cc").read_text()
+    # every edit adds exactly its tagged lines; nothing of ORB-SLAM3's is removed from Tracking.cc
+    assert tracking.count(HOOK_TAG) == 6
+    assert [line for line in tracking.splitlines() if HOOK_TAG not in line] == original.splitlines()
+    order = [
+        tracking.index(s) for s in ("JSVE_HOOK_BEGIN_FRAME();", "    Track();\n    JSVE_HOOK_LOG_FRAME();")
+    ]
+    assert order == sorted(order)
+    cmake = (tmp_path / "ORB_SLAM3" / "CMakeLists.txt").read_text()
+    assert "-std=c++17" in cmake and '-std=c++11")' not in cmake and "add_executable" not in cmake
+    assert "mnFullBAIdx++" not in (tmp_path / "ORB_SLAM3" / "src" / "LoopClosing.cc").read_text()
+    assert not (tmp_path / "ORB_SLAM3" / "Examples").exists()
+
+
+def test_staging_twice_rewrites_nothing(orbslam3, tmp_path):
+    stage_source(orbslam3, tmp_path / "t")
+    mtimes = {p: p.stat().st_mtime_ns for p in (tmp_path / "t").rglob("*") if p.is_file()}
+    assert stage_source(orbslam3, tmp_path / "t") == []
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "t").rglob("*") if p.is_file()} == mtimes
+
+
+@pytest.mark.parametrize("edit", EDITS, ids=lambda e: f"{e.path}:{e.anchor.strip()[:30]}")
+def test_a_missing_or_repeated_anchor_names_the_file_and_anchor(orbslam3, edit):
+    """v1.0's file with one anchor removed, or doubled, is refused with the file and that anchor."""
+    text = (orbslam3 / edit.path).read_text()
+    with pytest.raises(BuildError, match=rf"tree/{edit.path}: anchor .* found 0 times"):
+        patch_text(edit.path, text.replace(edit.anchor, ""), source="tree")
+    with pytest.raises(BuildError, match=rf"tree/{edit.path}: anchor .* found 2 times"):
+        patch_text(edit.path, text.replace(edit.anchor, edit.anchor + edit.anchor), source="tree")
+
+
+def test_an_already_patched_file_is_refused(orbslam3):
+    once = patch_text("src/Tracking.cc", (orbslam3 / "src" / "Tracking.cc").read_text())
+    with pytest.raises(BuildError, match="found 0 times|found 2 times"):
+        patch_text("src/Tracking.cc", once)
+
+
+def test_not_an_orbslam3_tree(tmp_path):
+    with pytest.raises(BuildError, match="not an ORB-SLAM3 source tree"):
+        stage_source(tmp_path, tmp_path / "out")
