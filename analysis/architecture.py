@@ -47,7 +47,12 @@ LAYERS: dict[str, frozenset[str] | None] = {
     "report": frozenset({"core", "io", "evaluation", "fitting"}),
     "_demo": ANYTHING,
     "cli": ANYTHING,
-    "frontend": frozenset(),
+    # The compiled front-end's Python side: the build (standard library only) and the vocabulary, which
+    # extracts ORB with image's settings and writes through io.
+    "frontend": frozenset({"core", "io", "image"}),
+    # Rendered EuRoC-format sequences for the real front-end: trajectories and IMU synthesis from sim,
+    # the camera model from image.
+    "render": frozenset({"core", "io", "image", "sim"}),
     # The root package itself (jsve/__init__.py) re-exports everything.
     "": ANYTHING,
 }

@@ -1,4 +1,4 @@
-"""`jsve frontend build|run`: the real front-end, ORB-SLAM3 v1.0 with jsve's hook.
+"""`jsve frontend build|vocabulary|run`: the real front-end, ORB-SLAM3 v1.0 with jsve's hook.
 
     jsve frontend build --orbslam3 ORB_SLAM3-v1.0.tar.gz --pangolin-src Pangolin-v0.9.5.tar.gz -o BUILD
     jsve frontend build --orbslam3 ~/ORB_SLAM3 --pangolin /usr/local -o BUILD     # an installed Pangolin
@@ -6,6 +6,8 @@
 `build` copies ORB-SLAM3 (a clone or the v1.0 archive; never modified) into BUILD, applies jsve's hook
 by anchored edits and builds Pangolin (when not installed), DBoW2, g2o, the library and jsve's driver
 BUILD/bin/jsve_orbslam3 (jsve.frontend._build; docs/frontend.md). A re-run rebuilds only what changed.
+`vocabulary` trains a DBoW2 text vocabulary from images (jsve.frontend._vocabulary), for machines
+without ORB-SLAM3's ORBvoc.txt.
 """
 
 from __future__ import annotations
@@ -43,6 +45,16 @@ def register(subparsers) -> None:
     b.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1, help="parallel compile jobs")
     b.add_argument("--no-progress", action="store_true")
     b.set_defaults(func=run_build)
+    v = sub.add_parser(
+        "vocabulary",
+        help="train a DBoW2 text vocabulary from images (ORB-SLAM3's ORB settings)",
+        description="Train a deterministic DBoW2 text-format vocabulary (TF-IDF, L1) from ORB features of "
+        "IMAGES (files or folders) with ORB-SLAM3's settings, for runs without ORB-SLAM3's ORBvoc.txt.",
+    )
+    from jsve.frontend._vocabulary import add_vocabulary_arguments, run_vocabulary
+
+    add_vocabulary_arguments(v)
+    v.set_defaults(func=run_vocabulary)
 
 
 def run_build(args: argparse.Namespace) -> int:
