@@ -34,6 +34,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "mask-logs",
     "simulate",
     "render",
+    "render",
     "fit",
     "report",
     "demo",
