@@ -34,7 +34,6 @@ SUBCOMMANDS: tuple[str, ...] = (
     "mask-logs",
     "simulate",
     "render",
-    "render",
     "fit",
     "report",
     "demo",
