@@ -37,6 +37,7 @@ def _run_errors(rng: np.random.Generator, n_runs: int) -> RunError:
         n_segments=jnp.asarray(np.where(failed, 2, 1).astype(np.int32)),
         failed=jnp.asarray(failed),
         segment=jnp.zeros(n_runs, jnp.int32),
+        failure=jnp.asarray(np.where(failed, 1, 0).astype(np.int32)),  # bit 0: several map segments
     )
 
 

@@ -1,5 +1,6 @@
-"""jsve.core._numerics: numpy's sqrt and division where they are defined, 0 where they are not, and gradients
-that are the analytic ones where defined and 0 (never inf or NaN) where not; eager == jit == vmap."""
+"""jsve.core._numerics: numpy's sqrt and division where they are defined, 0 where they are not, NaN (never a
+finite number) for a non-finite input, and gradients that are the analytic ones where defined and 0 (never
+inf or NaN) where not; eager == jit == vmap."""
 
 from __future__ import annotations
 
@@ -46,3 +47,18 @@ def test_vmap_equals_a_loop():
     np.testing.assert_array_equal(
         jax.vmap(safe_divide)(x, d), np.array([safe_divide(a, b) for a, b in zip(x, d, strict=True)])
     )
+
+
+def test_a_non_finite_input_never_gives_a_finite_value():
+    # Overflow upstream (an inf sum of squares) or a NaN must reach the statistics, not become 0.
+    x = jnp.array([np.nan, -np.inf, np.inf])
+    np.testing.assert_array_equal(np.asarray(safe_sqrt(x)), [np.nan, np.nan, np.inf])
+    assert np.all(np.asarray(jax.vmap(jax.grad(safe_sqrt))(x)) == 0.0)  # gradients stay finite
+    num = jnp.array([np.nan, np.inf, np.nan, 1.0, 1.0, np.inf, 0.0])
+    den = jnp.array([0.0, 0.0, 2.0, np.inf, np.nan, np.inf, -np.inf])
+    for f in (safe_divide, jax.jit(safe_divide)):
+        assert np.all(np.isnan(np.asarray(f(num, den))))
+    d_num, d_den = jax.vmap(jax.grad(safe_divide, argnums=(0, 1)))(num[3:], den[3:])
+    assert np.all(np.isfinite(np.asarray(d_num))) and np.all(np.isfinite(np.asarray(d_den)))
+    # Finite input keeps its conventions: 0 / 0 = 0, sqrt of a rounding-error negative = 0.
+    assert float(safe_divide(0.0, 0.0)) == 0.0 and float(safe_sqrt(-1e-300)) == 0.0

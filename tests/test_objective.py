@@ -23,6 +23,7 @@ from jsve.core._objective import ObjectiveConfig, objective, run_losses, weighte
 from jsve.core._replay import batch_features, frame_data, replay, run_constants
 from jsve.core._rules import InlierRule, Thresholds, preset
 from jsve.core._sve import FrameFeatures
+from jsve.core._trajectory import failure_reason
 from jsve.evaluation._aggregate import group_weights
 from jsve.evaluation._evaluate import evaluate_batch
 from jsve.fitting._space import RuleParams, inlier_space, sve_space
@@ -160,6 +161,7 @@ def test_weighted_objective_and_group_weights():
         coverage=jnp.asarray([1.0, 1.0, 1.0, 0.5]),
         unsupported=jnp.asarray([False, False, False, False]),
         included=jnp.ones(4),
+        non_finite=jnp.zeros(4, bool),
     )
     value = weighted_objective(losses, jnp.asarray(w))
     assert float(value.value) == pytest.approx(np.sum(w * [1, 2, 3, 10]) / np.sum(w))
@@ -193,6 +195,32 @@ def test_run_losses_eager_jit_vmap_agree(x64, occlusion_runs):
         np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(jitted), rtol=0, atol=1e-12)
     eager = run_losses(batch, jax.tree.map(lambda x: x[0], rules), features).loss
     np.testing.assert_allclose(np.asarray(eager), np.asarray(batched[0]), rtol=0, atol=1e-12)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")  # 1e300 -> float32 inf
+def test_an_overflowing_run_costs_the_penalty_never_a_number(counts_runs):
+    """Issue 12: a position of 1e300 m (inf in a float32 batch; the log reader now refuses it, runs in
+    memory reach from_runs as they are) made the alignment NaN and the guards turned that into an RMSE of
+    0 m, a perfect score. The run fails (non_finite), costs the penalty in both modes, and the objective
+    stays a finite number; the other runs keep their losses."""
+    runs = [_with_one_map(r) for r in counts_runs[:3]]
+    frames = runs[1].frames.copy()
+    frames.loc[frames.index[100:110], "vis_px"] = 1e300
+    runs[1] = type(runs[1])(meta=runs[1].meta, frames=frames, source=runs[1].source)
+    batch, features, _ = _batch(runs, jnp.float32)
+    clean, _, _ = _batch([_with_one_map(r) for r in counts_runs[:3]], jnp.float32)
+    config = ObjectiveConfig(failure_penalty=2.5)
+    rule = RULES["orbslam3"]
+    for logic in (None, SoftLogic(jnp.asarray(0.1))):
+        losses = eqx.filter_jit(run_losses)(batch, rule, features, config, logic=logic)
+        good = eqx.filter_jit(run_losses)(clean, rule, batch_features(clean), config, logic=logic)
+        assert np.asarray(losses.non_finite).tolist() == [False, True, False]
+        assert float(losses.failed[1]) == 1.0 and float(losses.loss[1]) == 2.5
+        np.testing.assert_array_equal(np.asarray(losses.loss)[[0, 2]], np.asarray(good.loss)[[0, 2]])
+        value = weighted_objective(losses, jnp.ones(3))
+        assert all(np.isfinite(float(v)) for v in jax.tree.leaves(value))
+    ev = evaluate_batch(batch, rule, features)
+    assert np.asarray(ev.failed)[1] and "non-finite" in failure_reason(np.asarray(ev.error.failure)[1])
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from jsve.core import ALIGN_METHODS
 from jsve.core._geometry import matrix_to_quat
 from jsve.core._pose_error import batched_pose_error
-from jsve.core._trajectory import batched_run_error
+from jsve.core._trajectory import batched_run_error, failure_reason
 
 LENGTHS = (40, 95, 2, 61)  # the third is too short to align: failed, not hidden
 
@@ -98,3 +98,19 @@ def test_shapes_are_checked(unchecked):
     message = r"est and ref must have shape \(R, T, 4, 4\) and valid \(R, T\)"
     with unchecked(), pytest.raises(ValueError, match=message):
         batched_pose_error(est, ref, valid[:, :-1])
+
+
+@pytest.mark.parametrize("method", ALIGN_METHODS)
+def test_a_nan_or_overflowing_pose_fails_its_run_alone(method):
+    """Issue 12: a NaN estimate scored 0.000000 m. It fails its run, with the cause named; the other runs
+    of the batch keep their numbers (float32: 1e20 m squares to inf)."""
+    items = pairs(9)
+    est, ref, valid = padded(items)
+    clean, _ = batched_pose_error(est.astype(np.float32), ref.astype(np.float32), valid, align=method)
+    est[0, 5, 1, 3] = np.nan
+    est[3, 7, 0, 3] = 1e20
+    errors, _ = batched_pose_error(est.astype(np.float32), ref.astype(np.float32), valid, align=method)
+    failure = np.asarray(errors.failure)
+    assert np.asarray(errors.failed)[[0, 3]].all()
+    assert all("non-finite" in failure_reason(failure[i]) for i in (0, 3))
+    assert failure_reason(failure[1]) == "" and float(errors.stats.rmse[1]) == float(clean.stats.rmse[1])

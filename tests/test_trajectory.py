@@ -30,9 +30,11 @@ from jsve.core._trajectory import (
     align,
     ape_statistics,
     batched_run_error,
+    failure_reason,
     run_error,
     weighted_rmse,
 )
+from jsve.evaluation._aggregate import per_run_table
 
 EVO_TOL = 1e-6  # the project's contract with evo (float64)
 SAME_TOL = 1e-10  # two jsve code paths over the same numbers: summation order only
@@ -642,6 +644,58 @@ def test_run_error_failed_flag():
     assert bool(tiny_none.failed) and int(tiny_none.stats.count) == 2  # scored, but fewer than 3 frames
     nothing = _score(est_p, ref_p, np.zeros(100, bool), segment)
     assert bool(nothing.failed) and int(nothing.n_segments) == 0 and float(nothing.coverage) == 0.0
+
+
+def test_run_error_names_its_failure_causes():
+    est_p, ref_p, _, has_two, segment_two = _two_segment_run()
+    segment = np.ones(100, np.int32)
+    gt = np.arange(100) >= 50
+    causes = {
+        "": _score(est_p, ref_p, gt, segment, gt),
+        "coverage below min_coverage": _score(
+            est_p, ref_p, gt & (np.arange(100) < 60), segment, gt, min_coverage=0.5
+        ),
+        "fewer than 3 evaluated frames; degenerate alignment": _score(
+            est_p, ref_p, gt & (np.arange(100) < 52), segment, gt
+        ),
+        "several map segments": _score(est_p, ref_p, has_two, segment_two),
+    }
+    for reason, r in causes.items():
+        assert failure_reason(r.failure) == reason and bool(r.failed) == bool(reason)
+
+
+@pytest.mark.parametrize("align", ["sim3", "se3", "origin", "none"])
+@pytest.mark.parametrize("how", ["overflow", "nan"])
+def test_a_non_finite_intermediate_fails_the_run_and_never_scores_a_number(align, how):
+    # Issue 12: float32 squares of 1e20 m overflow to inf, and the guards turned the NaN that followed
+    # into an RMSE of 0.0 m, a perfect score. Now the statistics stay non-finite and the run fails.
+    _, _, ref_p, ref_q = random_pair(7, n_frames=50)
+    est_p = (ref_p + 0.01).astype(np.float32)
+    if how == "overflow":
+        est_p[10] = 1e20
+    else:
+        est_p[10, 1] = np.nan
+    q = jnp.asarray(ref_q, jnp.float32)
+    ones = jnp.ones(50, bool)
+    args = (
+        jnp.asarray(est_p),
+        q,
+        ones,
+        jnp.zeros(50, jnp.int32),
+        jnp.asarray(ref_p, jnp.float32),
+        q,
+        ones,
+        ones,
+    )
+    r = run_error(*args, align=align)
+    # (an inf moment makes the alignment degenerate: nothing is evaluated, and the table says NaN)
+    assert bool(r.failed) and "non-finite error statistics" in failure_reason(r.failure)
+    table = per_run_table(jax.tree.map(lambda x: x[None], r), pd.DataFrame({"run": [0]}))
+    assert bool(table["failed"][0]) and "non-finite" in table["failure_reason"][0]
+    assert not np.isfinite(table["rmse"][0])
+    est_p[10] = ref_p[10] + 0.01  # the same run without the bad value scores its 1 cm
+    clean = run_error(jnp.asarray(est_p), *args[1:], align=align)
+    assert not bool(clean.failed) and failure_reason(clean.failure) == ""
 
 
 def test_lost_run_with_lower_error_is_still_failed():

@@ -12,9 +12,11 @@ issue #673). Runs can be weighted, e.g. so that every sequence, disturbance and 
 
 A run fails as in `jsve.evaluation._evaluate`: it lost tracking (a reset, an expiry or a recorded map
 loss: the hard replay then starts a new, unaligned map), its alignment was degenerate, fewer than 3 frames
-were evaluated, or its coverage is below `min_coverage`. A run that never lost tracking stays in one map,
-so its RMSE equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard objective is therefore
-exactly mean(where(failed, penalty, rmse)) of the per-run table (tests/test_objective.py).
+were evaluated, its coverage is below `min_coverage`, or its RMSE is not finite (an overflow or a NaN
+reached it: `RunLoss.non_finite`; it costs the penalty, never a number). A run that never lost tracking
+stays in one map, so its RMSE equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard
+objective is therefore exactly mean(where(failed, penalty, rmse)) of the per-run table
+(tests/test_objective.py).
 
 Support (docs/state-machine.md): a run whose replay needs the recorded pose of a frame the recorded run
 did not pose (the rule kept tracking where the recorded run had lost its map) has left the log's
@@ -48,7 +50,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES
 from jsve.core._batch import LogBatch
@@ -127,6 +129,8 @@ class RunLoss(eqx.Module):
             per-frame probability).
         included: the run counts in the objective: 1 under "penalise", 1 - unsupported under "exclude"
             (a float in [0, 1], multiplying the run's weight).
+        non_finite: the RMSE is NaN or infinite (an overflow or a NaN upstream): the run failed for
+            that reason (bool, in both modes), whatever its other facts; rmse keeps the value.
     """
 
     loss: Float[Array, "*R"]
@@ -135,6 +139,7 @@ class RunLoss(eqx.Module):
     coverage: Float[Array, "*R"]
     unsupported: Array
     included: Float[Array, "*R"]
+    non_finite: Bool[Array, "*R"]
 
 
 class ObjectiveValue(eqx.Module):
@@ -189,8 +194,12 @@ def _one_run_loss(
     rmse = weighted_rmse(aligned, gt_p, weight)
     count = jnp.sum(weight)
     coverage = safe_divide(count, jnp.sum(with_gt))
-    # Data facts, exact in both modes (their probability is 0 or 1).
-    broken = transform.degenerate | (count < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
+    # Data facts, exact in both modes (their probability is 0 or 1). An RMSE that is not finite (an
+    # overflow or a NaN reached it) means nothing: the run fails, as run_error fails it.
+    non_finite = ~jnp.isfinite(rmse)
+    broken = (
+        transform.degenerate | (count < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage) | non_finite
+    )
     if hard:
         unsupported = jnp.any(out_of_support & valid)
         failed, included = support_outcome(unsupported, broken | (lost_any > 0.5), config, hard)
@@ -201,9 +210,16 @@ def _one_run_loss(
         unsupported = jnp.max(out_of_support.astype(dtype), initial=0.0)
         failed = 1 - (1 - lost_any.astype(dtype)) * (1 - broken.astype(dtype))
         failed, included = support_outcome(unsupported, failed, config, hard)
-        loss = failed * config.failure_penalty + (1 - failed) * rmse
+        # failed is 1 where the RMSE is not finite; 0 x NaN would still be NaN.
+        loss = failed * config.failure_penalty + (1 - failed) * jnp.where(non_finite, 0.0, rmse)
     return RunLoss(
-        loss=loss, rmse=rmse, failed=failed, coverage=coverage, unsupported=unsupported, included=included
+        loss=loss,
+        rmse=rmse,
+        failed=failed,
+        coverage=coverage,
+        unsupported=unsupported,
+        included=included,
+        non_finite=non_finite,
     )
 
 
@@ -262,7 +278,8 @@ def weighted_objective(losses: RunLoss, weights: Float[Array, " R"]) -> Objectiv
         value=mean(losses.loss),
         coverage=mean(losses.coverage),
         failure_rate=mean(failed),
-        rmse_ok=safe_divide(jnp.sum(ok * losses.rmse), jnp.sum(ok)),
+        # ok is 0 where the RMSE is not finite (such a run failed), and 0 x NaN would be NaN.
+        rmse_ok=safe_divide(jnp.sum(jnp.where(ok > 0, ok * losses.rmse, 0.0)), jnp.sum(ok)),
         unsupported_rate=safe_divide(jnp.sum(w_all * losses.unsupported.astype(dtype)), total_all),
         excluded=safe_divide(total_all - total_in, total_all),
     )

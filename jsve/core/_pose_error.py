@@ -17,7 +17,16 @@ from jax.typing import ArrayLike
 from jaxtyping import Bool, Float
 
 from jsve.core._geometry import matrix_to_quat
-from jsve.core._trajectory import MIN_ALIGNMENT_FRAMES, RunError, Transform, align, ape_statistics
+from jsve.core._trajectory import (
+    MIN_ALIGNMENT_FRAMES,
+    RunError,
+    Transform,
+    align,
+    ape_statistics,
+    failure_bits,
+    non_finite,
+    overflows,
+)
 
 
 @functools.partial(jax.jit, static_argnames=("method", "n_first"))
@@ -52,9 +61,10 @@ def batched_pose_error(
     Returns:
         (errors, transforms), every leaf with a leading axis R. errors holds the APE statistics (metres)
         and the facts `run_error` reports for a run that is one segment with every pose: coverage =
-        count / valid poses, n_segments 1, segment 0, failed = degenerate alignment or fewer than
-        MIN_ALIGNMENT_FRAMES poses. transforms maps each estimate onto its reference. Precision follows
-        JAX's: enable jax_enable_x64 for float64 (evo's).
+        count / valid poses, n_segments 1, segment 0, failed = degenerate alignment, fewer than
+        MIN_ALIGNMENT_FRAMES poses or a statistic that is not finite (causes in `failure`). transforms
+        maps each estimate onto its reference. Precision follows JAX's: enable jax_enable_x64 for
+        float64 (evo's).
     """
     est, ref, valid = jnp.asarray(est), jnp.asarray(ref), jnp.asarray(valid, bool)
     if est.ndim != 4 or est.shape[2:] != (4, 4) or ref.shape != est.shape or valid.shape != est.shape[:2]:
@@ -72,11 +82,17 @@ def batched_pose_error(
         n_first=n_first,
     )
     n_runs = est.shape[0]
+    no = jnp.zeros(n_runs, bool)
+    bad_input = jax.vmap(overflows)(est[..., :3, 3], valid) | jax.vmap(overflows)(ref[..., :3, 3], valid)
+    failure = failure_bits(
+        no, no, stats.count < MIN_ALIGNMENT_FRAMES, transforms.degenerate, non_finite(stats) | bad_input
+    )
     errors = RunError(
         stats=stats,
         coverage=stats.count / jnp.sum(valid, axis=1),
         n_segments=jnp.ones(n_runs, jnp.int32),
-        failed=transforms.degenerate | (stats.count < MIN_ALIGNMENT_FRAMES),
+        failed=failure != 0,
         segment=jnp.zeros(n_runs, jnp.int32),
+        failure=failure,
     )
     return errors, transforms

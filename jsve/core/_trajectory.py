@@ -23,6 +23,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 from jaxtyping import Array, Bool, Float, Int
 
 from jsve.core._align import (
@@ -64,6 +65,44 @@ class ErrorStats(eqx.Module):
     count: Int[Array, "*runs"]
 
 
+FAILURE_CAUSES: tuple[str, ...] = (
+    "several map segments",
+    "coverage below min_coverage",
+    f"fewer than {MIN_ALIGNMENT_FRAMES} evaluated frames",
+    "degenerate alignment",
+    "non-finite error statistics (a value overflowed or was NaN)",
+)
+"""Why a run failed: cause k sets bit k of RunError.failure (`failure_bits`, `failure_reason`)."""
+
+
+def failure_bits(*causes: Array) -> Int[Array, "*runs"]:
+    """RunError.failure from one bool per FAILURE_CAUSES entry, in that order."""
+    if len(causes) != len(FAILURE_CAUSES):
+        raise ValueError(f"failure_bits takes {len(FAILURE_CAUSES)} causes, got {len(causes)}")
+    return sum(
+        (jnp.asarray(c).astype(jnp.int32) << k for k, c in enumerate(causes)), jnp.zeros((), jnp.int32)
+    )
+
+
+def failure_reason(bits: ArrayLike) -> str:
+    """The causes set in RunError.failure, in words joined by '; ' ('' for a run that did not fail)."""
+    value = int(bits)  # type: ignore[arg-type]  (a scalar: int, numpy or JAX)
+    return "; ".join(cause for k, cause in enumerate(FAILURE_CAUSES) if value >> k & 1)
+
+
+def non_finite(stats: ErrorStats) -> Bool[Array, "*runs"]:
+    """Whether any statistic is NaN or infinite: an overflow or a NaN upstream reached it (the safe
+    functions of jsve.core._numerics pass it on), so the number means nothing."""
+    values = (stats.rmse, stats.mean, stats.median, stats.std, stats.min, stats.max, stats.sse)
+    return ~jnp.all(jnp.stack([jnp.isfinite(v) for v in values]), axis=0)
+
+
+def overflows(points: Float[Array, "T 3"], mask: Bool[Array, " T"]) -> Bool[Array, ""]:
+    """Whether a masked row is NaN or infinite, or so large that its square overflows the dtype (|x| above
+    ~1.8e19 m in float32): the alignment's moments would be inf, and the run's error means nothing."""
+    return jnp.any(mask & ~jnp.isfinite(jnp.sum(points * points, axis=-1)))
+
+
 class RunError(eqx.Module):
     """Trajectory error of one replayed run, with the facts that say whether the error can be trusted.
 
@@ -74,9 +113,12 @@ class RunError(eqx.Module):
             possible.
         n_segments: number of distinct map segments among the frames with an estimate (int32); more than one
             means tracking was lost and a new map started.
-        failed: True when n_segments > 1, coverage < min_coverage, fewer than 3 frames were evaluated, or the
-            alignment was degenerate. Failure is never hidden behind a low error (evo issue #673).
+        failed: True when n_segments > 1, coverage < min_coverage, fewer than 3 frames were evaluated, the
+            alignment was degenerate, or a statistic is not finite (an overflow or a NaN reached it: never a
+            number). Failure is never hidden behind a low error (evo issue #673).
         segment: the evaluated segment id (int32); -1 when segments="all".
+        failure: why (int32 bits, one per FAILURE_CAUSES entry; `failure_reason` in words); 0 when not
+            failed.
     """
 
     stats: ErrorStats
@@ -84,6 +126,7 @@ class RunError(eqx.Module):
     n_segments: Int[Array, "*runs"]
     failed: Bool[Array, "*runs"]
     segment: Int[Array, "*runs"]
+    failure: Int[Array, "*runs"]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -340,8 +383,9 @@ def run_error(
     Returns:
         RunError: statistics over the evaluated frames, coverage = evaluated frames / valid frames with ground
         truth, n_segments (distinct segments among frames with an estimate) and failed = n_segments > 1
-        or coverage < min_coverage or fewer than 3 evaluated frames or a degenerate alignment. Frames of a
-        segment whose alignment is degenerate are not evaluated.
+        or coverage < min_coverage or fewer than 3 evaluated frames or a degenerate alignment or a
+        statistic that is not finite, with the causes in `failure`. Frames of a segment whose alignment
+        is degenerate are not evaluated.
     """
     _check_method("align", align)
     _check_n_first(n_first)
@@ -402,6 +446,7 @@ def run_error(
         aligned_cols = apply_columns(per_frame, columns(est_p))
         chosen = jnp.array(-1, jnp.int32)
         degenerate = jnp.zeros((), bool)
+        scored = jnp.any(masks, axis=0)
     else:
         if segments == "largest":
             chosen = jnp.argmax(eval_counts).astype(jnp.int32)
@@ -412,11 +457,27 @@ def run_error(
         aligned_cols = apply_columns(transform, columns(est_p))
         degenerate = transform.degenerate
         evaluated = selected & ~degenerate
+        scored = selected
 
     stats = _error_statistics(_position_errors(aligned_cols, columns(ref_p)), evaluated)
     coverage = safe_divide(stats.count.astype(dtype), jnp.sum(with_gt).astype(dtype))
-    failed = (n_segments > 1) | (coverage < min_coverage) | (stats.count < MIN_ALIGNMENT_FRAMES) | degenerate
-    return RunError(stats=stats, coverage=coverage, n_segments=n_segments, failed=failed, segment=chosen)
+    # A non-finite or overflowing input makes the alignment degenerate (inf moments) or NaN: named as such.
+    bad_input = overflows(est_p, scored) | overflows(ref_p, scored)
+    failure = failure_bits(
+        n_segments > 1,
+        coverage < min_coverage,
+        stats.count < MIN_ALIGNMENT_FRAMES,
+        degenerate,
+        non_finite(stats) | bad_input,
+    )
+    return RunError(
+        stats=stats,
+        coverage=coverage,
+        n_segments=n_segments,
+        failed=failure != 0,
+        segment=chosen,
+        failure=failure,
+    )
 
 
 RUNS_PER_BLOCK = 32

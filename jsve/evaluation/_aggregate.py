@@ -13,12 +13,12 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from jsve.core._trajectory import RunError
+from jsve.core._trajectory import RunError, failure_reason
 
 STAT_COLUMNS: tuple[str, ...] = ("rmse", "mean", "median", "std", "min", "max", "sse", "count")
 """APE statistics per run, as evo names them (metres; sse in square metres; count in frames)."""
 
-RUN_COLUMNS: tuple[str, ...] = STAT_COLUMNS + ("coverage", "n_segments", "failed")
+RUN_COLUMNS: tuple[str, ...] = STAT_COLUMNS + ("coverage", "n_segments", "failed", "failure_reason")
 """The columns `per_run_table` adds to the run metadata."""
 
 
@@ -31,14 +31,19 @@ def per_run_table(run_errors: RunError, meta: pd.DataFrame) -> pd.DataFrame:
 
     Returns:
         A DataFrame with meta's columns (index reset) and rmse, mean, median, std, min, max (metres),
-        sse (m^2), count (frames), coverage (fraction), n_segments, failed. The statistics of a run with
-        no evaluated frame (count 0) are NaN here, not the finite zeros of the JAX side.
+        sse (m^2), count (frames), coverage (fraction), n_segments, failed, failure_reason (why, in
+        words: jsve.core._trajectory.FAILURE_CAUSES joined by '; '; '' when not failed). The statistics
+        of a run with no evaluated frame (count 0) are NaN here, not the finite zeros of the JAX side;
+        those of a run failed for non-finite statistics are as computed (NaN or inf), never a number.
     """
     stats = run_errors.stats
     columns = {name: np.atleast_1d(np.asarray(getattr(stats, name))) for name in STAT_COLUMNS}
     columns["coverage"] = np.atleast_1d(np.asarray(run_errors.coverage))
     columns["n_segments"] = np.atleast_1d(np.asarray(run_errors.n_segments))
     columns["failed"] = np.atleast_1d(np.asarray(run_errors.failed)).astype(bool)
+    columns["failure_reason"] = np.array(
+        [failure_reason(bits) for bits in np.atleast_1d(np.asarray(run_errors.failure))], dtype=object
+    )
     n_runs = len(columns["rmse"])
     if len(meta) != n_runs:
         raise ValueError(f"meta has {len(meta)} rows but run_errors holds {n_runs} runs")
@@ -54,7 +59,7 @@ def per_run_table(run_errors: RunError, meta: pd.DataFrame) -> pd.DataFrame:
             table[name] = values.astype(np.int64)
         else:
             table[name] = np.where(empty, np.nan, values.astype(np.float64))
-    for name in ("coverage", "n_segments", "failed"):
+    for name in ("coverage", "n_segments", "failed", "failure_reason"):
         table[name] = columns[name]
     return table
 

@@ -27,6 +27,9 @@ from jsve.core._trajectory import RunError, batched_run_error
 from jsve.evaluation._aggregate import per_run_table
 from jsve.io._batching import Bucket, recorded_mode
 
+LOST_REASON = "lost tracking (a reset, an expiry to LOST or a recorded map loss)"
+"""The failure_reason of a run that lost tracking in the replay, before the trajectory's own causes."""
+
 
 class Evaluation(eqx.Module):
     """Per-run outcome of one rule (leaves of shape [R]).
@@ -116,7 +119,9 @@ def evaluate(
         runs_per_chunk: runs evaluated per compiled call; default fits a 4 GB working set.
     Returns:
         One row per run: meta columns, `rule`, rmse ... count (metres), coverage, n_segments, failed,
-        accepted_fraction, coasting_fraction, changed_fraction, unsupported_fraction, lost_any.
+        failure_reason (LOST_REASON and jsve.core._trajectory.FAILURE_CAUSES in words, '; '-joined;
+        '' when not failed), accepted_fraction, coasting_fraction, changed_fraction,
+        unsupported_fraction, lost_any.
     """
     tables = []
     total = sum(b.batch.n_runs for b in buckets)
@@ -137,6 +142,11 @@ def evaluate(
             table.insert(len(bucket.meta.columns), "rule", rule_name)
             table.insert(len(bucket.meta.columns) + 1, "switch_model", switch_model)
             table["failed"] = np.asarray(ev.failed)
+            lost = np.asarray(ev.lost_any)
+            table["failure_reason"] = [
+                "; ".join(filter(None, (LOST_REASON if lost_k else "", reason)))
+                for lost_k, reason in zip(lost, table["failure_reason"], strict=True)
+            ]
             for column in ("accepted", "coasting", "changed", "unsupported"):
                 table[f"{column}_fraction"] = np.asarray(getattr(ev, f"{column}_fraction"))
             table["lost_any"] = np.asarray(ev.lost_any)
