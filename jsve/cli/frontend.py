@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 from jsve.cli import _common as common
@@ -45,6 +46,31 @@ def register(subparsers) -> None:
     b.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1, help="parallel compile jobs")
     b.add_argument("--no-progress", action="store_true")
     b.set_defaults(func=run_build)
+    r = sub.add_parser(
+        "run",
+        help="run the hooked ORB-SLAM3 over EuRoC-format datasets, N runs each, writing jsve logs",
+        description="Run the driver of BUILD (IMU_MONOCULAR) over each DATASET (a EuRoC-format folder, e.g. "
+        "from `jsve render` or `jsve disturb`) --runs times, writing OUT/<sequence>/<disturbance>-<level>/"
+        "run_<k>.csv (format-v2 log), run_<k>.orbslam3.txt (ORB-SLAM3's trajectory), run_<k>.json "
+        "(summary) and run_<k>.out.txt (console). Resumable: complete logs of the same inputs are kept; "
+        "logs of other inputs stop the command unless --force. A downsampled dataset gets ORB-SLAM3 "
+        "settings scaled to its image size.",
+    )
+    r.add_argument("build", metavar="BUILD", help="folder of `jsve frontend build`")
+    r.add_argument("datasets", nargs="+", metavar="DATASET", help="EuRoC-format dataset folders")
+    r.add_argument(
+        "--vocabulary", required=True, metavar="VOC.txt", help="ORBvoc.txt or `jsve frontend vocabulary`'s"
+    )
+    r.add_argument(
+        "--settings", required=True, metavar="YAML", help="ORB-SLAM3 settings (EuRoC Monocular-Inertial.yaml)"
+    )
+    r.add_argument("--runs", type=int, default=1, help="runs per dataset (default 1)")
+    r.add_argument("-o", "--out", required=True, metavar="LOGDIR", help="output folder")
+    r.add_argument("--workers", type=int, default=1, help="drivers at once (each runs 3 threads; default 1)")
+    r.add_argument("--timeout", type=float, metavar="S", help="seconds before a run is stopped")
+    r.add_argument("--force", action="store_true", help="redo runs whose logs came from other inputs")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(func=run_runs)
     v = sub.add_parser(
         "vocabulary",
         help="train a DBoW2 text vocabulary from images (ORB-SLAM3's ORB settings)",
@@ -76,3 +102,34 @@ def run_build(args: argparse.Namespace) -> int:
         return common.fail("frontend build", err)
     print(driver)
     return 0
+
+
+def run_runs(args: argparse.Namespace) -> int:
+    from jsve.frontend._run import plan, run_all
+    from jsve.io._resume import StaleOutputError
+
+    build, out = Path(args.build), Path(args.out)
+    for flag, value in (
+        ("BUILD", build / "build.json"),
+        ("--vocabulary", args.vocabulary),
+        ("--settings", args.settings),
+    ):
+        if not Path(value).is_file():
+            return common.fail("frontend run", f"{flag}: {value}: no such file")
+    try:
+        todo, done = plan(
+            build, [Path(d) for d in args.datasets], runs=args.runs, out=out,
+            vocabulary=Path(args.vocabulary), settings=Path(args.settings), force=args.force,
+        )  # fmt: skip
+    except (ValueError, OSError) as err:
+        return common.fail("frontend run", err)
+    except StaleOutputError as err:
+        return common.fail("frontend run", f"{err}; --force redoes them")
+    print(f"jsve frontend run: {len(done)} runs complete already, {len(todo)} to run", file=sys.stderr)
+    results = run_all(build, todo, Path(args.vocabulary), workers=args.workers, timeout_s=args.timeout,
+                      progress=not args.no_progress)  # fmt: skip
+    failed = [r for r in results if r.get("exit_code") != 0]
+    for r in failed:
+        print(f"{r['log']}: driver exit {r.get('exit_code')} (see its .out.txt)", file=sys.stderr)
+    print(f"jsve frontend run: {len(results) - len(failed)} runs done, {len(failed)} failed; logs in {out}")
+    return 1 if failed else 0

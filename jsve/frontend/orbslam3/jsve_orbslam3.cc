@@ -6,7 +6,8 @@
 //
 // DIR holds mav0/cam0/data.csv (`t_ns,file`), mav0/cam0/data/<file> and mav0/imu0/data.csv (`t_ns,
 // wx,wy,wz,ax,ay,az`, EuRoC's column order). --meta values are typed like JSON scalars and lists:
-// `run=3` an integer, `fps=20.0` a float, `image_size=[752,480]` a list, anything else a string.
+// `run=3` an integer, `fps=20.0` a float, `image_size=[752,480]` a list, `key="..."` a string (so a
+// hash of digits stays one), anything else a string too.
 // Exit status: 0 on success, 1 when the run or its log failed (the log then stays `.partial`), 2 on
 // bad arguments or input. It is jsve's own program, not one of ORB-SLAM3's examples.
 #include <algorithm>
@@ -85,7 +86,9 @@ bool parse_double(const std::string& s, double* out) {
 void set_meta(jsve::Metadata& meta, const std::string& key, const std::string& text) {
     long long i = 0;
     double d = 0.0;
-    if (text.size() >= 2 && text.front() == '[' && text.back() == ']') {
+    if (text.size() >= 2 && text.front() == '"' && text.back() == '"') {
+        meta.set(key, text.substr(1, text.size() - 2));  // a quoted string stays a string
+    } else if (text.size() >= 2 && text.front() == '[' && text.back() == ']') {
         std::vector<long long> ints;
         std::vector<double> doubles;
         bool all_ints = true;

@@ -1,0 +1,225 @@
+"""`jsve frontend run`: the hooked ORB-SLAM3 (IMU_MONOCULAR) over EuRoC-format datasets, N runs each.
+
+Each run calls the driver that `jsve frontend build` made (BUILD/bin/jsve_orbslam3) and writes, under
+OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
+
+    run_<k>.csv               the format-v2 log (jsve_log.hpp; `.partial` while running or after a failure)
+    run_<k>.orbslam3.txt      ORB-SLAM3's own trajectory (SaveTrajectoryEuRoC: body poses, stamps in ns)
+    run_<k>.json              the driver's summary: frames, tracking and hook seconds, exit status
+    run_<k>.out.txt           ORB-SLAM3's console output
+
+Runs are resumable: a complete log whose metadata `generator` equals the run's key (driver build, hook,
+dataset, settings and vocabulary content) is kept; a log of another key stops the command unless
+`force`. ORB-SLAM3 is not deterministic (threads, RANSAC): N runs of one dataset differ, which is the
+point of running N.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import json
+import subprocess
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from jsve.io._resume import StaleOutputError, differences, file_digest, fingerprint
+
+FRONTEND = "ORB-SLAM3 v1.0 + jsve hook"
+"""The logs' `frontend` metadata."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Dataset:
+    """An EuRoC-format dataset and what its manifest says it is."""
+
+    path: Path
+    sequence: str
+    disturbance: str
+    level: float
+
+
+def describe_dataset(path: Path) -> Dataset:
+    """Sequence, disturbance and level of a dataset from its manifest: `jsve disturb`'s
+    (jsve_manifest.json) names the disturbance and its source; `jsve render`'s (jsve_render.json) an
+    undisturbed sequence. Without either, the folder's name and no disturbance.
+
+    Raises:
+        ValueError naming the folder when it holds no mav0/cam0/data.csv.
+    """
+    path = Path(path)
+    if not (path / "mav0" / "cam0" / "data.csv").is_file():
+        raise ValueError(f"{path}: not a EuRoC-format dataset (no mav0/cam0/data.csv)")
+    disturbed = path / "jsve_manifest.json"
+    if disturbed.is_file():
+        m = json.loads(disturbed.read_text())
+        source = describe_dataset(Path(m["source"])) if Path(m["source"]).is_dir() else None
+        sequence = source.sequence if source else str(m.get("dataset", path.name))
+        return Dataset(path, sequence, str(m["disturbance"]), float(m["level"]))
+    rendered = path / "jsve_render.json"
+    if rendered.is_file():
+        m = json.loads(rendered.read_text())
+        sequence = m.get("sequence") or Path(str(m.get("trajectory", path.name))).stem.removesuffix("_GT")
+        return Dataset(path, str(sequence), "none", 0.0)
+    return Dataset(path, path.name, "none", 0.0)
+
+
+def scaled_settings(settings: str, width: int, height: int) -> str | None:
+    """ORB-SLAM3's settings text for images of `width` x `height` (a downsampled dataset): pinhole
+    intrinsics and sizes scaled; None when the settings already describe that size."""
+    import cv2
+
+    fs = cv2.FileStorage(settings, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    w0, h0 = int(fs.getNode("Camera.width").real()), int(fs.getNode("Camera.height").real())
+    if (w0, h0) == (width, height):
+        return None
+    sx, sy = width / w0, height / h0
+    scale = {"Camera1.fx": sx, "Camera1.cx": sx, "Camera.width": sx, "Camera.newWidth": sx,
+             "Camera1.fy": sy, "Camera1.cy": sy, "Camera.height": sy, "Camera.newHeight": sy}  # fmt: skip
+    lines = []
+    for line in settings.splitlines():
+        key = line.split(":", 1)[0].strip()
+        if key in scale and ":" in line:
+            value = float(line.split(":", 1)[1].split("#", 1)[0])
+            new = value * scale[key]
+            text = str(round(new)) if key.startswith("Camera.") else repr(new)
+            line = f"{key}: {text}"
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def image_size(dataset: Path) -> tuple[int, int]:
+    """(width, height) of the dataset's first image."""
+    import cv2
+
+    first = sorted((dataset / "mav0" / "cam0" / "data").iterdir())[0]
+    im = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+    if im is None:
+        raise ValueError(f"{first}: not an image")
+    return im.shape[1], im.shape[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class RunJob:
+    dataset: Dataset
+    run: int
+    log: Path
+    settings: Path
+    meta: dict
+
+
+def _meta_args(meta: dict) -> list[str]:
+    args = []
+    for key, value in meta.items():
+        # lists and strings as JSON (a quoted string stays a string in the driver), numbers as numbers
+        text = json.dumps(value, separators=(",", ":")) if isinstance(value, (list, str)) else repr(value)
+        args += ["--meta", f"{key}={text}"]
+    return args
+
+
+def run_one(driver: Path, vocabulary: Path, job: RunJob, timeout_s: float | None = None) -> dict:
+    """One run of the driver; returns its summary (plus `wall_seconds` and `log`)."""
+    stem = job.log.with_suffix("")
+    summary_path = stem.with_suffix(".json")
+    cmd = [
+        str(driver), "--vocabulary", str(vocabulary), "--settings", str(job.settings),
+        "--sequence", str(job.dataset.path), "--log", str(job.log), "--overwrite",
+        "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path), *_meta_args(job.meta),
+    ]  # fmt: skip
+    start = time.monotonic()
+    with open(f"{stem}.out.txt", "w") as out:
+        try:
+            code = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, timeout=timeout_s).returncode
+        except subprocess.TimeoutExpired:
+            code = -1
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    summary.update(exit_code=code, wall_seconds=round(time.monotonic() - start, 2), log=str(job.log))
+    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _recorded_generator(log: Path) -> dict | None:
+    with open(log, encoding="utf-8-sig") as stream:
+        meta = json.loads(stream.readline())
+    return meta.get("generator")
+
+
+def plan(
+    build: Path,
+    datasets: Sequence[Path],
+    *,
+    runs: int,
+    out: Path,
+    vocabulary: Path,
+    settings: Path,
+    force: bool = False,
+) -> tuple[list[RunJob], list[Path]]:
+    """The runs still to do and the logs already complete under the same key.
+
+    Raises:
+        StaleOutputError when a complete log was made from other inputs (unless `force`).
+    """
+    base_key = {
+        "hook": json.loads((build / "build.json").read_text())["hook_sha256"][:16],
+        "vocabulary": file_digest([vocabulary]),
+        "settings": file_digest([settings]),
+    }
+    settings_text = settings.read_text()
+    todo, done = [], []
+    for path in datasets:
+        ds = describe_dataset(path)
+        folder = out / ds.sequence / f"{ds.disturbance}-{ds.level:g}"
+        folder.mkdir(parents=True, exist_ok=True)
+        width, height = image_size(ds.path)
+        own = scaled_settings(settings_text, width, height)
+        run_settings = settings
+        if own is not None:
+            run_settings = folder / "orbslam3_settings.yaml"
+            run_settings.write_text(own)
+        data_key = file_digest(sorted((ds.path / "mav0").rglob("*.csv")))
+        key = fingerprint({**base_key, "data": data_key, "dataset": str(ds.path.resolve())})
+        for k in range(runs):
+            log = folder / f"run_{k:03d}.csv"
+            if log.is_file():
+                recorded = _recorded_generator(log)
+                if recorded == key:
+                    done.append(log)
+                    continue
+                if not force:
+                    raise StaleOutputError(
+                        folder, differences({"generator": recorded}, {"generator": key}) + f" in {log.name}"
+                    )
+            meta = {
+                "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": "imu_monocular",
+                "n_features": 1000, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
+                "disturbance": ds.disturbance, "level": ds.level, "rule": "orbslam3",
+                "switch_model": "orbslam3", "generator": key,
+            }  # fmt: skip
+            todo.append(RunJob(ds, k, log, run_settings, meta))
+    return todo, done
+
+
+def run_all(
+    build: Path,
+    jobs: Sequence[RunJob],
+    vocabulary: Path,
+    *,
+    workers: int = 1,
+    timeout_s: float | None = None,
+    progress: bool = True,
+) -> list[dict]:
+    """Run `jobs` with `workers` drivers at once (each ORB-SLAM3 runs three threads); summaries in order."""
+    from tqdm.auto import tqdm
+
+    driver = build / "bin" / "jsve_orbslam3"
+    if not driver.is_file():
+        raise FileNotFoundError(f"{driver}: no driver; run `jsve frontend build -o {build}` first")
+    results: list[dict] = [{} for _ in jobs]
+    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        futures = {pool.submit(run_one, driver, vocabulary, job, timeout_s): i for i, job in enumerate(jobs)}
+        with tqdm(total=len(jobs), desc="frontend runs", unit="run", disable=not progress) as bar:
+            for future in concurrent.futures.as_completed(futures):
+                results[futures[future]] = future.result()
+                bar.update()
+    return results

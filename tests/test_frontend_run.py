@@ -1,0 +1,90 @@
+"""jsve frontend run without ORB-SLAM3: what a dataset is, settings for downsampled images, the runs'
+plan and its resume keys. The driver itself runs in the opt-in smoke test (scripts/frontend_smoke.sh)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from jsve.frontend._run import describe_dataset, plan, scaled_settings
+from jsve.io._resume import StaleOutputError
+
+SETTINGS = """%YAML:1.0
+Camera.type: "PinHole"
+Camera1.fx: 458.654
+Camera1.fy: 457.296
+Camera1.cx: 367.215
+Camera1.cy: 248.375
+Camera1.k1: -0.28340811
+Camera.width: 752
+Camera.height: 480
+Camera.newWidth: 600
+Camera.newHeight: 350
+Camera.fps: 20
+"""
+
+
+def make_dataset(root: Path, size=(752, 480), manifest: dict | None = None, name="jsve_render.json") -> Path:
+    data = root / "mav0" / "cam0" / "data"
+    data.mkdir(parents=True)
+    stamps = [1403715274312143104 + 50_000_000 * i for i in range(3)]
+    for t in stamps:
+        cv2.imwrite(str(data / f"{t}.png"), np.zeros(size[::-1], np.uint8))
+    (root / "mav0" / "cam0" / "data.csv").write_text("#t,f\n" + "".join(f"{t},{t}.png\n" for t in stamps))
+    (root / "mav0" / "imu0").mkdir(parents=True)
+    (root / "mav0" / "imu0" / "data.csv").write_text("#t,wx,wy,wz,ax,ay,az\n1,0,0,0,0,0,9.81\n")
+    if manifest is not None:
+        (root / name).write_text(json.dumps(manifest))
+    return root
+
+
+def make_build(root: Path) -> Path:
+    root.mkdir()
+    (root / "build.json").write_text(json.dumps({"hook_sha256": "ab" * 32}))
+    return root
+
+
+def test_datasets_are_named_by_their_manifests(tmp_path):
+    rendered = make_dataset(tmp_path / "r", manifest={"trajectory": "x/V101_GT.txt"})
+    assert describe_dataset(rendered).sequence == "V101"
+    manifest = {"source": str(rendered), "disturbance": "blur", "level": 35}
+    blurred = make_dataset(tmp_path / "b", manifest=manifest, name="jsve_manifest.json")
+    d = describe_dataset(blurred)
+    assert (d.sequence, d.disturbance, d.level) == ("V101", "blur", 35.0)
+    with pytest.raises(ValueError, match="not a EuRoC-format dataset"):
+        describe_dataset(tmp_path)
+
+
+def test_settings_follow_a_downsampled_image():
+    assert scaled_settings(SETTINGS, 752, 480) is None
+    half = scaled_settings(SETTINGS, 376, 240)
+    assert half is not None
+    fs = cv2.FileStorage(half, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    assert fs.getNode("Camera1.fx").real() == pytest.approx(229.327)
+    assert fs.getNode("Camera1.cy").real() == pytest.approx(124.1875)
+    assert (fs.getNode("Camera.width").real(), fs.getNode("Camera.newHeight").real()) == (376, 175)
+    assert fs.getNode("Camera1.k1").real() == pytest.approx(-0.28340811)  # distortion is unit-free
+
+
+def test_plan_keeps_complete_logs_of_the_same_key_and_stops_at_others(tmp_path):
+    build = make_build(tmp_path / "build")
+    ds = make_dataset(tmp_path / "ds", manifest={"trajectory": "V101_GT.txt"})
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    kw = dict(runs=2, out=tmp_path / "logs", vocabulary=voc, settings=settings)
+    todo, done = plan(build, [ds], **kw)
+    assert [j.run for j in todo] == [0, 1] and done == []
+    assert todo[0].log == tmp_path / "logs" / "V101" / "none-0" / "run_000.csv"
+    key = todo[0].meta["generator"]
+    todo[0].log.write_text(json.dumps({"generator": key}) + "\n")
+    todo, done = plan(build, [ds], **kw)
+    assert [j.run for j in todo] == [1] and len(done) == 1
+    (ds / "mav0" / "imu0" / "data.csv").write_text("#t,wx,wy,wz,ax,ay,az\n1,0,0,0,0,0,9.80\n")
+    with pytest.raises(StaleOutputError, match="generator"):
+        plan(build, [ds], **kw)
+    todo, _ = plan(build, [ds], force=True, **kw)
+    assert [j.run for j in todo] == [0, 1]
