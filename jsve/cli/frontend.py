@@ -51,8 +51,8 @@ def register(subparsers) -> None:
         help="run the hooked ORB-SLAM3 over EuRoC-format datasets, N runs each, writing jsve logs",
         description="Run the driver of BUILD (IMU_MONOCULAR) over each DATASET (a EuRoC-format folder, e.g. "
         "from `jsve render` or `jsve disturb`) --runs times, writing OUT/<sequence>/<disturbance>-<level>/"
-        "run_<k>.csv (format-v2 log), run_<k>.orbslam3.txt (ORB-SLAM3's trajectory), run_<k>.json "
-        "(summary) and run_<k>.out.txt (console). Resumable: complete logs of the same inputs are kept; "
+        "run_<k>.csv (format-v2 log), run_<k>.orbslam3.txt (ORB-SLAM3's trajectory), run_<k>.summary.json "
+        "and run_<k>.console.txt. Resumable: complete logs of the same inputs are kept; "
         "logs of other inputs stop the command unless --force. A downsampled dataset gets ORB-SLAM3 "
         "settings scaled to its image size.",
     )
@@ -69,6 +69,12 @@ def register(subparsers) -> None:
     r.add_argument("--workers", type=int, default=1, help="drivers at once (each runs 3 threads; default 1)")
     r.add_argument("--timeout", type=float, metavar="S", help="seconds before a run is stopped")
     r.add_argument("--force", action="store_true", help="redo runs whose logs came from other inputs")
+    r.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="feed frames as fast as tracking takes them "
+        "(default: at the camera's rate, as a live camera; local mapping then keeps up)",
+    )
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(func=run_runs)
     v = sub.add_parser(
@@ -127,9 +133,9 @@ def run_runs(args: argparse.Namespace) -> int:
         return common.fail("frontend run", f"{err}; --force redoes them")
     print(f"jsve frontend run: {len(done)} runs complete already, {len(todo)} to run", file=sys.stderr)
     results = run_all(build, todo, Path(args.vocabulary), workers=args.workers, timeout_s=args.timeout,
-                      progress=not args.no_progress)  # fmt: skip
+                      wait=not args.no_wait, progress=not args.no_progress)  # fmt: skip
     failed = [r for r in results if r.get("exit_code") != 0]
     for r in failed:
-        print(f"{r['log']}: driver exit {r.get('exit_code')} (see its .out.txt)", file=sys.stderr)
+        print(f"{r['log']}: driver exit {r.get('exit_code')} (see its .console.txt)", file=sys.stderr)
     print(f"jsve frontend run: {len(results) - len(failed)} runs done, {len(failed)} failed; logs in {out}")
     return 1 if failed else 0

@@ -5,8 +5,10 @@ OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
 
     run_<k>.csv               the format-v2 log (jsve_log.hpp; `.partial` while running or after a failure)
     run_<k>.orbslam3.txt      ORB-SLAM3's own trajectory (SaveTrajectoryEuRoC: body poses, stamps in ns)
-    run_<k>.json              the driver's summary: frames, tracking and hook seconds, exit status
-    run_<k>.out.txt           ORB-SLAM3's console output
+    run_<k>.orbslam3-euroc.txt   the same as a EuRoC CSV (int ns, p, q wxyz), for `jsve ape --format
+                              euroc` against the dataset's state_groundtruth_estimate0/data.csv
+    run_<k>.summary.json      the driver's summary: frames, tracking and hook seconds, exit status
+    run_<k>.console.txt       ORB-SLAM3's console output
 
 Runs are resumable: a complete log whose metadata `generator` equals the run's key (driver build, hook,
 dataset, settings and vocabulary content) is kept; a log of another key stops the command unless
@@ -118,25 +120,45 @@ def _meta_args(meta: dict) -> list[str]:
     return args
 
 
-def run_one(driver: Path, vocabulary: Path, job: RunJob, timeout_s: float | None = None) -> dict:
-    """One run of the driver; returns its summary (plus `wall_seconds` and `log`)."""
+def run_one(
+    driver: Path, vocabulary: Path, job: RunJob, timeout_s: float | None = None, wait: bool = True
+) -> dict:
+    """One run of the driver; returns its summary (plus `wall_seconds` and `log`). `wait`: frames at the
+    camera's rate (the driver's default), else as fast as tracking takes them."""
     stem = job.log.with_suffix("")
-    summary_path = stem.with_suffix(".json")
+    summary_path = stem.with_suffix(".summary.json")
     cmd = [
         str(driver), "--vocabulary", str(vocabulary), "--settings", str(job.settings),
         "--sequence", str(job.dataset.path), "--log", str(job.log), "--overwrite",
         "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path), *_meta_args(job.meta),
-    ]  # fmt: skip
+    ] + ([] if wait else ["--no-wait"])  # fmt: skip
     start = time.monotonic()
-    with open(f"{stem}.out.txt", "w") as out:
+    with open(f"{stem}.console.txt", "w") as out:
         try:
             code = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, timeout=timeout_s).returncode
         except subprocess.TimeoutExpired:
             code = -1
+    trajectory = Path(f"{stem}.orbslam3.txt")
+    if trajectory.is_file():
+        write_euroc_trajectory(trajectory, Path(f"{stem}.orbslam3-euroc.txt"))
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     summary.update(exit_code=code, wall_seconds=round(time.monotonic() - start, 2), log=str(job.log))
     summary_path.write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def write_euroc_trajectory(orbslam3: Path, out: Path) -> None:
+    """ORB-SLAM3's SaveTrajectoryEuRoC file (`t x y z qx qy qz qw`, t = 1e9 x the double stamp, printed
+    with 6 decimals) as a EuRoC CSV (`t_ns,x,y,z,qw,qx,qy,qz`). The stamp went through a double, so it
+    is the frame's to within ~130 ns; association tolerates far more."""
+    rows = ["#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []"]
+    for n, line in enumerate(orbslam3.read_text().splitlines(), 1):
+        fields = line.split()
+        if len(fields) != 8:
+            raise ValueError(f"{orbslam3}:{n}: {len(fields)} fields, expected 8 (t x y z qx qy qz qw)")
+        t, x, y, z, qx, qy, qz, qw = fields
+        rows.append(",".join([str(round(float(t))), x, y, z, qw, qx, qy, qz]))
+    out.write_text("\n".join(rows) + "\n")
 
 
 def _recorded_generator(log: Path) -> dict | None:
@@ -207,6 +229,7 @@ def run_all(
     *,
     workers: int = 1,
     timeout_s: float | None = None,
+    wait: bool = True,
     progress: bool = True,
 ) -> list[dict]:
     """Run `jobs` with `workers` drivers at once (each ORB-SLAM3 runs three threads); summaries in order."""
@@ -217,7 +240,9 @@ def run_all(
         raise FileNotFoundError(f"{driver}: no driver; run `jsve frontend build -o {build}` first")
     results: list[dict] = [{} for _ in jobs]
     with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        futures = {pool.submit(run_one, driver, vocabulary, job, timeout_s): i for i, job in enumerate(jobs)}
+        futures = {
+            pool.submit(run_one, driver, vocabulary, job, timeout_s, wait): i for i, job in enumerate(jobs)
+        }
         with tqdm(total=len(jobs), desc="frontend runs", unit="run", disable=not progress) as bar:
             for future in concurrent.futures.as_completed(futures):
                 results[futures[future]] = future.result()

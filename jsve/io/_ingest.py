@@ -68,9 +68,11 @@ LOG_SUFFIXES = (".csv", ".csv.gz")
 PARTIAL_SUFFIX (an unfinished log, reported as incomplete). A gzip log is read whatever its name
 (jsve.io._text.file_bytes)."""
 
-_SIDE_FILES = (".quarantine.csv", ".keypoints.csv")
-"""jsve's own CSV files that a directory search skips without a word: quarantine reports and keypoint
-side files (jsve.io._keypoints), gzipped or not."""
+_SIDE_FILES = (".quarantine.csv", ".keypoints.csv", ".orbslam3.txt", ".orbslam3-euroc.txt", ".summary.json",
+               ".console.txt", "orbslam3_settings.yaml")  # fmt: skip
+"""jsve's own files that a directory search skips without a word: quarantine reports, keypoint side
+files (jsve.io._keypoints), gzipped or not, and what `jsve frontend run` writes beside each log
+(ORB-SLAM3's trajectory, the run's summary and console, scaled settings; jsve.frontend._run)."""
 
 _SKIPPED_SHOWN = 5  # files that are not logs named in the warning of a directory search
 

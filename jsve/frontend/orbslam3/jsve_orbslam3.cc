@@ -3,6 +3,7 @@
 //
 //   jsve_orbslam3 --vocabulary VOC.txt --settings EuRoC.yaml --sequence DIR --log OUT.csv
 //                 [--trajectory OUT.txt] [--summary OUT.json] [--meta KEY=VALUE]... [--overwrite]
+//                 [--no-wait]   (default: frames paced at the camera's rate, as ORB-SLAM3's examples do)
 //
 // DIR holds mav0/cam0/data.csv (`t_ns,file`), mav0/cam0/data/<file> and mav0/imu0/data.csv (`t_ns,
 // wx,wy,wz,ax,ay,az`, EuRoC's column order). --meta values are typed like JSON scalars and lists:
@@ -19,6 +20,7 @@
 #include <sstream>
 #include <stdexcept>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <opencv2/imgcodecs.hpp>
@@ -33,6 +35,7 @@ struct Args {
     std::string vocabulary, settings, sequence, log, trajectory, summary;
     std::vector<std::pair<std::string, std::string>> meta;
     bool overwrite = false;
+    bool wait = true;  // pace frames at the camera's rate, as a live camera (and ORB-SLAM3's examples) do
 };
 
 [[noreturn]] void usage_error(const std::string& message) {
@@ -55,6 +58,7 @@ Args parse_args(int argc, char** argv) {
         else if (key == "--trajectory") a.trajectory = value();
         else if (key == "--summary") a.summary = value();
         else if (key == "--overwrite") a.overwrite = true;
+        else if (key == "--no-wait") a.wait = false;
         else if (key == "--meta") {
             const std::string kv = value();
             const std::size_t eq = kv.find('=');
@@ -192,7 +196,14 @@ int main(int argc, char** argv) {
                 while (next < imu.size() && imu[next].t <= t) between.push_back(imu[next++]);
             const auto start = std::chrono::steady_clock::now();
             slam.TrackMonocular(im, t, between, images[i].path);
-            track_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+            const double took = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+            track_seconds += took;
+            // Local mapping runs in its own thread: without waiting out the frame interval it would fall
+            // behind the tracker, which a live run never lets it do.
+            if (args.wait && i + 1 < images.size()) {
+                const double gap = double(images[i + 1].t_ns - images[i].t_ns) * 1e-9;
+                if (took < gap) std::this_thread::sleep_for(std::chrono::duration<double>(gap - took));
+            }
             ever_tracked = ever_tracked || slam.GetTrackingState() == 2;  // OK
         }
     } catch (const std::exception& e) {
