@@ -25,6 +25,7 @@ from . import report as report
 from . import sim as sim
 from ._demo import run_demo as run_demo
 from ._version import __version__ as __version__
+from .core import FAILURE_CAUSES as FAILURE_CAUSES
 from .core import PRESETS as PRESETS
 from .core import Combination as Combination
 from .core import ErrorStats as ErrorStats
@@ -43,6 +44,7 @@ from .core import align as align
 from .core import ape_statistics as ape_statistics
 from .core import batch_features as batch_features
 from .core import batched_run_error as batched_run_error
+from .core import failure_reason as failure_reason
 from .core import frame_features as frame_features
 from .core import imu_predict as imu_predict
 from .core import machine_step as machine_step
@@ -64,6 +66,7 @@ from .evaluation import aggregate as aggregate
 from .evaluation import bootstrap_ci as bootstrap_ci
 from .evaluation import evaluate as evaluate
 from .evaluation import evaluate_batch as evaluate_batch
+from .evaluation import failure_counts as failure_counts
 from .evaluation import per_run_table as per_run_table
 from .fitting import FitConfig as FitConfig
 from .fitting import FitData as FitData

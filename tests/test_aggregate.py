@@ -8,7 +8,13 @@ import pandas as pd
 import pytest
 
 from jsve.core._trajectory import ErrorStats, RunError
-from jsve.evaluation._aggregate import RUN_COLUMNS, aggregate, bootstrap_ci, per_run_table
+from jsve.evaluation._aggregate import (
+    RUN_COLUMNS,
+    aggregate,
+    bootstrap_ci,
+    failure_counts,
+    per_run_table,
+)
 
 
 def _run_errors(rng: np.random.Generator, n_runs: int) -> RunError:
@@ -136,3 +142,33 @@ def test_aggregate_ci_columns_match_bootstrap(table):
         low, high = bootstrap_ci(rmse, n_boot=200, seed=7)
         assert (row["rmse_mean_all_ci_low"], row["rmse_mean_all_ci_high"]) == (low, high)
         assert low <= row["rmse_mean_all"] <= high
+
+
+def test_failure_counts_count_the_failed_runs_of_each_reason_per_group():
+    reasons = ["", "a", "b; c", "a", "", "a", "b; c", "a"]
+    table = pd.DataFrame(
+        {
+            "rule": ["r2", "r2", "r2", "r2", "r1", "r1", "r1", "r1"],
+            "failed": [False, True, True, True, False, True, True, False],  # the last "a" did not fail
+            "failure_reason": reasons,
+        }
+    )
+    counts = failure_counts(table)
+    assert counts.to_dict("records") == [
+        {"rule": "r1", "failure_reason": "a", "n_runs": 1},
+        {"rule": "r1", "failure_reason": "b; c", "n_runs": 1},  # a tie: by reason
+        {"rule": "r2", "failure_reason": "a", "n_runs": 2},  # the most frequent reason first
+        {"rule": "r2", "failure_reason": "b; c", "n_runs": 1},
+    ]
+    # Per group, the counts add up to aggregate's n_failed.
+    n_failed = aggregate(table.assign(rmse=1.0, mean=1.0, sse=1.0, count=1, coverage=1.0), ["rule"], ci=False)
+    assert counts.groupby("rule")["n_runs"].sum().to_dict() == dict(
+        zip(n_failed["rule"], n_failed["n_failed"], strict=True)
+    )
+    assert failure_counts(table, []).to_dict("records") == [
+        {"failure_reason": "a", "n_runs": 3},
+        {"failure_reason": "b; c", "n_runs": 2},
+    ]
+    assert failure_counts(table[~table["failed"]]).empty
+    with pytest.raises(ValueError, match=r"lacks columns \['failure_reason'\]"):
+        failure_counts(table.drop(columns="failure_reason"))

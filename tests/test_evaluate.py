@@ -108,9 +108,17 @@ def test_cli_evaluate_writes_tables_matching_the_library(runs, log_dir, tmp_path
     lib = jsve.evaluate(jsve.buckets(runs), jsve.preset("orbslam3"), rule_name="orbslam3", progress=False)
     cli = per_run[per_run["rule"] == "orbslam3"].set_index("run_id").loc[lib["run_id"]]
     np.testing.assert_allclose(cli["rmse"].to_numpy(), lib["rmse"].to_numpy(), rtol=1e-6)
-    # The on-screen summary lists every (disturbance, rule) group.
-    printed = capsys.readouterr().out
+    # The on-screen summary lists every (disturbance, rule) group, then the failed runs of each rule
+    # per failure_reason: the counts of runs.parquet's rows.
+    printed, failures = capsys.readouterr().out.split("\n\nfailed runs by failure_reason:\n")
     assert printed.count("sve-option2") == summary["rule"].eq("sve-option2").sum()
+    header, *lines = failures.splitlines()
+    assert header.split() == ["rule", "n_runs", "failure_reason"]
+    shown = [tuple(line.split(maxsplit=2)) for line in lines]
+    failed = per_run[per_run["failed"]]
+    expected = failed.groupby(["rule", "failure_reason"]).size()
+    assert sorted(shown) == sorted((r, str(n), why) for (r, why), n in expected.items())
+    assert sum(int(n) for _, n, _ in shown) == summary["n_failed"].sum() > 0
     assert not list(out.glob("*.partial"))
 
 

@@ -185,7 +185,9 @@ def test_a_run_too_short_to_align_is_flagged_not_hidden(x64):
     table = tablei.table_one({"original": [good], "masked": [short]}, align="se3")
     row = table.per_run.set_index("name").loc["short"]
     assert row["failed"] and row["count"] == 0 and np.isnan(row["rmse"])
-    assert "Failed runs (degenerate alignment or too few poses): masked/short." in tablei.to_markdown(table)
+    reason = "fewer than 3 evaluated frames; degenerate alignment"  # 2 poses fix no rotation either
+    assert row["failure_reason"] == reason
+    assert f"Failed runs: masked/short ({reason})." in tablei.to_markdown(table)
 
 
 def test_cli_table1_tum_associates_like_jsve_ape(tmp_path, capsys):

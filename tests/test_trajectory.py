@@ -806,3 +806,27 @@ def test_cli_unreadable_and_unmatched_files_exit_2(cli, capsys, kitti, tmp_path)
     assert "garbage.txt" in capsys.readouterr().err
     assert cli(["ape", gt, str(root / "odometry_poses" / "01.txt"), "--format", "kitti"]) == 2
     assert "same length" in capsys.readouterr().err
+
+
+def test_cli_prints_why_an_estimate_failed(cli, capsys, kitti, tmp_path):
+    """A failed estimate's row says why (failure_reason), in the table, the JSON and the CSV; a good one's
+    reason is empty."""
+    root, ref, est, _ = kitti
+    times = np.loadtxt(root / "times_00.txt")[:100]
+    ref_tum = PoseTrajectory3D(poses_se3=ref.poses_se3[:100], timestamps=times)
+    good = PoseTrajectory3D(poses_se3=est.poses_se3[:100], timestamps=times)
+    short = PoseTrajectory3D(poses_se3=est.poses_se3[:2], timestamps=times[:2])  # 2 poses: cannot align
+    paths = [tmp_path / f"{name}.tum" for name in ("ref", "good", "short")]
+    for path, traj in zip(paths, (ref_tum, good, short), strict=True):
+        file_interface.write_tum_trajectory_file(path, traj)
+    csv_path = tmp_path / "table.csv"
+    assert cli(["ape", *map(str, paths), "--json", "-o", str(csv_path)]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    reason = "fewer than 3 evaluated frames; degenerate alignment"
+    assert [(r["failed"], r["failure_reason"]) for r in rows] == [(False, ""), (True, reason)]
+    assert rows[1]["rmse"] is None
+    assert list(pd.read_csv(csv_path, keep_default_na=False)["failure_reason"]) == ["", reason]
+    assert cli(["ape", *map(str, paths)]) == 0
+    header, first, second = capsys.readouterr().out.splitlines()
+    assert header.split()[-2:] == ["failed", "failure_reason"]
+    assert second.endswith(reason) and not first.rstrip().endswith(reason)

@@ -4,7 +4,8 @@ An evo_ape-like command that scores every estimate in a single batched JAX compu
 evo to 1e-6): files are read with evo's file_interface and associated by timestamps with evo's
 associate_trajectories (tum, euroc) or by index (kitti), padded to the longest (jsve.io._trajectories),
 aligned and scored by jsve.core._pose_error.batched_pose_error, as Table I does.
-Prints one row per estimate (APE translation part, metres) or JSON; exit code 2 when a file cannot be used.
+Prints one row per estimate (APE translation part, metres, with failed and failure_reason) or JSON; exit
+code 2 when a file cannot be used.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from jsve.cli import _common as common
 
 HELP = "absolute pose error of many estimates against one reference (evo_ape-like, batched)"
 
-TABLE_COLUMNS = ("rmse", "mean", "median", "std", "min", "max", "sse", "count")
+TABLE_COLUMNS = ("rmse", "mean", "median", "std", "min", "max", "sse", "count", "failed", "failure_reason")
+"""The columns printed after `estimate` (a failed run's statistics are NaN; failure_reason says why)."""
 
 
 def register(subparsers) -> None:
@@ -72,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.output:
         atomic.write_text(args.output, table.to_csv(index=False))  # CSV whatever the suffix
-    shown = table[["estimate", *TABLE_COLUMNS, "failed"]]
+    shown = table[["estimate", *TABLE_COLUMNS]]
     if args.json:
         records = shown.to_dict(orient="records")
         print(json.dumps([{k: _plain(v) for k, v in r.items()} for r in records], indent=2))

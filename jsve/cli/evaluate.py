@@ -4,7 +4,7 @@
 
 LOGS is a folder of format-v1 logs, a single log, or a Parquet file from `jsve ingest`. Writes
 runs.parquet / runs.csv (one row per run and rule) and summary.csv (aggregated by --by), and prints
-the summary.
+the summary and, per rule, how many runs failed for each failure_reason.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def run(args) -> int:
     import jax.numpy as jnp
     import pandas as pd
 
-    from jsve.evaluation._aggregate import aggregate
+    from jsve.evaluation._aggregate import aggregate, failure_counts
     from jsve.evaluation._evaluate import evaluate
     from jsve.io import _atomic as atomic
     from jsve.io._batching import buckets
@@ -139,6 +139,17 @@ def run(args) -> int:
         "rmse_median_all",
         "pooled_rmse_all",
     ]
+    failures = failure_counts(per_run, ["rule"])
     with pd.option_context("display.width", 160, "display.max_columns", 20, "display.max_rows", 200):
         print(summary[shown].to_string(index=False, float_format=lambda x: f"{x:.4g}"))
+        print()
+        if failures.empty:
+            print("failed runs: none")
+        else:
+            print("failed runs by failure_reason:")
+            # One line per (rule, reason): the count before the reason, whose length varies.
+            width = max(len("rule"), *(len(str(r)) for r in failures["rule"]))
+            print(f"{'rule':<{width}}  {'n_runs':>6}  failure_reason")
+            for rule, n_runs, reason in failures[["rule", "n_runs", "failure_reason"]].to_numpy():
+                print(f"{rule!s:<{width}}  {n_runs:>6}  {reason}")
     return 0

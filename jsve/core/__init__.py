@@ -50,9 +50,11 @@ from jsve.core._sve import s_a_original as s_a_original
 from jsve.core._sve import s_b as s_b
 from jsve.core._sve import s_c as s_c
 from jsve.core._sve import sve_table as sve_table
+from jsve.core._trajectory import FAILURE_CAUSES as FAILURE_CAUSES
 from jsve.core._trajectory import ErrorStats as ErrorStats
 from jsve.core._trajectory import RunError as RunError
 from jsve.core._trajectory import align as align
 from jsve.core._trajectory import ape_statistics as ape_statistics
 from jsve.core._trajectory import batched_run_error as batched_run_error
+from jsve.core._trajectory import failure_reason as failure_reason
 from jsve.core._trajectory import run_error as run_error

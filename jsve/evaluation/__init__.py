@@ -2,6 +2,7 @@
 
 from jsve.evaluation._aggregate import aggregate as aggregate
 from jsve.evaluation._aggregate import bootstrap_ci as bootstrap_ci
+from jsve.evaluation._aggregate import failure_counts as failure_counts
 from jsve.evaluation._aggregate import group_weights as group_weights
 from jsve.evaluation._aggregate import per_run_table as per_run_table
 from jsve.evaluation._evaluate import Evaluation as Evaluation

@@ -190,6 +190,30 @@ def aggregate(
     return pd.DataFrame(rows)
 
 
+def failure_counts(table: pd.DataFrame, by: Sequence[str] = ("rule",)) -> pd.DataFrame:
+    """How many runs failed for each reason, per group: what the failure_rate of `aggregate` is made of.
+
+    Arguments:
+        table: a per-run table with `failed` and `failure_reason` (per_run_table, jsve.evaluate).
+        by: the columns that define a group (default: one group per rule); [] counts over the table.
+
+    Returns:
+        One row per group and failure_reason among the failed runs: the `by` columns, failure_reason and
+        n_runs, groups in order and, within one, the most frequent reason first (ties by reason). No row
+        for a group without a failed run.
+    """
+    by = list(by)
+    missing = sorted(set(by + ["failed", "failure_reason"]) - set(table.columns))
+    if missing:
+        raise ValueError(f"table lacks columns {missing} (expected a per_run_table result)")
+    failed = pd.DataFrame(table.loc[table["failed"].astype(bool), [*by, "failure_reason"]])
+    counts = failed.value_counts(dropna=False).reset_index(name="n_runs")
+    counts = counts.sort_values(
+        [*by, "n_runs", "failure_reason"], ascending=[*(True,) * len(by), False, True]
+    )
+    return counts.reset_index(drop=True)
+
+
 def group_weights(
     meta: pd.DataFrame, by: Sequence[str] | None = ("sequence", "disturbance", "level")
 ) -> np.ndarray:

@@ -86,7 +86,8 @@ class TableOne:
         groups: the sets, in column order (the first is the baseline of `change_percent`).
         align: the alignment method.
         per_run: one row per estimate: group, name, rmse, mean, median, std, min, max, sse, count,
-            coverage, n_segments, failed, scale (jsve.evaluation._aggregate.per_run_table's columns).
+            coverage, n_segments, failed, failure_reason, scale (jsve.evaluation._aggregate.per_run_table's
+            columns).
         summary: one row per statistic (STATISTICS): for each group its value (the mean over the group's
             runs), `<group>_std` (over runs, ddof 1; NaN for a single run), and `change_percent` of the
             second group against the first when there are two.
@@ -181,7 +182,7 @@ def summary_table(per_run: pd.DataFrame, groups: Sequence[str]) -> pd.DataFrame:
 
 def to_markdown(table: TableOne, digits: int = 4) -> str:
     """Table I as a Markdown table (metres, `digits` decimals; mean +- std over runs when a group has
-    several), with the alignment and any failed runs in a note below."""
+    several), with the alignment and any failed runs, each with its failure_reason, in a note below."""
     groups = table.groups
     summary = table.summary
     header = ["APE (m)"]
@@ -208,8 +209,8 @@ def to_markdown(table: TableOne, digits: int = 4) -> str:
     ]
     failed = table.per_run[table.per_run["failed"]]
     if len(failed):
-        names = ", ".join(f"{r.group}/{r.name}" for r in failed.itertuples())
-        notes.append(f"Failed runs (degenerate alignment or too few poses): {names}.")
+        names = ", ".join(f"{r.group}/{r.name} ({r.failure_reason})" for r in failed.itertuples())
+        notes.append(f"Failed runs: {names}.")
     return "\n".join(lines) + "\n\n" + "\n".join(notes) + "\n"
 
 
