@@ -284,6 +284,66 @@ def test_a_full_disk_is_one_line_exit_2_and_no_partial_output(command, tmp_path,
     assert [p for p in out.rglob("*") if p.is_file()] == []
 
 
+GT_HEAD = "#timestamp [ns],p_x,p_y,p_z,q_w,q_x,q_y,q_z"
+GT_ROW = "{t},1.0,2.0,3.0,1.0,0.0,0.0,0.0"
+BAD_GT = {
+    # what the --gt file holds -> what the one line says
+    "nan": ("1403715274312143104,1.0,nan,3.0,1,0,0,0", "gt.csv:4: column 'p_y' = 'nan': NaN or inf"),
+    "zero quaternion": ("1403715274312143104,1,2,3,0,0,0,0", "gt.csv:4: columns 'q_w..q_z' = '0 0 0 0'"),
+    "stamps back": ("1403715274000000000,1,2,3,1,0,0,0", "gt.csv: timestamps not strictly increasing"),
+    "not text": (
+        b"\x80\xff\x00".decode("latin-1"),
+        "gt.csv: not a readable euroc ground-truth file: not UTF-8",
+    ),
+}
+
+
+@pytest.mark.parametrize("defect", BAD_GT)
+@pytest.mark.parametrize("mode", ["raise", "quarantine"])
+def test_a_bad_value_in_the_gt_file_is_one_line_and_exit_2(defect, mode, tmp_path, capsys):
+    """A --gt file with a value jsve refuses is that file's one-line error, before any log is read:
+    never a traceback, never a quarantined log, nothing written."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    from jsve.io import write_log
+
+    for k in range(2):
+        write_log(make_run(30, seed=k, with_gt=False, sequence="S", run=k), logs / f"r{k}.csv")
+    row, reason = BAD_GT[defect]
+    gt = tmp_path / "gt.csv"
+    rows = [GT_ROW.format(t=1403715274212143104 + k * 50_000_000) for k in range(2)] + [row]
+    gt.write_bytes("\n".join([GT_HEAD, *rows, ""]).encode("latin-1"))
+    argv = ["ingest", str(logs), "-o", str(tmp_path / "s.parquet"), "--gt", str(gt), "--on-error", mode]
+    assert main([*argv, "--no-progress", "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"jsve ingest: --gt: {tmp_path / reason}"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gt.csv", "logs"]
+
+
+def test_guarded_turns_an_input_files_error_into_one_line(capsys):
+    """Wherever a command lets a log's or a trajectory file's error through, it is one line and exit 2;
+    other errors stay tracebacks (they are jsve's bugs)."""
+    import argparse
+
+    from jsve.io._errors import LogFormatError, TrajectoryFileError
+
+    def raising(error):
+        @common.guarded("ingest")
+        def run(args):
+            raise error
+
+        return run(argparse.Namespace())
+
+    assert raising(TrajectoryFileError.at("gt.txt", 7, "NaN or inf is not allowed", "p_x", "nan")) == 2
+    assert (
+        capsys.readouterr().err == "jsve ingest: gt.txt:7: column 'p_x' = 'nan': NaN or inf is not allowed\n"
+    )
+    assert raising(LogFormatError("r.csv", 3, "imu_dt is negative")) == 2
+    assert capsys.readouterr().err == "jsve ingest: r.csv:3: imu_dt is negative\n"
+    with pytest.raises(KeyError):
+        raising(KeyError("a bug"))
+
+
 def test_a_missing_gt_file_is_the_gt_files_error_and_nothing_is_quarantined(tmp_path, capsys):
     logs = tmp_path / "logs"
     logs.mkdir()

@@ -35,6 +35,10 @@ def guarded(command: str) -> Callable:
       jsve.io._atomic, which leaves no partial file (and, inside all_or_nothing, no partial set).
     - jsve.io._resume.StaleOutputError (a resumed job whose folder holds outputs of other inputs or
       another configuration): `jsve COMMAND: FOLDER holds outputs of another job (WHAT); --force ...`.
+
+    And, wherever a command has not caught them itself, the errors of an input file
+    (jsve.io._errors.LogFormatError, TrajectoryFileError: a log, a trajectory or a ground-truth file),
+    whose messages name the file and line: `jsve COMMAND: FILE:LINE: ...`.
     """
 
     def decorate(run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
@@ -49,11 +53,14 @@ def guarded(command: str) -> Callable:
                     return fail(command, error)
                 raise
             except Exception as error:
+                from jsve.io._errors import LogFormatError, TrajectoryFileError
                 from jsve.io._resume import StaleOutputError
 
                 if isinstance(error, StaleOutputError):
                     hint = FORCE_HINT if hasattr(args, "force") else "use another output folder"
                     return fail(command, f"{error}; {hint}")
+                if isinstance(error, (LogFormatError, TrajectoryFileError)):
+                    return fail(command, error)  # an input file's own error: it names file and line
                 raise
 
         return checked

@@ -100,15 +100,23 @@ def _read_stamps_ns(path: str, delimiter: str | None, exponent: int) -> np.ndarr
     lose ~200 ns at 1.4e9 s). Comment and skipping rules follow evo's csv_read_matrix."""
     stamps = []
     with open(path, encoding="utf-8-sig") as f:
-        for lineno, line in enumerate(f, start=1):
-            if line.startswith("#") or not line.strip():
-                continue
-            text = line.strip().split(delimiter)[0]
-            try:
-                stamps.append(_decimal_ns(text, exponent))
-            except (InvalidOperation, ValueError):
-                raise ValueError(f"{path}:{lineno}: timestamp '{shorten(text)}' is not a number") from None
+        try:
+            for lineno, line in enumerate(f, start=1):
+                if line.startswith("#") or not line.strip():
+                    continue
+                text = line.strip().split(delimiter)[0]
+                try:
+                    stamps.append(_decimal_ns(text, exponent))
+                except (InvalidOperation, ValueError):
+                    reason = f"timestamp '{shorten(text)}' is not a number"
+                    raise ValueError(f"{path}:{lineno}: {reason}") from None
+        except UnicodeDecodeError as e:
+            raise ValueError(f"{path}: not a readable times file: {_not_text(e)}") from None
     return np.asarray(stamps, dtype=np.int64)
+
+
+def _not_text(error: UnicodeDecodeError) -> str:
+    return f"not UTF-8 text (a byte {error.object[error.start]:#04x})"
 
 
 def _unit_quaternions(q: np.ndarray) -> np.ndarray:
@@ -154,6 +162,8 @@ def _load_cached(gt_path, fmt, kitti_times, _key, _times_key) -> _Trajectory:
         evo_traj = evo_reader(fmt)(gt_path)
     except file_interface.FileInterfaceException as e:
         raise ValueError(f"{gt_path}: not a readable {fmt} ground-truth file: {e}") from None
+    except UnicodeDecodeError as e:  # evo's message names no file
+        raise ValueError(f"{gt_path}: not a readable {fmt} ground-truth file: {_not_text(e)}") from None
     # NaN, inf, values float32 cannot hold, zero or non-unit quaternions, KITTI rotations that are not
     # rotations: refused with line and column (TrajectoryFileError, a ValueError).
     check_poses(evo_traj, gt_path, fmt)
