@@ -75,8 +75,15 @@ def run_demo(
     *,  # noqa: B008
     progress: bool = True,
     workers: int | None = None,
+    force: bool = False,
 ) -> dict:
-    """Simulate, fit, cross-validate and report into `out_dir`; returns the seconds of each part."""
+    """Simulate, fit, cross-validate and report into `out_dir`; returns the seconds of each part.
+
+    A rerun resumes: the logs are kept under an equal generator key (write_study) and the study's stages
+    under an equal configuration and data fingerprint (run_study). Where `out_dir` holds logs or a study
+    of another configuration the demo stops with StaleOutputError before writing anything, unless
+    `force`, which discards them and recomputes.
+    """
     from jsve.fitting._fit import FitData
     from jsve.fitting._study import run_study
     from jsve.io._ingest import read_parquet
@@ -102,6 +109,7 @@ def run_demo(
         workers=workers,
         progress=progress,
         parquet=True,
+        force=force,
     )
     runs = read_parquet(study.parquet)
     timings["simulate"] = time.perf_counter() - started
@@ -116,7 +124,7 @@ def run_demo(
         "flight length, s": list(config.duration_s),
         "simulator seed": config.seed,
     }
-    stages = run_study(data, out, config.study, progress=progress, data_description=description)
+    stages = run_study(data, out, config.study, progress=progress, data_description=description, force=force)
     timings["study"] = time.perf_counter() - t
     t = time.perf_counter()
     write_report(out, title="jsve demo: fitted switching rules on a simulated study")

@@ -108,3 +108,39 @@ def test_demo_end_to_end_then_fit_on_its_logs(tmp_path, capsys):
         main(["report", str(out), "--title", "jsve demo: fitted switching rules on a simulated study"]) == 0
     )
     assert (out / "report.html").read_text() == page
+
+
+def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_path, capsys, monkeypatch):
+    """Logs simulated under another seed stop `jsve demo` before anything is written (one line naming
+    --force, exit 2); with --force the logs are simulated again under the demo's key and the study is
+    told to discard its stale stages (the fit and the report are stubbed: they have their own tests)."""
+    from jsve.fitting import _study
+    from jsve.report import _report
+    from jsve.sim._motion import FlightProfile
+    from jsve.sim._simulate import SimConfig, write_study
+
+    out = tmp_path / "demo"
+    small = dict(procedural=1, disturbances="blur:0", runs=1, workers=1, progress=False)
+    sim = SimConfig(flight=FlightProfile(duration_s=(6.0, 6.0)))
+    write_study(out / "logs", seed=1, config=sim, **small)
+    (log,) = (out / "logs").rglob("*.csv")
+    before = log.read_bytes()
+    cfg = tmp_path / "small.toml"
+    cfg.write_text(TINY.replace("sequences = 2", "sequences = 1").replace("12.0, 12.0", "6.0, 6.0")
+                   .replace('"blur:0:50,occlusion:0:450"', '"blur:0"'))  # fmt: skip
+    argv = ["demo", "-o", str(out), "--config", str(cfg), "--seed", "0", "--workers", "1", "--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"jsve demo: {out / 'logs'} holds outputs of another job")
+    assert "--force" in err[0]
+    assert log.read_bytes() == before and sorted(p.name for p in out.iterdir()) == ["logs"]
+
+    calls = []
+    monkeypatch.setattr(_study, "run_study", lambda *a, **kw: calls.append(kw["force"]) or {})
+    monkeypatch.setattr(_report, "write_report", lambda *a, **kw: None)
+    assert main([*argv, "--force"]) == 0
+    assert calls == [True]
+    write_study(tmp_path / "fresh", seed=0, config=sim, **small)
+    (fresh,) = (tmp_path / "fresh").rglob("*.csv")
+    (log,) = (out / "logs").rglob("*.csv")
+    assert log.read_bytes() == fresh.read_bytes() != before  # the demo's seed-0 log, not the old one

@@ -2,7 +2,8 @@
 
     pip install -e . && jsve demo            # writes ./jsve-demo/report.html in a few minutes
 
-Needs nothing outside the package (procedural EuRoC-like flights); resumable (rerun to finish).
+Needs nothing outside the package (procedural EuRoC-like flights); resumable (rerun to finish). A folder
+holding a demo of another configuration stops the command (one line, exit 2) unless --force.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, metavar="N", help="simulator processes (default: all cores)")
     common.add_switch_model_option(p)
     p.add_argument("--no-progress", action="store_true")
+    common.add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -65,7 +67,9 @@ def run(args) -> int:
             config = replace(config, study=replace(config.study, switch_model=args.switch_model))
     except (ValueError, TypeError) as err:
         return common.fail("demo", err)
-    timings = run_demo(args.output, config, progress=not args.no_progress, workers=args.workers)
+    timings = run_demo(
+        args.output, config, progress=not args.no_progress, workers=args.workers, force=args.force
+    )
     out = Path(args.output)
     print(f"jsve demo: report in {out / 'report.html'} ({timings['total']:.0f} s)")
     print(
