@@ -87,16 +87,21 @@ def test_wrong_image_size_is_refused(first_frames):
         m.measure_frames([d.downsample(images[0], 0.5, mode="calibration")], camera)
 
 
-def test_batch_tables_written_resumed_and_calibration_mode(shared_data, tmp_path):
-    # A 4-frame copy of the real sequence (in a temporary folder, never the repository).
-    source = tmp_path / "V1_4"
+def _copy_frames(shared_data, source, n: int) -> list[tuple[int, str]]:
+    """An n-frame copy of the real sequence at `source` (a temporary folder, never the repository)."""
     cam = source / "mav0" / "cam0"
     (cam / "data").mkdir(parents=True)
     shutil.copy(shared_data / SEQUENCE / "mav0" / "cam0" / "sensor.yaml", cam / "sensor.yaml")
-    frames = datasets.read_frame_list(shared_data / SEQUENCE / "mav0" / "cam0")[:4]
+    frames = datasets.read_frame_list(shared_data / SEQUENCE / "mav0" / "cam0")[:n]
     for _, name in frames:
         shutil.copy(shared_data / SEQUENCE / "mav0" / "cam0" / "data" / name, cam / "data" / name)
     (cam / "data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{t},{n}\n" for t, n in frames))
+    return frames
+
+
+def test_batch_tables_written_resumed_and_calibration_mode(shared_data, tmp_path):
+    source = tmp_path / "V1_4"
+    frames = _copy_frames(shared_data, source, 4)
     datasets.disturb_datasets(
         [source], tmp_path / "dist", ["downsample"], {"downsample": [1.0, 0.5]},
         {"downsample": {"mode": "calibration"}}, progress=False,
@@ -115,3 +120,62 @@ def test_batch_tables_written_resumed_and_calibration_mode(shared_data, tmp_path
     stamp = {p: p.stat().st_mtime_ns for p in tables}
     m.measure_datasets([tmp_path / "dist"], tmp_path / "tables", table_format="parquet", progress=False)
     assert {p: p.stat().st_mtime_ns for p in tables} == stamp  # finished tables are kept
+    assert all(m.key_path(p).is_file() for p in tables)
+
+
+def test_a_table_of_another_key_stops_the_batch_and_force_measures_it_again(shared_data, tmp_path, capsys):
+    """measure resumes only what it measured under the same key: another setting, stride or frame, or a
+    table without its key file, stops it before anything is written (StaleOutputError naming the
+    difference; jsve measure: one line naming --force, exit 2); force measures those tables again."""
+    from jsve.cli import main
+    from jsve.io._resume import StaleOutputError
+
+    roots = [tmp_path / "A", tmp_path / "B"]
+    for root in roots:
+        _copy_frames(shared_data, root, 3)
+    out = tmp_path / "tables"
+    run = dict(progress=False, orb=m.OrbSettings(n_features=500))
+    tables = m.measure_datasets(roots, out, **run)
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    first = pd.read_csv(tables[0])
+
+    with pytest.raises(
+        StaleOutputError, match=r"2 tables measured under another key, e.g. A.csv: orb.n_features 500 != 600"
+    ):
+        m.measure_datasets(roots, out, progress=False, orb=m.OrbSettings(n_features=600))
+    with pytest.raises(StaleOutputError, match="A.csv: stride 1 != 2"):
+        m.measure_datasets(roots, out, stride=2, **run)
+    image = sorted((roots[1] / "mav0" / "cam0" / "data").iterdir())[1]
+    edited = image.read_bytes()
+    image.write_bytes(m.cv2.imencode(".png", 255 - m.read_image(image))[1].tobytes())  # another frame
+    with pytest.raises(StaleOutputError, match=r"1 tables .* e.g. B.csv: camera_hash"):
+        m.measure_datasets(roots, out, **run)
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == stamps  # nothing was written
+
+    argv = [
+        "measure",
+        *map(str, roots),
+        "-o",
+        str(out),
+        "--n-features",
+        "500",
+        "--workers",
+        "1",
+        "--no-progress",
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"jsve measure: {out} holds outputs of another job (1 tables")
+    assert err[0].endswith("--force discards them and recomputes")
+    assert main([*argv, "--force"]) == 0
+    assert tables[0].stat().st_mtime_ns == stamps[tables[0]]  # A's table had its key: kept
+    assert tables[1].stat().st_mtime_ns != stamps[tables[1]]
+    fresh = m.measure_datasets([roots[1]], tmp_path / "fresh", **run)[0]
+    pd.testing.assert_frame_equal(pd.read_csv(tables[1]), pd.read_csv(fresh))
+    assert not pd.read_csv(tables[1]).equals(first)  # B's frames are A's no more
+    assert m.measure_datasets(roots, out, **run) == tables  # resumed: equal keys now
+
+    image.write_bytes(edited)
+    m.key_path(tables[0]).unlink()  # a table without its key is never taken as finished
+    with pytest.raises(StaleOutputError, match="A.csv: A.csv.key.json is missing"):
+        m.measure_datasets([roots[0]], out, **run)

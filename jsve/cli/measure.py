@@ -2,7 +2,9 @@
 
 A thin layer over jsve.image._measure.measure_datasets: every EuRoC dataset at or below each DATASET is
 measured (ORB-SLAM3-style ORB, frame-to-frame verified inliers, frustum stand-in, SVE bins) in
-parallel with a progress bar, and one table per dataset is written. Existing tables are kept.
+parallel with a progress bar, and one table per dataset is written with its key (the dataset's path and
+camera content, camera, stride and settings) beside it. A rerun keeps tables of an equal key; a table of
+another key stops the command (one line, exit 2) unless --force, which measures it again.
 """
 
 from __future__ import annotations
@@ -47,8 +49,13 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: all cores)"
     )
-    parser.add_argument("--overwrite", action="store_true", help="re-measure datasets that have a table")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="re-measure every dataset, even those with a table of its key",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_force_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -69,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
             orb=orb,
             workers=args.workers,
             overwrite=args.overwrite,
+            force=args.force,
             progress=not args.no_progress,
         )
     except (ValueError, DatasetError) as error:

@@ -21,18 +21,26 @@ ORB-SLAM3 knows are documented where they are made, and in docs/disturbances.md:
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import re
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pandas as pd
 
-from jsve.image._datasets import DatasetError, camera_dirs, read_frame_list, read_yaml_list, run_parallel
+from jsve.image._datasets import (
+    DatasetError,
+    camera_dirs,
+    content_hash,
+    read_frame_list,
+    read_yaml_list,
+    run_parallel,
+)
 from jsve.image._orb import EXTRACTORS as EXTRACTORS
 from jsve.image._orb import Features as Features
 from jsve.image._orb import OrbSettings as OrbSettings
@@ -45,6 +53,7 @@ from jsve.image._orb import fast_in_cells as fast_in_cells
 from jsve.image._orb import image_pyramid as image_pyramid
 from jsve.image._orb import intensity_centroid_angles as intensity_centroid_angles
 from jsve.io import _atomic as atomic
+from jsve.io._resume import StaleOutputError, differences
 from jsve.io._schema import BIN_COLUMNS, N_BINS
 
 logger = logging.getLogger(__name__)
@@ -497,10 +506,64 @@ def _count_job(job: _CountJob) -> tuple[np.ndarray, FrameCounts]:
 
 TABLE_FORMATS = ("csv", "parquet")
 
+KEY_SUFFIX = ".key.json"
+"""A table's key file is the table's name with this suffix (`V1_01.csv.key.json`), written after it."""
+
+KEY_VERSION = 1
+
 
 def write_table(table: pd.DataFrame, path: Path) -> None:
     """Write a table as CSV or Parquet (by suffix) atomically: a temporary file renamed into place."""
     atomic.write_table(table, path)
+
+
+def key_path(table: Path) -> Path:
+    """Where the key of the table at `table` is recorded."""
+    return table.with_name(table.name + KEY_SUFFIX)
+
+
+def measure_key(
+    dataset: Path | str,
+    camera: str = "cam0",
+    stride: int = 1,
+    orb: OrbSettings = OrbSettings(),
+    match: MatchSettings = MatchSettings(),
+) -> dict:
+    """What a visibility table is a function of: the dataset (resolved path, and the content hash of
+    the camera folder the table reads: every frame's bytes, data.csv and sensor.yaml), the camera, the
+    stride and every extraction and matching setting. Recorded next to the table (key_path); a finished
+    table is kept only under an equal key.
+
+    Raises:
+        DatasetError: the dataset has no such camera folder.
+    """
+    cam_dir = Path(dataset) / "mav0" / camera
+    if cam_dir not in camera_dirs(Path(dataset)):
+        raise DatasetError(f"{cam_dir}: no such camera folder with data/ and data.csv")
+    key = {
+        "source": str(Path(dataset).resolve()),
+        "camera_hash": content_hash(cam_dir)[0],
+        "camera": camera,
+        "stride": stride,
+        "orb": asdict(orb),
+        "match": asdict(match),
+    }
+    return json.loads(json.dumps(key))  # as the key file reads back (tuples as lists)
+
+
+def _stale(table: Path, key: dict) -> str | None:
+    """What differs between a finished table's recorded key and `key`, or None when they are equal."""
+    path = key_path(table)
+    try:
+        recorded = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return f"{path.name} is missing (a table of an older jsve or an interrupted write)"
+    except (OSError, ValueError) as error:
+        return f"{path.name} cannot be read ({error})"
+    if not isinstance(recorded, dict):
+        return f"{path.name} holds no key"
+    recorded = {k: recorded[k] for k in key if k in recorded}
+    return None if recorded == key else differences(recorded, key)
 
 
 def measure_datasets(
@@ -514,17 +577,26 @@ def measure_datasets(
     match: MatchSettings = MatchSettings(),
     workers: int = 1,
     overwrite: bool = False,
+    force: bool = False,
     progress: bool = True,
 ) -> list[Path]:
     """Measure every dataset found under `roots` in parallel and write one table per dataset.
 
     A dataset at `root/a/b` gets `out_dir/<root name>/a/b.<format>` (`out_dir/<root name>.<format>`
-    when the root is itself a dataset). Existing tables are kept unless overwrite=True, so a batch can
-    be resumed. Image work runs in `workers` processes with a tqdm bar; the SVE metrics are computed
-    for all frames here, in this process.
+    when the root is itself a dataset), and its key (measure_key: the dataset's path and camera content,
+    the camera, stride and settings) in `<table>.key.json`, written after the table. A batch resumes:
+    a table whose recorded key equals its job's is kept; a table of another key (or without one) stops
+    the call with StaleOutputError before anything is written, unless force=True (those tables are
+    measured again). overwrite=True measures every dataset again. Image work runs in `workers`
+    processes with a tqdm bar; the SVE metrics are computed for all frames here, in this process.
 
     Returns:
         The table paths, one per dataset found, in order.
+
+    Raises:
+        StaleOutputError: a table of another key (and force is False).
+        DatasetError: a root holds no dataset, or a dataset cannot be read.
+        OutputError: a table cannot be written.
     """
     if table_format not in TABLE_FORMATS:
         raise ValueError(f"table_format must be one of {TABLE_FORMATS}; got {table_format!r}")
@@ -537,9 +609,32 @@ def measure_datasets(
         for dataset in datasets:
             rel = Path(root.name) / dataset.relative_to(root) if dataset != root else Path(root.name)
             targets.append((dataset, Path(out_dir) / rel.with_name(rel.name + "." + table_format)))
-    todo = [(d, t) for d, t in targets if overwrite or not t.exists()]
-    jobs = [_CountJob(d, camera, stride, orb, match) for d, _ in todo]
+    keys = [measure_key(dataset, camera, stride, orb, match) for dataset, _ in targets]
+    # Every finished table is checked before any is written: a folder never mixes two keys.
+    stale = [
+        (target, what)
+        for (_, target), key in zip(targets, keys, strict=True)
+        if target.exists() and not overwrite and (what := _stale(target, key))
+    ]
+    if stale and not force:
+        target, what = stale[0]
+        raise StaleOutputError(
+            out_dir,
+            f"{len(stale)} tables measured under another key, e.g. "
+            f"{target.relative_to(out_dir).as_posix()}: {what}",
+        )
+    redo = {target for target, _ in stale}
+    todo = [
+        (dataset, target, key)
+        for (dataset, target), key in zip(targets, keys, strict=True)
+        if overwrite or target in redo or not target.exists()
+    ]
+    if todo:
+        atomic.check_writable(out_dir)
+    jobs = [_CountJob(dataset, camera, stride, orb, match) for dataset, _, _ in todo]
     results = run_parallel(_count_job, jobs, workers, progress, "measure")
-    for (_, target), (t_ns, counts) in zip(todo, results, strict=True):
+    for (_, target, key), (t_ns, counts) in zip(todo, results, strict=True):
+        key_path(target).unlink(missing_ok=True)  # a table without its key is never taken as finished
         write_table(visibility_table(t_ns, counts, orb.n_features), target)
+        atomic.write_json(key_path(target), {"jsve_measure": KEY_VERSION, **key})
     return [t for _, t in targets]
