@@ -115,3 +115,27 @@ def test_buckets_stack_each_group(x64):
             source = runs[row["run"]].frames
             assert np.array_equal(np.asarray(b.n_inliers[i, :n]), source["n_inliers"].to_numpy())
     assert sorted(seen) == list(range(5))
+
+
+@pytest.mark.parametrize("base", [5, 1 << 40])
+def test_map_ids_beyond_int32_stay_apart(base):
+    """Two maps whose ids differ by 2**32 are two maps in the batch (int32 would wrap one onto the
+    other), and the replay sees the same map starts and resets as with ids 0 and 1: a new map where
+    the id changes, a reset where a map's id comes back."""
+    from jsve.core._replay import frame_data
+    from jsve.io._batching import map_ranks
+
+    n = 90
+    small = np.repeat([0, 1, 0], [30, 30, 30])  # map 0, map 1, back to map 0
+    big = np.where(small == 0, base, base + (1 << 32))
+    runs = [make_run(n, seed=7, map_id=ids) for ids in (small, big)]
+    assert runs[1].frames["map_id"].iloc[30] - runs[1].frames["map_id"].iloc[0] == 1 << 32
+    batch = from_runs(runs, dtype=jnp.float32).batch
+    assert np.array_equal(np.asarray(batch.map_id[1, :n]), small)  # dense ranks of the sorted ids
+    data = frame_data(batch)
+    for name in ("rec_start", "rec_loss", "rec_reloc"):
+        a, b = (np.asarray(getattr(data, name)[i, :n]) for i in (0, 1))
+        assert np.array_equal(a, b), name
+    assert np.isfinite(runs[1].frames["vis_px"].to_numpy()).all()  # a pose on every frame
+    assert list(np.flatnonzero(np.asarray(data.rec_start[1, :n]))) == [0, 30, 60]
+    assert np.array_equal(map_ranks(np.array([7, 3, 7, 1 << 40, 3])), [1, 0, 1, 2, 0])

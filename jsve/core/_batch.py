@@ -28,7 +28,8 @@ class LogBatch(eqx.Module):
         state: [R, F] int8, the front-end's own logged eTrackingState.
         imu_init: [R, F] IMU initialised in the recorded run's map (Atlas::isImuInitialized).
         imu_ba2: [R, F] inertial BA2 done for the recorded run's map (Map::GetIniertialBA2).
-        map_id: [R, F] int32, the recorded run's Atlas map (Map::GetId; a reset keeps it).
+        map_id: [R, F] int32, the recorded run's Atlas map (Map::GetId; a reset keeps it), as the rank
+            of its id among the run's distinct ids (jsve.io._batching.map_ranks): only equality counts.
         has_pose: [R, F] the recorded run posed the frame (vis_* are zeros / identity where not).
         n_extracted, n_inliers, n_frustum: [R, F] counts (int32).
         bins: [R, F, 64] keypoints per SVE bin (uint16).

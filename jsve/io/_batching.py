@@ -65,6 +65,18 @@ def json_cell(value):
     return tuple(value) if isinstance(value, list) else value
 
 
+def map_ranks(map_id: np.ndarray) -> np.ndarray:
+    """A run's Atlas map ids as dense ranks of its sorted distinct ids (int32: 0, 1, 2, ...).
+
+    The format allows any id >= 0 that int64 holds (Map::GetId is an unsigned long), which int32 would
+    wrap (2**32 + 5 onto 5: two maps taken for one). The replay only compares ids (a map starts where the
+    id changes, a reset stays in its map: jsve.core._replay.frame_data), and ranks compare as the ids
+    do; ids 0, 1, 2 ... stay as they are.
+    """
+    _, ranks = np.unique(np.asarray(map_id, np.int64), return_inverse=True)
+    return ranks.reshape(np.shape(map_id)).astype(np.int32)
+
+
 def from_runs(
     runs: Sequence[RunLog], *, n_frames: int | None = None, dtype=jnp.float32, pad_multiple: int = 64
 ) -> Bucket:
@@ -117,7 +129,7 @@ def from_runs(
         ba2 = f["imu_ba2"].to_numpy() != 0
         posed = np.isfinite(f[list(schema.VIS_POSITION)].to_numpy()).all(axis=1)  # NaN: no pose (v2)
         imu_init[i, :n], imu_ba2[i, :n], has_pose[i, :n] = init, ba2, posed
-        map_id[i, :n] = f["map_id"].to_numpy()
+        map_id[i, :n] = map_ranks(f["map_id"].to_numpy())
         # Delays from the recorded run's first map (its first posed frame), as a new map needs them.
         t_first = t[i, int(np.argmax(posed))] if posed.any() else 0.0
         delay[i] = t[i, int(np.argmax(init))] - t_first if init.any() else np.inf
