@@ -647,3 +647,24 @@ def test_cli_mask_logs_refuses_two_inputs_of_one_file_name(tmp_path, capsys):
         "mask logs of the same file name into different folders (one run each)"
     ]
     assert not out.exists()
+
+
+def test_cli_mask_logs_writes_every_masked_log_or_none(tmp_path, capsys):
+    """A bad second log stops mask-logs with one line and exit 2, and the first log's masked copy is
+    not left behind (all or nothing: an error inside the batch must not commit what came before)."""
+    folder = tmp_path / "png"
+    folder.mkdir()
+    for f in range(3):
+        cv2.imwrite(str(folder / f"{f:06d}.png"), np.zeros((64, 96), np.uint8))
+    paths = []
+    for k in range(2):
+        run, kp, _ = consistent_pair(3, seed=30 + k)
+        path = logs.write_log(run, tmp_path / "in" / f"r{k}.csv")
+        if k == 0:  # only the first log has its keypoint side file
+            kpio.write_keypoints(kp, kpio.keypoints_path(path))
+        paths.append(str(path))
+    out = tmp_path / "out"
+    assert cli_main(["mask-logs", *paths, "--png", str(folder), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jsve mask-logs: ") and "r1" in err[0], err
+    assert not out.exists() or [p for p in out.rglob("*") if p.is_file()] == []

@@ -93,9 +93,11 @@ def run(args: argparse.Namespace) -> int:
             )
         targets[name] = path
     lines = []
-    with atomic.all_or_nothing():  # every masked log, or none
-        for path in args.logs:
-            try:
+    try:
+        # Every masked log, or none: the error leaves the block (a return inside it would end the
+        # block normally and commit the logs written before the bad one).
+        with atomic.all_or_nothing():
+            for path in args.logs:
                 run_log = read_log(path)
                 keypoints = read_keypoints(keypoints_path(path))
                 result = masks.apply_masks(
@@ -107,13 +109,13 @@ def run(args: argparse.Namespace) -> int:
                     verify_bins=not args.no_verify_bins,
                 )
                 target = write_log(result.log, out / Path(path).name)
-            except (LogFormatError, ValueError, OSError) as error:
-                return common.fail("mask-logs", error)
-            n_kp = len(keypoints.keypoints)
-            share = result.removed.sum() / n_kp if n_kp else 0.0
-            lines.append(
-                f"{path} -> {target}: removed {int(result.removed.sum())} of {n_kp} keypoints ({share:.1%}) "
-                f"over {len(run_log.frames)} frames"
-            )
+                n_kp = len(keypoints.keypoints)
+                share = result.removed.sum() / n_kp if n_kp else 0.0
+                lines.append(
+                    f"{path} -> {target}: removed {int(result.removed.sum())} of {n_kp} keypoints "
+                    f"({share:.1%}) over {len(run_log.frames)} frames"
+                )
+    except (LogFormatError, ValueError, OSError) as error:
+        return common.fail("mask-logs", error)
     print("\n".join(lines))
     return 0
