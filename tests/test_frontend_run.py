@@ -88,3 +88,23 @@ def test_plan_keeps_complete_logs_of_the_same_key_and_stops_at_others(tmp_path):
         plan(build, [ds], **kw)
     todo, _ = plan(build, [ds], force=True, **kw)
     assert [j.run for j in todo] == [0, 1]
+
+
+def test_rules_in_the_loop_become_driver_arguments_and_metadata():
+    from jsve.core import preset
+    from jsve.evaluation._identity import recorded_rule
+    from jsve.frontend._run import driver_rule, record_rule
+    from jsve.io import RunLog
+
+    assert driver_rule("orbslam3", preset("orbslam3"), "orbslam3") == ([], "orbslam3")
+    args, meta = driver_rule("orbslam3", preset("orbslam3"), "imu-coast")
+    assert args == ["--rule-inliers", "15.0,50.0,50.0,10.0", "--coast"] and meta == "orbslam3"
+    args, meta = driver_rule("record", record_rule(), "orbslam3")
+    assert args == ["--rule-inliers", "1.0,1.0,1.0,0.0"]
+    # the metadata names the rule as JSON text, which identity replay reads back as that rule
+    name, rule = recorded_rule(RunLog(meta={"rule": meta}, frames=None, source="log.csv"))  # type: ignore[arg-type]
+    assert name == meta and rule == record_rule()
+    with pytest.raises(ValueError, match="inlier-count rules only"):
+        driver_rule("sve-option2", preset("sve-option2"), "orbslam3")
+    with pytest.raises(ValueError, match="log.csv: metadata 'rule' is not valid JSON"):
+        recorded_rule(RunLog(meta={"rule": "{not json"}, frames=None, source="log.csv"))  # type: ignore[arg-type]

@@ -9,7 +9,6 @@ the summary and, per rule, how many runs failed for each failure_reason.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from jsve.cli import _common as common
@@ -51,26 +50,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def load_rules(names: list[str] | None):
-    """(name, Rule) pairs from preset names and JSON files; errors name the file."""
-    from jsve.core._rules import PRESETS, preset, rule_from_dict
-
-    pairs = []
-    for name in names or list(PRESETS):
-        if name in PRESETS:
-            pairs.append((name, preset(name)))
-            continue
-        path = Path(name)
-        if not path.is_file():
-            raise ValueError(f"--rule {name!r} is neither a preset ({', '.join(PRESETS)}) nor a file")
-        try:
-            spec = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}:{err.lineno}: not valid JSON: {err.msg}") from None
-        pairs.append((path.stem, rule_from_dict(spec, source=str(path))))
-    return pairs
-
-
 @common.guarded("evaluate")
 def run(args) -> int:
     import jax
@@ -89,7 +68,7 @@ def run(args) -> int:
     if args.output:
         atomic.check_writable(args.output)  # before the replay: an unwritable folder fails at once
     try:
-        rules = load_rules(args.rule)
+        rules = common.load_rules(args.rule)
         runs = common.load_runs(
             "evaluate", args.logs, on_error=args.on_error, workers=args.workers, progress=progress
         )

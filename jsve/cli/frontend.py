@@ -64,6 +64,21 @@ def register(subparsers) -> None:
     r.add_argument(
         "--settings", required=True, metavar="YAML", help="ORB-SLAM3 settings (EuRoC Monocular-Inertial.yaml)"
     )
+    r.add_argument(
+        "--rule",
+        default="orbslam3",
+        metavar="RULE",
+        help="the success test in the loop: orbslam3 (ORB-SLAM3's own, default), record (fails "
+        "only frames without an inlier: logs that support every stricter rule), or a rule JSON "
+        "file of the inlier family (e.g. jsve fit's fitted_inliers.json)",
+    )
+    r.add_argument(
+        "--switch-model",
+        choices=("orbslam3", "imu-coast"),
+        default="orbslam3",
+        help="what a failed frame keeps: its optimised pose (orbslam3, as v1.0) or the pose "
+        "TrackLocalMap started from (imu-coast)",
+    )
     r.add_argument("--runs", type=int, default=1, help="runs per dataset (default 1)")
     r.add_argument("-o", "--out", required=True, metavar="LOGDIR", help="output folder")
     r.add_argument("--workers", type=int, default=1, help="drivers at once (each runs 3 threads; default 1)")
@@ -123,9 +138,16 @@ def run_runs(args: argparse.Namespace) -> int:
         if not Path(value).is_file():
             return common.fail("frontend run", f"{flag}: {value}: no such file")
     try:
+        if args.rule == "record":
+            from jsve.frontend._run import record_rule
+
+            rule = ("record", record_rule())
+        else:
+            rule = common.load_rules([args.rule])[0]
         todo, done = plan(
             build, [Path(d) for d in args.datasets], runs=args.runs, out=out,
-            vocabulary=Path(args.vocabulary), settings=Path(args.settings), force=args.force,
+            vocabulary=Path(args.vocabulary), settings=Path(args.settings), rule=rule,
+            switch_model=args.switch_model, force=args.force,
         )  # fmt: skip
     except (ValueError, OSError) as err:
         return common.fail("frontend run", err)

@@ -1,9 +1,10 @@
 """Identity replay: does jsve's machine reproduce the states a front-end logged under its own rule?
 
-A log names the rule its front-end ran (metadata `rule`: a preset name or a rule object, see
-jsve.core._rules.rule_to_dict) and the switch model (`switch_model`). Replaying that rule over the log
-must give back the logged `state` on (almost) every frame; a hook that logs the wrong counts, states or
-flags shows up here first. This is how a real front-end's hook is validated (docs/frontend.md).
+A log names the rule its front-end ran (metadata `rule`: a preset name, or a rule object, see
+jsve.core._rules.rule_to_dict, also as JSON text) and the switch model (`switch_model`). Replaying that
+rule over the log must give back the logged `state` on (almost) every frame; a hook that logs the wrong
+counts, states or flags shows up here first. This is how a real front-end's hook is validated
+(docs/frontend.md).
 """
 
 from __future__ import annotations
@@ -37,6 +38,12 @@ def recorded_rule(run: RunLog, default: str | None = None) -> tuple[str, Rule]:
         raise ValueError(
             f"{run.source}: metadata has no 'rule' (the rule its front-end ran); give one with --rule"
         )
+    if isinstance(spec, str) and spec.lstrip().startswith("{"):
+        # a rule object written as JSON text (jsve_log.hpp writes metadata strings, not objects)
+        try:
+            spec = json.loads(spec)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{run.source}: metadata 'rule' is not valid JSON: {err.msg}") from None
     if isinstance(spec, dict):
         return json.dumps(spec, sort_keys=True), rule_from_dict(spec, source=run.source)
     if spec not in PRESETS:

@@ -6,7 +6,7 @@ and the copy is patched by anchored edits that fail loudly when an anchor is not
   * CMakeLists.txt: C++17 instead of C++11 (Pangolin 0.9 and GCC 12 need it); the examples and the
     in-tree g2o target are dropped (jsve builds its own driver, and g2o on its own as build.sh does);
   * src/LoopClosing.cc: `mnFullBAIdx++` on a bool (ill-formed in C++17) becomes `= true`, its C++14 meaning;
-  * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and four calls.
+  * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and six calls.
 Then Pangolin (when not installed), DBoW2, g2o, the library and the driver are built with CMake in
 BUILD/build/*. Layout of BUILD:
 
@@ -79,7 +79,14 @@ EDITS = (
         "    mpLocalMapper->mnMatchesInliers=mnMatchesInliers;\n"
         + "    JSVE_HOOK_INLIERS(mnMatchesInliers);"
         + HOOK_TAG
+        + "\n    JSVE_HOOK_DECIDE();"
+        + HOOK_TAG
         + "\n",
+    ),
+    Edit(
+        "src/Tracking.cc",
+        "    mTrackedFr++;\n",
+        "    mTrackedFr++;\n    JSVE_HOOK_SAVE_PREDICTION();" + HOOK_TAG + "\n",
     ),
     Edit(
         "src/Tracking.cc",
@@ -279,7 +286,10 @@ def build(
     )  # fmt: skip
     driver = out / "bin" / "jsve_orbslam3"
     driver.parent.mkdir(exist_ok=True)
-    shutil.copy2(out / "build" / "driver" / "bin" / "jsve_orbslam3", driver)
+    # copy, then rename: a driver that is running (`jsve frontend run`) keeps its file
+    staged = driver.with_name(driver.name + ".jsve-tmp")
+    shutil.copy2(out / "build" / "driver" / "bin" / "jsve_orbslam3", staged)
+    staged.replace(driver)
     record = {
         "orbslam3": str(orbslam3),
         "hook_sha256": _hash_files(sorted(HOOK_DIR.iterdir()) + [Path(get_include()) / "jsve_log.hpp"]),

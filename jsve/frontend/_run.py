@@ -102,6 +102,42 @@ def image_size(dataset: Path) -> tuple[int, int]:
     return im.shape[1], im.shape[0]
 
 
+RECORD_THRESHOLDS = {"imu_init": 1.0, "not_init": 1.0, "reloc": 1.0, "recovery": 0.0}
+"""The `record` rule: ORB-SLAM3's test failing only a frame without a single inlier match and recovering
+on the first frame with one (docs/frontend.md section 6): its logs support every stricter rule."""
+
+
+def record_rule():
+    """The permissive recording rule (RECORD_THRESHOLDS) as a jsve Rule."""
+    from jsve.core._rules import InlierRule, Thresholds
+
+    return InlierRule(Thresholds(**RECORD_THRESHOLDS))
+
+
+def driver_rule(name: str, rule, switch_model: str) -> tuple[list[str], str]:
+    """The driver's arguments for running `rule` in the loop, and the log's `rule` metadata.
+
+    `name` "orbslam3" under "orbslam3" runs ORB-SLAM3's own test untouched (no arguments); any other
+    inlier rule, or "imu-coast", replaces it through the hook. Returns (arguments, metadata `rule`: the
+    preset name "orbslam3", else rule_to_dict's object as JSON text, which jsve check reads back).
+
+    Raises:
+        ValueError for a rule the hook cannot run (the SVE family is not built into the hook yet).
+    """
+    from jsve.core._rules import rule_kind, rule_to_dict
+
+    if rule_kind(rule) != "inliers":
+        raise ValueError(f"rule {name!r}: the hook runs inlier-count rules only (the SVE family in the loop "
+                         "is not built yet)")  # fmt: skip
+    spec = rule_to_dict(rule)
+    meta = name if name == "orbslam3" else json.dumps(spec, sort_keys=True)
+    if name == "orbslam3" and switch_model == "orbslam3":
+        return [], meta
+    t = spec["thresholds"]
+    values = ",".join(repr(float(t[k])) for k in ("imu_init", "not_init", "reloc", "recovery"))
+    return ["--rule-inliers", values] + (["--coast"] if switch_model == "imu-coast" else []), meta
+
+
 @dataclasses.dataclass(frozen=True)
 class RunJob:
     dataset: Dataset
@@ -109,6 +145,7 @@ class RunJob:
     log: Path
     settings: Path
     meta: dict
+    rule_args: tuple[str, ...] = ()
 
 
 def _meta_args(meta: dict) -> list[str]:
@@ -130,7 +167,8 @@ def run_one(
     cmd = [
         str(driver), "--vocabulary", str(vocabulary), "--settings", str(job.settings),
         "--sequence", str(job.dataset.path), "--log", str(job.log), "--overwrite",
-        "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path), *_meta_args(job.meta),
+        "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path),
+        *_meta_args(job.meta), *job.rule_args,
     ] + ([] if wait else ["--no-wait"])  # fmt: skip
     start = time.monotonic()
     with open(f"{stem}.console.txt", "w") as out:
@@ -175,23 +213,41 @@ def plan(
     out: Path,
     vocabulary: Path,
     settings: Path,
+    rule: tuple[str, object] | None = None,
+    switch_model: str = "orbslam3",
     force: bool = False,
 ) -> tuple[list[RunJob], list[Path]]:
     """The runs still to do and the logs already complete under the same key.
 
+    `rule`: (name, jsve Rule) run in the loop (default: ORB-SLAM3's own); `switch_model` "orbslam3" or
+    "imu-coast" (a failed frame keeps the pose TrackLocalMap started from). Logs go under
+    OUT/<sequence>/<disturbance>-<level>/, in a <rule>-<switch model> subfolder unless the rule is
+    ORB-SLAM3's own under "orbslam3".
+
     Raises:
         StaleOutputError when a complete log was made from other inputs (unless `force`).
     """
+    from jsve.core._machine import check_switch_model
+    from jsve.core._rules import preset
+
+    check_switch_model(switch_model)
+    name, rule_obj = rule if rule is not None else ("orbslam3", preset("orbslam3"))
+    rule_args, rule_meta = driver_rule(name, rule_obj, switch_model)
+    stock = not rule_args
     base_key = {
         "hook": json.loads((build / "build.json").read_text())["hook_sha256"][:16],
         "vocabulary": file_digest([vocabulary]),
         "settings": file_digest([settings]),
+        "rule": rule_meta,
+        "switch_model": switch_model,
     }
     settings_text = settings.read_text()
     todo, done = [], []
     for path in datasets:
         ds = describe_dataset(path)
         folder = out / ds.sequence / f"{ds.disturbance}-{ds.level:g}"
+        if not stock:
+            folder = folder / f"{name}-{switch_model}"
         folder.mkdir(parents=True, exist_ok=True)
         width, height = image_size(ds.path)
         own = scaled_settings(settings_text, width, height)
@@ -215,10 +271,10 @@ def plan(
             meta = {
                 "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": "imu_monocular",
                 "n_features": 1000, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
-                "disturbance": ds.disturbance, "level": ds.level, "rule": "orbslam3",
-                "switch_model": "orbslam3", "generator": key,
+                "disturbance": ds.disturbance, "level": ds.level, "rule": rule_meta,
+                "switch_model": switch_model, "generator": key,
             }  # fmt: skip
-            todo.append(RunJob(ds, k, log, run_settings, meta))
+            todo.append(RunJob(ds, k, log, run_settings, meta, tuple(rule_args)))
     return todo, done
 
 

@@ -4,6 +4,7 @@
 //   jsve_orbslam3 --vocabulary VOC.txt --settings EuRoC.yaml --sequence DIR --log OUT.csv
 //                 [--trajectory OUT.txt] [--summary OUT.json] [--meta KEY=VALUE]... [--overwrite]
 //                 [--no-wait]   (default: frames paced at the camera's rate, as ORB-SLAM3's examples do)
+//                 [--rule-inliers IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]   (default: ORB-SLAM3's test)
 //
 // DIR holds mav0/cam0/data.csv (`t_ns,file`), mav0/cam0/data/<file> and mav0/imu0/data.csv (`t_ns,
 // wx,wy,wz,ax,ay,az`, EuRoC's column order). --meta values are typed like JSON scalars and lists:
@@ -36,11 +37,28 @@ struct Args {
     std::vector<std::pair<std::string, std::string>> meta;
     bool overwrite = false;
     bool wait = true;  // pace frames at the camera's rate, as a live camera (and ORB-SLAM3's examples) do
+    bool has_rule = false, coast = false;
+    jsve_hook::InlierRule rule;
 };
 
 [[noreturn]] void usage_error(const std::string& message) {
     std::cerr << "jsve_orbslam3: " << message << "\n";
     std::exit(2);
+}
+
+bool parse_int(const std::string& s, long long* out) {
+    if (s.empty()) return false;
+    char* end = nullptr;
+    *out = std::strtoll(s.c_str(), &end, 10);
+    return *end == '\0';
+}
+
+bool parse_double(const std::string& s, double* out) {
+    if (s.empty()) return false;
+    std::istringstream in(s);
+    in.imbue(std::locale::classic());
+    in >> *out;
+    return in && in.peek() == EOF;
 }
 
 Args parse_args(int argc, char** argv) {
@@ -59,6 +77,20 @@ Args parse_args(int argc, char** argv) {
         else if (key == "--summary") a.summary = value();
         else if (key == "--overwrite") a.overwrite = true;
         else if (key == "--no-wait") a.wait = false;
+        else if (key == "--coast") a.coast = true;
+        else if (key == "--rule-inliers") {
+            const std::string v = value();
+            std::stringstream items(v);
+            std::vector<double> t;
+            for (std::string item; std::getline(items, item, ',');) {
+                double d = 0.0;
+                if (!parse_double(item, &d)) usage_error("--rule-inliers: '" + item + "' is not a number");
+                t.push_back(d);
+            }
+            if (t.size() != 4) usage_error("--rule-inliers wants IMU_INIT,NOT_INIT,RELOC,RECOVERY");
+            a.rule = jsve_hook::InlierRule{t[0], t[1], t[2], t[3]};
+            a.has_rule = true;
+        }
         else if (key == "--meta") {
             const std::string kv = value();
             const std::size_t eq = kv.find('=');
@@ -69,21 +101,6 @@ Args parse_args(int argc, char** argv) {
     if (a.vocabulary.empty() || a.settings.empty() || a.sequence.empty() || a.log.empty())
         usage_error("--vocabulary, --settings, --sequence and --log are required");
     return a;
-}
-
-bool parse_int(const std::string& s, long long* out) {
-    if (s.empty()) return false;
-    char* end = nullptr;
-    *out = std::strtoll(s.c_str(), &end, 10);
-    return *end == '\0';
-}
-
-bool parse_double(const std::string& s, double* out) {
-    if (s.empty()) return false;
-    std::istringstream in(s);
-    in.imbue(std::locale::classic());
-    in >> *out;
-    return in && in.peek() == EOF;
 }
 
 // KEY=VALUE into the log's metadata, typed as described at the top.
@@ -179,7 +196,9 @@ int main(int argc, char** argv) {
         return 2;
     }
 
+    if (args.coast && !args.has_rule) usage_error("--coast needs --rule-inliers");
     ORB_SLAM3::System slam(args.vocabulary, args.settings, ORB_SLAM3::System::IMU_MONOCULAR, false);
+    if (args.has_rule) jsve_hook::set_rule(args.rule, args.coast);
     // IMU samples up to the first image start nothing: ORB-SLAM3's first frame has no preintegration.
     std::size_t next = 0;
     while (next < imu.size() && imu[next].t <= double(images[0].t_ns) * 1e-9) ++next;

@@ -4,10 +4,15 @@
 // JSVE_HOOK_IMPLEMENTATION defined) and adds four one-line calls at anchored places
 // (jsve/frontend/_build.py, docs/frontend.md section 4):
 //   SearchLocalPoints  JSVE_HOOK_FRUSTUM(nToMatch)           the frustum count of this frame
-//   TrackLocalMap      JSVE_HOOK_INLIERS(mnMatchesInliers)   the inliers its success test reads
+//   TrackLocalMap      JSVE_HOOK_SAVE_PREDICTION() at its start; JSVE_HOOK_INLIERS(mnMatchesInliers)
+//                      and JSVE_HOOK_DECIDE() after the count, before ORB-SLAM3's success test
 //   GrabImageMonocular JSVE_HOOK_BEGIN_FRAME() before Track(), JSVE_HOOK_LOG_FRAME() after it
-// Nothing in ORB-SLAM3's decisions changes: the hook only copies values. Logging after Track()
-// returns catches every frame once, whichever early return Track() took.
+// Without a rule (set_rule) nothing in ORB-SLAM3's decisions changes: the hook only copies values.
+// With one, JSVE_HOOK_DECIDE returns the rule's success test in place of ORB-SLAM3's (the same
+// clauses, in the same order, with the rule's thresholds: jsve.core._machine.tracking_succeeds), and
+// under imu-coast a failed frame gets back the pose TrackLocalMap started from (PredictStateIMU's,
+// once the IMU is initialised). Logging after Track() returns catches every frame once, whichever
+// early return Track() took.
 //
 // The driver (jsve_orbslam3.cc) opens and closes the log through open_log / close_log. One tracker
 // per process: the hook's state is a process-wide singleton, used from the tracking thread only.
@@ -39,11 +44,33 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
 // Closes the log: writes the end marker and renames `<path>.partial` to `<path>`.
 bool close_log(std::string* error);
 
+// ORB-SLAM3's success test with other thresholds on the inlier count (ORB-SLAM3's own: 15 / 50 / 50 /
+// 10 for IMU_MONOCULAR). A frame fails inside the relocalisation window below `reloc`; in
+// RECENTLY_LOST it succeeds above `recovery`; else it fails below `imu_init` (IMU initialised, or a
+// stereo sensor) or `not_init`.
+struct InlierRule {
+    double imu_init = 15.0, not_init = 50.0, reloc = 50.0, recovery = 10.0;
+};
+
+// Replace ORB-SLAM3's success test by `rule` from the next frame on; `coast`: a failed frame keeps
+// the pose TrackLocalMap started from instead of the optimised one (switch model "imu-coast").
+void set_rule(const InlierRule& rule, bool coast);
+bool rule_active();
+
 }  // namespace jsve_hook
 
 #define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
 #define JSVE_HOOK_INLIERS(count) (::jsve_hook::state().n_inliers = static_cast<int>(count))
 #define JSVE_HOOK_BEGIN_FRAME() (::jsve_hook::state().n_inliers = ::jsve_hook::state().n_frustum = 0)
+#define JSVE_HOOK_SAVE_PREDICTION() ::jsve_hook::save_prediction(mCurrentFrame)
+#define JSVE_HOOK_DECIDE()                                                                         \
+    do {                                                                                           \
+        if (::jsve_hook::rule_active())                                                            \
+            return ::jsve_hook::decide(mCurrentFrame, mnMatchesInliers,                            \
+                                       mCurrentFrame.mnId < mnLastRelocFrameId + mMaxFrames,      \
+                                       mState == RECENTLY_LOST, mpAtlas->isImuInitialized(),       \
+                                       mSensor == System::IMU_STEREO || mSensor == System::IMU_RGBD); \
+    } while (0)
 // Expands inside a Tracking member function: reads its protected members.
 #define JSVE_HOOK_LOG_FRAME() ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas)
 
@@ -77,6 +104,52 @@ bool close_log(std::string* error) {
     const bool ok = s.log->close() == jsve::Status::kOk;
     if (!ok && error) *error = s.log->last_error();
     s.log.reset();
+    return ok;
+}
+
+struct RuleState {
+    bool active = false, coast = false;
+    InlierRule rule;
+    bool saved = false, has_velocity = false;  // the pose TrackLocalMap started from, for imu-coast
+    Sophus::SE3f pose;
+    Eigen::Vector3f velocity;
+};
+
+RuleState& rule_state() {
+    static RuleState r;
+    return r;
+}
+
+void set_rule(const InlierRule& rule, bool coast) {
+    RuleState& r = rule_state();
+    r.active = true;
+    r.rule = rule;
+    r.coast = coast;
+}
+
+bool rule_active() { return rule_state().active; }
+
+inline void save_prediction(ORB_SLAM3::Frame& frame) {
+    RuleState& r = rule_state();
+    r.saved = r.coast && frame.HasPose();
+    if (!r.saved) return;
+    r.pose = frame.GetPose();
+    r.has_velocity = frame.HasVelocity();
+    if (r.has_velocity) r.velocity = frame.GetVelocity();
+}
+
+inline bool decide(ORB_SLAM3::Frame& frame, int inliers, bool in_reloc, bool recently_lost, bool imu_ok,
+                   bool stereo) {
+    RuleState& r = rule_state();
+    const double score = inliers;
+    const bool fail_reloc = in_reloc && score < r.rule.reloc;
+    const bool recover = recently_lost && score > r.rule.recovery;
+    const bool pass_main = !(score < ((imu_ok || stereo) ? r.rule.imu_init : r.rule.not_init));
+    const bool ok = !fail_reloc && (recover || pass_main);
+    if (!ok && r.saved) {
+        frame.SetPose(r.pose);
+        if (r.has_velocity) frame.SetVelocity(r.velocity);
+    }
     return ok;
 }
 
