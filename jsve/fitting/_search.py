@@ -368,11 +368,12 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
     frames with ground truth the scan carries the corrections from the start; otherwise it runs
     without them and again with them only if some lane that never lost has frames off its posed ones.
 
-    Compiled calls decided on the host (not traceable under an enclosing jit): the scan (`_lane_sums`:
-    one, or two when the corrections turn out to be needed), then the alignment from its sums
-    (`_chunk_result`), which `search` runs one at a time (see there). The choice between the scans is
-    made on the host because a `lax.cond` between them doubled the scan's time (XLA on CPU, jaxlib
-    0.10.2: 1.13 s against 0.53 s for 256 settings x 74,400 frames with the cheap branch taken).
+    Compiled calls decided on the host: the scan (`_lane_sums`: one, or two when the corrections turn
+    out to be needed), then the alignment from its sums (`_chunk_result`), which `search` runs one at a
+    time (see there). The choice between the scans is made on the host because a `lax.cond` between
+    them doubled the scan's time (XLA on CPU, jaxlib 0.10.2: 1.13 s against 0.53 s for 256 settings x
+    74,400 frames with the cheap branch taken); under an enclosing trace (a jitted objective) the
+    `lax.cond` is used.
     """
     _check_align(config)
     return _chunk_result(sb, _lane_sums(sb, rules, config), config)
@@ -404,8 +405,26 @@ def _needs_corrections(fast: _LaneSums) -> bool:
     return bool(jnp.any((fast.lost < 0.5) & (fast.n_off > 0.5)))
 
 
+def _traced_lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSums:
+    """_lane_sums inside an enclosing trace (a Nelder-Mead objective under jit): the same choice as a
+    `lax.cond` between the two scans, since no value reaches the host there."""
+    rule = jax.tree.map(lambda x: x.astype(sb.t.dtype)[:, None], rules)
+    exact = lambda: _scan(sb, rule, config, exact=True)  # noqa: E731
+
+    def fast_then_exact():
+        fast = _scan(sb, rule, config, exact=False)
+        inexact = jnp.any((fast.lost < 0.5) & (fast.n_off > 0.5))
+        return jax.lax.cond(inexact, exact, lambda: fast)
+
+    if config.switch_model == "imu-coast":
+        return jax.lax.cond(jnp.any((sb.gt > 0.5) & (sb.weight < 0.5)), exact, fast_then_exact)
+    return fast_then_exact()
+
+
 def _lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSums:
     """The scan of search_chunk: per-lane sums ([S, R] leaves), with the corrections where needed."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((sb, rules))):
+        return _traced_lane_sums(sb, rules, config)
     if _exact_from_start(sb, config):
         return _scan_sums(sb, rules, config, exact=True)
     fast = _scan_sums(sb, rules, config, exact=False)

@@ -186,6 +186,11 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
     jsve::Frame f;
     f.t_ns = stamp_ns(frame.mNameFile, frame.mTimeStamp);
     f.state = tracking_state;
+    // Track() can return before tracking the frame while mState still says OK: when LocalMapping
+    // flagged a bad IMU initialisation (Tracking.cc l.1805-1810: ResetActiveMap is requested and runs
+    // at the next frame) or after a timestamp jump. The frame has no pose and the map is gone: it is
+    // logged as LOST, which is what the state machine makes of it (a failure before BA2 resets).
+    if (!frame.isSet() && (f.state == 2 || f.state == 3 || f.state == 5)) f.state = 4;
     ORB_SLAM3::Map* map = atlas->GetCurrentMap();
     f.imu_init = atlas->isImuInitialized();
     f.map_id = map ? static_cast<std::int64_t>(map->GetId()) : 0;
