@@ -159,7 +159,7 @@ EXPECTED_META = {
 }
 """The metadata write_synthetic.cpp sets ('sequence' and 'run' are set twice: values replaced in place)."""
 
-SPECIAL = [0.1, 1e-300, -0.0, 0.0, 5e-324, -2.5e-310, 1.7976931348623157e308, -1.7976931348623157e308,
+SPECIAL = [0.1, 1e-300, -0.0, 0.0, 5e-324, -2.5e-310, 3.4028234663852886e38, -3.4028234663852886e38,
            2.2250738585072014e-308, 9007199254740992.0, 1 / 3, 1e22, 1e23, 0.30000000000000004,
            123456789.123456789, -1.0, 1.0]  # fmt: skip
 """kSpecial of write_synthetic.cpp, as Python parses the same literals."""

@@ -199,10 +199,19 @@ def write_euroc_trajectory(orbslam3: Path, out: Path) -> None:
     out.write_text("\n".join(rows) + "\n")
 
 
-def _recorded_generator(log: Path) -> dict | None:
+def _recorded_generator(log: Path) -> str | None:
+    """The `generator` key in a log's line-1 metadata (`# jsve-log v2 {...}`), None when it has none
+    or line 1 is not a v2 log's."""
+    from jsve.io import schema
+
     with open(log, encoding="utf-8-sig") as stream:
-        meta = json.loads(stream.readline())
-    return meta.get("generator")
+        line = stream.readline()
+    if not line.startswith(schema.MAGIC):
+        return None
+    try:
+        return json.loads(line[len(schema.MAGIC) :]).get("generator")
+    except json.JSONDecodeError:
+        return None
 
 
 def plan(

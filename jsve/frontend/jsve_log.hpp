@@ -81,6 +81,8 @@
 namespace jsve {
 
 inline constexpr int kFormatVersion = 2;
+inline constexpr double kFloatMax = 3.4028234663852886e38;  // float32's largest: jsve.io._schema.FLOAT_MAX
+inline constexpr int kBinMax = 65535;                        // uint16: jsve.io._schema.BIN_MAX
 inline constexpr int kBins = 64;          // SVE bins per frame, 8 x 8, row-major (k = 8 * by + bx)
 inline constexpr int kGridCols = 64;      // ORB-SLAM3 FRAME_GRID_COLS
 inline constexpr int kGridRows = 48;      // ORB-SLAM3 FRAME_GRID_ROWS
@@ -722,8 +724,9 @@ private:
         }
         std::int64_t binned = 0;
         for (int k = 0; k < kBins; ++k) {
-            if (f.bins[k] < 0) {
-                msg = "bin_" + std::to_string(k) + " is negative (" + std::to_string(f.bins[k]) + ")";
+            if (f.bins[k] < 0 || f.bins[k] > kBinMax) {
+                msg = "bin_" + std::to_string(k) + " = " + std::to_string(f.bins[k]) + " is outside 0.." +
+                      std::to_string(kBinMax) + " (jsve holds bins as uint16)";
                 return Status::kOutOfRange;
             }
             binned += f.bins[k];
@@ -748,6 +751,11 @@ private:
                 if (!std::isfinite(groups[g].v[i])) {
                     msg = std::string(groups[g].name) + "[" + std::to_string(i) + "] is " + detail::double_text(groups[g].v[i]);
                     return Status::kNonFinite;
+                }
+                if (std::fabs(groups[g].v[i]) > kFloatMax) {
+                    msg = std::string(groups[g].name) + "[" + std::to_string(i) + "] is " +
+                          detail::double_text(groups[g].v[i]) + ", beyond float32's range (jsve computes in float32)";
+                    return Status::kOutOfRange;
                 }
             }
         }

@@ -45,11 +45,15 @@ std::uint64_t to_bits(double d) {
     return b;
 }
 
-// Any finite double, subnormals and signed zeros included: random bits with a legal exponent.
+// Any double the reader accepts, subnormals and signed zeros included: random bits with an exponent
+// within float32's range (|x| <= FLT_MAX; the reader refuses larger values, jsve computes in float32).
 double random_finite() {
-    std::uint64_t b = next_bits();
-    if (((b >> 52) & 0x7FF) == 0x7FF) b &= ~(std::uint64_t{1} << 62);
-    return from_bits(b);
+    for (;;) {
+        std::uint64_t b = next_bits();
+        if (((b >> 52) & 0x7FF) == 0x7FF) b &= ~(std::uint64_t{1} << 62);
+        const double d = from_bits(b);
+        if (std::fabs(d) <= 3.4028234663852886e38) return d;
+    }
 }
 
 double unit_interval() { return static_cast<double>(next_bits() >> 11) * 0x1.0p-53; }
@@ -70,8 +74,8 @@ const double kSpecial[] = {
     0.0,
     5e-324,                       // smallest subnormal
     -2.5e-310,                    // subnormal
-    std::numeric_limits<double>::max(),
-    -std::numeric_limits<double>::max(),
+    3.4028234663852886e38,        // float32's largest, the reader's bound (a double beyond is refused)
+    -3.4028234663852886e38,
     std::numeric_limits<double>::min(),
     9007199254740993.0,           // 2^53 + 1 rounds to 2^53
     1.0 / 3.0,
