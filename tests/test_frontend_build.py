@@ -1,6 +1,6 @@
 """jsve frontend build's source staging: the hook's anchored edits on ORB-SLAM3 v1.0 (the archive in
 ../shared/third_party when present), loud failures on other sources, and idempotence (no rewrite, so
-`make` rebuilds nothing). The compile itself is opt-in: scripts/frontend_smoke.sh."""
+`make` rebuilds nothing). The compile itself is opt-in: .ci/frontend-smoke."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """jsve frontend run without ORB-SLAM3: what a dataset is, settings for downsampled images, the runs'
-plan and its resume keys. The driver itself runs in the opt-in smoke test (scripts/frontend_smoke.sh)."""
+plan and its resume keys. The driver itself runs in the opt-in smoke test (.ci/frontend-smoke)."""
 
 from __future__ import annotations
 
