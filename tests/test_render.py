@@ -92,6 +92,63 @@ def test_cast_equals_a_plain_slab_test(rays):
     assert occluded > 50  # the furniture was in view, so the window culling was exercised
 
 
+def test_visible_surfaces_equal_the_full_cast(rays):
+    # The coarse grid refined near projected box edges finds exactly the surfaces of the per-pixel cast,
+    # thin furniture included; poses inside the furniture's reach, so silhouettes cross the image.
+    rng = np.random.default_rng(5)
+    scene = _toy_scene(rng)
+    furniture = []
+    for _ in range(6):
+        r_wc = cv2.Rodrigues(rng.normal(0, 1.0, 3))[0]
+        p_wc = rng.uniform(-0.5, 0.5, 3) + [0, 0, 1.2]
+        t, surface, _ = raster.cast(scene, rays, r_wc, p_wc)
+        fast = raster.visible_surfaces(scene, rays, r_wc, p_wc)
+        differ = np.flatnonzero(fast != surface)
+        if len(differ):  # only where two faces tie (a ray through an edge): the same distance on either
+            d = r_wc @ rays.rays[:, differ].astype(np.float64)
+            tables = raster._Surfaces.of(scene)
+            axis = tables.normal_axis[fast[differ]]
+            t_fast = (tables.plane[fast[differ]] - p_wc[axis]) / d[axis, np.arange(len(differ))]
+            np.testing.assert_allclose(t_fast, t[differ], rtol=1e-4)
+        assert len(differ) < 10
+        furniture.append(np.mean(surface >= 6))
+    assert sum(f > 0.01 for f in furniture) >= 3  # furniture in view: silhouettes for the refinement
+
+
+def test_mip_levels_are_registered():
+    # A linear ramp stays a ramp under cv2.pyrDown; sampled through _MipMaps at a level-0 texel coordinate,
+    # every level of the side-by-side layout must give the ramp's value there (pyrDown keeps the even texels:
+    # registering level l at texel centres instead would slip by 2^(l-1) - 1/2 level-0 texels).
+    height, width = 128, 4096  # level 6 is 64 texels wide: the samples stay clear of its borders
+    ramp = np.tile(np.arange(width, dtype=np.float64) * 0.04 + 40, (height, 1))
+    origin = scene_mod.mip_layout(height, width)
+    mip = np.zeros((height, width * 3 // 2), np.float32)
+    level = ramp.astype(np.float32)
+    for x, y in origin:
+        mip[y : y + level.shape[0], x : x + level.shape[1]] = level
+        level = cv2.pyrDown(level)
+    scene = scene_mod.Scene(
+        lo=np.zeros((1, 3)),
+        hi=np.ones((1, 3)),
+        face_origin=np.zeros((1, 6, 2), np.float32),
+        shade=np.ones((1, 6), np.float32),
+        texel_m=0.005,
+        mip=mip,
+        mip_origin=origin.astype(np.float32),
+        atlas=(),
+        texture_source="ramp",
+    )
+    x = np.linspace(1000.0, 3000.0, 50).astype(np.float32)
+    y = np.full(50, 64.0, np.float32)
+    for lod in range(scene_mod.MIP_LEVELS - 1):
+        maps = raster._MipMaps.of(scene, np.full(50, float(lod), np.float32))
+        mx = np.concatenate([x, x]) * maps.scale + maps.shift_x
+        my = np.concatenate([y, y]) * maps.scale + maps.shift_y
+        sampled = cv2.remap(mip, mx.reshape(2, -1), my.reshape(2, -1), cv2.INTER_LINEAR)
+        # 0.05 grey levels: cv2.remap's 1/32 texel steps at level 6 (2 level-0 texels, 0.08 grey) halved.
+        np.testing.assert_allclose(sampled, np.tile(x * 0.04 + 40, (2, 1)), atol=0.05)
+
+
 def test_room_encloses_the_trajectory_and_furniture_keeps_clear():
     rng = np.random.default_rng(1)
     positions = np.cumsum(rng.normal(0, 0.05, (400, 3)), axis=0) + [0, 0, 1.5]

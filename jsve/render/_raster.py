@@ -9,10 +9,12 @@ iterated to convergence), so the image is rendered directly with the lens distor
 Casting is plain numpy, vectorised over pixels: the room is one box seen from inside (the exit distance of
 three slabs), every piece of furniture a box tested only on the pixels of its projected bounding
 rectangle (the pinhole projection of its corners bounds it in undistorted coordinates; the distorted
-window is the bounding box of that rectangle's distorted outline). The texture is sampled with cv2.remap
-from the two mip levels around each pixel's footprint (trilinear filtering): the footprint is the pixel's
-angular size times the distance over the square root of the incidence cosine (between the isotropic
-footprints along and across the slant), in texels.
+window is the bounding box of that rectangle's distorted outline). visible_surfaces casts one pixel per
+CELL x CELL cell and the full cells only where a projected box edge may cross (the same surfaces as cast,
+at about a fifth of the pixels). The texture is sampled with cv2.remap from the two mip levels around each
+pixel's footprint (trilinear filtering), both levels in one call on the side-by-side levels of Scene.mip:
+the footprint is the pixel's angular size times the distance over the square root of the incidence cosine
+(between the isotropic footprints along and across the slant), in texels.
 
 Exposure motion blur averages `subframes` renders at poses spread over the exposure; then vignetting
 (a cos^4-like falloff), the frame's gain (auto-exposure), a Gaussian optics blur and Poisson-Gaussian
@@ -148,43 +150,108 @@ _NEAR = 0.05
 
 # The 12 edges of a box, as pairs of indices into its 8 corners (corner i has coordinate bits i & 4, 2, 1).
 _EDGES = np.array([(i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit])
+_CORNER_BITS = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], bool)
+
+CELL = 4
+"""Side of the square cells, px, whose centre pixel is cast first (visible_surfaces)."""
 
 
-def _box_window(
-    rays: CameraRays, r_cw: np.ndarray, p_cw: np.ndarray, lo: np.ndarray, hi: np.ndarray
-) -> tuple[slice, slice] | None:
-    """The pixel rows and columns that can see a box, or None when no pixel can.
+def _camera_corners(r_cw: np.ndarray, p_cw: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[B, 8, 3] corners of boxes (lo, hi [B, 3], world frame) in the camera frame, m."""
+    corners = np.where(_CORNER_BITS[None], hi[:, None], lo[:, None])
+    return corners @ r_cw.T + p_cw
 
-    The box's visible part (cut at the near plane) projects inside the bounding rectangle of its corners'
+
+def _box_windows(rays: CameraRays, corners: np.ndarray) -> np.ndarray:
+    """[B, 4] pixel rows r0:r1 and columns c0:c1 that can see each box (empty, r0 = r1, where none can).
+
+    A box's visible part (cut at the near plane) projects inside the bounding rectangle of its corners'
     (and cut points') pinhole projections; that rectangle, clipped to the image's undistorted extent, maps
     to the distorted image inside the bounding box of its distorted outline.
+
+    Arguments:
+        corners: [B, 8, 3] box corners in the camera frame (_camera_corners), m.
     """
-    corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1).reshape(-1, 3)
-    c = corners @ r_cw.T + p_cw
-    front = c[:, 2] > _NEAR
-    if not front.any():
-        return None
-    points = c[front]
-    if not front.all():
-        a, b = c[_EDGES[:, 0]], c[_EDGES[:, 1]]
-        crossing = (a[:, 2] > _NEAR) != (b[:, 2] > _NEAR)
-        s = (_NEAR - a[crossing, 2]) / (b[crossing, 2] - a[crossing, 2])
-        points = np.concatenate([points, a[crossing] + s[:, None] * (b[crossing] - a[crossing])])
-    x, y = points[:, 0] / points[:, 2], points[:, 1] / points[:, 2]
-    x0, x1 = max(x.min(), rays.x_range[0]), min(x.max(), rays.x_range[1])
-    y0, y1 = max(y.min(), rays.y_range[0]), min(y.max(), rays.y_range[1])
-    if x0 >= x1 or y0 >= y1:
-        return None
+    a, b = corners[:, _EDGES[:, 0]], corners[:, _EDGES[:, 1]]
+    crossing = (a[..., 2] > _NEAR) != (b[..., 2] > _NEAR)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(crossing, (_NEAR - a[..., 2]) / (b[..., 2] - a[..., 2]), 0.0)
+    points = np.concatenate([corners, a + s[..., None] * (b - a)], 1)
+    valid = np.concatenate([corners[..., 2] > _NEAR, crossing], 1)
+    z = np.where(valid, points[..., 2], 1.0)
+    x, y = points[..., 0] / z, points[..., 1] / z
+    x0 = np.maximum(np.where(valid, x, np.inf).min(1), rays.x_range[0])
+    x1 = np.minimum(np.where(valid, x, -np.inf).max(1), rays.x_range[1])
+    y0 = np.maximum(np.where(valid, y, np.inf).min(1), rays.y_range[0])
+    y1 = np.minimum(np.where(valid, y, -np.inf).max(1), rays.y_range[1])
+    seen = valid.any(1) & (x0 < x1) & (y0 < y1)
+    x0, x1, y0, y1 = (np.where(seen, v, 0.0)[:, None] for v in (x0, x1, y0, y1))
     edge = np.linspace(0.0, 1.0, 24)
-    bx = np.concatenate([x0 + (x1 - x0) * edge, np.full(24, x1), x1 - (x1 - x0) * edge, np.full(24, x0)])
-    by = np.concatenate([np.full(24, y0), y0 + (y1 - y0) * edge, np.full(24, y1), y1 - (y1 - y0) * edge])
+    bx = np.concatenate([x0 + (x1 - x0) * edge, np.broadcast_to(x1, (len(x1), 24)),
+                         x1 - (x1 - x0) * edge, np.broadcast_to(x0, (len(x0), 24))], 1)  # fmt: skip
+    by = np.concatenate([np.broadcast_to(y0, (len(y0), 24)), y0 + (y1 - y0) * edge,
+                         np.broadcast_to(y1, (len(y1), 24)), y1 - (y1 - y0) * edge], 1)  # fmt: skip
     u, v = rays.distort(bx, by)
     h, w = rays.xn.shape
-    c0, c1 = max(int(np.floor(u.min())) - 2, 0), min(int(np.ceil(u.max())) + 3, w)
-    r0, r1 = max(int(np.floor(v.min())) - 2, 0), min(int(np.ceil(v.max())) + 3, h)
-    if c0 >= c1 or r0 >= r1:
-        return None
-    return slice(r0, r1), slice(c0, c1)
+    c0 = np.clip(np.floor(u.min(1)) - 2, 0, w)
+    c1 = np.clip(np.ceil(u.max(1)) + 3, 0, w)
+    r0 = np.clip(np.floor(v.min(1)) - 2, 0, h)
+    r1 = np.clip(np.ceil(v.max(1)) + 3, 0, h)
+    seen &= (c0 < c1) & (r0 < r1)
+    return np.where(seen[:, None], np.stack([r0, r1, c0, c1], 1), 0).astype(np.int64)
+
+
+def _edge_cells(
+    rays: CameraRays, corners: np.ndarray, shape: tuple[int, int], samples: int = 32
+) -> np.ndarray:
+    """[rows, cols] bool: the CELL x CELL cells that an edge of a box may cross in the image.
+
+    Each edge is cut at the near plane, projected (a straight segment in undistorted coordinates), clipped
+    to the image's undistorted extent, sampled and distorted, and drawn into the cell grid; the grid is then
+    dilated by one cell, which covers the chords between samples and the lines' rasterisation.
+
+    Arguments:
+        corners: [B, 8, 3] box corners in the camera frame (_camera_corners), m. shape: the cell grid.
+    """
+    a = corners[:, _EDGES[:, 0]].reshape(-1, 3)
+    b = corners[:, _EDGES[:, 1]].reshape(-1, 3)
+    keep = (a[:, 2] > _NEAR) | (b[:, 2] > _NEAR)
+    crossing = (a[:, 2] > _NEAR) != (b[:, 2] > _NEAR)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(crossing, (_NEAR - a[:, 2]) / (b[:, 2] - a[:, 2]), 0.0)[:, None]
+    a, b = np.where(a[:, 2:] > _NEAR, a, a + s * (b - a)), np.where(b[:, 2:] > _NEAR, b, a + s * (b - a))
+    a, b = a[keep], b[keep]
+    xa, ya = a[:, 0] / a[:, 2], a[:, 1] / a[:, 2]
+    dx, dy = b[:, 0] / b[:, 2] - xa, b[:, 1] / b[:, 2] - ya
+    # Liang-Barsky clipping to the undistorted extent, widened by about a pixel.
+    margin = 1.0 / rays.camera.fx
+    t0, t1 = np.zeros(len(a)), np.ones(len(a))
+    inside = np.ones(len(a), bool)
+    for p, q in ((-dx, xa - rays.x_range[0] + margin), (dx, rays.x_range[1] + margin - xa),
+                 (-dy, ya - rays.y_range[0] + margin), (dy, rays.y_range[1] + margin - ya)):  # fmt: skip
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = q / p
+        t0 = np.where(p < 0, np.maximum(t0, r), t0)
+        t1 = np.where(p > 0, np.minimum(t1, r), t1)
+        inside &= (p != 0) | (q >= 0)
+    inside &= t0 <= t1
+    tt = t0[inside, None] + (t1 - t0)[inside, None] * np.linspace(0.0, 1.0, samples)
+    u, v = rays.distort(xa[inside, None] + dx[inside, None] * tt, ya[inside, None] + dy[inside, None] * tt)
+    # Cell coordinates (cell i spans pixels CELL i to CELL i + CELL - 1), 4 fractional bits for cv2, in a
+    # grid with a border of 2 cells: cv2 clips a line to the grid exactly, so a line half a cell outside
+    # must still be drawn for the dilation to reach the cells it touches.
+    pad = 2
+    points = np.rint((np.stack([u, v], -1) - (CELL - 1) / 2) * (16 / CELL) + 16 * pad).astype(np.int32)
+    mask = np.zeros((shape[0] + 2 * pad, shape[1] + 2 * pad), np.uint8)
+    cv2.polylines(mask, list(points), False, 1, thickness=1, lineType=cv2.LINE_8, shift=4)
+    return cv2.dilate(mask, np.ones((3, 3), np.uint8))[pad:-pad, pad:-pad].astype(bool)
+
+
+def _rotate(r: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """r [3, 3] @ v [3, N] in float32, row by row: a BLAS call for so thin a product is several times
+    slower (and starts threads)."""
+    r = np.asarray(r, np.float32)
+    return np.stack([r[i, 0] * v[0] + r[i, 1] * v[1] + r[i, 2] * v[2] for i in range(3)])
 
 
 def _pick(rows: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -192,17 +259,25 @@ def _pick(rows: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return np.where(axis == 0, rows[0], np.where(axis == 1, rows[1], rows[2]))
 
 
-def cast(scene: Scene, rays: CameraRays, r_wc: np.ndarray, p_wc: np.ndarray):
-    """Nearest surface along every pixel's ray.
+def cast_pixels(
+    scene: Scene,
+    rays: CameraRays,
+    index: np.ndarray,
+    r_wc: np.ndarray,
+    p_wc: np.ndarray,
+    windows: np.ndarray | None = None,
+):
+    """Nearest surface along the rays of the given pixels.
 
     Arguments:
-        r_wc: [3, 3] camera-to-world rotation. p_wc: [3] camera centre, m, world frame.
+        index: [M] flat pixel indices (row W + column). r_wc: [3, 3] camera-to-world rotation. p_wc: [3]
+            camera centre, m, world frame. windows: _box_windows of the furniture, when already known.
     Returns:
-        (t [H W] distance along the unit ray, m; surface [H W] int32 6 box + face, the face 2 axis + side;
-        d [3, H W] world ray directions).
+        (t [M] distance along the unit ray, m; surface [M] int32 6 box + face, the face 2 axis + side;
+        d [3, M] world ray directions).
     """
-    h, w = rays.xn.shape
-    d = r_wc.astype(np.float32) @ rays.rays
+    w = rays.xn.shape[1]
+    d = _rotate(r_wc, rays.rays[:, index])
     with np.errstate(divide="ignore"):
         inv = np.float32(1.0) / d
     o = p_wc.astype(np.float32)
@@ -213,44 +288,87 @@ def cast(scene: Scene, rays: CameraRays, r_wc: np.ndarray, p_wc: np.ndarray):
     )
     t, axis = _nearest_of_three((far_wall - o[:, None]) * inv)
     surface = (2 * axis + _pick(positive, axis)).astype(np.int32)
-    t2, s2 = t.reshape(h, w), surface.reshape(h, w)
-    inv2 = inv.reshape(3, h, w)
-    r_cw = r_wc.T
-    p_cw = -r_cw @ p_wc
-    for b in range(1, scene.n_boxes):
-        window = _box_window(rays, r_cw, p_cw, scene.lo[b], scene.hi[b])
-        if window is None:
+    if windows is None:
+        r_cw = r_wc.T
+        windows = _box_windows(rays, _camera_corners(r_cw, -r_cw @ p_wc, scene.lo[1:], scene.hi[1:]))
+    cols = index % w
+    ordered = len(index) < 2 or bool(np.all(index[1:] > index[:-1]))
+    for b, (r0, r1, c0, c1) in enumerate(windows, 1):
+        if r0 >= r1:
             continue
-        rows, cols = window
-        iv = inv2[:, rows, cols].reshape(3, -1)
+        # Increasing indices (row-major): the window's rows are one run of them.
+        first, last = np.searchsorted(index, [r0 * w, r1 * w]) if ordered else (0, len(index))
+        inside = (cols[first:last] >= c0) & (cols[first:last] < c1)
+        if not ordered:
+            rows = index // w
+            inside &= (rows >= r0) & (rows < r1)
+        sel = first + np.flatnonzero(inside)
+        if not len(sel):
+            continue
+        iv = inv[:, sel]
         t_lo = (scene.lo[b].astype(np.float32) - o)[:, None] * iv
         t_hi = (scene.hi[b].astype(np.float32) - o)[:, None] * iv
         t_near, near_axis = _nearest_of_three(np.minimum(t_lo, t_hi), largest=True)
-        t_far = np.maximum(t_lo, t_hi).min(axis=0)
-        current = t2[rows, cols].reshape(-1)
-        hit = (t_near <= t_far) & (t_near > 0) & (t_near < current)
+        far = np.maximum(t_lo, t_hi)
+        t_far = np.minimum(np.minimum(far[0], far[1]), far[2])
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < t[sel])
         if not hit.any():
             continue
         # Seen from outside: the face on the side the ray comes from (the low one for a ray going up).
-        side = _pick(iv, near_axis) < 0
-        shape = t2[rows, cols].shape
-        t2[rows, cols] = np.where(hit, t_near, current).reshape(shape)
-        s2[rows, cols] = np.where(hit, 6 * b + 2 * near_axis + side, s2[rows, cols].reshape(-1)).reshape(
-            shape
-        )
-    return t2.reshape(-1), s2.reshape(-1), d
+        side = _pick(iv[:, hit], near_axis[hit]) < 0
+        t[sel[hit]] = t_near[hit]
+        surface[sel[hit]] = 6 * b + 2 * near_axis[hit] + side
+    return t, surface, d
+
+
+def cast(scene: Scene, rays: CameraRays, r_wc: np.ndarray, p_wc: np.ndarray):
+    """cast_pixels for every pixel: (t [H W], surface [H W], d [3, H W]); the reference visible_surfaces
+    is tested against."""
+    h, w = rays.xn.shape
+    return cast_pixels(scene, rays, np.arange(h * w), r_wc, p_wc)
+
+
+def visible_surfaces(scene: Scene, rays: CameraRays, r_wc: np.ndarray, p_wc: np.ndarray) -> np.ndarray:
+    """The surface (6 box + face) every pixel sees, [H W] int32: cast's surfaces, cast at a fraction of
+    the pixels.
+
+    One pixel per CELL x CELL cell is cast; a cell keeps its pixel's surface unless the projection of a
+    box edge may cross it (_edge_cells) or a neighbouring cell saw another surface, and then all its pixels
+    are cast. Inside a cell no edge crosses, every pixel sees the same face (faces change only across
+    projected edges), so thin furniture (a leg, a shelf board seen edge-on) is found however small.
+    """
+    h, w = rays.xn.shape
+    r_cw = r_wc.T
+    corners = _camera_corners(r_cw, -r_cw @ p_wc, scene.lo, scene.hi)
+    windows = _box_windows(rays, corners[1:])
+    rows, cols = -(-h // CELL), -(-w // CELL)
+    centre_r = np.minimum(np.arange(rows) * CELL + CELL // 2, h - 1)
+    centre_c = np.minimum(np.arange(cols) * CELL + CELL // 2, w - 1)
+    _, cells, _ = cast_pixels(scene, rays, (centre_r[:, None] * w + centre_c).ravel(), r_wc, p_wc, windows)
+    cells = cells.reshape(rows, cols)
+    refine = _edge_cells(rays, corners, (rows, cols))
+    across = cells[:, 1:] != cells[:, :-1]
+    down = cells[1:] != cells[:-1]
+    refine[:, 1:] |= across
+    refine[:, :-1] |= across
+    refine[1:] |= down
+    refine[:-1] |= down
+    surface = np.repeat(np.repeat(cells, CELL, 0), CELL, 1)[:h, :w].ravel()
+    fine = np.repeat(np.repeat(refine, CELL, 0), CELL, 1)[:h, :w].ravel()
+    index = np.flatnonzero(fine)
+    if len(index):
+        surface[index] = cast_pixels(scene, rays, index, r_wc, p_wc, windows)[1]
+    return surface
 
 
 @dataclass(frozen=True)
 class _Surfaces:
     """Per surface (6 box + face): its plane and texture mapping, as 1-D tables for per-pixel lookups."""
 
-    normal_axis: np.ndarray  # [S] int32, the world axis the face is normal to
-    plane: np.ndarray  # [S] float32, the face's coordinate along that axis, m
-    u_is_x: np.ndarray  # [S] bool: texture u is world x (else y)
-    v_is_y: np.ndarray  # [S] bool: texture v is world y (else z)
-    off_u: np.ndarray  # [S] float32 atlas x of world u = 0, texels
-    off_v: np.ndarray  # [S] float32 atlas y of world v = 0, texels
+    normal_axis: np.ndarray  # [S] int64, the world axis the face is normal to (texture axes: _TEXTURE_AXES)
+    plane: np.ndarray  # [S] float64, the face's coordinate along its normal axis, m
+    off_u: np.ndarray  # [S] float64 atlas x of world u = 0, texels
+    off_v: np.ndarray  # [S] float64 atlas y of world v = 0, texels
     shade: np.ndarray  # [S] float32
 
     @classmethod
@@ -260,85 +378,125 @@ class _Surfaces:
         axis = face // 2
         u_axis = np.array([1, 1, 0, 0, 0, 0])[face]  # the two other axes in increasing order
         v_axis = np.array([2, 2, 2, 2, 1, 1])[face]
-        plane = np.where(face % 2 == 1, scene.hi[box, axis], scene.lo[box, axis])
-        origin = scene.face_origin.reshape(n, 2)
+        origin = scene.face_origin.reshape(n, 2).astype(np.float64)
         return cls(
-            normal_axis=axis.astype(np.int32),
-            plane=plane.astype(np.float32),
-            u_is_x=u_axis == 0,
-            v_is_y=v_axis == 1,
-            off_u=(origin[:, 0] - scene.lo[box, u_axis] / scene.texel_m).astype(np.float32),
-            off_v=(origin[:, 1] - scene.lo[box, v_axis] / scene.texel_m).astype(np.float32),
+            normal_axis=axis,
+            plane=np.where(face % 2 == 1, scene.hi[box, axis], scene.lo[box, axis]),
+            off_u=origin[:, 0] - scene.lo[box, u_axis] / scene.texel_m,
+            off_v=origin[:, 1] - scene.lo[box, v_axis] / scene.texel_m,
             shade=scene.shade.reshape(n).astype(np.float32),
         )
 
 
-def _atlas_coords(
-    rays: np.ndarray, r_wc: np.ndarray, p_wc: np.ndarray, surface: _PixelSurfaces
-) -> tuple[np.ndarray, np.ndarray]:
-    """Atlas texel coordinates (x, y) [N] where rays [3, N] (camera frame) from the pose (r_wc, p_wc) meet
-    the planes of their given surfaces.
-
-    Used for the sub-exposure poses around the one the surfaces were cast from: within an exposure a pixel
-    stays on its surface except at silhouettes, where the plane runs a pixel or two past its edge into
-    the atlas's padding."""
-    d = r_wc.astype(np.float32) @ rays
-    o = p_wc.astype(np.float32)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (surface.plane - o[surface.normal_axis]) / _pick(d, surface.normal_axis)
-    t = np.where(np.isfinite(t) & (t > 0), t, np.float32(0.0))
-    x = np.where(surface.u_is_x, o[0] + d[0] * t, o[1] + d[1] * t) * surface.scale + surface.off_u
-    y = np.where(surface.v_is_y, o[1] + d[1] * t, o[2] + d[2] * t) * surface.scale + surface.off_v
-    return x, y
-
-
 @dataclass(frozen=True)
-class _PixelSurfaces:
-    """_Surfaces' entries gathered per pixel (of a permutation of the pixels) for one frame."""
+class _Planes:
+    """The pixels of one frame grouped by the normal axis of the face they see (x, y, z faces; each group
+    in image order), with what their ray-plane intersections need: within a group the plane's normal and
+    texture axes are the same world axes, so intersecting a group is plain arithmetic on contiguous runs.
 
-    normal_axis: np.ndarray
+    Attributes:
+        order: [N] the pixel (flat index) at each position. bounds: [4] the groups' start and stop.
+        rays: [3, N] float32 unit rays, camera frame. footprint: [N] float32 angular size, rad.
+        plane: [N] float32 the face's coordinate along its normal, m. off_u, off_v: [N] float32 atlas
+            texel of world (u, v) = (0, 0) of the face. shade: [N] float32 the face's brightness.
+    """
+
+    order: np.ndarray
+    bounds: np.ndarray
+    rays: np.ndarray
+    footprint: np.ndarray
     plane: np.ndarray
-    u_is_x: np.ndarray
-    v_is_y: np.ndarray
     off_u: np.ndarray
     off_v: np.ndarray
-    scale: np.float32
+    shade: np.ndarray
 
     @classmethod
-    def of(cls, tables: _Surfaces, surface: np.ndarray, texel_m: float) -> _PixelSurfaces:
+    def of(cls, tables: _Surfaces, rays: CameraRays, surface: np.ndarray) -> _Planes:
+        axis = np.take(tables.normal_axis.astype(np.int8), surface)
+        groups = [np.flatnonzero(axis == a) for a in range(3)]
+        order = np.concatenate(groups)
+        surface = np.take(surface, order).astype(np.intp)
         return cls(
-            normal_axis=tables.normal_axis[surface],
-            plane=tables.plane[surface],
-            u_is_x=tables.u_is_x[surface],
-            v_is_y=tables.v_is_y[surface],
-            off_u=tables.off_u[surface],
-            off_v=tables.off_v[surface],
-            scale=np.float32(1.0 / texel_m),
+            order=order,
+            bounds=np.cumsum([0] + [len(g) for g in groups]),
+            rays=np.take(rays.rays, order, axis=1),
+            footprint=np.take(rays.footprint, order),
+            plane=np.take(tables.plane.astype(np.float32), surface),
+            off_u=np.take(tables.off_u.astype(np.float32), surface),
+            off_v=np.take(tables.off_v.astype(np.float32), surface),
+            shade=np.take(tables.shade, surface),
         )
 
 
-def _level_of_detail(scene: Scene, rays: CameraRays, t: np.ndarray, d: np.ndarray, normal_axis: np.ndarray):
+_FAR = 1e3
+"""Distances along a ray are clipped to this, m (a ray parallel to its plane at some sub-exposure)."""
+
+_TEXTURE_AXES = ((1, 2), (0, 2), (0, 1))
+"""The world axes of texture (u, v) on faces normal to x, y and z (the other two, in increasing order)."""
+
+
+def _atlas_coords(
+    scene: Scene, planes: _Planes, r_wc: np.ndarray, p_wc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where every pixel's ray from the pose (r_wc, p_wc) meets the plane of its surface (in planes' order).
+
+    Used for all sub-exposure poses with the surfaces cast at the middle one: within an exposure a pixel
+    stays on its surface except at silhouettes, where the plane runs a pixel or two past its edge into
+    the atlas's padding.
+
+    Returns:
+        (x, y) [N] float32 atlas texel coordinates (level 0); t [N] distance along the unit ray, m;
+        the ray's world component along the plane's normal [N].
+    """
+    o = np.asarray(p_wc, np.float64)
+    scale = 1.0 / scene.texel_m
+    d = _rotate(r_wc, planes.rays)
+    n = d.shape[1]
+    x, y, t = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
+    along = np.empty(n, np.float32)
+    for axis, (u, v) in enumerate(_TEXTURE_AXES):
+        g = slice(planes.bounds[axis], planes.bounds[axis + 1])
+        along[g] = d[axis, g]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tg = (planes.plane[g] - np.float32(o[axis])) / along[g]
+        tg = np.fmin(np.fmax(tg, np.float32(0.0)), np.float32(_FAR))  # fmax: NaN (0 / 0) -> 0
+        t[g] = tg
+        tg *= np.float32(scale)
+        x[g] = d[u, g] * tg + planes.off_u[g] + np.float32(o[u] * scale)
+        y[g] = d[v, g] * tg + planes.off_v[g] + np.float32(o[v] * scale)
+    return x, y, t, along
+
+
+def _level_of_detail(footprint: np.ndarray, texel_m: float, t: np.ndarray, along: np.ndarray) -> np.ndarray:
     """Mip level of every pixel: log2 of its footprint in texels (isotropic between along and across the
     slant: the angular size times the distance over sqrt(cos incidence)), in [0, MIP_LEVELS - 1]."""
-    cos_incidence = np.abs(_pick(d, normal_axis)) + np.float32(1e-3)
-    texels = t * rays.footprint / (np.float32(scene.texel_m) * np.sqrt(cos_incidence))
+    texels = t * (footprint / np.float32(texel_m)) / np.sqrt(np.abs(along) + np.float32(1e-3))
     return np.clip(np.log2(np.maximum(texels, np.float32(1e-6))), 0.0, MIP_LEVELS - 1)
 
 
-_MAP_WIDTH = 1024
-"""Width of the maps handed to cv2.remap (a long list of samples is folded into rows)."""
+@dataclass(frozen=True)
+class _MipMaps:
+    """Per pixel, the affine maps from level-0 atlas coordinates to the texels of its two mip levels in
+    scene.mip (the finer level's N entries, then the coarser level's), and the coarser level's weight
+    (trilinear filtering)."""
 
+    scale: np.ndarray  # [2 N] float32
+    shift_x: np.ndarray  # [2 N] float32
+    shift_y: np.ndarray  # [2 N] float32
+    weight: np.ndarray  # [N] float32
 
-def _remap_list(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of image at the points (x, y) [N] (cv2.remap on the list folded into rows)."""
-    n = len(x)
-    rows = -(-n // _MAP_WIDTH)
-    mx = np.zeros(rows * _MAP_WIDTH, np.float32)
-    my = np.zeros(rows * _MAP_WIDTH, np.float32)
-    mx[:n], my[:n] = x, y
-    out = cv2.remap(image, mx.reshape(rows, -1), my.reshape(rows, -1), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REFLECT)  # fmt: skip
-    return out.reshape(-1)[:n].astype(np.float32)  # the atlas is 8-bit: differences need a signed type
+    @classmethod
+    def of(cls, scene: Scene, lod: np.ndarray) -> _MipMaps:
+        level = np.minimum(lod.astype(np.intp), MIP_LEVELS - 2)  # lod >= 0: truncation is floor
+        both = np.concatenate([level, level + 1])
+        # cv2.pyrDown keeps the even texels (smoothed): level l's texel i lies on level 0's texel 2^l i.
+        step = (0.5 ** np.arange(MIP_LEVELS)).astype(np.float32)
+        return cls(
+            scale=np.take(step, both),
+            shift_x=np.take(scene.mip_origin[:, 0], both),
+            shift_y=np.take(scene.mip_origin[:, 1], both),
+            weight=lod - level,
+        )
 
 
 def vignetting_map(camera: Camera, strength: float) -> np.ndarray:
@@ -374,36 +532,43 @@ def render_frame(
     """
     r_wc, p_wc = poses
     h, w = rays.xn.shape
-    tables = _Surfaces.of(scene)
     middle = len(r_wc) // 2
-    t, surface, d = cast(scene, rays, r_wc[middle], p_wc[middle])
-    lod = _level_of_detail(scene, rays, t, d, tables.normal_axis[surface])
-    # Pixels sorted by their finer mip level, so each level's samples are one contiguous run.
-    level = np.minimum(lod.astype(np.int32), MIP_LEVELS - 2)
-    runs = [np.flatnonzero(level == lv) for lv in range(MIP_LEVELS - 1)]
-    order = np.concatenate(runs)
-    bounds = np.concatenate([[0], np.cumsum([len(r) for r in runs])])
-    upper = (lod - level)[order]  # weight of the coarser level
-    surface = surface[order]
-    pixels = _PixelSurfaces.of(tables, surface, scene.texel_m)
-    directions = rays.rays[:, order]
-    radiance = np.zeros(h * w, np.float32)
-    for r, p in zip(r_wc, p_wc, strict=True):
-        x, y = _atlas_coords(directions, r, p, pixels)
-        for lv in range(MIP_LEVELS - 1):
-            sl = slice(bounds[lv], bounds[lv + 1])
-            if sl.start == sl.stop:
-                continue
-            step = np.float32(0.5**lv)
-            fine = _remap_list(scene.atlas[lv], x[sl] * step, y[sl] * step)
-            coarse = _remap_list(scene.atlas[lv + 1], x[sl] * (step / 2), y[sl] * (step / 2))
-            radiance[sl] += fine + upper[sl] * (coarse - fine)
-    shaded = np.empty(h * w, np.float32)
-    shaded[order] = radiance * (tables.shade[surface] / np.float32(len(r_wc)))
-    radiance = shaded.reshape(h, w)
+    tables = _Surfaces.of(scene)
+    planes = _Planes.of(tables, rays, visible_surfaces(scene, rays, r_wc[middle], p_wc[middle]))
+    x, y, t, along = _atlas_coords(scene, planes, r_wc[middle], p_wc[middle])
+    mip = _MipMaps.of(scene, _level_of_detail(planes.footprint, scene.texel_m, t, along))
+    n = h * w
+    # Both levels' samples of every pixel (in planes' order) in one cv2.remap call: maps of 2 H rows.
+    map_x, map_y = np.empty((2 * h, w), np.float32), np.empty((2 * h, w), np.float32)
+    mx, my = map_x.reshape(-1), map_y.reshape(-1)
+    total = np.zeros((2 * h, w), np.float32)
+    exact = {k: _atlas_coords(scene, planes, r_wc[k], p_wc[k])[:2] for k in {0, len(r_wc) - 1} - {middle}}
+    exact[middle] = (x, y)
+    slope = bend = (x, y)  # unused unless there are sub-exposures between the ends and the middle
+    if len(r_wc) > 3:
+        # Between the ends and the middle, the quadratic through the three: the sub-exposures are evenly
+        # spaced in time and the image motion over 8 ms is smooth (error measured in docs/render.md).
+        (x0, y0), (x1, y1) = exact[0], exact[len(r_wc) - 1]
+        slope = ((x1 - x0) * np.float32(0.5), (y1 - y0) * np.float32(0.5))
+        bend = ((x1 + x0) * np.float32(0.5) - x, (y1 + y0) * np.float32(0.5) - y)
+    for k in range(len(r_wc)):
+        if k in exact:
+            x, y = exact[k]
+        else:
+            tau = np.float32((k - middle) / middle)
+            x, y = (exact[middle][i] + tau * (slope[i] + tau * bend[i]) for i in range(2))
+        for coords, out, shift in ((x, mx, mip.shift_x), (y, my, mip.shift_y)):
+            np.multiply(coords, mip.scale[:n], out=out[:n])
+            np.multiply(coords, mip.scale[n:], out=out[n:])
+            out += shift
+        samples = cv2.remap(scene.mip, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        cv2.accumulate(samples, total)
+    fine, coarse = total.reshape(2, n)
+    radiance = np.empty(n, np.float32)
+    radiance[planes.order] = (fine + mip.weight * (coarse - fine)) * planes.shade
     if vignette is None:
         vignette = vignetting_map(rays.camera, sensor.vignetting)
-    signal = radiance * np.float32(gain * sensor.brightness / 128.0) * vignette
+    signal = radiance.reshape(h, w) * vignette * np.float32(gain * sensor.brightness / 128.0 / len(r_wc))
     if sensor.optics_sigma > 0:
         signal = cv2.GaussianBlur(signal, (0, 0), sensor.optics_sigma)
     sigma = np.sqrt(

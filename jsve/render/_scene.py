@@ -25,7 +25,8 @@ import numpy as np
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
 ATLAS_WIDTH = 8192
-"""Texels per atlas row; cv2.remap addresses sources below 32767 texels in each direction."""
+"""Texels per atlas row of level 0; the levels side by side (mip_layout) stay below the 32767 texels in each
+direction that cv2.remap addresses."""
 
 MIP_LEVELS = 7
 """Atlas levels 0 (texel_m) to 6 (64 texel_m)."""
@@ -65,7 +66,10 @@ class Scene:
             the two other world axes in increasing order, in texels (world / texel_m).
         shade: [B, 6] brightness factor of each face (light from above, so faces differ).
         texel_m: m per texel.
-        atlas: [MIP_LEVELS] uint8 texture levels (level l is level l - 1 smoothed and halved).
+        mip: [H, 3 W / 2] uint8, every texture level in one image (mip_layout): a pixel's trilinear sample is
+            two cv2.remap calls whatever its level, with no sorting of pixels by level.
+        mip_origin: [MIP_LEVELS, 2] float32 texel (x, y) of each level's corner in mip.
+        atlas: [MIP_LEVELS] views of mip's levels (level l is level l - 1 smoothed and halved).
         texture_source: what the texels came from ("mosaic of N images in DIR" or "procedural").
     """
 
@@ -74,6 +78,8 @@ class Scene:
     face_origin: np.ndarray
     shade: np.ndarray
     texel_m: float
+    mip: np.ndarray
+    mip_origin: np.ndarray
     atlas: tuple[np.ndarray, ...]
     texture_source: str
 
@@ -188,10 +194,11 @@ def mosaic_texture(
     brightness are jittered (x0.8-1.2, +-15 grey levels), so repeated content never lines up.
 
     Returns:
-        [H, W] float32 grey levels (0-255 scale).
+        [H, W] uint8 grey levels (each tile rounded and clipped: the atlas's 8 bits, with no float copy of
+        a 200 MB atlas).
     """
     height, width = shape
-    out = np.empty((height, width), np.float32)
+    out = np.empty((height, width), np.uint8)
     y = 0
     while y < height:
         row_h = min(int(rng.integers(tile[0], tile[1] + 1)), height - y)
@@ -211,7 +218,8 @@ def mosaic_texture(
                 crop = crop[:, ::-1]
             mean = float(crop.mean())
             gain, offset = rng.uniform(0.8, 1.2), rng.uniform(-15, 15)
-            out[y : y + row_h, x : x + tile_w] = (crop - mean) * gain + mean + offset
+            jittered = (crop - mean) * gain + mean + offset
+            out[y : y + row_h, x : x + tile_w] = np.clip(np.rint(jittered), 0, 255)
             x += tile_w
         y += row_h
     return out
@@ -297,7 +305,7 @@ def _pack(extents: np.ndarray) -> tuple[np.ndarray, int]:
         x += w
         shelf = max(shelf, h)
     height = y + shelf
-    if height >= 32767:
+    if height >= 32767:  # cv2.remap's limit (mip_layout keeps the levels within the atlas's height)
         raise ValueError(
             f"the texture atlas needs {height} rows (at most 32766): a smaller room or a coarser texel_m"
         )
@@ -312,6 +320,18 @@ def _shade(n_boxes: int) -> np.ndarray:
     outside = 0.55 + 0.45 * np.clip(normals @ light, 0.0, None)
     inside = 0.55 + 0.45 * np.clip(-normals @ light, 0.0, None)
     return np.concatenate([inside[None], np.repeat(outside[None], n_boxes - 1, axis=0)])
+
+
+def mip_layout(height: int, width: int) -> np.ndarray:
+    """[MIP_LEVELS, 2] (x, y) corners of the levels of an atlas of height x width (multiples of
+    2 ** (MIP_LEVELS - 1)) in one image of height x 3 width / 2: level 0 on the left, level 1 to its right,
+    levels 2 and coarser side by side under level 1."""
+    origin = [(0, 0), (width, 0)]
+    x = width
+    for level in range(2, MIP_LEVELS):
+        origin.append((x, height // 2))
+        x += width >> level
+    return np.array(origin, np.int64)
 
 
 def make_scene(
@@ -339,17 +359,23 @@ def make_scene(
     else:
         base = procedural_texture(shape, rng)
         source = "procedural (no --texture given)"
-    levels: list[np.ndarray] = [
-        np.clip(np.rint(base), 0, 255).astype(np.uint8)
-    ]  # 8 bits, as photographs: a quarter the memory
-    for _ in range(MIP_LEVELS - 1):
-        levels.append(np.asarray(cv2.pyrDown(levels[-1])))
+    origins = mip_layout(height, ATLAS_WIDTH)
+    mip = np.zeros((height, ATLAS_WIDTH * 3 // 2), np.uint8)  # 8 bits, as photographs: a quarter the memory
+    mip[:, :ATLAS_WIDTH] = base if base.dtype == np.uint8 else np.clip(np.rint(base), 0, 255)
+    del base
+    levels = [mip[:, :ATLAS_WIDTH]]
+    for (x, y), level in zip(origins[1:], range(1, MIP_LEVELS), strict=True):
+        h, w = height >> level, ATLAS_WIDTH >> level
+        mip[y : y + h, x : x + w] = cv2.pyrDown(levels[-1], dstsize=(w, h))
+        levels.append(mip[y : y + h, x : x + w])
     return Scene(
         lo=lo,
         hi=hi,
         face_origin=origin.reshape(len(lo), 6, 2).astype(np.float32),
         shade=_shade(len(lo)).astype(np.float32),
         texel_m=config.texel_m,
+        mip=mip,
+        mip_origin=origins.astype(np.float32),
         atlas=tuple(levels),
         texture_source=source,
     )

@@ -22,6 +22,7 @@ renamed to OUT, which a re-run then skips (or refuses, when made under another k
 from __future__ import annotations
 
 import concurrent.futures
+import ctypes
 import dataclasses
 import json
 import logging
@@ -29,6 +30,7 @@ import math
 import multiprocessing
 import os
 import shutil
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,7 +43,7 @@ from jsve.io import write_bytes, write_json, write_text
 from jsve.io._resume import StaleOutputError, differences, file_digest
 from jsve.io._workers import process_pool
 from jsve.render._raster import EUROC_CAM0, CameraRays, SensorModel, render_frame, vignetting_map
-from jsve.render._scene import Scene, SceneConfig, image_files, load_texture_images, make_scene
+from jsve.render._scene import Scene, SceneConfig, image_files, layout, load_texture_images, make_scene
 from jsve.sim import ImuNoise, load_euroc_trajectory, read_imu_stream, synthesize_imu
 from jsve.sim._motion import EUROC_CAM0_T_BS, GRAVITY, Trajectory, quat_to_matrix
 
@@ -55,6 +57,9 @@ KEY_NAME = "jsve_render_key.json"
 
 FORMAT_VERSION = 1
 """Bumped when the same configuration would render different images."""
+
+TEXTURE_IMAGES = 400
+"""At most this many photographs of --texture (spread evenly over the sorted files) make the mosaic."""
 
 
 @dataclass(frozen=True)
@@ -214,15 +219,54 @@ _STATE: dict = {}
 
 
 def _scene_of(setup: _Setup, trajectory: Trajectory) -> Scene:
-    textures = load_texture_images(setup.texture) if setup.texture else None
+    textures = load_texture_images(setup.texture, TEXTURE_IMAGES) if setup.texture else None
     r, p = camera_poses(trajectory, trajectory.frame_ns, np.zeros(1))
     rng = np.random.default_rng([setup.config.seed, 0])
     source = f"mosaic of {len(textures)} images from {setup.texture}" if textures else ""
     return make_scene(p[:, 0], rng, textures, setup.config.scene, texture_source=source)
 
 
+def _scene_facts(setup: _Setup, trajectory: Trajectory) -> dict:
+    """The manifest's facts about the scene, without building its texture (the workers built theirs):
+    make_scene draws the layout first from the same generator."""
+    r, p = camera_poses(trajectory, trajectory.frame_ns, np.zeros(1))
+    lo, hi = layout(p[:, 0], np.random.default_rng([setup.config.seed, 0]), setup.config.scene)
+    if setup.texture:
+        n_images = min(len(image_files(setup.texture)), TEXTURE_IMAGES)
+        source = f"mosaic of {n_images} images from {setup.texture}"
+    else:
+        source = "procedural (no --texture given)"
+    return {
+        "texture": source,
+        "room_lo_m": lo[0].round(3).tolist(),
+        "room_hi_m": hi[0].round(3).tolist(),
+        "furniture_boxes": len(lo) - 1,
+    }
+
+
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3  # glibc's malloc.h
+
+
+def _keep_freed_memory() -> None:
+    """glibc: serve a frame's many short-lived arrays (1-3 MB each) from the heap and keep what is freed.
+
+    By default glibc maps each such array afresh and unmaps it when freed, and every page of it faults in
+    again on first touch: about a quarter of a frame's time (measured, docs/render.md). A no-op elsewhere.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)  # glibc's largest; the texture atlas is still mapped
+        libc.mallopt(_M_TRIM_THRESHOLD, 256 << 20)
+        libc.mallopt(_M_TOP_PAD, 32 << 20)
+    except (OSError, AttributeError):  # another C library
+        pass
+
+
 def _init_worker(setup: _Setup) -> None:
     cv2.setNumThreads(1)  # one process per core; OpenCV's own threads would oversubscribe
+    _keep_freed_memory()
     trajectory = load_trajectory(setup.trajectory)
     rays = CameraRays.of(EUROC_CAM0)
     _STATE.update(
@@ -232,6 +276,13 @@ def _init_worker(setup: _Setup) -> None:
         rays=rays,
         vignette=vignetting_map(EUROC_CAM0, setup.config.sensor.vignetting),
     )
+
+
+def _png_params(compression: int) -> list[int]:
+    """cv2.imencode's PNG options: the 'sub' filter and Huffman coding only take a quarter of the default's
+    time on noisy frames and give smaller files (203 against 221 kB at level 1, measured)."""
+    return [cv2.IMWRITE_PNG_COMPRESSION, compression, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
+            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]  # fmt: skip
 
 
 def _render_chunk(jobs: Sequence[tuple[int, float, str]]) -> int:
@@ -244,7 +295,7 @@ def _render_chunk(jobs: Sequence[tuple[int, float, str]]) -> int:
         rng = np.random.default_rng([config.seed, 3, t_ns])
         image = render_frame(_STATE["scene"], _STATE["rays"], (r_wc, p_wc), gain, rng, config.sensor,
                              _STATE["vignette"])  # fmt: skip
-        ok, png = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, config.png_compression])
+        ok, png = cv2.imencode(".png", image, _png_params(config.png_compression))
         if not ok:
             raise OSError(f"{path}: PNG encoding failed")
         write_bytes(path, png.tobytes())
@@ -436,9 +487,6 @@ def render_sequence(
     render_s = time.perf_counter() - render_start
 
     facts = _write_side_files(partial, traj, selected, imu_path, config)
-    scene = _STATE.get("scene") if _STATE.get("setup") == setup else None
-    if scene is None:
-        scene = _scene_of(setup, traj)
     manifest = {
         "key": key,
         "trajectory": trajectory,
@@ -446,10 +494,7 @@ def render_sequence(
         "frames": len(selected),
         "first_ns": int(selected[0]),
         "last_ns": int(selected[-1]),
-        "texture": scene.texture_source,
-        "room_lo_m": scene.lo[0].round(3).tolist(),
-        "room_hi_m": scene.hi[0].round(3).tolist(),
-        "furniture_boxes": scene.n_boxes - 1,
+        **_scene_facts(setup, traj),
         "rendered_now": len(todo),
         "render_seconds": round(render_s, 2),
         "frames_per_second": round(len(todo) / render_s, 2) if todo and render_s > 0 else None,
