@@ -108,3 +108,13 @@ def test_rules_in_the_loop_become_driver_arguments_and_metadata():
         driver_rule("sve-option2", preset("sve-option2"), "orbslam3")
     with pytest.raises(ValueError, match="log.csv: metadata 'rule' is not valid JSON"):
         recorded_rule(RunLog(meta={"rule": "{not json"}, frames=None, source="log.csv"))  # type: ignore[arg-type]
+
+
+def test_metadata_reaches_the_driver_as_typed_text():
+    from jsve.frontend._run import _meta_args
+
+    meta = {"run": 3, "fps": 20.0, "image_size": [752, 480], "rule": '{"kind": "inliers"}', "seq": "007"}
+    assert _meta_args(meta) == [
+        "--meta", "run=3", "--meta", "fps=20.0", "--meta", "image_size=[752,480]",
+        "--meta", 'rule="{"kind": "inliers"}"', "--meta", 'seq="007"',
+    ]  # fmt: skip

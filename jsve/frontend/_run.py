@@ -151,8 +151,12 @@ class RunJob:
 def _meta_args(meta: dict) -> list[str]:
     args = []
     for key, value in meta.items():
-        # lists and strings as JSON (a quoted string stays a string in the driver), numbers as numbers
-        text = json.dumps(value, separators=(",", ":")) if isinstance(value, (list, str)) else repr(value)
+        # a string in double quotes stays a string in the driver, which takes the text between them
+        # as it is (no JSON escapes); lists as JSON; numbers as numbers
+        if isinstance(value, str):
+            text = f'"{value}"'
+        else:
+            text = json.dumps(value, separators=(",", ":")) if isinstance(value, list) else repr(value)
         args += ["--meta", f"{key}={text}"]
     return args
 
