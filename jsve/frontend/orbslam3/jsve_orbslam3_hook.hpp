@@ -88,6 +88,9 @@ HookState& state() {
 bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error) {
     jsve::Options options;
     options.overwrite = overwrite;
+    // Flush every frame: ORB-SLAM3 can abort (Sophus' NaN check after a map reset), and an abort does
+    // not flush stdio; the `.partial` log then still holds every frame up to the one that crashed.
+    options.flush_every = 1;
     options.on_error = jsve::OnError::kReturn;
     auto writer = std::make_unique<jsve::LogWriter>();
     if (writer->open(path, meta, options) != jsve::Status::kOk) {
