@@ -38,7 +38,7 @@ from jsve.image._disturb import (
     scale_intrinsics,
 )
 from jsve.io import _atomic as atomic
-from jsve.io._resume import StaleOutputError, differences
+from jsve.io._resume import StaleOutputError, differences, stop_if_stale
 from jsve.io._workers import process_pool
 
 # The name users configure for the disturbance tools' messages (jsve disturb).
@@ -464,12 +464,9 @@ def disturb_datasets(
     jobs = [replace(job, source_hash=hashes[job.source]) for job in jobs]
     # Every finished dataset is checked before any is written: a folder never mixes two keys.
     stale = [(job, what) for job in jobs if (m := read_manifest(job.target)) and (what := _stale(job, m))]
-    if stale and not force:
-        job, what = stale[0]
-        raise StaleOutputError(
-            out_dir,
-            f"{len(stale)} datasets written under another key, e.g. "
-            f"{job.target.relative_to(out_dir).as_posix()}: {what}",
+    if not force:
+        stop_if_stale(
+            out_dir, [(job.target, what) for job, what in stale], "datasets written under another key"
         )
     atomic.check_writable(out_dir)
     for job in jobs:

@@ -53,7 +53,7 @@ from jsve.image._orb import fast_in_cells as fast_in_cells
 from jsve.image._orb import image_pyramid as image_pyramid
 from jsve.image._orb import intensity_centroid_angles as intensity_centroid_angles
 from jsve.io import _atomic as atomic
-from jsve.io._resume import StaleOutputError, differences
+from jsve.io._resume import differences, stop_if_stale
 from jsve.io._schema import BIN_COLUMNS, N_BINS
 
 logger = logging.getLogger(__name__)
@@ -616,13 +616,8 @@ def measure_datasets(
         for (_, target), key in zip(targets, keys, strict=True)
         if target.exists() and not overwrite and (what := _stale(target, key))
     ]
-    if stale and not force:
-        target, what = stale[0]
-        raise StaleOutputError(
-            out_dir,
-            f"{len(stale)} tables measured under another key, e.g. "
-            f"{target.relative_to(out_dir).as_posix()}: {what}",
-        )
+    if not force:
+        stop_if_stale(out_dir, stale, "tables measured under another key")
     redo = {target for target, _ in stale}
     todo = [
         (dataset, target, key)

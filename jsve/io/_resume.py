@@ -41,6 +41,15 @@ class StaleOutputError(Exception):
         return f"{self.folder} holds outputs of another job ({self.what})"
 
 
+def stop_if_stale(folder: str | os.PathLike, stale: list[tuple[os.PathLike | str, str]], what: str) -> None:
+    """Raise StaleOutputError when `stale`, (output path, difference) pairs, is not empty: how many `what`
+    (e.g. "logs simulated under another generator key") and the first, relative to `folder`."""
+    if stale:
+        path, difference = stale[0]
+        rel = Path(path).relative_to(folder).as_posix()
+        raise StaleOutputError(folder, f"{len(stale)} {what}, e.g. {rel}: {difference}")
+
+
 def fingerprint(obj) -> str:
     """16 hex digits of sha256 over `obj` as canonical JSON (sorted keys; numpy values as numbers)."""
     text = json.dumps(obj, sort_keys=True, default=json_default, separators=(",", ":"))

@@ -39,7 +39,7 @@ import pandas as pd
 
 from jsve.core._levels import LEVELS, SEED_DISTURBANCES
 from jsve.io import _schema as schema
-from jsve.io._resume import StaleOutputError, differences, file_digest, fingerprint
+from jsve.io._resume import differences, file_digest, fingerprint, stop_if_stale
 from jsve.io._schema import RunLog
 from jsve.io._workers import process_pool
 from jsve.sim._motion import (
@@ -882,13 +882,8 @@ def write_study(
     run_ids = list(range(runs)) if isinstance(runs, int) else list(runs)
     keys = {spec.name: generator_key(spec, seed, config) for spec in specs}
     stale = _stale_logs(out_dir, keys)
-    if stale and not force:
-        path, what = stale[0]
-        raise StaleOutputError(
-            out_dir,
-            f"{len(stale)} logs simulated under another generator key, "
-            f"e.g. {path.relative_to(out_dir)}: {what}",
-        )
+    if not force:
+        stop_if_stale(out_dir, stale, "logs simulated under another generator key")
     redo = {path for path, _ in stale}
     result = StudyResult()
     jobs = []
