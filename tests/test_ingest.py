@@ -174,7 +174,7 @@ def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
 
     pf = pq.ParquetFile(out)
     assert pf.schema_arrow.names[:2] == ["run_id", "frame"]
-    assert pf.schema_arrow.names[2:] == list(schema.COLUMNS)
+    assert pf.schema_arrow.names[2:] == list(schema.COLUMNS + schema.WORLD_COLUMNS)
     assert str(pf.schema_arrow.field("frame").type) == "int32"
     assert str(pf.schema_arrow.field("run_id").type).startswith("dictionary<values=string")
     entries = json.loads(pf.metadata.metadata[b"jsve.runs"])

@@ -6,7 +6,8 @@ and the copy is patched by anchored edits that fail loudly when an anchor is not
   * CMakeLists.txt: C++17 instead of C++11 (Pangolin 0.9 and GCC 12 need it); the examples and the
     in-tree g2o target are dropped (jsve builds its own driver, and g2o on its own as build.sh does);
   * src/LoopClosing.cc: `mnFullBAIdx++` on a bool (ill-formed in C++17) becomes `= true`, its C++14 meaning;
-  * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and six calls.
+  * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and six calls;
+  * src/Map.cc: the hook header and one call, where ApplyScaledRotation re-expresses a map (world_*).
 Then Pangolin (when not installed), DBoW2, g2o, the library and the driver are built with CMake in
 BUILD/build/*. Layout of BUILD:
 
@@ -93,6 +94,17 @@ EDITS = (
         "    lastID = mCurrentFrame.mnId;\n    Track();\n",
         "    lastID = mCurrentFrame.mnId;\n    JSVE_HOOK_BEGIN_FRAME();" + HOOK_TAG
         + "\n    Track();\n    JSVE_HOOK_LOG_FRAME();" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Map.cc",
+        '#include "Map.h"\n',
+        '#include "Map.h"\n#include "jsve_orbslam3_hook.hpp"' + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Map.cc",
+        "        pMP->UpdateNormalAndDepth();\n    }\n    mnMapChange++;\n}\n",
+        "        pMP->UpdateNormalAndDepth();\n    }\n    mnMapChange++;\n"
+        + "    JSVE_HOOK_WORLD_CHANGE(mnId, T, s);" + HOOK_TAG + "\n}\n",
     ),
 )  # fmt: skip
 """The anchored edits, in order. Anchors are ORB-SLAM3 v1.0 (@4452a3c) lines; see docs/frontend.md."""

@@ -91,6 +91,23 @@ def scaled_settings(settings: str, width: int, height: int) -> str | None:
     return "\n".join(lines) + "\n"
 
 
+def camera_in_body(settings: str) -> list[float] | None:
+    """T_bc, the camera pose in the body (IMU) frame, from ORB-SLAM3 settings text (`IMU.T_b_c1`, a 4 x 4
+    matrix) as the log's metadata `camera_in_body`: [qw, qx, qy, qz, tx, ty, tz] (m); None without it."""
+    import cv2
+    import numpy as np
+
+    from jsve.core._geometry import matrix_to_quat, quat_normalize
+
+    fs = cv2.FileStorage(settings, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    node = fs.getNode("IMU.T_b_c1")
+    if node.empty():
+        return None
+    t_bc = np.asarray(node.mat(), np.float64)
+    q = quat_normalize(matrix_to_quat(t_bc[:3, :3], xp=np), xp=np)
+    return [float(x) for x in q] + [float(x) for x in t_bc[:3, 3]]
+
+
 def image_size(dataset: Path) -> tuple[int, int]:
     """(width, height) of the dataset's first image."""
     import cv2
@@ -255,6 +272,7 @@ def plan(
         "switch_model": switch_model,
     }
     settings_text = settings.read_text()
+    t_bc = camera_in_body(settings_text)
     todo, done = [], []
     for path in datasets:
         ds = describe_dataset(path)
@@ -287,6 +305,8 @@ def plan(
                 "disturbance": ds.disturbance, "level": ds.level, "rule": rule_meta,
                 "switch_model": switch_model, "generator": key,
             }  # fmt: skip
+            if t_bc is not None:
+                meta["camera_in_body"] = t_bc
             todo.append(RunJob(ds, k, log, run_settings, meta, tuple(rule_args)))
     return todo, done
 

@@ -18,6 +18,7 @@ from jsve.core._batch import LogBatch, bucket_by_length, padded_length
 from jsve.core._machine import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST
 from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
+from jsve.io._world import in_one_world_frame
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,8 @@ def from_runs(
     """Stack runs into one padded LogBatch.
 
     Arguments:
-        runs: parsed logs (validated by jsve.io._logs).
+        runs: parsed logs (validated by jsve.io._logs); poses of logs with world_* columns are
+            re-expressed in one world frame per recorded segment (jsve.io._world).
         n_frames: padded length; default: the longest run rounded up to `pad_multiple`.
         dtype: float dtype of the arrays (float64 needs jax_enable_x64).
     Returns:
@@ -119,7 +121,8 @@ def from_runs(
     delay, ba2_delay = np.zeros(R, fdt), np.zeros(R, fdt)
     n_features, stereo = np.zeros(R, fdt), np.zeros(R, bool)
     for i, run in enumerate(runs):
-        f = run.frames
+        # One world frame per recorded map segment, where the log says how the front-end re-expressed it.
+        f = in_one_world_frame(run).frames
         n = len(f)
         stamps = f["t_ns"].to_numpy(np.int64)
         t[i, :n] = (stamps - stamps[0]) / 1e9  # int64 difference first: exact, then to seconds

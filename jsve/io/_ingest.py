@@ -450,10 +450,12 @@ PARQUET_SCHEMA = pa.schema(
     + [pa.field(c, pa.int64(), nullable=False) for c in schema.INT_COLUMNS]
     + [pa.field(c, pa.float64(), nullable=False) for c in schema.FLOAT_COLUMNS]
     + [pa.field(c, pa.float64(), nullable=True) for c in schema.GT_COLUMNS]
+    + [pa.field(c, pa.float64(), nullable=True) for c in schema.WORLD_COLUMNS]
 )
 """Layout of the consolidated Parquet file: one row per frame, runs contiguous in sorted path order.
 vis_* are NaN on frames without a pose; gt_* are null for runs without ground truth, NaN for frames
-without it in runs that have it."""
+without it in runs that have it; world_* are null for runs whose logs have none (files written
+before the world_* columns existed lack them: their runs have none)."""
 
 
 @dataclass(frozen=True)
@@ -502,6 +504,12 @@ def _runs_to_table(runs: list[RunLog]) -> pa.Table:
         )
         # NaN stays NaN (a frame without ground truth); null marks a run without gt columns.
         arrays.append(pa.array(values, mask=no_gt if no_gt.any() else None))
+    no_world = np.repeat([not r.has_world_frame for r in runs], lengths)
+    for c in schema.WORLD_COLUMNS:
+        values = np.concatenate(
+            [r.frames[c].to_numpy() if r.has_world_frame else np.full(len(r.frames), np.nan) for r in runs]
+        )
+        arrays.append(pa.array(values, mask=no_world if no_world.any() else None))
     return pa.Table.from_arrays(arrays, schema=PARQUET_SCHEMA)
 
 
@@ -525,7 +533,7 @@ def ingest(
     The file (layout PARQUET_SCHEMA) holds one row per frame: `run_id` (dictionary-encoded string),
     `frame` (int32, 0-based), then the v2 columns (v1 logs with their defaults); runs are contiguous,
     in sorted path order. The schema's key-value metadata holds b'jsve.runs': a JSON list of {run_id,
-    source, meta, n_frames, has_ground_truth, log_version}, one per run in file order, and
+    source, meta, n_frames, has_ground_truth, has_world_frame, log_version}, one per run in file order, and
     b'jsve.format' = b'2'. Logs are streamed (row groups of ~260k frames), so memory stays flat. The
     file is written as `<out>.partial` and renamed when complete.
 
@@ -581,6 +589,7 @@ def ingest(
                     "meta": run.meta,
                     "n_frames": len(run.frames),
                     "has_ground_truth": run.has_ground_truth,
+                    "has_world_frame": run.has_world_frame,
                     # map_id / imu_ba2 of a v1 log are schema.v1_defaults, not recorded values.
                     "log_version": version,
                 }
@@ -675,10 +684,18 @@ def _read_parquet(path: str | os.PathLike, *, stacklevel: int) -> list[RunLog]:
         raise LogFormatError(
             source, None, f"a format-{version} jsve Parquet file without the column(s) {', '.join(lacking)}"
         )
-    columns = {c: table.column(c).to_numpy() for c in required + schema.GT_COLUMNS}
+    world = [c for c in schema.WORLD_COLUMNS if c in table.column_names]
+    columns = {c: table.column(c).to_numpy() for c in required + schema.GT_COLUMNS + tuple(world)}
     runs = []
     for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
-        names = required + schema.GT_COLUMNS if e["has_ground_truth"] else required
+        has_world = bool(e.get("has_world_frame", False))
+        if has_world and len(world) < len(schema.WORLD_COLUMNS):
+            raise LogFormatError(
+                source,
+                None,
+                f"run {e['run_id']!r} has world_* columns in its run list but the file lacks them",
+            )
+        names = schema.column_order(version, e["has_ground_truth"], has_world)
         frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
         if version == 1:
             frames = with_v1_defaults(frames)

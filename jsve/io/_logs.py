@@ -54,6 +54,11 @@ the ground-truth file used."""
 
 _INT_SET = frozenset(schema.INT_COLUMNS)
 _GT_SET = frozenset(schema.GT_COLUMNS)
+_WORLD_SET = frozenset(schema.WORLD_COLUMNS)
+_GROUP_WORDS = {
+    schema.GT_COLUMNS: ("ground-truth", "seven gt_*"),
+    schema.WORLD_COLUMNS: ("world-frame", "eight world_*"),
+}
 _VIS_SET = frozenset(schema.VIS_COLUMNS)
 _POSED = ", ".join(f"{s} ({schema.STATE_NAMES[s]})" for s in schema.POSED_STATES[:-1]) + (
     f" and {schema.POSED_STATES[-1]} ({schema.STATE_NAMES[schema.POSED_STATES[-1]]})"
@@ -107,6 +112,22 @@ def _check_meta(meta, source: str, line: int | None) -> None:
     missing = meta.get("gt_missing_frames")
     if missing is not None and missing < 0:
         fail("gt_missing_frames", "must be >= 0", missing)
+    t_bc = meta.get("camera_in_body")
+    if t_bc is not None and not _is_pose(t_bc):
+        fail(
+            "camera_in_body",
+            "must be the camera pose in the body frame, [qw, qx, qy, qz, tx, ty, tz] (unit quaternion, m)",
+            t_bc,
+        )
+
+
+def _is_pose(values) -> bool:
+    """[qw, qx, qy, qz, tx, ty, tz] of finite numbers within float32's range with a unit quaternion."""
+    if len(values) != 7 or not all(text.is_type(v, (int, float)) for v in values):
+        return False
+    if not all(math.isfinite(v) and abs(v) <= schema.FLOAT_MAX for v in values):
+        return False
+    return abs(math.sqrt(sum(v * v for v in values[:4])) - 1.0) <= schema.UNIT_QUATERNION_TOLERANCE
 
 
 _READS = " and ".join(f"v{v}" for v in schema.READ_VERSIONS)
@@ -152,18 +173,20 @@ def _check_header(
         if name in seen:
             fail("appears more than once in the header", name)
         seen.add(name)
-    gt_present = [c for c in schema.GT_COLUMNS if c in seen]
-    if 0 < len(gt_present) < len(schema.GT_COLUMNS):
-        lacking = [c for c in schema.GT_COLUMNS if c not in seen]
-        fail(
-            f"ground-truth columns partially present: has {_quote(gt_present)}, lacks {_quote(lacking)} "
-            "(give all seven gt_* columns or none)",
-            lacking[0],
-        )
+    for group, (what, all_of) in _GROUP_WORDS.items():
+        present = [c for c in group if c in seen]
+        if 0 < len(present) < len(group):
+            lacking = [c for c in group if c not in seen]
+            fail(
+                f"{what} columns partially present: has {_quote(present)}, lacks {_quote(lacking)} "
+                f"(give all {all_of} columns or none)",
+                lacking[0],
+            )
     required = schema.required_columns(version)
-    expected = list(required + schema.GT_COLUMNS if gt_present else required)
+    gt, world = schema.GT_COLUMNS[0] in seen, schema.WORLD_COLUMNS[0] in seen
+    expected = list(schema.column_order(version, gt, world))
     missing = [c for c in expected if c not in seen]
-    unexpected = [c for c in names if c not in set(required + schema.GT_COLUMNS)]
+    unexpected = [c for c in names if c not in set(required + schema.GT_COLUMNS + schema.WORLD_COLUMNS)]
     if missing or unexpected:
         parts = []
         if missing:
@@ -245,6 +268,7 @@ def _find_problem(
 
     ints = cols
     other_floats = [c for c in schema.FLOAT_COLUMNS if c not in _VIS_SET]
+    other_floats += [c for c in schema.WORLD_COLUMNS if c in pos]
 
     # NaN / inf anywhere (an empty gt_* or vis_* field is a missing value, not NaN), and finite values
     # that float32, which jsve computes in, cannot hold.
@@ -412,6 +436,12 @@ def _find_problem(
             )
 
     per_cell(cols["imu_dt"] < 0, ("imu_dt",), "must be >= 0 (seconds since the previous frame)")
+    if schema.WORLD_SCALE in pos:
+        per_cell(
+            ~(cols[schema.WORLD_SCALE] > 0),
+            (schema.WORLD_SCALE,),
+            "must be > 0 (the scale of the similarity between world frames)",
+        )
 
     # First frame: nothing to preintegrate from (docs/log-format.md, "First frame").
     if n_frames:
@@ -440,7 +470,8 @@ def _find_problem(
 def validate_run(run: RunLog) -> RunLog:
     """Check an in-memory run against format v2 and return it in canonical form.
 
-    Canonical form: columns in v2 order (schema.REQUIRED_COLUMNS, then GT_COLUMNS when present), int
+    Canonical form: columns in v2 order (schema.REQUIRED_COLUMNS, then GT_COLUMNS and WORLD_COLUMNS when
+    present), int
     columns int64, float columns float64, a RangeIndex, metadata as it reads back from JSON (tuples
     become lists, numpy scalars Python numbers). gt_* NaN marks a frame without ground truth, all ten
     vis_* NaN a frame without a pose (allowed outside schema.POSED_STATES).
@@ -455,8 +486,9 @@ def validate_run(run: RunLog) -> RunLog:
 
     frames = run.frames
     has_gt = any(c in frames.columns for c in schema.GT_COLUMNS)
+    has_world = any(c in frames.columns for c in schema.WORLD_COLUMNS)
     names = [str(c) for c in frames.columns]
-    order = schema.COLUMNS if has_gt else schema.REQUIRED_COLUMNS
+    order = schema.column_order(schema.FORMAT_VERSION, has_gt, has_world)
     # In memory the order is free; the file order is fixed by the writer.
     _check_header(sorted(names, key=lambda c: order.index(c) if c in order else len(order)), source, None)
     if len(frames) == 0:
@@ -503,10 +535,11 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
     """Write one run as a format-v2 CSV log, atomically (always v2, whatever the run was read from).
 
     Line 1 is MAGIC + the metadata as JSON, line 2 the header (schema.REQUIRED_COLUMNS, plus
-    GT_COLUMNS when the frames have them), then one row per frame and last the end marker with the
-    frame count. Integers are written exactly; floats in the shortest decimal form that reads back to
-    the same double (as Python's repr), so `read_log` returns the frames bit for bit. A frame without
-    ground truth has its seven gt_* fields empty, a frame without a pose (NaN) its ten vis_* fields.
+    GT_COLUMNS and WORLD_COLUMNS when the frames have them), then one row per frame and last the end
+    marker with the frame count. Integers are written exactly; floats in the shortest decimal form that
+    reads back to the same double (as Python's repr), so `read_log` returns the frames bit for bit. A
+    frame without ground truth has its seven gt_* fields empty, a frame without a pose (NaN) its ten
+    vis_* fields.
 
     The file is written as `<path>.partial` and renamed to `path` when complete, so a reader never
     sees a half-written log under the final name. (No fsync: this guards against the writer dying,
@@ -718,7 +751,7 @@ def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
     def nulls(names):
         return np.stack([np.asarray(table.column(c).is_null()) for c in names], axis=1)
 
-    gt_missing = nulls(schema.GT_COLUMNS) if columns[-1] in _GT_SET else None
+    gt_missing = nulls(schema.GT_COLUMNS) if schema.GT_COLUMNS[0] in columns else None
     vis_missing = nulls(schema.VIS_COLUMNS) if version >= 2 else None
     problem = _find_problem({c: table.column(c).to_numpy() for c in columns}, gt_missing, vis_missing)
     if problem is not None:

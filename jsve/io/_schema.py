@@ -79,6 +79,16 @@ GT_QUATERNION = ("gt_qw", "gt_qx", "gt_qy", "gt_qz")
 VIS_COLUMNS = VIS_POSITION + VIS_QUATERNION + VIS_VELOCITY
 """The pose of a frame: all ten present, or (outside POSED_STATES) all ten empty / NaN."""
 GT_COLUMNS = GT_POSITION + GT_QUATERNION
+WORLD_QUATERNION = ("world_qw", "world_qx", "world_qy", "world_qz")
+WORLD_TRANSLATION = ("world_tx", "world_ty", "world_tz")
+WORLD_SCALE = "world_s"
+WORLD_COLUMNS = WORLD_QUATERNION + WORLD_TRANSLATION + (WORLD_SCALE,)
+"""The similarity W from the frame's map's first world frame to the world frame its vis_* pose is in:
+x = world_s R(world_q) x_first + world_t for points (optional; all eight or none, on every frame; the
+identity until the front-end first re-expresses its map). ORB-SLAM3 re-expresses a whole map
+(Map::ApplyScaledRotation: gravity direction and scale) at IMU initialisation, inertial BA1 / BA2 and
+scale refinement without a new map id, so the online poses of one map are in several world frames;
+jsve.io._world re-expresses them in one."""
 COUNT_COLUMNS = ("n_extracted", "n_inliers", "n_frustum")
 MAP_COLUMNS = ("map_id", "imu_ba2")
 """The recorded run's map and its inertial stage, new in v2 (right after imu_init)."""
@@ -89,8 +99,18 @@ FLOAT_COLUMNS = VIS_COLUMNS + ("imu_dt",) + IMU_DP + IMU_DV + IMU_DQ
 REQUIRED_COLUMNS = INT_COLUMNS + FLOAT_COLUMNS
 """Columns every v2 log has, in this order."""
 
+OPTIONAL_GROUPS = (GT_COLUMNS, WORLD_COLUMNS)
+"""Optional column groups, each all or none, in file order after the required columns."""
+
 COLUMNS = REQUIRED_COLUMNS + GT_COLUMNS
-"""Full column order when ground truth is logged; gt_* are optional (all seven or none)."""
+"""Column order when ground truth is logged; gt_* are optional (all seven or none), and so are the
+world_* columns after them (`column_order`)."""
+
+
+def column_order(version: int, gt: bool, world: bool) -> tuple[str, ...]:
+    """The columns of format `version` with (or without) the gt_* and world_* groups, in file order."""
+    return required_columns(version) + (GT_COLUMNS if gt else ()) + (WORLD_COLUMNS if world else ())
+
 
 V1_REQUIRED_COLUMNS = tuple(c for c in REQUIRED_COLUMNS if c not in MAP_COLUMNS)
 """Columns every v1 log has, in this order (v2 without map_id and imu_ba2)."""
@@ -134,7 +154,12 @@ def v1_defaults(t_ns: np.ndarray, imu_init: np.ndarray) -> dict[str, np.ndarray]
     return {"map_id": map_id, "imu_ba2": imu_ba2}
 
 
-QUATERNION_GROUPS = {"vis_q": VIS_QUATERNION, "imu_dq": IMU_DQ, "gt_q": GT_QUATERNION}
+QUATERNION_GROUPS = {
+    "vis_q": VIS_QUATERNION,
+    "imu_dq": IMU_DQ,
+    "gt_q": GT_QUATERNION,
+    "world_q": WORLD_QUATERNION,
+}
 
 UNIT_QUATERNION_TOLERANCE = 1e-6
 """Largest accepted | |q| - 1 | for a logged quaternion (doubles written with 17 digits are far tighter)."""
@@ -169,6 +194,9 @@ UNITS = {
     "imu_dq*": "unit quaternion wxyz, preintegrated rotation delta",
     "gt_p*": "m, ground-truth body position, world frame",
     "gt_q*": "unit quaternion wxyz, ground-truth body-to-world rotation",
+    "world_q*": "unit quaternion wxyz, rotation of the similarity from the map's first world frame",
+    "world_t*": "m (this frame's world), translation of that similarity",
+    "world_s": "scale of that similarity (> 0, dimensionless)",
 }
 
 REQUIRED_METADATA = {"sequence": str, "run": int, "fps": (int, float)}
@@ -186,6 +214,7 @@ OPTIONAL_METADATA = {
     "seed": int,  # simulator seed
     "rule": (str, dict),  # the rule the front-end ran: a preset name, or jsve.core._rules.rule_to_dict's form
     "switch_model": str,  # what the front-end does with a rejected frame's pose: "orbslam3", "imu-coast", ...
+    "camera_in_body": list,  # T_bc, the camera pose in the body (IMU) frame: [qw, qx, qy, qz, tx, ty, tz] (m)
 }
 
 DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
@@ -204,7 +233,7 @@ class RunLog:
 
     Attributes:
         meta: the metadata object of line 1 (REQUIRED_METADATA keys at least).
-        frames: one row per frame, columns in REQUIRED_COLUMNS (+ GT_COLUMNS) order; integer
+        frames: one row per frame, columns in REQUIRED_COLUMNS (+ GT_COLUMNS) (+ WORLD_COLUMNS) order; integer
             columns int64, float columns float64, vis_* NaN on frames without a pose, gt_* NaN
             where no ground truth is associated. Runs read from v1 files carry v1_defaults.
         source: where it came from (a path, or a name for in-memory logs), used in every message.
@@ -223,3 +252,8 @@ class RunLog:
     @property
     def has_ground_truth(self) -> bool:
         return all(c in self.frames.columns for c in GT_COLUMNS)
+
+    @property
+    def has_world_frame(self) -> bool:
+        """The frames carry world_* (the similarity of each pose's world frame, see WORLD_COLUMNS)."""
+        return all(c in self.frames.columns for c in WORLD_COLUMNS)

@@ -7,6 +7,8 @@
 //   TrackLocalMap      JSVE_HOOK_SAVE_PREDICTION() at its start; JSVE_HOOK_INLIERS(mnMatchesInliers)
 //                      and JSVE_HOOK_DECIDE() after the count, before ORB-SLAM3's success test
 //   GrabImageMonocular JSVE_HOOK_BEGIN_FRAME() before Track(), JSVE_HOOK_LOG_FRAME() after it
+// and, in src/Map.cc (which includes this header without the implementation):
+//   ApplyScaledRotation JSVE_HOOK_WORLD_CHANGE(mnId, T, s) after the map is re-expressed
 // Without a rule (set_rule) nothing in ORB-SLAM3's decisions changes: the hook only copies values.
 // With one, JSVE_HOOK_DECIDE returns the rule's success test in place of ORB-SLAM3's (the same
 // clauses, in the same order, with the rule's thresholds: jsve.core._machine.tracking_succeeds), and
@@ -15,12 +17,15 @@
 // early return Track() took.
 //
 // The driver (jsve_orbslam3.cc) opens and closes the log through open_log / close_log. One tracker
-// per process: the hook's state is a process-wide singleton, used from the tracking thread only.
+// per process: the hook's state is a process-wide singleton, used from the tracking thread only,
+// except the world frames of the maps, which LocalMapping and LoopClosing change (under a mutex).
 #pragma once
 
 #include <cmath>
 #include <cstdint>
+#include <map>
 #include <memory>
+#include <mutex>
 #include <string>
 
 #include "jsve_log.hpp"
@@ -57,6 +62,20 @@ struct InlierRule {
 void set_rule(const InlierRule& rule, bool coast);
 bool rule_active();
 
+// A similarity x' = s R(q) x + t between world frames (q wxyz); the identity by default.
+struct Similarity {
+    double q[4] = {1.0, 0.0, 0.0, 0.0};
+    double t[3] = {0.0, 0.0, 0.0};
+    double s = 1.0;
+};
+
+// Map `map_id` was re-expressed by `change` (Map::ApplyScaledRotation's T and s): its world frame is
+// now change o (what it was). Thread-safe (called from LocalMapping and LoopClosing).
+void world_change(std::int64_t map_id, const Similarity& change);
+
+// The similarity from map `map_id`'s first world frame to its current one (the log's world_* columns).
+Similarity world_frame(std::int64_t map_id);
+
 }  // namespace jsve_hook
 
 #define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
@@ -70,6 +89,16 @@ bool rule_active();
                                        mCurrentFrame.mnId < mnLastRelocFrameId + mMaxFrames,      \
                                        mState == RECENTLY_LOST, mpAtlas->isImuInitialized(),       \
                                        mSensor == System::IMU_STEREO || mSensor == System::IMU_RGBD); \
+    } while (0)
+// Expands inside Map::ApplyScaledRotation (T: Sophus::SE3f, s: float).
+#define JSVE_HOOK_WORLD_CHANGE(map_id, T, s)                                                      \
+    do {                                                                                           \
+        ::jsve_hook::Similarity change_;                                                           \
+        const Eigen::Quaterniond q_ = (T).unit_quaternion().cast<double>();                        \
+        change_.q[0] = q_.w(); change_.q[1] = q_.x(); change_.q[2] = q_.y(); change_.q[3] = q_.z(); \
+        for (int i_ = 0; i_ < 3; ++i_) change_.t[i_] = static_cast<double>((T).translation()(i_)); \
+        change_.s = static_cast<double>(s);                                                        \
+        ::jsve_hook::world_change(static_cast<std::int64_t>(map_id), change_);                     \
     } while (0)
 // Expands inside a Tracking member function: reads its protected members.
 #define JSVE_HOOK_LOG_FRAME() ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas)
@@ -92,6 +121,7 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
     // not flush stdio; the `.partial` log then still holds every frame up to the one that crashed.
     options.flush_every = 1;
     options.on_error = jsve::OnError::kReturn;
+    options.world_frame = true;  // the world_* columns: the maps' re-expressions (jsve.io._world)
     auto writer = std::make_unique<jsve::LogWriter>();
     if (writer->open(path, meta, options) != jsve::Status::kOk) {
         if (error) *error = writer->last_error();
@@ -131,6 +161,38 @@ void set_rule(const InlierRule& rule, bool coast) {
 }
 
 bool rule_active() { return rule_state().active; }
+
+struct WorldFrames {
+    std::mutex mutex;
+    std::map<std::int64_t, Similarity> of_map;  // maps never re-expressed are absent (the identity)
+};
+
+WorldFrames& world_frames() {
+    static WorldFrames w;
+    return w;
+}
+
+void world_change(std::int64_t map_id, const Similarity& change) {
+    // Composition change o old: s = s_c s_o, R = R_c R_o, t = s_c R_c t_o + t_c.
+    const Eigen::Quaterniond qc(change.q[0], change.q[1], change.q[2], change.q[3]);
+    const Eigen::Vector3d tc(change.t[0], change.t[1], change.t[2]);
+    WorldFrames& w = world_frames();
+    std::lock_guard<std::mutex> lock(w.mutex);
+    Similarity& old = w.of_map[map_id];
+    const Eigen::Quaterniond qo(old.q[0], old.q[1], old.q[2], old.q[3]);
+    const Eigen::Quaterniond q = (qc * qo).normalized();
+    const Eigen::Vector3d t = change.s * (qc * Eigen::Vector3d(old.t[0], old.t[1], old.t[2])) + tc;
+    old.q[0] = q.w(); old.q[1] = q.x(); old.q[2] = q.y(); old.q[3] = q.z();
+    for (int i = 0; i < 3; ++i) old.t[i] = t(i);
+    old.s *= change.s;
+}
+
+Similarity world_frame(std::int64_t map_id) {
+    WorldFrames& w = world_frames();
+    std::lock_guard<std::mutex> lock(w.mutex);
+    const auto it = w.of_map.find(map_id);
+    return it == w.of_map.end() ? Similarity() : it->second;
+}
 
 inline void save_prediction(ORB_SLAM3::Frame& frame) {
     RuleState& r = rule_state();
@@ -208,6 +270,12 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
         copy_quaternion(f.vis_q, frame.GetImuRotation());
         if (frame.HasVelocity()) copy3(f.vis_v, frame.GetVelocity());
     }
+    // The world frame of the map now (a re-expression by LocalMapping while Track() ran may or may not
+    // have reached this frame's pose yet: at most the frame it happens at is off).
+    const Similarity world = world_frame(f.map_id);
+    for (int i = 0; i < 4; ++i) f.world_q[i] = world.q[i];
+    for (int i = 0; i < 3; ++i) f.world_t[i] = world.t[i];
+    f.world_s = world.s;
     // The log's first frame carries no preintegration (the format's rule); later frames the one
     // from the previous frame, corrected to this frame's bias estimate.
     ORB_SLAM3::IMU::Preintegrated* pre = frame.mpImuPreintegratedFrame;
