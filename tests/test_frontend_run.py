@@ -104,8 +104,16 @@ def test_rules_in_the_loop_become_driver_arguments_and_metadata():
     # the metadata names the rule as JSON text, which identity replay reads back as that rule
     name, rule = recorded_rule(RunLog(meta={"rule": meta}, frames=None, source="log.csv"))  # type: ignore[arg-type]
     assert name == meta and rule == record_rule()
-    with pytest.raises(ValueError, match="inlier-count rules only"):
-        driver_rule("sve-option2", preset("sve-option2"), "orbslam3")
+    # the SVE family: inputs, the combination, then the thresholds; nFeatures for the authors' Eq.1
+    args, meta = driver_rule("sve-option1", preset("sve-option1"), "imu-coast", n_features=1200)
+    assert args[0] == "--rule-sve" and args[2:] == ["--n-features", "1200", "--coast"]
+    inputs, *numbers = args[1].split(",")
+    # the rule's own values (its leaves: float32 unless x64), passed exactly
+    expected = np.float32([0.5, 0.5, 1.0, 1.0, 0.5, 0.1, 0.3, 0.3, 0.1])
+    assert inputs == "authors-option1" and np.array_equal(np.float32([float(x) for x in numbers]), expected)
+    assert recorded_rule(RunLog(meta={"rule": meta}, frames=None, source="l.csv"))[1] == preset("sve-option1")  # type: ignore[arg-type]
+    args, _ = driver_rule("sve-option2", preset("sve-option2"), "orbslam3")
+    assert args[1].startswith("jsve,0.5,0.5,0.0,1.0,0.25,")
     with pytest.raises(ValueError, match="log.csv: metadata 'rule' is not valid JSON"):
         recorded_rule(RunLog(meta={"rule": "{not json"}, frames=None, source="log.csv"))  # type: ignore[arg-type]
 

@@ -108,6 +108,16 @@ def camera_in_body(settings: str) -> list[float] | None:
     return [float(x) for x in q] + [float(x) for x in t_bc[:3, 3]]
 
 
+def orb_features(settings: str) -> int:
+    """ORBextractor.nFeatures of ORB-SLAM3 settings text (the log's `n_features`; 1000 when absent)."""
+    import cv2
+
+    node = cv2.FileStorage(settings, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY).getNode(
+        "ORBextractor.nFeatures"
+    )
+    return 1000 if node.empty() else int(node.real())
+
+
 def image_size(dataset: Path) -> tuple[int, int]:
     """(width, height) of the dataset's first image."""
     import cv2
@@ -131,28 +141,30 @@ def record_rule():
     return InlierRule(Thresholds(**RECORD_THRESHOLDS))
 
 
-def driver_rule(name: str, rule, switch_model: str) -> tuple[list[str], str]:
+def driver_rule(name: str, rule, switch_model: str, n_features: int = 1000) -> tuple[list[str], str]:
     """The driver's arguments for running `rule` in the loop, and the log's `rule` metadata.
 
     `name` "orbslam3" under "orbslam3" runs ORB-SLAM3's own test untouched (no arguments); any other
-    inlier rule, or "imu-coast", replaces it through the hook. Returns (arguments, metadata `rule`: the
-    preset name "orbslam3", else rule_to_dict's object as JSON text, which jsve check reads back).
-
-    Raises:
-        ValueError for a rule the hook cannot run (the SVE family is not built into the hook yet).
+    rule (the inlier family, or the SVE family with any of its inputs), or "imu-coast", replaces it
+    through the hook. Returns (arguments, metadata `rule`: the preset name "orbslam3", else
+    rule_to_dict's object as JSON text, which jsve check reads back).
     """
     from jsve.core._rules import rule_kind, rule_to_dict
 
-    if rule_kind(rule) != "inliers":
-        raise ValueError(f"rule {name!r}: the hook runs inlier-count rules only (the SVE family in the loop "
-                         "is not built yet)")  # fmt: skip
     spec = rule_to_dict(rule)
     meta = name if name == "orbslam3" else json.dumps(spec, sort_keys=True)
     if name == "orbslam3" and switch_model == "orbslam3":
         return [], meta
     t = spec["thresholds"]
-    values = ",".join(repr(float(t[k])) for k in ("imu_init", "not_init", "reloc", "recovery"))
-    return ["--rule-inliers", values] + (["--coast"] if switch_model == "imu-coast" else []), meta
+    numbers = [float(t[k]) for k in ("imu_init", "not_init", "reloc", "recovery")]
+    if rule_kind(rule) == "inliers":
+        args = ["--rule-inliers", ",".join(map(repr, numbers))]
+    else:
+        c = spec["combination"]
+        numbers = [float(c[k]) for k in ("w_a", "u_b", "p", "q", "rho")] + numbers
+        inputs = c.get("inputs", "jsve")
+        args = ["--rule-sve", ",".join([inputs, *map(repr, numbers)]), "--n-features", str(n_features)]
+    return args + (["--coast"] if switch_model == "imu-coast" else []), meta
 
 
 @dataclasses.dataclass(frozen=True)
@@ -262,7 +274,9 @@ def plan(
 
     check_switch_model(switch_model)
     name, rule_obj = rule if rule is not None else ("orbslam3", preset("orbslam3"))
-    rule_args, rule_meta = driver_rule(name, rule_obj, switch_model)
+    settings_text = settings.read_text()
+    n_features = orb_features(settings_text)
+    rule_args, rule_meta = driver_rule(name, rule_obj, switch_model, n_features)
     stock = not rule_args
     base_key = {
         "hook": json.loads((build / "build.json").read_text())["hook_sha256"][:16],
@@ -271,7 +285,6 @@ def plan(
         "rule": rule_meta,
         "switch_model": switch_model,
     }
-    settings_text = settings.read_text()
     t_bc = camera_in_body(settings_text)
     todo, done = [], []
     for path in datasets:
@@ -301,7 +314,7 @@ def plan(
                     )
             meta = {
                 "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": "imu_monocular",
-                "n_features": 1000, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
+                "n_features": n_features, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
                 "disturbance": ds.disturbance, "level": ds.level, "rule": rule_meta,
                 "switch_model": switch_model, "generator": key,
             }  # fmt: skip

@@ -5,6 +5,10 @@
 //                 [--trajectory OUT.txt] [--summary OUT.json] [--meta KEY=VALUE]... [--overwrite]
 //                 [--no-wait]   (default: frames paced at the camera's rate, as ORB-SLAM3's examples do)
 //                 [--rule-inliers IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]   (default: ORB-SLAM3's test)
+//                 [--rule-sve INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]
+//                 [--n-features N]   (ORBextractor.nFeatures, S_a of the authors' Eq.1; default 1000)
+// INPUTS of an SVE rule: jsve, authors-eq1 or authors-option1 (jsve.core._sve.INPUTS; the authors'
+// inputs need P = Q = 1).
 //
 // DIR holds mav0/cam0/data.csv (`t_ns,file`), mav0/cam0/data/<file> and mav0/imu0/data.csv (`t_ns,
 // wx,wy,wz,ax,ay,az`, EuRoC's column order). --meta values are typed like JSON scalars and lists:
@@ -38,7 +42,7 @@ struct Args {
     bool overwrite = false;
     bool wait = true;  // pace frames at the camera's rate, as a live camera (and ORB-SLAM3's examples) do
     bool has_rule = false, coast = false;
-    jsve_hook::InlierRule rule;
+    jsve_hook::Rule rule;
 };
 
 [[noreturn]] void usage_error(const std::string& message) {
@@ -78,18 +82,43 @@ Args parse_args(int argc, char** argv) {
         else if (key == "--overwrite") a.overwrite = true;
         else if (key == "--no-wait") a.wait = false;
         else if (key == "--coast") a.coast = true;
-        else if (key == "--rule-inliers") {
-            const std::string v = value();
-            std::stringstream items(v);
+        else if (key == "--rule-inliers" || key == "--rule-sve") {
+            if (a.has_rule) usage_error("one rule: --rule-inliers or --rule-sve, once");
+            const bool sve = key == "--rule-sve";
+            std::stringstream items(value());
             std::vector<double> t;
+            std::string inputs;
             for (std::string item; std::getline(items, item, ',');) {
+                if (sve && inputs.empty()) {
+                    inputs = item;
+                    continue;
+                }
                 double d = 0.0;
-                if (!parse_double(item, &d)) usage_error("--rule-inliers: '" + item + "' is not a number");
+                if (!parse_double(item, &d)) usage_error(key + ": '" + item + "' is not a number");
                 t.push_back(d);
             }
-            if (t.size() != 4) usage_error("--rule-inliers wants IMU_INIT,NOT_INIT,RELOC,RECOVERY");
-            a.rule = jsve_hook::InlierRule{t[0], t[1], t[2], t[3]};
+            jsve_hook::Rule& r = a.rule;
+            if (sve) {
+                if (t.size() != 10) usage_error("--rule-sve wants INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY");
+                if (inputs == "jsve") r.inputs = jsve_hook::SveInputs::kJsve;
+                else if (inputs == "authors-eq1") r.inputs = jsve_hook::SveInputs::kAuthorsEq1;
+                else if (inputs == "authors-option1") r.inputs = jsve_hook::SveInputs::kAuthorsOption1;
+                else usage_error("--rule-sve: INPUTS must be jsve, authors-eq1 or authors-option1, got '" + inputs + "'");
+                if (r.inputs != jsve_hook::SveInputs::kJsve && (t[2] != 1.0 || t[3] != 1.0))
+                    usage_error("--rule-sve: the authors' inputs are combined linearly: P and Q must be 1");
+                r.kind = jsve_hook::ScoreKind::kSve;
+                r.w_a = t[0], r.u_b = t[1], r.p = t[2], r.q = t[3], r.rho = t[4];
+                t.erase(t.begin(), t.begin() + 5);
+            } else if (t.size() != 4) {
+                usage_error("--rule-inliers wants IMU_INIT,NOT_INIT,RELOC,RECOVERY");
+            }
+            r.imu_init = t[0], r.not_init = t[1], r.reloc = t[2], r.recovery = t[3];
             a.has_rule = true;
+        }
+        else if (key == "--n-features") {
+            const std::string v = value();
+            if (!parse_double(v, &a.rule.n_features) || !(a.rule.n_features > 0.0))
+                usage_error("--n-features wants a positive number, got '" + v + "'");
         }
         else if (key == "--meta") {
             const std::string kv = value();
@@ -196,7 +225,7 @@ int main(int argc, char** argv) {
         return 2;
     }
 
-    if (args.coast && !args.has_rule) usage_error("--coast needs --rule-inliers");
+    if (args.coast && !args.has_rule) usage_error("--coast needs --rule-inliers or --rule-sve");
     ORB_SLAM3::System slam(args.vocabulary, args.settings, ORB_SLAM3::System::IMU_MONOCULAR, false);
     if (args.has_rule) jsve_hook::set_rule(args.rule, args.coast);
     // IMU samples up to the first image start nothing: ORB-SLAM3's first frame has no preintegration.

@@ -21,6 +21,7 @@
 // except the world frames of the maps, which LocalMapping and LoopClosing change (under a mutex).
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <map>
@@ -49,17 +50,88 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
 // Closes the log: writes the end marker and renames `<path>.partial` to `<path>`.
 bool close_log(std::string* error);
 
-// ORB-SLAM3's success test with other thresholds on the inlier count (ORB-SLAM3's own: 15 / 50 / 50 /
-// 10 for IMU_MONOCULAR). A frame fails inside the relocalisation window below `reloc`; in
-// RECENTLY_LOST it succeeds above `recovery`; else it fails below `imu_init` (IMU initialised, or a
-// stereo sensor) or `not_init`.
-struct InlierRule {
+// A jsve rule (jsve.core._rules): ORB-SLAM3's success test with a score and thresholds of its own.
+// A frame fails inside the relocalisation window below `reloc`; in RECENTLY_LOST it succeeds above
+// `recovery`; else it fails below `imu_init` (IMU initialised, or a stereo sensor) or `not_init`.
+// The score is the inlier count (ORB-SLAM3's own thresholds for IMU_MONOCULAR: 15 / 50 / 50 / 10), or
+// an SVE combination of S_a, S_b, S_c (jsve.core._sve.Combination: the family and its three inputs).
+enum class ScoreKind { kInliers, kSve };
+enum class SveInputs { kJsve, kAuthorsEq1, kAuthorsOption1 };  // Combination.inputs
+
+struct Rule {
+    ScoreKind kind = ScoreKind::kInliers;
+    SveInputs inputs = SveInputs::kJsve;
+    double w_a = 0.5, u_b = 0.5, p = 1.0, q = 1.0, rho = 0.25;  // the SVE combination
+    double n_features = 1000.0;                                  // ORBextractor.nFeatures (S_a of Eq.1)
     double imu_init = 15.0, not_init = 50.0, reloc = 50.0, recovery = 10.0;
 };
 
+// The counts one frame's score is made of (the log's n_extracted, n_inliers, n_frustum, bin_*).
+struct FrameCounts {
+    int n_extracted = 0, n_inliers = 0, n_frustum = 0;
+    int bins[64] = {};
+};
+
+// M_p([x1, x2]; [w, 1 - w]) of non-negative x: jsve.core._sve.power_mean's definition (p -> 0: the
+// geometric mean with its first-order term; a zero entry of positive weight gives 0 for p <= 0).
+inline double power_mean2(double x1, double x2, double w, double p) {
+    const bool pos1 = x1 > 0.0, pos2 = x2 > 0.0;
+    const double w2 = 1.0 - w;
+    const bool near_zero_p = std::fabs(p) < 1e-6;
+    if (((!pos1 && w > 0.0) || (!pos2 && w2 > 0.0)) && (near_zero_p || p <= 0.0)) return 0.0;
+    const double l1 = pos1 ? std::log(x1) : 0.0, l2 = pos2 ? std::log(x2) : 0.0;
+    if (near_zero_p) {
+        const double mean = w * l1 + w2 * l2;
+        const double var = w * (l1 - mean) * (l1 - mean) + w2 * (l2 - mean) * (l2 - mean);
+        return std::exp(mean + 0.5 * p * var);
+    }
+    const double excess = w * (pos1 ? std::expm1(p * l1) : -1.0) + w2 * (pos2 ? std::expm1(p * l2) : -1.0);
+    return excess > -1.0 ? std::exp(std::log1p(excess) / p) : 0.0;
+}
+
+inline double clamp01(double x) { return x < 0.0 ? 0.0 : (x > 1.0 ? 1.0 : x); }
+
+// S_b = 1 - chi2 / chi2_w over the 64 bins with E = N / 64 (jsve.core._sve.s_b); 0 when N = 0.
+inline double sve_s_b(const FrameCounts& c, bool clamp) {
+    if (c.n_extracted <= 0) return 0.0;
+    const double n = c.n_extracted, expected = n / 64.0;
+    double sum_sq = 0.0;
+    for (int k = 0; k < 64; ++k) sum_sq += (c.bins[k] - expected) * (c.bins[k] - expected);
+    const double value = 1.0 - 64.0 * sum_sq / (7.0 * n * n);
+    return clamp ? clamp01(value) : value;
+}
+
+// S_c = N_inliers / N_frustum, 0 when N_frustum = 0 (jsve.core._sve.s_c).
+inline double sve_s_c(const FrameCounts& c, bool clamp) {
+    const double value = c.n_frustum > 0 ? double(c.n_inliers) / c.n_frustum : 0.0;
+    return clamp ? clamp01(value) : value;
+}
+
+// The rule's score of one frame (jsve.core._rules: InlierRule.score, SVERule.score).
+inline double rule_score(const Rule& r, const FrameCounts& c) {
+    if (r.kind == ScoreKind::kInliers) return c.n_inliers;
+    const double ratio = c.n_extracted > 0 ? double(c.n_inliers) / c.n_extracted : 0.0;
+    if (r.inputs == SveInputs::kJsve) {
+        const double s_a = r.rho > 0.0 ? std::min(ratio / r.rho, 1.0) : 0.0;
+        return power_mean2(s_a, power_mean2(sve_s_b(c, true), sve_s_c(c, true), r.u_b, r.q), r.w_a, r.p);
+    }
+    // The authors' builds: linear, unclamped S_b and S_c (p = q = 1, checked where the rule is read).
+    const double a = r.inputs == SveInputs::kAuthorsEq1 ? c.n_extracted / r.n_features
+                                                        : (r.rho > 0.0 ? clamp01(ratio / r.rho) : 0.0);
+    return r.w_a * a + (1.0 - r.w_a) * (r.u_b * sve_s_b(c, false) + (1.0 - r.u_b) * sve_s_c(c, false));
+}
+
+// ORB-SLAM3's success test with the rule's score and thresholds (jsve.core._machine.tracking_succeeds).
+inline bool rule_succeeds(const Rule& r, double score, bool in_reloc, bool recently_lost, bool imu_ok, bool stereo) {
+    const bool fail_reloc = in_reloc && score < r.reloc;
+    const bool recover = recently_lost && score > r.recovery;
+    const bool pass_main = !(score < ((imu_ok || stereo) ? r.imu_init : r.not_init));
+    return !fail_reloc && (recover || pass_main);
+}
+
 // Replace ORB-SLAM3's success test by `rule` from the next frame on; `coast`: a failed frame keeps
 // the pose TrackLocalMap started from instead of the optimised one (switch model "imu-coast").
-void set_rule(const InlierRule& rule, bool coast);
+void set_rule(const Rule& rule, bool coast);
 bool rule_active();
 
 // A similarity x' = s R(q) x + t between world frames (q wxyz); the identity by default.
@@ -142,7 +214,7 @@ bool close_log(std::string* error) {
 
 struct RuleState {
     bool active = false, coast = false;
-    InlierRule rule;
+    Rule rule;
     bool saved = false, has_velocity = false;  // the pose TrackLocalMap started from, for imu-coast
     Sophus::SE3f pose;
     Eigen::Vector3f velocity;
@@ -153,7 +225,7 @@ RuleState& rule_state() {
     return r;
 }
 
-void set_rule(const InlierRule& rule, bool coast) {
+void set_rule(const Rule& rule, bool coast) {
     RuleState& r = rule_state();
     r.active = true;
     r.rule = rule;
@@ -206,11 +278,16 @@ inline void save_prediction(ORB_SLAM3::Frame& frame) {
 inline bool decide(ORB_SLAM3::Frame& frame, int inliers, bool in_reloc, bool recently_lost, bool imu_ok,
                    bool stereo) {
     RuleState& r = rule_state();
-    const double score = inliers;
-    const bool fail_reloc = in_reloc && score < r.rule.reloc;
-    const bool recover = recently_lost && score > r.rule.recovery;
-    const bool pass_main = !(score < ((imu_ok || stereo) ? r.rule.imu_init : r.rule.not_init));
-    const bool ok = !fail_reloc && (recover || pass_main);
+    FrameCounts counts;
+    counts.n_extracted = frame.N;
+    counts.n_inliers = inliers;
+    counts.n_frustum = state().n_frustum;
+    if (r.rule.kind == ScoreKind::kSve) {  // the bins as the log has them (jsve::fill_bins_from_grid)
+        jsve::Frame binned;
+        jsve::fill_bins_from_grid(binned, [&](int c, int row) { return frame.mGrid[c][row].size(); });
+        std::copy(binned.bins, binned.bins + 64, counts.bins);
+    }
+    const bool ok = rule_succeeds(r.rule, rule_score(r.rule, counts), in_reloc, recently_lost, imu_ok, stereo);
     if (!ok && r.saved) {
         frame.SetPose(r.pose);
         if (r.has_velocity) frame.SetVelocity(r.velocity);
