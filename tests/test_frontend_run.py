@@ -126,3 +126,35 @@ def test_metadata_reaches_the_driver_as_typed_text():
         "--meta", "run=3", "--meta", "fps=20.0", "--meta", "image_size=[752,480]",
         "--meta", 'rule="{"kind": "inliers"}"', "--meta", 'seq="007"',
     ]  # fmt: skip
+
+
+EUROC_SETTINGS = """%YAML:1.0
+Camera.width: 752
+ORBextractor.nFeatures: 1200
+IMU.T_b_c1: !!opencv-matrix
+   rows: 4
+   cols: 4
+   dt: f
+   data: [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975,
+         0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768,
+        -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949,
+         0.0, 0.0, 0.0, 1.0]
+"""
+"""ORB-SLAM3 settings with EuRoC's camera-IMU extrinsics (EuRoC_mono_inertial.yaml, IMU.T_b_c1)."""
+
+
+def test_settings_give_the_feature_count_and_the_camera_in_the_body():
+    from scipy.spatial.transform import Rotation
+
+    from jsve.frontend._run import camera_in_body, orb_features
+
+    assert orb_features(EUROC_SETTINGS) == 1200
+    assert orb_features("%YAML:1.0\nCamera.width: 752\n") == 1000
+    pose = camera_in_body(EUROC_SETTINGS)
+    assert pose is not None and camera_in_body("%YAML:1.0\nCamera.width: 752\n") is None
+    rot = Rotation.from_quat(pose[1:4] + pose[:1]).as_matrix()
+    expected = np.array([[0.0148655429818, -0.999880929698, 0.00414029679422],
+                         [0.999557249008, 0.0149672133247, 0.025715529948],
+                         [-0.0257744366974, 0.00375618835797, 0.999660727178]])  # fmt: skip
+    np.testing.assert_allclose(rot, expected, atol=2e-6)  # EuRoC's matrix is orthonormal to ~1e-6
+    np.testing.assert_allclose(pose[4:], [-0.0216401454975, -0.064676986768, 0.00981073058949], rtol=1e-6)

@@ -112,9 +112,10 @@ def orb_features(settings: str) -> int:
     """ORBextractor.nFeatures of ORB-SLAM3 settings text (the log's `n_features`; 1000 when absent)."""
     import cv2
 
-    node = cv2.FileStorage(settings, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY).getNode(
-        "ORBextractor.nFeatures"
-    )
+    fs = cv2.FileStorage(
+        settings, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
+    )  # alive while its node is read
+    node = fs.getNode("ORBextractor.nFeatures")
     return 1000 if node.empty() else int(node.real())
 
 

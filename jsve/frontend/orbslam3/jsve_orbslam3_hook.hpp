@@ -355,12 +355,24 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
     f.world_s = world.s;
     // The log's first frame carries no preintegration (the format's rule); later frames the one
     // from the previous frame, corrected to this frame's bias estimate.
+    // A failed IMU initialisation leaves a NaN bias estimate (LocalMapping then flags it and ORB-SLAM3
+    // resets the map): correcting to it would make Sophus abort the process (SO3::exp of NaN), so such a
+    // frame carries the preintegration at the bias it was integrated with.
     ORB_SLAM3::IMU::Preintegrated* pre = frame.mpImuPreintegratedFrame;
     if (s.log->frames() > 0 && pre != nullptr) {
+        const ORB_SLAM3::IMU::Bias& b = frame.mImuBias;
+        const float bias[6] = {b.bax, b.bay, b.baz, b.bwx, b.bwy, b.bwz};
+        const bool finite = std::all_of(bias, bias + 6, [](float x) { return std::isfinite(x); });
         f.imu_dt = pre->dT;
-        copy3(f.imu_dp, pre->GetDeltaPosition(frame.mImuBias));
-        copy3(f.imu_dv, pre->GetDeltaVelocity(frame.mImuBias));
-        copy_quaternion(f.imu_dq, pre->GetDeltaRotation(frame.mImuBias));
+        if (finite) {
+            copy3(f.imu_dp, pre->GetDeltaPosition(b));
+            copy3(f.imu_dv, pre->GetDeltaVelocity(b));
+            copy_quaternion(f.imu_dq, pre->GetDeltaRotation(b));
+        } else {
+            copy3(f.imu_dp, pre->GetOriginalDeltaPosition());
+            copy3(f.imu_dv, pre->GetOriginalDeltaVelocity());
+            copy_quaternion(f.imu_dq, pre->GetOriginalDeltaRotation());
+        }
     }
     const jsve::Status status = s.log->write(f);
     s.log_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
