@@ -165,9 +165,10 @@ SPECIAL = [0.1, 1e-300, -0.0, 0.0, 5e-324, -2.5e-310, 3.4028234663852886e38, -3.
 """kSpecial of write_synthetic.cpp, as Python parses the same literals."""
 
 
-def _parse_expected(path: Path, gt: bool):
+def _parse_expected(path: Path, gt: bool, world: bool = False):
     """The sidecar of write_synthetic: ints and the bits of every double it wrote, and raw grids."""
     floats = list(schema.FLOAT_COLUMNS) + (list(schema.GT_COLUMNS) if gt else [])
+    floats += list(schema.WORLD_COLUMNS) if world else []
     ints, bits, grids = [], [], {}
     for line in path.read_text().splitlines():
         kind, *fields = line.split()
@@ -196,11 +197,11 @@ def _run_synthetic(build, tmp_path, variant, *args, env=None, name="run.csv"):
     return log, expected, done.stderr
 
 
-def _assert_bitwise(run, expected: Path, gt: bool):
-    ints, bits, float_names, grids = _parse_expected(expected, gt)
+def _assert_bitwise(run, expected: Path, gt: bool, world: bool = False):
+    ints, bits, float_names, grids = _parse_expected(expected, gt, world)
     frames = run.frames
     assert len(frames) == N_FRAMES == len(ints)
-    assert list(frames.columns) == list(schema.COLUMNS if gt else schema.REQUIRED_COLUMNS)
+    assert list(frames.columns) == list(schema.column_order(schema.FORMAT_VERSION, gt, world))
     for k, c in enumerate(schema.INT_COLUMNS):
         assert frames[c].dtype == np.int64
         np.testing.assert_array_equal(frames[c].to_numpy(), ints[:, k], err_msg=c)
@@ -256,19 +257,27 @@ def _assert_independent_values(frames):
 
 
 @needs_cxx
-@pytest.mark.parametrize("gt", [False, True], ids=["no_gt", "gt"])
+@pytest.mark.parametrize(
+    ("gt", "world"),
+    [(False, False), (True, False), (False, True), (True, True)],
+    ids=["no_gt", "gt", "world", "gt_world"],
+)
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
-def test_round_trip_is_exact(build, tmp_path, variant, gt):
-    log, expected, _ = _run_synthetic(build, tmp_path, variant, *(["--gt"] if gt else []))
+def test_round_trip_is_exact(build, tmp_path, variant, gt, world):
+    args = (["--gt"] if gt else []) + (["--world"] if world else [])
+    log, expected, _ = _run_synthetic(build, tmp_path, variant, *args)
     assert not Path(str(log) + ".partial").exists()
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a v2 log: no version warning
         run = read_log(log)
     assert run.source == str(log)
     assert run.has_ground_truth == gt
+    assert run.has_world_frame == world
     _assert_meta(run.meta)
-    _assert_bitwise(run, expected, gt)
+    _assert_bitwise(run, expected, gt, world)
     _assert_independent_values(run.frames)
+    if world:
+        _assert_world_values(run.frames)
     if gt:  # every fifth frame (i % 5 == 3) was written without ground truth
         missing = np.isnan(run.frames[list(schema.GT_COLUMNS)].to_numpy())
         np.testing.assert_array_equal(missing.all(axis=1), np.arange(N_FRAMES) % 5 == 3)
@@ -277,10 +286,44 @@ def test_round_trip_is_exact(build, tmp_path, variant, gt):
     assert lines[-1] == b"" and lines[-2] == f"{schema.END_MARKER}{N_FRAMES}".encode()
     assert lines[0].startswith(b"# jsve-log v2 {")
     assert lines[1].startswith(b"t_ns,state,imu_init,map_id,imu_ba2,n_extracted,")
+    assert lines[1] == ",".join(schema.column_order(schema.FORMAT_VERSION, gt, world)).encode()
     # Frame 0 (state -1) has no pose: ten empty fields after the bins.
     fields = lines[2].split(b",")
     k = len(schema.INT_COLUMNS)
     assert fields[k : k + 10] == [b""] * 10 and fields[k + 10] == b"0.0"  # then imu_dt
+
+
+def _assert_world_values(frames):
+    """The world_* of write_synthetic --world: the identity on frames 0..9, then a similarity that changes
+    every 7 frames, on every frame (with or without a pose)."""
+    world = frames[list(schema.WORLD_COLUMNS)].to_numpy()
+    assert not np.isnan(world).any()
+    np.testing.assert_array_equal(world[:10], np.tile([1.0, 0, 0, 0, 0, 0, 0, 1.0], (10, 1)))
+    changed = np.flatnonzero((world[1:] != world[:-1]).any(axis=1)) + 1
+    np.testing.assert_array_equal(changed, np.arange(10, N_FRAMES, 7))
+    scales = frames[schema.WORLD_SCALE].to_numpy()
+    assert (scales > 0).all()
+    assert (
+        scales[10] == 5e-324 and scales[17] == schema.FLOAT_MAX and scales[24] == 1 / 3 and scales[31] == 0.1
+    )
+    norms = np.linalg.norm(frames[list(schema.WORLD_QUATERNION)].to_numpy(), axis=1)
+    assert np.abs(norms - 1).max() <= schema.UNIT_QUATERNION_TOLERANCE
+
+
+@needs_cxx
+def test_world_columns_are_last_and_need_the_option(build, tmp_path):
+    """Options::world_frame decides the eight world_* columns once per log: after gt_*, or after imu_dqz."""
+    for args, tail in [
+        ([], b",imu_dqz"),
+        (["--gt"], b",gt_qz"),
+        (["--world"], b",imu_dqz," + ",".join(schema.WORLD_COLUMNS).encode()),
+        (["--gt", "--world"], b",gt_qz," + ",".join(schema.WORLD_COLUMNS).encode()),
+    ]:
+        log, _, _ = _run_synthetic(build, tmp_path, "to_chars", *args, name="_".join(["h", *args]) + ".csv")
+        header = log.read_bytes().split(b"\n")[1]
+        assert header.endswith(tail), (args, header[-120:])
+        rows = log.read_bytes().split(b"\n")[2:-2]
+        assert all(row.count(b",") == header.count(b",") for row in rows)
 
 
 @needs_cxx
@@ -310,11 +353,13 @@ def comma_locale(tmp_path_factory):
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_round_trip_is_exact_under_a_decimal_comma_locale(build, tmp_path, variant, comma_locale):
     env, name = comma_locale
-    log, expected, stderr = _run_synthetic(build, tmp_path, variant, "--gt", "--locale", name, env=env)
+    log, expected, stderr = _run_synthetic(
+        build, tmp_path, variant, "--gt", "--world", "--locale", name, env=env
+    )
     assert "decimal_point=," in stderr  # the program really ran with a decimal comma
     run = read_log(log)
     _assert_meta(run.meta)
-    _assert_bitwise(run, expected, gt=True)
+    _assert_bitwise(run, expected, gt=True, world=True)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -397,7 +442,7 @@ def test_error_policy(build, tmp_path):
     failures = [line for line in lines if line.startswith("FAIL")]
     assert done.returncode == 0 and not failures, "\n".join(failures) + done.stderr
     passed = {line.split()[1] for line in lines if line.startswith("PASS")}
-    assert len(passed) == 47, sorted(passed)
+    assert len(passed) == 62, sorted(passed)
     assert {"nan_position", "repeated_stamp", "throw_policy", "no_frames", "flush_every"} <= passed
     assert {
         "negative_map_id",
@@ -406,17 +451,48 @@ def test_error_policy(build, tmp_path):
         "no_pose_in_state_3",
     } <= passed
     assert {"no_pose_in_state_5", "frame_without_pose", "meta_rule_int", "meta_switch_model_list"} <= passed
+    assert {
+        "world_non_unit_quaternion",
+        "world_scale_zero",
+        "world_scale_negative",
+        "world_scale_negative_zero",
+        "world_scale_nan",
+        "world_translation_nan",
+        "world_translation_inf_without_pose",
+        "world_translation_beyond_float32",
+        "world_quaternion_nan",
+        "world_fields_ignored_without_world_frame",
+        "world_frame_columns",
+        "meta_camera_in_body_scalar",
+        "meta_camera_in_body_six",
+        "meta_camera_in_body_non_unit",
+        "meta_camera_in_body_beyond_float32",
+    } <= passed
 
     # What the writer left on disk is what the reader says it is.
     partials = sorted(tmp_path.glob("*.partial"))
     finished = sorted(tmp_path.glob("*.csv"))
-    assert len(partials) == 21 and len(finished) == 9
+    assert len(partials) == 30 and len(finished) == 11
     for p in partials:
         with pytest.raises(LogIncompleteError, match="incomplete"):
             read_log(p)
     for p in finished:
         run = read_log(p)
-        assert run.meta == {"sequence": "V1_01", "run": 3, "fps": 20.0}
+        t_bc = [0.5, 0.5, -0.5, 0.5, 0.1, -0.02, 0.003] if p.name == "world.csv" else None
+        assert run.meta == {
+            "sequence": "V1_01",
+            "run": 3,
+            "fps": 20.0,
+            **({"camera_in_body": t_bc} if t_bc else {}),
+        }
+        assert run.has_world_frame == (p.name == "world.csv")
+    # world_frame: written on every frame, also without a pose or ground truth.
+    world = read_log(tmp_path / "world.csv").frames
+    assert world[list(schema.WORLD_COLUMNS)].to_numpy().tolist() == [
+        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+        [0.0, 1.0, 0.0, 0.0, 1.5, -2.0, 0.25, 3.0],
+    ]
+    assert world.loc[1, list(schema.VIS_COLUMNS + schema.GT_COLUMNS)].isna().all()
     gap = read_log(tmp_path / "gt_gap.csv").frames
     assert not np.isnan(gap.loc[0, list(schema.GT_COLUMNS)].to_numpy(dtype=float)).any()
     assert np.isnan(gap.loc[1, list(schema.GT_COLUMNS)].to_numpy(dtype=float)).all()
@@ -466,6 +542,38 @@ def test_a_frame_the_writer_rejects_is_one_the_reader_rejects(build, tmp_path):
     # The state of a pose-less frame set to OK: the reader wants the pose the writer refuses to omit.
     with pytest.raises(LogFormatError, match=r":5: column 'vis_px' = '': no pose in state 2 \(OK\)"):
         read_log(patched("state", "2", 5))
+
+
+@needs_cxx
+def test_a_world_frame_the_writer_rejects_is_one_the_reader_rejects(build, tmp_path):
+    """world_* values the writer refuses (check_policy.cpp) fail to read when patched into a log."""
+    log, _, _ = _run_synthetic(build, tmp_path, "to_chars", "--world")
+    read_log(log)
+    text = log.read_text(encoding="utf-8").splitlines(keepends=True)
+    columns = text[1].rstrip("\n").split(",")
+
+    def patched(changes, line):
+        fields = text[line - 1].rstrip("\n").split(",")
+        for column, value in changes.items():
+            fields[columns.index(column)] = value
+        out = tmp_path / f"patched_{'_'.join(changes)}.csv"
+        out.write_text("".join(text[: line - 1] + [",".join(fields) + "\n"] + text[line:]), encoding="utf-8")
+        return out
+
+    # Line 5 is frame 2, without a pose: its world_* are written and read all the same.
+    cases = [
+        ({"world_s": "0.0"}, "world_s"),
+        ({"world_s": "-1.0"}, "world_s"),
+        ({"world_qw": "0.5"}, "world_q"),
+        ({"world_ty": "nan"}, "world_ty"),
+        ({"world_tz": ""}, "world_tz"),
+        ({"world_tx": "1e39"}, "world_tx"),
+    ]
+    for changes, column in cases:
+        with pytest.raises(LogFormatError, match=column) as info:
+            read_log(patched(changes, 5))
+        assert ":5:" in str(info.value)
+        assert not isinstance(info.value, LogIncompleteError)
 
 
 # --------------------------------------------------------------------------------------------------

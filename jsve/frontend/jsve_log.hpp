@@ -19,6 +19,15 @@
 //     }
 //     log.close();                       // end marker, then rename to logs/MH_04_run7.csv
 //
+// Columns (docs/log-format.md): t_ns, state, imu_init, map_id, imu_ba2, n_extracted, n_inliers,
+// n_frustum, bin_0..bin_63, vis_* (10), imu_dt, imu_dp*, imu_dv*, imu_dq* (11), then two optional
+// groups, each decided once per log in Options: the seven gt_* (Options::ground_truth; a frame may
+// leave them empty, Frame::has_gt) and, last, the eight world_* (Options::world_frame; written on
+// every frame): world_qw, world_qx, world_qy, world_qz, world_tx, world_ty, world_tz, world_s, the
+// similarity W from the frame's map's first world frame to the world frame its vis_* pose is in,
+// x_current = world_s * R(world_q) * x_first + world_t for points (the identity until the front-end
+// first re-expresses the map, as ORB-SLAM3's Map::ApplyScaledRotation does without a new map id).
+//
 // Guarantees
 //   * A log never looks complete when it is not. Lines go to `<path>.partial`; the end marker
 //     (`# jsve-log end frames=N`) is written only by close(), which then renames the file to
@@ -40,12 +49,12 @@
 //   one, a state outside -1..5, a negative map_id, imu_ba2 without imu_init, no pose in state OK,
 //   RECENTLY_LOST or OK_KLT, a negative count, more binned keypoints or inliers than extracted
 //   keypoints, a quaternion whose norm is off 1 by more than 1e-6, a negative imu_dt, a first frame
-//   with a preintegration that is not zero / identity) is never written, and it marks the writer
-//   as failed: every later write() and close() reports
-//   Status::kFailed, close() leaves `<path>.partial` in place, and the run shows up as incomplete
-//   rather than silently missing a frame. To repair a frame instead, call check(frame) first; it
-//   validates without writing and without changing the writer. abandon() (also run by the
-//   destructor of an open writer) closes the file and leaves it as `.partial`; it never throws.
+//   with a preintegration that is not zero / identity, with world_frame a world_s that is not
+//   positive) is never written, and it marks the writer as failed: every later write() and close()
+//   reports Status::kFailed, close() leaves `<path>.partial` in place, and the run shows up as
+//   incomplete rather than silently missing a frame. To repair a frame instead, call check(frame)
+//   first; it validates without writing and without changing the writer. abandon() (also run by
+//   the destructor of an open writer) closes the file and leaves it as `.partial`; it never throws.
 //   open() checks the metadata the same way (required keys sequence/run/fps, the types and values
 //   jsve.io._logs accepts for the keys it knows) and creates no file when it is wrong; close() before
 //   any frame reports Status::kNoFrames, since a log has at least one frame.
@@ -100,7 +109,8 @@ enum class Status : int {
     kBadMetadata,          // a metadata value or a required key is missing or of the wrong type
     kNonFinite,            // a NaN or infinite double in a frame
     kNonIncreasingStamp,   // t_ns not strictly after the previous frame's
-    kOutOfRange,           // state, map_id, imu_ba2, missing pose, counts, bins, quaternion norm, imu_*
+    kOutOfRange,           // state, map_id, imu_ba2, missing pose, counts, bins, quaternion norm, imu_*,
+                           // world_s, a double beyond float32's range
     kNoFrames,             // close() before any frame: a log has at least one
     kFailed,               // the writer failed earlier; nothing more is written
 };
@@ -135,6 +145,7 @@ enum class OnError { kThrow, kReturn };
 
 struct Options {
     bool ground_truth = false;   // add the seven gt_* columns (decided once per log)
+    bool world_frame = false;    // add the eight world_* columns, last (decided once per log)
     int flush_every = 100;       // fflush after every N frames; 0 or less: only at close
     bool overwrite = false;      // replace an existing `<path>` (removed at open, not at close)
     OnError on_error = OnError::kThrow;
@@ -164,6 +175,11 @@ struct Frame {
     bool has_gt = true;                      // false: this frame's gt_* fields are left empty
     double gt_p[3] = {0.0, 0.0, 0.0};        // ground-truth body position (only with ground_truth)
     double gt_q[4] = {1.0, 0.0, 0.0, 0.0};   // ground-truth body-to-world rotation, wxyz
+    double world_q[4] = {1.0, 0.0, 0.0, 0.0}; // rotation of the similarity from the map's first world
+                                              // frame to this frame's (only with world_frame), wxyz
+    double world_t[3] = {0.0, 0.0, 0.0};     // its translation, m (this frame's world)
+    double world_s = 1.0;                    // its scale, > 0, dimensionless; all three written on
+                                             // every frame, with or without a pose
 };
 
 // SVE bin of an ORB-SLAM3 grid cell: bin x = col / 8, bin y = row / 6, k = 8 * y + x.
@@ -467,7 +483,7 @@ public:
         std::string head = kMagic;
         head += meta.to_json();
         head += '\n';
-        append_header_row(head, options_.ground_truth);
+        append_header_row(head, options_.ground_truth, options_.world_frame);
         if (std::fwrite(head.data(), 1, head.size(), file_) != head.size() || std::fflush(file_) != 0)
             return io_failure("cannot write the header");
         return Status::kOk;
@@ -534,6 +550,11 @@ public:
                 for (int i = 0; i < 7; ++i) *p++ = ',';
             }
         }
+        if (options_.world_frame) {
+            p = put_doubles(p, end, f.world_q, 4);
+            p = put_doubles(p, end, f.world_t, 3);
+            p = put_doubles(p, end, &f.world_s, 1);
+        }
         *p++ = '\n';
         const auto n = static_cast<std::size_t>(p - line);
         if (std::fwrite(line, 1, n, file_) != n) return io_failure("cannot write frame " + std::to_string(frames_));
@@ -597,9 +618,9 @@ public:
 
 private:
     static constexpr std::size_t kBufferSize = std::size_t{1} << 16;  // stdio buffer, 64 KiB
-    // t_ns, state, imu_init, map_id, imu_ba2, 3 counts, 64 bins at <= 21 chars each; 28 doubles at
-    // <= 27 chars.
-    static constexpr std::size_t kLineCapacity = 8 * 21 + kBins * 21 + 28 * 27 + 16;
+    // t_ns, state, imu_init, map_id, imu_ba2, 3 counts, 64 bins at <= 21 chars each; 36 doubles
+    // (10 vis_*, 11 imu_*, 7 gt_*, 8 world_*) at <= 27 chars.
+    static constexpr std::size_t kLineCapacity = 8 * 21 + kBins * 21 + 36 * 27 + 16;
 
     static char* put_doubles(char* p, char* end, const double* v, int n) {
         for (int i = 0; i < n; ++i) {
@@ -609,7 +630,7 @@ private:
         return p;
     }
 
-    static void append_header_row(std::string& out, bool gt) {
+    static void append_header_row(std::string& out, bool gt, bool world) {
         out += "t_ns,state,imu_init,map_id,imu_ba2,n_extracted,n_inliers,n_frustum";
         for (int k = 0; k < kBins; ++k) {
             out += ",bin_";
@@ -618,6 +639,7 @@ private:
         out += ",vis_px,vis_py,vis_pz,vis_qw,vis_qx,vis_qy,vis_qz,vis_vx,vis_vy,vis_vz"
                ",imu_dt,imu_dpx,imu_dpy,imu_dpz,imu_dvx,imu_dvy,imu_dvz,imu_dqw,imu_dqx,imu_dqy,imu_dqz";
         if (gt) out += ",gt_px,gt_py,gt_pz,gt_qw,gt_qx,gt_qy,gt_qz";
+        if (world) out += ",world_qw,world_qx,world_qy,world_qz,world_tx,world_ty,world_tz,world_s";
         out += '\n';
     }
 
@@ -644,6 +666,7 @@ private:
             // A JSON object form of "rule" exists (jsve.core._rules.rule_to_dict); this header
             // writes the preset name.
             {"rule", false, true, false, false, false},     {"switch_model", false, true, false, false, false},
+            {"camera_in_body", false, false, false, false, true},
         };
         for (const Rule& r : rules) {
             K k;
@@ -687,7 +710,21 @@ private:
             why = "metadata \"gt_missing_frames\" must be >= 0";
             return false;
         }
+        if (meta.numbers("camera_in_body", v) && !is_pose(v)) {
+            why = "metadata \"camera_in_body\" must be the camera pose in the body frame, [qw, qx, qy, qz, tx, ty, tz] "
+                  "(unit quaternion, m)";
+            return false;
+        }
         return true;
+    }
+
+    // [qw, qx, qy, qz, tx, ty, tz] within float32's range with a unit quaternion (jsve.io._logs._is_pose).
+    static bool is_pose(const std::vector<double>& v) {
+        if (v.size() != 7) return false;
+        for (const double x : v)
+            if (!(std::fabs(x) <= kFloatMax)) return false;
+        const double norm = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3]);
+        return std::fabs(norm - 1.0) <= kUnitQuaternionTolerance;
     }
 
     Status validate(const Frame& f, std::string& msg) const {
@@ -741,12 +778,30 @@ private:
             const double* v;
             int n;
         };
-        const Group groups[] = {{"vis_p", f.vis_p, 3}, {"vis_q", f.vis_q, 4},   {"vis_v", f.vis_v, 3},
-                                {"imu_dt", &f.imu_dt, 1}, {"imu_dp", f.imu_dp, 3}, {"imu_dv", f.imu_dv, 3},
-                                {"imu_dq", f.imu_dq, 4}, {"gt_p", f.gt_p, 3},     {"gt_q", f.gt_q, 4}};
+        // What this frame writes: without a pose vis_* is not written, without ground truth gt_*.
         const bool gt = options_.ground_truth && f.has_gt;
-        const int n_groups = gt ? 9 : 7;
-        for (int g = f.has_pose ? 0 : 3; g < n_groups; ++g) {  // without a pose vis_* is not written
+        const bool world = options_.world_frame;
+        Group groups[12] = {};
+        int n_groups = 0;
+        if (f.has_pose) {
+            groups[n_groups++] = {"vis_p", f.vis_p, 3};
+            groups[n_groups++] = {"vis_q", f.vis_q, 4};
+            groups[n_groups++] = {"vis_v", f.vis_v, 3};
+        }
+        groups[n_groups++] = {"imu_dt", &f.imu_dt, 1};
+        groups[n_groups++] = {"imu_dp", f.imu_dp, 3};
+        groups[n_groups++] = {"imu_dv", f.imu_dv, 3};
+        groups[n_groups++] = {"imu_dq", f.imu_dq, 4};
+        if (gt) {
+            groups[n_groups++] = {"gt_p", f.gt_p, 3};
+            groups[n_groups++] = {"gt_q", f.gt_q, 4};
+        }
+        if (world) {
+            groups[n_groups++] = {"world_q", f.world_q, 4};
+            groups[n_groups++] = {"world_t", f.world_t, 3};
+            groups[n_groups++] = {"world_s", &f.world_s, 1};
+        }
+        for (int g = 0; g < n_groups; ++g) {
             for (int i = 0; i < groups[g].n; ++i) {
                 if (!std::isfinite(groups[g].v[i])) {
                     msg = std::string(groups[g].name) + "[" + std::to_string(i) + "] is " + detail::double_text(groups[g].v[i]);
@@ -773,14 +828,23 @@ private:
                 return Status::kOutOfRange;
             }
         }
-        const Group quats[] = {{"vis_q", f.vis_q, 4}, {"imu_dq", f.imu_dq, 4}, {"gt_q", f.gt_q, 4}};
-        for (int g = f.has_pose ? 0 : 1; g < (gt ? 3 : 2); ++g) {
+        Group quats[4] = {};
+        int n_quats = 0;
+        if (f.has_pose) quats[n_quats++] = {"vis_q", f.vis_q, 4};
+        quats[n_quats++] = {"imu_dq", f.imu_dq, 4};
+        if (gt) quats[n_quats++] = {"gt_q", f.gt_q, 4};
+        if (world) quats[n_quats++] = {"world_q", f.world_q, 4};
+        for (int g = 0; g < n_quats; ++g) {
             const double* q = quats[g].v;
             const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
             if (!(std::fabs(norm - 1.0) <= kUnitQuaternionTolerance)) {
                 msg = std::string(quats[g].name) + " has norm " + detail::double_text(norm) + ", not 1 (wxyz unit quaternion)";
                 return Status::kOutOfRange;
             }
+        }
+        if (world && !(f.world_s > 0.0)) {
+            msg = "world_s " + detail::double_text(f.world_s) + " is not positive (the scale of a similarity)";
+            return Status::kOutOfRange;
         }
         return Status::kOk;
     }

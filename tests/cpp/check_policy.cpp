@@ -47,10 +47,11 @@ jsve::Metadata good_meta() {
     return m;
 }
 
-jsve::Options returning(bool gt = false) {
+jsve::Options returning(bool gt = false, bool world = false) {
     jsve::Options o;
     o.on_error = jsve::OnError::kReturn;
     o.ground_truth = gt;
+    o.world_frame = world;
     return o;
 }
 
@@ -74,11 +75,13 @@ jsve::Frame good_frame(std::int64_t t_ns, bool first = false) {
 std::string path(const std::string& name) { return g_dir + "/" + name; }
 
 // Writes two good frames, then `bad`; the bad one must be rejected with `expected` and fail the
-// writer, leaving `<name>.partial` on disk and no `<name>`.
-void rejected(const std::string& name, const jsve::Frame& bad, jsve::Status expected, bool gt = false) {
+// writer, leaving `<name>.partial` on disk and no `<name>`. A non-empty `message` must be part of
+// the reason check() gives and of the writer's error.
+void rejected(const std::string& name, const jsve::Frame& bad, jsve::Status expected, bool gt = false,
+              bool world = false, const std::string& message = "") {
     const std::string p = path(name + ".csv");
     jsve::LogWriter w;
-    jsve::Status s = w.open(p, good_meta(), returning(gt));
+    jsve::Status s = w.open(p, good_meta(), returning(gt, world));
     s = (s == jsve::Status::kOk) ? w.write(good_frame(1000, true)) : s;
     s = (s == jsve::Status::kOk) ? w.write(good_frame(2000)) : s;
     if (s != jsve::Status::kOk) {
@@ -88,13 +91,16 @@ void rejected(const std::string& name, const jsve::Frame& bad, jsve::Status expe
     std::string why;
     const jsve::Status checked = w.check(bad, &why);
     const jsve::Status got = w.write(bad);
+    const std::string error = w.last_error();
+    const bool said = message.empty() || (why.find(message) != std::string::npos &&
+                                          error.find("frame 2 rejected: " + message) != std::string::npos);
     const bool poisoned = w.failed() && w.write(good_frame(9000)) == jsve::Status::kFailed;
     const jsve::Status closed = w.close();
-    const bool ok = got == expected && checked == expected && !why.empty() && poisoned &&
+    const bool ok = got == expected && checked == expected && !why.empty() && said && poisoned &&
                     closed == jsve::Status::kFailed && exists(p + ".partial") && !exists(p) && !w.is_open();
     report(name, ok,
            std::string("write=") + jsve::to_string(got) + " check=" + jsve::to_string(checked) +
-               " close=" + jsve::to_string(closed) + " msg=" + w.last_error());
+               " close=" + jsve::to_string(closed) + " why=" + why + " msg=" + error);
 }
 
 }  // namespace
@@ -176,6 +182,60 @@ int main(int argc, char** argv) {
         f.imu_dt = -1e-9;
         rejected("negative_imu_dt", f, jsve::Status::kOutOfRange);
     }
+    // The world_* columns (Options::world_frame): finite, within float32's range, world_q a unit
+    // quaternion, world_s > 0; checked on frames with or without a pose.
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_q[0] = 0.5;
+        rejected("world_non_unit_quaternion", f, jsve::Status::kOutOfRange, false, true,
+                 "world_q has norm 0.5, not 1 (wxyz unit quaternion)");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_s = 0.0;
+        rejected("world_scale_zero", f, jsve::Status::kOutOfRange, false, true, "world_s 0.0 is not positive");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_s = -2.0;
+        rejected("world_scale_negative", f, jsve::Status::kOutOfRange, false, true, "world_s -2.0 is not positive");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_s = -0.0;
+        rejected("world_scale_negative_zero", f, jsve::Status::kOutOfRange, false, true,
+                 "world_s -0.0 is not positive");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_s = nan;
+        rejected("world_scale_nan", f, jsve::Status::kNonFinite, false, true, "world_s[0] is nan");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_t[1] = nan;
+        rejected("world_translation_nan", f, jsve::Status::kNonFinite, false, true, "world_t[1] is nan");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.state = 4;  // LOST, without a pose: the world frame is still written, so still checked
+        f.has_pose = false;
+        f.world_t[2] = -inf;
+        rejected("world_translation_inf_without_pose", f, jsve::Status::kNonFinite, false, true,
+                 "world_t[2] is -inf");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_t[0] = 1e39;
+        rejected("world_translation_beyond_float32", f, jsve::Status::kOutOfRange, false, true,
+                 "world_t[0] is 1e+39, beyond float32's range");
+    }
+    {
+        jsve::Frame f = good_frame(3000);
+        f.world_q[3] = nan;
+        rejected("world_quaternion_nan", f, jsve::Status::kNonFinite, /*gt=*/true, /*world=*/true,
+                 "world_q[3] is nan");
+    }
 
     {
         jsve::Frame f = good_frame(3000);
@@ -232,6 +292,48 @@ int main(int argc, char** argv) {
         const jsve::Status s = w.write(f);
         report("gt_fields_ignored_without_gt", s == jsve::Status::kOk && w.close() == jsve::Status::kOk && exists(p),
                w.last_error());
+    }
+    {  // Without world_frame the world_* fields are not written, so they are not checked either.
+        const std::string p = path("world_ignored.csv");
+        jsve::LogWriter w(p, good_meta(), returning(false, false));
+        jsve::Frame f = good_frame(1000, true);
+        f.world_s = -1.0;
+        f.world_q[0] = nan;
+        const jsve::Status s = w.write(f);
+        report("world_fields_ignored_without_world_frame",
+               s == jsve::Status::kOk && w.close() == jsve::Status::kOk && exists(p), w.last_error());
+    }
+    {  // world_frame: the eight columns last, after gt_*, on every frame (with or without a pose),
+       // and camera_in_body in the metadata.
+        const std::string p = path("world.csv");
+        jsve::Metadata meta = good_meta();
+        meta.set("camera_in_body", {0.5, 0.5, -0.5, 0.5, 0.1, -0.02, 0.003});
+        jsve::LogWriter w(p, meta, returning(/*gt=*/true, /*world=*/true));
+        const jsve::Status s1 = w.write(good_frame(1000, true));  // the identity
+        jsve::Frame f = good_frame(2000);
+        f.state = 4;
+        f.has_pose = false;
+        f.has_gt = false;
+        f.world_q[0] = 0.0;
+        f.world_q[1] = 1.0;
+        f.world_t[0] = 1.5;
+        f.world_t[1] = -2.0;
+        f.world_t[2] = 0.25;
+        f.world_s = 3.0;
+        const jsve::Status s2 = w.write(f);
+        const jsve::Status c = w.close();
+        std::string text;
+        if (std::FILE* in = std::fopen(p.c_str(), "rb")) {
+            for (int ch; (ch = std::fgetc(in)) != EOF;) text += static_cast<char>(ch);
+            std::fclose(in);
+        }
+        const bool header = text.find(",gt_qz,world_qw,world_qx,world_qy,world_qz,world_tx,world_ty,world_tz,world_s\n") !=
+                            std::string::npos;
+        const bool rows = text.find(",1.0,0.0,0.0,0.0,0.0,0.0,0.0,1.0\n") != std::string::npos &&
+                          text.find(",,,,,,,0.0,1.0,0.0,0.0,1.5,-2.0,0.25,3.0\n") != std::string::npos;
+        report("world_frame_columns",
+               s1 == jsve::Status::kOk && s2 == jsve::Status::kOk && c == jsve::Status::kOk && header && rows,
+               w.last_error() + " " + text.substr(text.find('\n') + 1));
     }
     {  // A quaternion off by less than the tolerance is accepted.
         const std::string p = path("near_unit.csv");
@@ -313,6 +415,14 @@ int main(int argc, char** argv) {
         rule_int.set("rule", 15);
         jsve::Metadata switch_model_list = good_meta();
         switch_model_list.set("switch_model", {1, 2});
+        jsve::Metadata camera_scalar = good_meta();
+        camera_scalar.set("camera_in_body", 1.0);
+        jsve::Metadata camera_six = good_meta();
+        camera_six.set("camera_in_body", {1.0, 0.0, 0.0, 0.0, 0.1, 0.2});
+        jsve::Metadata camera_non_unit = good_meta();
+        camera_non_unit.set("camera_in_body", {1.0, 0.1, 0.0, 0.0, 0.1, 0.2, 0.3});
+        jsve::Metadata camera_huge = good_meta();
+        camera_huge.set("camera_in_body", {1.0, 0.0, 0.0, 0.0, 1e39, 0.0, 0.0});
         const Case cases[] = {{"meta_missing_run", no_run},       {"meta_fps_string", fps_text},
                               {"meta_run_double", run_double},    {"meta_nan_double", nan_level},
                               {"meta_invalid_utf8", bad_utf8},    {"meta_image_size_scalar", size_scalar},
@@ -320,7 +430,11 @@ int main(int argc, char** argv) {
                               {"meta_fps_zero", fps_zero},        {"meta_gravity_two", gravity_two},
                               {"meta_grid_not_8x8", grid_other},  {"meta_gt_source_int", gt_source_int},
                               {"meta_unsigned_overflow", big_unsigned}, {"meta_rule_int", rule_int},
-                              {"meta_switch_model_list", switch_model_list}};
+                              {"meta_switch_model_list", switch_model_list},
+                              {"meta_camera_in_body_scalar", camera_scalar},
+                              {"meta_camera_in_body_six", camera_six},
+                              {"meta_camera_in_body_non_unit", camera_non_unit},
+                              {"meta_camera_in_body_beyond_float32", camera_huge}};
         for (const Case& c : cases) {
             const std::string p = path(std::string(c.name) + ".csv");
             jsve::LogWriter w;

@@ -2,8 +2,11 @@
 // holding every value it wrote (integers in decimal, doubles as the hex of their bits), so that
 // tests/test_frontend.py can check the reader bit for bit. Used only by the tests.
 //
-// usage: write_synthetic OUT.csv N_FRAMES [--gt] [--flush N] [--expected PATH] [--locale NAME]
-//                        [--kill-after K] [--no-close]
+// usage: write_synthetic OUT.csv N_FRAMES [--gt] [--world] [--flush N] [--expected PATH]
+//                        [--locale NAME] [--kill-after K] [--no-close]
+//   --world         the eight world_* columns (Options::world_frame): the identity on frames 0..9,
+//                   then a similarity that changes every 7 frames (random rotation and translation,
+//                   positive scales including subnormal and float32's largest), on every frame.
 //   --kill-after K  after K frames (flushed when --flush 1), print "READY" on stdout and sleep
 //                   until killed; the test sends SIGKILL.
 //   --no-close      return from main without close(): the destructor abandons the log.
@@ -101,13 +104,14 @@ int main(int argc, char** argv) {
     }
     const std::string out = argv[1];
     const long n_frames = std::strtol(argv[2], nullptr, 10);
-    bool gt = false, close_log = true;
+    bool gt = false, world = false, close_log = true;
     int flush_every = 100;
     long kill_after = -1;
     std::string expected_path, locale_name;
     for (int a = 3; a < argc; ++a) {
         const std::string opt = argv[a];
         if (opt == "--gt") gt = true;
+        else if (opt == "--world") world = true;
         else if (opt == "--no-close") close_log = false;
         else if (opt == "--flush" && a + 1 < argc) flush_every = std::atoi(argv[++a]);
         else if (opt == "--kill-after" && a + 1 < argc) kill_after = std::strtol(argv[++a], nullptr, 10);
@@ -149,6 +153,7 @@ int main(int argc, char** argv) {
 
     jsve::Options options;
     options.ground_truth = gt;
+    options.world_frame = world;
     options.flush_every = flush_every;
     options.overwrite = true;
     jsve::LogWriter log(out, meta, options);
@@ -200,6 +205,22 @@ int main(int argc, char** argv) {
             for (double& v : f.gt_p) v = random_finite();
             random_unit_quaternion(f.gt_q);
         }
+        static jsve::Frame w;  // the world frame: the identity, then one per 7 frames from frame 10
+        if (world && i >= 10 && (i - 10) % 7 == 0) {
+            random_unit_quaternion(w.world_q);
+            for (double& v : w.world_t) v = random_finite();
+            const double scales[] = {5e-324, 3.4028234663852886e38, 1.0 / 3.0, 0.1};
+            const long k = (i - 10) / 7;
+            w.world_s = k < 4 ? scales[k] : std::fabs(random_finite());
+            if (!(w.world_s > 0.0)) w.world_s = 2.0;
+        }
+        if (world) {
+            for (int k = 0; k < 4; ++k) f.world_q[k] = w.world_q[k];
+            for (int k = 0; k < 3; ++k) f.world_t[k] = w.world_t[k];
+            f.world_s = w.world_s;
+        } else {
+            f.world_s = 0.0;  // not written without world_frame, so not checked
+        }
 
         log.write(f);
 
@@ -223,6 +244,11 @@ int main(int argc, char** argv) {
                 put_hex(expected, f.gt_q, 4);
             } else if (gt) {
                 std::fprintf(expected, " - - - - - - -");  // no ground truth: NaN when read
+            }
+            if (world) {
+                put_hex(expected, f.world_q, 4);
+                put_hex(expected, f.world_t, 3);
+                put_hex(expected, &f.world_s, 1);
             }
             std::fprintf(expected, "\n");
             if (i < 3) {  // the raw grid, so the test can bin it independently
