@@ -1,6 +1,6 @@
 """SVE response and failures of the real front-end (ORB-SLAM3 v1.0 + jsve's hook) per disturbance level.
 
-    python analysis/real_frontend_response.py LOGDIR [--markdown] [--figure response.png]
+    python analysis/real_frontend_response.py LOGDIR [--simulated SIMDIR] [--markdown] [--figure response.png]
 
 LOGDIR is `jsve frontend run`'s output (LOGDIR/<sequence>/<disturbance>-<level>/run_<k>.csv, e.g. over
 `jsve render` + `jsve disturb` datasets). Per level: runs; runs in which ORB-SLAM3 itself crashed (the
@@ -10,6 +10,10 @@ RECENTLY_LOST or LOST, or a new map); the share of frames ORB-SLAM3 tracked (OK;
 and the mean of S_a, S_b, S_c and Option 2 over the frames where TrackLocalMap ran in the runs that
 finished (jsve.core.sve_table on the logged counts). The seed's claim to compare with:
 everything fails beyond blur 35.
+
+SIMDIR (optional) is a `jsve simulate` study of the same sequence and levels: its logs go through the
+same per-run and per-level rules, and the figure draws them beside the real front-end's (dashed), so
+the simulator's vision model is compared with the real front-end on the same disturbances.
 """
 
 from __future__ import annotations
@@ -89,6 +93,27 @@ def runs_table(logs: str) -> pd.DataFrame:
     return runs
 
 
+def simulated_runs_table(study: str) -> pd.DataFrame:
+    """One row per log of a `jsve simulate` study folder (the same rules as `run_row`; a simulated run
+    never crashes)."""
+    paths = sorted(p for p in Path(study).rglob("*.csv") if p.name.startswith("run"))
+    if not paths:
+        raise SystemExit(f"{study}: no simulator logs (run_*.csv)")
+    runs = pd.DataFrame([run_row(read_log(p)) for p in paths])
+    # The simulator writes the undisturbed runs as a level of a disturbance (blur 0): the baseline.
+    base = runs["level"] == runs["disturbance"].map(BASE_LEVEL)
+    runs.loc[base, ["disturbance", "level"]] = ["none", 0.0]
+    runs["failed"] = runs["crashed"] | runs["never_initialised"] | runs["lost"]
+    return runs
+
+
+BASE_LEVEL = {"blur": 0.0, "occlusion": 0.0, "downsample": 1.0}
+"""The level of each disturbance that is the undisturbed sequence (plotted from the `none` runs)."""
+
+AXIS = {"blur": "blur (Gaussian kernel n x n px)", "occlusion": "occlusion (occluder side, px)",
+        "downsample": "downsampling (scale factor)"}  # fmt: skip
+
+
 def level_table(runs: pd.DataFrame) -> pd.DataFrame:
     """Per (disturbance, level): counts of runs and outcomes, mean tracked share and metrics."""
     g = runs.groupby(["disturbance", "level"])
@@ -107,12 +132,16 @@ def level_table(runs: pd.DataFrame) -> pd.DataFrame:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("logs", metavar="LOGDIR")
+    parser.add_argument("--simulated", metavar="SIMDIR", help="a jsve simulate study to draw beside")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     parser.add_argument("--figure", metavar="PNG", help="write the response curves here")
     parser.add_argument("-o", "--output", metavar="CSV", help="write the per-level table here")
     args = parser.parse_args(argv)
-    runs = runs_table(args.logs)
-    table = level_table(runs)
+    table = level_table(runs_table(args.logs)).assign(source="real")
+    if args.simulated:
+        table = pd.concat(
+            [table, level_table(simulated_runs_table(args.simulated)).assign(source="simulator")]
+        )
     if args.output:
         table.to_csv(args.output, index=False)
     if args.markdown:
@@ -122,33 +151,46 @@ def main(argv=None) -> int:
     else:
         print(table.to_string(index=False))
     if args.figure:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        kinds = [d for d in table["disturbance"].unique() if d != "none"]
-        base = table[table["disturbance"] == "none"]
-        fig, axes = plt.subplots(1, len(kinds), figsize=(5 * len(kinds), 3.6), squeeze=False)
-        for ax, kind in zip(axes[0], kinds, strict=True):
-            part = pd.concat([base.assign(disturbance=kind), table[table["disturbance"] == kind]])
-            part = part.sort_values("level")
-            for name in METRICS:
-                ax.plot(part["level"], part[name], marker="o", label=LABELS[name])
-            ax.plot(part["level"], part["tracked_share"], "k--", marker="s", label="frames tracked (OK)")
-            share = part["failed"] / part["runs"]
-            ax.plot(part["level"], share, "r:", marker="x", label="runs failed (share)")
-            ax.set_xlabel(
-                f"{kind} level" + (" (kernel n x n px)" if kind == "blur" else " (occluder side, px)")
-            )
-            ax.set_ylim(0, 1.05)
-            ax.set_title(f"real ORB-SLAM3 v1.0, {kind}")
-            ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel("mean over frames")
-        axes[0][-1].legend(fontsize=8, loc="lower left")
-        fig.tight_layout()
-        fig.savefig(args.figure, dpi=120)
+        plot(table, args.figure)
     return 0
+
+
+def plot(table: pd.DataFrame, path: str) -> None:
+    """One panel per disturbance: mean S_a, S_b, S_c, Option 2, frames tracked and failed runs per level,
+    the real front-end solid, the simulator dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kinds = [d for d in BASE_LEVEL if d in set(table["disturbance"])]
+    fig, axes = plt.subplots(1, len(kinds), figsize=(5.2 * len(kinds), 4.0), squeeze=False)
+    colours = dict(
+        zip([*METRICS, "tracked_share", "failed_share"], plt.get_cmap("tab10").colors, strict=False)
+    )
+    labels = {**LABELS, "tracked_share": "frames tracked (OK)", "failed_share": "runs failed (share)"}
+    for ax, kind in zip(axes[0], kinds, strict=True):
+        for source, style in (("real", "-"), ("simulator", "--")):
+            own = table[table["source"] == source]
+            base = own[own["disturbance"] == "none"].assign(disturbance=kind, level=BASE_LEVEL[kind])
+            part = pd.concat([base, own[own["disturbance"] == kind]]).sort_values("level")
+            if part.empty:
+                continue
+            part = part.assign(failed_share=part["failed"] / part["runs"])
+            for name in [*METRICS, "tracked_share", "failed_share"]:
+                ax.plot(part["level"], part[name], style, color=colours[name], marker="o", ms=3,
+                        label=f"{labels[name]} ({source})")  # fmt: skip
+        ax.set_xlabel(AXIS[kind])
+        if kind == "downsample":
+            ax.invert_xaxis()  # from the full image (1.0) to the smallest
+        ax.set_ylim(-0.02, 1.05)
+        ax.set_title(f"{kind}: real ORB-SLAM3 v1.0 (solid) vs simulator (dashed)", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("mean over frames / share of runs")
+    handles, names = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=4, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.16, 1, 1))
+    fig.savefig(path, dpi=120)
 
 
 if __name__ == "__main__":
