@@ -86,26 +86,56 @@ def test_the_logged_online_poses_change_world_frame_at_imu_initialisation(run):
     f = run.frames
     p, g = f[["vis_px", "vis_py", "vis_pz"]].to_numpy(), f[["gt_px", "gt_py", "gt_pz"]].to_numpy()
     ok = (f["state"].to_numpy() == 2) & np.isfinite(g).all(1)
-    imu, ba2 = f["imu_init"].to_numpy().astype(bool), f["imu_ba2"].to_numpy().astype(bool)
-    before, between = ok & ~imu, ok & imu & ~ba2
+    imu = f["imu_init"].to_numpy().astype(bool)
+    before = ok & ~imu
     assert _ate(p[before], g[before], scale=True) < 0.03
-    assert _ate(p[between], g[between]) < 0.1
     # the jump at the IMU's initialisation: one step of the log against ground truth's
     k = int(np.argmax(imu))
     assert np.linalg.norm(p[k] - p[k - 1]) > 20 * np.linalg.norm(g[k] - g[k - 1])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the replay aligns a map's online poses as one segment across the "
-    "world-frame changes of IMU initialisation and BA2 (no log column marks them yet)",
-)
-def test_the_replayed_stock_rule_scores_the_logged_poses_in_centimetres(run):
+def _steps(p):
+    return np.linalg.norm(np.diff(p, axis=0), axis=1)
+
+
+def test_the_hooks_world_columns_put_a_map_in_one_world_frame(run):
+    """The hook logs each re-expression (world_*: ApplyScaledRotation and the inertial BA after it, at
+    IMU initialisation, BA1, BA2 and scale refinement); undone (jsve.io._world), the online poses of
+    the map move as the ground truth does, with no jump."""
+    from jsve.io._world import in_one_world_frame
+
+    f = run.frames
+    assert run.has_world_frame and "camera_in_body" in run.meta
+    s = f["world_s"].to_numpy()
+    changes = np.flatnonzero(np.diff(s) != 0) + 1
+    first_imu = int(np.argmax(f["imu_init"].to_numpy()))
+    first_ba2 = int(np.argmax(f["imu_ba2"].to_numpy()))
+    # a change where the IMU is initialised and one where BA2 ran (the frame the hook saw it on)
+    assert np.abs(changes - first_imu).min() <= 2 and np.abs(changes - first_ba2).min() <= 10
+    assert (s[: changes[0]] == 1.0).all()
+    g = f[["gt_px", "gt_py", "gt_pz"]].to_numpy()
+    posed = (f["state"].to_numpy() == 2) & np.isfinite(g).all(1)
+    raw = f[["vis_px", "vis_py", "vis_pz"]].to_numpy()
+    one = in_one_world_frame(run).frames[["vis_px", "vis_py", "vis_pz"]].to_numpy()
+    k = np.flatnonzero(posed[1:] & posed[:-1])
+    jump = _steps(raw)[k] > 3 * _steps(g)[k] + 0.05
+    assert jump.sum() >= 1  # the raw log does jump
+    assert not (_steps(one)[k] > 3 * _steps(g)[k] + 0.05).any()
+
+
+def test_the_replayed_stock_rule_scores_the_logged_poses_in_centimetres(run, files):
+    """Replayed under its own rule, the log's online poses (in one world frame) score as ORB-SLAM3's
+    own saved trajectory does, within a few centimetres (the saved one is refined by later BA)."""
     from jsve.core import preset
     from jsve.evaluation._evaluate import evaluate
 
     row = evaluate([from_runs([run])], preset("orbslam3"), progress=False).iloc[0]
-    assert row["rmse"] < 0.2
+    own = np.loadtxt(files["run_000.orbslam3-euroc.txt"], delimiter=",", comments="#")
+    gt = np.loadtxt(files["groundtruth.csv"], delimiter=",", comments="#")
+    common, i, j = np.intersect1d(own[:, 0].astype(np.int64), gt[:, 0].astype(np.int64), return_indices=True)
+    own_ate = _ate(own[i, 1:4], gt[j, 1:4])
+    assert not row["failed"] and row["rmse"] < 0.12
+    assert abs(row["rmse"] - own_ate) < 0.04, (row["rmse"], own_ate)
 
 
 def test_orbslam3s_own_trajectory_scores_as_evo_scores_it(files, x64):

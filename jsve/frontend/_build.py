@@ -7,7 +7,9 @@ and the copy is patched by anchored edits that fail loudly when an anchor is not
     in-tree g2o target are dropped (jsve builds its own driver, and g2o on its own as build.sh does);
   * src/LoopClosing.cc: `mnFullBAIdx++` on a bool (ill-formed in C++17) becomes `= true`, its C++14 meaning;
   * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and six calls;
-  * src/Map.cc: the hook header and one call, where ApplyScaledRotation re-expresses a map (world_*).
+  * src/Map.cc, src/LocalMapping.cc: the hook header and calls where ORB-SLAM3 re-expresses a map
+    without a new id (ApplyScaledRotation; IMU initialisation and scale refinement with their inertial
+    BA): the log's world_* columns.
 Then Pangolin (when not installed), DBoW2, g2o, the library and the driver are built with CMake in
 BUILD/build/*. Layout of BUILD:
 
@@ -56,6 +58,10 @@ class Edit:
 
 
 HOOK_TAG = "  // jsve hook"
+_SCALE_REFINED = (
+    "    // To perform pose-inertial opt w.r.t. last keyframe\n"
+    "    mpCurrentKeyFrame->GetMap()->IncreaseChangeIndex();\n"
+)  # the end of LocalMapping::ScaleRefinement
 
 EDITS = (
     Edit("CMakeLists.txt", '"${CMAKE_CXX_FLAGS} -std=c++11")', '"${CMAKE_CXX_FLAGS} -std=c++17")'),
@@ -105,6 +111,34 @@ EDITS = (
         "        pMP->UpdateNormalAndDepth();\n    }\n    mnMapChange++;\n}\n",
         "        pMP->UpdateNormalAndDepth();\n    }\n    mnMapChange++;\n"
         + "    JSVE_HOOK_WORLD_CHANGE(mnId, T, s);" + HOOK_TAG + "\n}\n",
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        '#include "LocalMapping.h"\n',
+        '#include "LocalMapping.h"\n#include "jsve_orbslam3_hook.hpp"' + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        "void LocalMapping::InitializeIMU(float priorG, float priorA, bool bFIBA)\n{\n",
+        "void LocalMapping::InitializeIMU(float priorG, float priorA, bool bFIBA)\n{\n"
+        + "    JSVE_HOOK_MAP_SNAPSHOT(mpAtlas->GetCurrentMap());" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        "    bInitializing = false;\n\n    mpCurrentKeyFrame->GetMap()->IncreaseChangeIndex();\n",
+        "    bInitializing = false;\n\n    mpCurrentKeyFrame->GetMap()->IncreaseChangeIndex();\n"
+        + "    JSVE_HOOK_MAP_CHANGED(mpCurrentKeyFrame->GetMap());" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        "void LocalMapping::ScaleRefinement()\n{\n",
+        "void LocalMapping::ScaleRefinement()\n{\n"
+        + "    JSVE_HOOK_MAP_SNAPSHOT(mpAtlas->GetCurrentMap());" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        _SCALE_REFINED,
+        _SCALE_REFINED + "    JSVE_HOOK_MAP_CHANGED(mpCurrentKeyFrame->GetMap());" + HOOK_TAG + "\n",
     ),
 )  # fmt: skip
 """The anchored edits, in order. Anchors are ORB-SLAM3 v1.0 (@4452a3c) lines; see docs/frontend.md."""

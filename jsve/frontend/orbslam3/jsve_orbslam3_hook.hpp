@@ -7,8 +7,11 @@
 //   TrackLocalMap      JSVE_HOOK_SAVE_PREDICTION() at its start; JSVE_HOOK_INLIERS(mnMatchesInliers)
 //                      and JSVE_HOOK_DECIDE() after the count, before ORB-SLAM3's success test
 //   GrabImageMonocular JSVE_HOOK_BEGIN_FRAME() before Track(), JSVE_HOOK_LOG_FRAME() after it
-// and, in src/Map.cc (which includes this header without the implementation):
-//   ApplyScaledRotation JSVE_HOOK_WORLD_CHANGE(mnId, T, s) after the map is re-expressed
+// and, where ORB-SLAM3 re-expresses a map without a new id (src/Map.cc and src/LocalMapping.cc include
+// this header without the implementation):
+//   Map::ApplyScaledRotation     JSVE_HOOK_WORLD_CHANGE(mnId, T, s) after the map is moved
+//   LocalMapping::InitializeIMU  JSVE_HOOK_MAP_SNAPSHOT(map) at its start, JSVE_HOOK_MAP_CHANGED(map)
+//   LocalMapping::ScaleRefinement  at its end (after the inertial BA that follows ApplyScaledRotation)
 // Without a rule (set_rule) nothing in ORB-SLAM3's decisions changes: the hook only copies values.
 // With one, JSVE_HOOK_DECIDE returns the rule's success test in place of ORB-SLAM3's (the same
 // clauses, in the same order, with the rule's thresholds: jsve.core._machine.tracking_succeeds), and
@@ -22,12 +25,14 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <string>
+#include <vector>
 
 #include "jsve_log.hpp"
 
@@ -148,6 +153,18 @@ void world_change(std::int64_t map_id, const Similarity& change);
 // The similarity from map `map_id`'s first world frame to its current one (the log's world_* columns).
 Similarity world_frame(std::int64_t map_id);
 
+// Keyframe camera centres of a map: {keyframe id, x, y, z (m)} per keyframe that is not bad.
+using Centres = std::vector<std::array<double, 4>>;
+
+// Remember the map's keyframe centres (before LocalMapping changes the map, or right after
+// ApplyScaledRotation moved it).
+void map_snapshot(std::int64_t map_id, Centres centres);
+
+// LocalMapping finished changing the map (the inertial BA after an IMU initialisation or a scale
+// refinement moves every keyframe, mostly by a scale): the similarity that best maps the snapshot's
+// centres onto these (Umeyama, over the keyframes in both) is one more change of the world frame.
+void map_changed(std::int64_t map_id, const Centres& centres);
+
 }  // namespace jsve_hook
 
 #define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
@@ -162,7 +179,19 @@ Similarity world_frame(std::int64_t map_id);
                                        mState == RECENTLY_LOST, mpAtlas->isImuInitialized(),       \
                                        mSensor == System::IMU_STEREO || mSensor == System::IMU_RGBD); \
     } while (0)
-// Expands inside Map::ApplyScaledRotation (T: Sophus::SE3f, s: float).
+// The centres of a range of ORB_SLAM3::KeyFrame* (a std::set or std::vector of them).
+#define JSVE_HOOK_CENTRES(keyframes)                                                               \
+    [&]() {                                                                                        \
+        ::jsve_hook::Centres centres_;                                                             \
+        for (ORB_SLAM3::KeyFrame* kf_ : (keyframes)) {                                             \
+            if (kf_ == nullptr || kf_->isBad()) continue;                                          \
+            const Eigen::Vector3f c_ = kf_->GetCameraCenter();                                     \
+            centres_.push_back({double(kf_->mnId), double(c_(0)), double(c_(1)), double(c_(2))});   \
+        }                                                                                          \
+        return centres_;                                                                           \
+    }()
+// Expands inside Map::ApplyScaledRotation (T: Sophus::SE3f, s: float), which holds the map's mutex:
+// the keyframes are read from its own set.
 #define JSVE_HOOK_WORLD_CHANGE(map_id, T, s)                                                      \
     do {                                                                                           \
         ::jsve_hook::Similarity change_;                                                           \
@@ -171,7 +200,12 @@ Similarity world_frame(std::int64_t map_id);
         for (int i_ = 0; i_ < 3; ++i_) change_.t[i_] = static_cast<double>((T).translation()(i_)); \
         change_.s = static_cast<double>(s);                                                        \
         ::jsve_hook::world_change(static_cast<std::int64_t>(map_id), change_);                     \
+        ::jsve_hook::map_snapshot(static_cast<std::int64_t>(map_id), JSVE_HOOK_CENTRES(mspKeyFrames)); \
     } while (0)
+#define JSVE_HOOK_MAP_SNAPSHOT(map) \
+    ::jsve_hook::map_snapshot(static_cast<std::int64_t>((map)->GetId()), JSVE_HOOK_CENTRES((map)->GetAllKeyFrames()))
+#define JSVE_HOOK_MAP_CHANGED(map) \
+    ::jsve_hook::map_changed(static_cast<std::int64_t>((map)->GetId()), JSVE_HOOK_CENTRES((map)->GetAllKeyFrames()))
 // Expands inside a Tracking member function: reads its protected members.
 #define JSVE_HOOK_LOG_FRAME() ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas)
 
@@ -237,6 +271,7 @@ bool rule_active() { return rule_state().active; }
 struct WorldFrames {
     std::mutex mutex;
     std::map<std::int64_t, Similarity> of_map;  // maps never re-expressed are absent (the identity)
+    std::map<std::int64_t, Centres> snapshot;   // keyframe centres before the change in progress
 };
 
 WorldFrames& world_frames() {
@@ -257,6 +292,45 @@ void world_change(std::int64_t map_id, const Similarity& change) {
     old.q[0] = q.w(); old.q[1] = q.x(); old.q[2] = q.y(); old.q[3] = q.z();
     for (int i = 0; i < 3; ++i) old.t[i] = t(i);
     old.s *= change.s;
+}
+
+void map_snapshot(std::int64_t map_id, Centres centres) {
+    WorldFrames& w = world_frames();
+    std::lock_guard<std::mutex> lock(w.mutex);
+    w.snapshot[map_id] = std::move(centres);
+}
+
+void map_changed(std::int64_t map_id, const Centres& centres) {
+    Centres before;
+    {
+        WorldFrames& w = world_frames();
+        std::lock_guard<std::mutex> lock(w.mutex);
+        const auto it = w.snapshot.find(map_id);
+        if (it == w.snapshot.end()) return;
+        before = std::move(it->second);
+        w.snapshot.erase(it);
+    }
+    std::map<double, Eigen::Vector3d> old;
+    for (const auto& c : before) old[c[0]] = Eigen::Vector3d(c[1], c[2], c[3]);
+    std::vector<Eigen::Vector3d> src, dst;
+    for (const auto& c : centres) {
+        const auto it = old.find(c[0]);
+        if (it == old.end()) continue;
+        src.push_back(it->second);
+        dst.push_back(Eigen::Vector3d(c[1], c[2], c[3]));
+    }
+    if (src.size() < 3) return;  // too few keyframes in both to fix a similarity
+    Eigen::Matrix3Xd a(3, src.size()), b(3, dst.size());
+    for (std::size_t i = 0; i < src.size(); ++i) a.col(Eigen::Index(i)) = src[i], b.col(Eigen::Index(i)) = dst[i];
+    const Eigen::Matrix4d m = Eigen::umeyama(a, b, true);  // b = s R a + t
+    const double scale = std::cbrt(m.topLeftCorner<3, 3>().determinant());
+    if (!m.allFinite() || !(scale > 0.0)) return;
+    const Eigen::Quaterniond q(Eigen::Matrix3d(m.topLeftCorner<3, 3>() / scale));
+    Similarity change;
+    change.q[0] = q.w(), change.q[1] = q.x(), change.q[2] = q.y(), change.q[3] = q.z();
+    for (int i = 0; i < 3; ++i) change.t[i] = m(i, 3);
+    change.s = scale;
+    world_change(map_id, change);
 }
 
 Similarity world_frame(std::int64_t map_id) {
