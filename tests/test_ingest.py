@@ -130,6 +130,19 @@ def test_duplicate_run_ids_name_both_files(tmp_path):
     assert [q.path for q in result.quarantined] == [str(b)]
 
 
+def test_runs_of_several_rules_in_the_loop_have_their_own_ids(tmp_path):
+    """One setting run under ORB-SLAM3's rule, under `record` and under a rule named by JSON only."""
+    stock = make_run(N, 1, sequence="V101", rule="orbslam3", switch_model="orbslam3")
+    record = make_run(
+        N, 1, sequence="V101", rule='{"kind": "inliers"}', rule_name="record", switch_model="imu-coast"
+    )
+    unnamed = make_run(N, 1, sequence="V101", rule='{"kind": "inliers"}', switch_model="orbslam3")
+    for name, run in (("a", stock), ("b", record), ("c", unnamed)):
+        logs.write_log(run, tmp_path / f"{name}.csv")
+    ids = sorted(r.run_id for r in ingest.read_logs(tmp_path, workers=1, progress=False).runs)
+    assert ids == ["V101/none-0/1", "V101/none-0/record-imu-coast/1", "V101/none-0/rule-24d2fcdb-orbslam3/1"]
+
+
 def test_unreadable_paths_are_quarantined_not_lost(tmp_path):
     good = logs.write_log(make_run(N, 1), tmp_path / "a.csv")
     gone = tmp_path / "gone.csv"

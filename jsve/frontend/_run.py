@@ -317,7 +317,7 @@ def plan(
                 "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": "imu_monocular",
                 "n_features": n_features, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
                 "disturbance": ds.disturbance, "level": ds.level, "rule": rule_meta,
-                "switch_model": switch_model, "generator": key,
+                "switch_model": switch_model, "rule_name": name, "generator": key,
             }  # fmt: skip
             if t_bc is not None:
                 meta["camera_in_body"] = t_bc

@@ -18,6 +18,8 @@ columns (docs/log-format.md, "Reading v1 logs: defaults").
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -214,6 +216,7 @@ OPTIONAL_METADATA = {
     "seed": int,  # simulator seed
     "rule": (str, dict),  # the rule the front-end ran: a preset name, or jsve.core._rules.rule_to_dict's form
     "switch_model": str,  # what the front-end does with a rejected frame's pose: "orbslam3", "imu-coast", ...
+    "rule_name": str,  # a short name of that rule for run ids and folders ("record", "sve-option2", "fitted")
     "camera_in_body": list,  # T_bc, the camera pose in the body (IMU) frame: [qw, qx, qy, qz, tx, ty, tz] (m)
 }
 
@@ -225,6 +228,22 @@ DEFAULT_N_FEATURES = 1000
 
 STEREO_SENSORS = ("imu_stereo", "imu_rgbd")
 """`sensor` values whose success test ignores the IMU state (Tracking.cc l.3047-3053: < 15 inliers fails)."""
+
+
+def recorded_rule_label(meta: dict) -> str | None:
+    """`rule-switch_model` of a run whose front-end ran another rule than ORB-SLAM3's own, else None.
+
+    The rule is named by the metadata `rule_name` when the front-end wrote one (`jsve frontend run`
+    does), else by "rule-" and the first 8 hex digits of the SHA-1 of `rule` as JSON text."""
+    rule = meta.get("rule")
+    model = meta.get("switch_model", "orbslam3")
+    if rule is None or (rule == "orbslam3" and model == "orbslam3"):
+        return None
+    name = meta.get("rule_name")
+    if not name:
+        text = rule if isinstance(rule, str) else json.dumps(rule, sort_keys=True)
+        name = "rule-" + hashlib.sha1(text.encode("utf-8")).hexdigest()[:8]
+    return f"{name}-{model}"
 
 
 @dataclass(frozen=True)
@@ -245,9 +264,14 @@ class RunLog:
 
     @property
     def run_id(self) -> str:
-        """`sequence/disturbance-level/run`, unique within a study."""
+        """`sequence/disturbance-level/run`, unique within a study; a run whose front-end ran another
+        rule than ORB-SLAM3's own (metadata `rule`, `switch_model`) has its rule in it as well,
+        `sequence/disturbance-level/rule-switch_model/run`, so that several rules' runs of one setting
+        can be read together."""
         m = self.meta
-        return f"{m['sequence']}/{m.get('disturbance', 'none')}-{m.get('level', 0)}/{m['run']}"
+        setting = f"{m['sequence']}/{m.get('disturbance', 'none')}-{m.get('level', 0)}"
+        label = recorded_rule_label(m)
+        return f"{setting}/{label}/{m['run']}" if label else f"{setting}/{m['run']}"
 
     @property
     def has_ground_truth(self) -> bool:
