@@ -194,26 +194,3 @@ def load_runs(command: str, source: str, *, on_error: OnError, workers: int | No
     for q in result.quarantined:
         print(f"jsve {command}: quarantined {q.message}", file=sys.stderr)
     return result.runs
-
-
-def load_rules(names: list[str] | None):
-    """(name, Rule) pairs from preset names and JSON files; errors name the file."""
-    import json
-    from pathlib import Path
-
-    from jsve.core._rules import PRESETS, preset, rule_from_dict
-
-    pairs = []
-    for name in names or list(PRESETS):
-        if name in PRESETS:
-            pairs.append((name, preset(name)))
-            continue
-        path = Path(name)
-        if not path.is_file():
-            raise ValueError(f"--rule {name!r} is neither a preset ({', '.join(PRESETS)}) nor a file")
-        try:
-            spec = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}:{err.lineno}: not valid JSON: {err.msg}") from None
-        pairs.append((path.stem, rule_from_dict(spec, source=str(path))))
-    return pairs

@@ -68,7 +68,9 @@ def run(args) -> int:
     if args.output:
         atomic.check_writable(args.output)  # before the replay: an unwritable folder fails at once
     try:
-        rules = common.load_rules(args.rule)
+        from jsve.io import load_rules
+
+        rules = load_rules(args.rule)
         runs = common.load_runs(
             "evaluate", args.logs, on_error=args.on_error, workers=args.workers, progress=progress
         )

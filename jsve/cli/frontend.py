@@ -143,7 +143,9 @@ def run_runs(args: argparse.Namespace) -> int:
 
             rule = ("record", record_rule())
         else:
-            rule = common.load_rules([args.rule])[0]
+            from jsve.io import load_rules
+
+            rule = load_rules([args.rule])[0]
         todo, done = plan(
             build, [Path(d) for d in args.datasets], runs=args.runs, out=out,
             vocabulary=Path(args.vocabulary), settings=Path(args.settings), rule=rule,

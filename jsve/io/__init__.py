@@ -39,7 +39,9 @@ from jsve.io._keypoints import write_keypoints as write_keypoints
 from jsve.io._logs import read_log as read_log
 from jsve.io._logs import validate_run as validate_run
 from jsve.io._logs import write_log as write_log
+from jsve.io._rule_files import load_rules as load_rules
 from jsve.io._schema import RunLog as RunLog
+from jsve.io._schema import recorded_rule_label as recorded_rule_label
 from jsve.io._trajectories import TRAJECTORY_FORMATS as TRAJECTORY_FORMATS
 from jsve.io._trajectories import PosePair as PosePair
 from jsve.io._trajectories import read_pose_pairs as read_pose_pairs
