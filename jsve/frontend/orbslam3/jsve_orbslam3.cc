@@ -269,7 +269,7 @@ int main(int argc, char** argv) {
     if (!args.summary.empty()) {
         std::ofstream out(args.summary);
         out << "{\"frames\": " << images.size() << ", \"track_seconds\": " << track_seconds
-            << ", \"hook_seconds\": " << log_seconds << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
+            << ", \"hook_seconds\": " << log_seconds << ", \"imu_invalid_frames\": " << jsve_hook::state().imu_invalid_frames << ", \"pose_invalid_frames\": " << jsve_hook::state().pose_invalid_frames << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
             << ", \"status\": " << status << "}\n";
     }
     return status;

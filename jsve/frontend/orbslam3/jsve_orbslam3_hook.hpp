@@ -43,6 +43,8 @@ struct HookState {
     int n_inliers = 0;  // Tracking::mnMatchesInliers of this frame (0 when TrackLocalMap did not run)
     int n_frustum = 0;  // nToMatch of this frame's SearchLocalPoints (0 when it did not run)
     double log_seconds = 0.0;  // time spent in log_frame, s (the hook's cost, reported by the driver)
+    long imu_invalid_frames = 0;  // frames whose preintegration was NaN, logged as none (see log_frame)
+    long pose_invalid_frames = 0;  // frames whose pose was NaN, logged without one (see log_frame)
 };
 
 // The process's hook state (defined in Tracking.cc's translation unit).
@@ -420,6 +422,16 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
         copy3(f.vis_p, frame.GetImuPosition());
         copy_quaternion(f.vis_q, frame.GetImuRotation());
         if (frame.HasVelocity()) copy3(f.vis_v, frame.GetVelocity());
+        // A NaN pose (the same broken IMU initialisation, before the reset) is no pose: logged as the
+        // frame without one above (LOST in a tracking state), counted, never a refused row.
+        bool finite = true;
+        for (int i = 0; i < 3; ++i) finite = finite && std::isfinite(f.vis_p[i]) && std::isfinite(f.vis_v[i]);
+        for (int i = 0; i < 4; ++i) finite = finite && std::isfinite(f.vis_q[i]);
+        if (!finite) {
+            f.has_pose = false;
+            if (f.state == 2 || f.state == 3 || f.state == 5) f.state = 4;
+            ++s.pose_invalid_frames;
+        }
     }
     // The world frame of the map now (a re-expression by LocalMapping while Track() ran may or may not
     // have reached this frame's pose yet: at most the frame it happens at is off).
@@ -429,14 +441,17 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
     f.world_s = world.s;
     // The log's first frame carries no preintegration (the format's rule); later frames the one
     // from the previous frame, corrected to this frame's bias estimate.
-    // A failed IMU initialisation leaves a NaN bias estimate (LocalMapping then flags it and ORB-SLAM3
-    // resets the map): correcting to it would make Sophus abort the process (SO3::exp of NaN), so such a
-    // frame carries the preintegration at the bias it was integrated with.
+    // A failed IMU initialisation leaves NaN in the bias estimate or in the preintegration itself
+    // (LocalMapping then flags it and ORB-SLAM3 resets the map): correcting to a NaN bias makes Sophus
+    // abort the process (SO3::exp of NaN), so such a frame carries the preintegration at the bias it
+    // was integrated with, and a preintegration that is NaN itself is logged as none (imu_dt 0,
+    // identity), counted in `imu_invalid_frames` (the driver's summary): never a crash of the hook's.
     ORB_SLAM3::IMU::Preintegrated* pre = frame.mpImuPreintegratedFrame;
     if (s.log->frames() > 0 && pre != nullptr) {
         const ORB_SLAM3::IMU::Bias& b = frame.mImuBias;
-        const float bias[6] = {b.bax, b.bay, b.baz, b.bwx, b.bwy, b.bwz};
-        const bool finite = std::all_of(bias, bias + 6, [](float x) { return std::isfinite(x); });
+        const ORB_SLAM3::IMU::Bias o = pre->GetOriginalBias();
+        const float bias[12] = {b.bax, b.bay, b.baz, b.bwx, b.bwy, b.bwz, o.bax, o.bay, o.baz, o.bwx, o.bwy, o.bwz};
+        const bool finite = std::all_of(bias, bias + 12, [](float x) { return std::isfinite(x); });
         f.imu_dt = pre->dT;
         if (finite) {
             copy3(f.imu_dp, pre->GetDeltaPosition(b));
@@ -446,6 +461,17 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
             copy3(f.imu_dp, pre->GetOriginalDeltaPosition());
             copy3(f.imu_dv, pre->GetOriginalDeltaVelocity());
             copy_quaternion(f.imu_dq, pre->GetOriginalDeltaRotation());
+        }
+        const double* values[4] = {&f.imu_dt, f.imu_dp, f.imu_dv, f.imu_dq};
+        const int sizes[4] = {1, 3, 3, 4};
+        bool valid = true;
+        for (int g = 0; g < 4; ++g)
+            for (int i = 0; i < sizes[g]; ++i) valid = valid && std::isfinite(values[g][i]);
+        if (!valid) {
+            f.imu_dt = 0.0;
+            for (int i = 0; i < 3; ++i) f.imu_dp[i] = f.imu_dv[i] = 0.0;
+            f.imu_dq[0] = 1.0, f.imu_dq[1] = f.imu_dq[2] = f.imu_dq[3] = 0.0;
+            ++s.imu_invalid_frames;
         }
     }
     const jsve::Status status = s.log->write(f);
