@@ -65,6 +65,32 @@ def test_matches_scipy(data):
     np.testing.assert_allclose(np.einsum("nij,nj->ni", g.skew(j(v)), phi), np.cross(v, phi), atol=1e-12)
 
 
+def off_orthogonal(m: np.ndarray, scale: float = 1e-6, seed: int = 4) -> np.ndarray:
+    """Rotation matrices as a pose file's 6 digits leave them: off orthogonal by about `scale`."""
+    return m + np.random.default_rng(seed).normal(scale=scale, size=m.shape)
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-9, 1e-6, 1e-3])
+def test_rotation_angle_and_nearest_rotation_match_scipy(data, scale):
+    """scipy's Rotation.from_matrix (evo's so3_log_angle) projects a matrix that is not orthogonal onto the
+    nearest rotation (an SVD) before taking its quaternion: Newton's polar iteration gives that rotation,
+    and the angle is its magnitude. 1e-14: float64 rounding of an SVD against 5 Newton steps."""
+    rot = data["ra"]  # random rotations, angles over (0, pi)
+    m = off_orthogonal(rot.as_matrix(), scale)
+    u, _, vt = np.linalg.svd(m)
+    np.testing.assert_allclose(np.asarray(g.nearest_rotation(jnp.asarray(m))), u @ vt, rtol=0, atol=1e-14)
+    angle = np.asarray(g.rotation_angle(jnp.asarray(m)))
+    np.testing.assert_allclose(angle, Rotation.from_matrix(m).magnitude(), rtol=1e-13, atol=1e-15)
+    assert np.all((angle >= 0) & (angle <= np.pi))
+
+
+def test_rotation_angle_is_zero_with_a_zero_gradient_at_the_identity():
+    eye = jnp.eye(3)[None]
+    assert float(g.rotation_angle(eye)[0]) == 0.0
+    grad = jax.grad(lambda m: jnp.sum(g.rotation_angle(m)))(eye)
+    np.testing.assert_array_equal(np.asarray(grad), 0.0)
+
+
 def test_normalize_gives_unit_nonnegative_w_and_identity_for_zero():
     q = jnp.asarray([[0.0, 0.0, 0.0, 0.0], [-2.0, 0.0, 0.0, 0.0], [1.0, 2.0, -2.0, 4.0]])
     out = np.asarray(g.quat_normalize(q))
@@ -86,6 +112,8 @@ ARRAY_FUNCTIONS = [
     (g.so3_exp, ("phi",)),
     (g.quat_exp, ("phi",)),
     (g.quat_log, ("a",)),
+    (g.nearest_rotation, ("m_off",)),
+    (g.rotation_angle, ("m_off",)),
 ]
 IDS = [f.__name__ for f, _ in ARRAY_FUNCTIONS]
 DIFFERENTIABLE = [f for f in ARRAY_FUNCTIONS if f[0] is not g.matrix_to_quat]  # argmax picks a branch
@@ -101,7 +129,11 @@ SIMULATOR_NAMES += ("skew", "so3_exp", "quat_exp", "quat_log")
 
 
 def _inputs(data, names):
-    extra = dict(m=data["ra"].as_matrix(), a=data["a"] * np.where(np.arange(N) % 2, 1.0, -1.0)[:, None])
+    extra = dict(
+        m=data["ra"].as_matrix(),
+        a=data["a"] * np.where(np.arange(N) % 2, 1.0, -1.0)[:, None],
+        m_off=off_orthogonal(data["ra"].as_matrix()),
+    )
     return [np.asarray(extra[n] if n in extra else data[n], np.float64) for n in names]
 
 
