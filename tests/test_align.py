@@ -131,3 +131,59 @@ def test_a_registered_method_reaches_align_the_objective_and_the_kernel(monkeypa
         np.testing.assert_allclose(
             float(expected.rmse[0, r]), np.sqrt(np.mean(np.sum(residual**2, -1))), rtol=1e-10
         )
+
+
+# ----------------------------------------------------------------------------------------------------------
+# posyaw's vertical: y_is_vertical
+
+
+def _planar_walk(n: int, seed: int, normal_axis: int, lift: float = 0.02) -> np.ndarray:
+    """A random walk in the plane normal to `normal_axis`, with `lift` metres of noise along it."""
+    rng = np.random.default_rng(seed)
+    p = np.cumsum(rng.normal(scale=1.0, size=(n, 3)), axis=0)
+    p[:, normal_axis] = rng.normal(scale=lift, size=n)
+    return p
+
+
+def test_y_is_vertical_on_synthetic_paths():
+    from jsve.core._align import y_is_vertical
+
+    ones = jnp.ones(300, bool)
+    assert bool(y_is_vertical(jnp.asarray(_planar_walk(300, 1, normal_axis=1)), ones))  # KITTI-like: y down
+    assert not bool(y_is_vertical(jnp.asarray(_planar_walk(300, 2, normal_axis=2)), ones))  # z up
+    assert not bool(y_is_vertical(jnp.asarray(_planar_walk(300, 3, normal_axis=1, lift=5.0)), ones))  # 3-D
+    # a masked-out excursion along y does not count; fewer than 3 frames is never vertical
+    p = _planar_walk(300, 4, normal_axis=1)
+    p[250:, 1] += 100.0
+    mask = jnp.arange(300) < 250
+    assert bool(y_is_vertical(jnp.asarray(p), mask)) and not bool(y_is_vertical(jnp.asarray(p), ones))
+    assert not bool(y_is_vertical(jnp.asarray(p), jnp.arange(300) < 2))
+
+
+def test_y_is_vertical_eager_jit_and_vmap_equal_a_loop():
+    from jsve.core._align import y_is_vertical
+
+    paths = jnp.asarray(np.stack([_planar_walk(120, s, normal_axis=s % 3) for s in range(6)]))
+    masks = jnp.arange(120)[None, :] < jnp.asarray([120, 100, 80, 60, 40, 2])[:, None]
+    loop = [bool(y_is_vertical(p, m)) for p, m in zip(paths, masks, strict=True)]
+    assert loop == [bool(jax.jit(y_is_vertical)(p, m)) for p, m in zip(paths, masks, strict=True)]
+    assert np.asarray(jax.vmap(y_is_vertical)(paths, masks)).tolist() == loop
+    assert loop[1] and not loop[0] and not loop[5]  # normals along y (s=1), x (s=0); 2 frames
+
+
+def test_y_is_vertical_on_real_trajectories(shared_data):
+    """Every KITTI odometry ground truth (left camera frame: y down) is flagged but 04, a straight road
+    (0.17 m of spread across it, 2.25 m along y: no plane to find); no EuRoC flight (z up) is."""
+    from evo.tools import file_interface
+
+    from jsve.core._align import y_is_vertical
+
+    def flagged(positions) -> bool:
+        return bool(y_is_vertical(jnp.asarray(positions), jnp.ones(len(positions), bool)))
+
+    kitti = sorted((shared_data / "kitti" / "odometry_poses").glob("*.txt"))
+    euroc = sorted((shared_data / "euroc" / "groundtruth_left_cam").glob("*.txt"))
+    assert len(kitti) == 11 and len(euroc) == 11
+    found = [p.stem for p in kitti if flagged(file_interface.read_kitti_poses_file(p).positions_xyz)]
+    assert found == [p.stem for p in kitti if p.stem != "04"]
+    assert not any(flagged(file_interface.read_euroc_csv_trajectory(p).positions_xyz) for p in euroc)

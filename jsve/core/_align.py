@@ -164,7 +164,10 @@ def _solve_sim3(m: Moments, degenerate: Array) -> tuple[Array, Array]:
 
 
 def _solve_posyaw(m: Moments, degenerate: Array) -> tuple[Array, Array]:
-    # 4-DoF (rpg_trajectory_evaluation's "posyaw"): R = Rz(theta), c = 1. With S the covariance,
+    # 4-DoF (rpg_trajectory_evaluation's "posyaw"): R = Rz(theta), c = 1: a yaw about the world z axis,
+    # which assumes z is the vertical in both worlds (gravity along -z, as in EuRoC and VIO estimates); in a
+    # y-down world (KITTI's camera frame, see y_is_vertical) it rotates about a horizontal axis instead.
+    # With S the covariance,
     # sum_i w_i yc_i^T R xc_i = const + cos(theta) (S00 + S11) + sin(theta) (S10 - S01), maximal at
     # theta = atan2(S10 - S01, S00 + S11); z is untouched by the yaw.
     a = m.cov[..., 0, 0] + m.cov[..., 1, 1]
@@ -185,6 +188,39 @@ def _solve_posyaw(m: Moments, degenerate: Array) -> tuple[Array, Array]:
     return rotation, one
 
 
+# A trajectory whose positions spread this little across their plane of motion (smallest over middle
+# standard deviation of the positions) moves in a plane; KITTI's sequences measure 0.004-0.05, EuRoC's
+# flights 0.1-0.5.
+_PLANAR_RATIO = 0.25
+# The plane's normal within 30 degrees of the y axis: y is the vertical.
+_Y_VERTICAL_COS = 0.866
+
+
+def y_is_vertical(p: Float[Array, "T 3"], mask: Bool[Array, " T"]) -> Bool[Array, ""]:
+    """Whether the masked positions move in a plane whose normal is within 30 degrees of the y axis.
+
+    Such a trajectory is a ground vehicle in a y-down (or y-up) world: KITTI's left-camera frame, where
+    gravity lies along y. posyaw's yaw about the world z axis is then a tilt of the road plane, not a
+    heading: the 4-DoF alignment is meaningless there (use se3).
+
+    Arguments:
+        p: [T, 3] positions, metres, world frame.
+        mask: [T] the frames to look at.
+
+    Returns:
+        True when the positions are planar (smallest standard deviation below 0.25 of the middle one) and the
+        plane's normal is within 30 degrees of y; False otherwise and for fewer than 3 frames. A straight
+        road has no plane to find (KITTI 04 is not flagged; the other ten odometry sequences are).
+    """
+    w = mask.astype(p.dtype)
+    n = jnp.sum(w)
+    mu = jnp.sum(w[:, None] * p, axis=0) / jnp.maximum(n, 1.0)
+    c = (p - mu) * w[:, None]
+    variance, axes = jnp.linalg.eigh(c.T @ c / jnp.maximum(n, 1.0))  # ascending
+    planar = variance[0] < _PLANAR_RATIO**2 * variance[1]
+    return (n >= MIN_ALIGNMENT_FRAMES) & planar & (jnp.abs(axes[1, 0]) > _Y_VERTICAL_COS)
+
+
 def fit_moments(m: Moments, solve: Solver) -> Transform:
     """The least-squares transform of a solver from the moments; the identity (flagged) where degenerate.
 
@@ -203,6 +239,30 @@ def fit_moments(m: Moments, solve: Solver) -> Transform:
     )
 
 
+def first_pose_transform(
+    est_r: Float[Array, "3 3"],
+    est_p: Float[Array, " 3"],
+    ref_r: Float[Array, "3 3"],
+    ref_p: Float[Array, " 3"],
+    degenerate: Bool[Array, ""],
+) -> Transform:
+    """The rigid transform that maps the estimated pose (est_r, est_p) onto the reference pose (ref_r, ref_p).
+
+    As evo's `align_origin`: T = T_ref T_est^-1, i.e. R = R_ref R_est^T, t = p_ref - R p_est (evo inverts a
+    pose by transposing its rotation, whether or not a file's digits left it exactly orthogonal; so does
+    this). The identity, flagged, where `degenerate`.
+    """
+    dtype = est_p.dtype
+    rotation = ref_r @ est_r.T
+    translation = ref_p - rotation @ est_p
+    return Transform(
+        rotation=jnp.where(degenerate, jnp.eye(3, dtype=dtype), rotation),
+        translation=jnp.where(degenerate, 0.0, translation),
+        scale=jnp.ones((), dtype),
+        degenerate=degenerate,
+    )
+
+
 def fit_first_pose(
     x: Float[Array, "T 3"],
     y: Float[Array, "T 3"],
@@ -210,24 +270,13 @@ def fit_first_pose(
     est_q: Float[Array, "T 4"],
     ref_q: Float[Array, "T 4"],
 ) -> Transform:
-    """The rigid transform that maps the first selected estimated pose onto the first selected reference pose.
-
-    Like evo's `align_origin`: T = T_ref,0 T_est,0^-1, i.e. R = R_ref,0 R_est,0^T, t = p_ref,0 - R p_est,0.
-    """
-    dtype = x.dtype
+    """The rigid transform that maps the first selected estimated pose onto the first selected reference pose
+    (`first_pose_transform`, orientations given as quaternions)."""
     selected = w > 0
     first = jnp.argmax(selected)
-    degenerate = ~jnp.any(selected)
     r_est = quat_to_matrix(quat_normalize(est_q[first]))
     r_ref = quat_to_matrix(quat_normalize(ref_q[first]))
-    rotation = r_ref @ r_est.T
-    translation = y[first] - rotation @ x[first]
-    return Transform(
-        rotation=jnp.where(degenerate, jnp.eye(3, dtype=dtype), rotation),
-        translation=jnp.where(degenerate, 0.0, translation),
-        scale=jnp.ones((), dtype),
-        degenerate=degenerate,
-    )
+    return first_pose_transform(r_est, x[first], r_ref, y[first], ~jnp.any(selected))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -311,7 +360,9 @@ __all__ = [
     "Moments",
     "Transform",
     "apply_columns",
+    "first_pose_transform",
     "fit",
     "fit_moments",
     "is_degenerate",
+    "y_is_vertical",
 ]
