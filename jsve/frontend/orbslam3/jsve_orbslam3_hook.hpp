@@ -451,7 +451,10 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
         const ORB_SLAM3::IMU::Bias& b = frame.mImuBias;
         const ORB_SLAM3::IMU::Bias o = pre->GetOriginalBias();
         const float bias[12] = {b.bax, b.bay, b.baz, b.bwx, b.bwy, b.bwz, o.bax, o.bay, o.baz, o.bwx, o.bwy, o.bwz};
-        const bool finite = std::all_of(bias, bias + 12, [](float x) { return std::isfinite(x); });
+        // (the Jacobians too: a NaN JRg makes GetDeltaRotation's SO3::exp abort as a NaN bias does)
+        const bool finite = std::all_of(bias, bias + 12, [](float x) { return std::isfinite(x); }) &&
+                            pre->JRg.allFinite() && pre->JVg.allFinite() && pre->JVa.allFinite() &&
+                            pre->JPg.allFinite() && pre->JPa.allFinite();
         f.imu_dt = pre->dT;
         if (finite) {
             copy3(f.imu_dp, pre->GetDeltaPosition(b));
