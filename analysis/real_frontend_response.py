@@ -80,7 +80,7 @@ def runs_table(logs: str) -> pd.DataFrame:
     rows = []
     for summary in sorted(Path(logs).rglob("*.summary.json")):
         info = json.loads(summary.read_text())
-        log = Path(info["log"])
+        log = summary.parent / Path(info["log"]).name  # the summary's path may be relative to where it ran
         if info.get("exit_code") == 0 and log.is_file():
             rows.append(run_row(read_log(log)))
             continue

@@ -41,12 +41,8 @@ def crashed_runs(logdir: Path) -> pd.DataFrame:
         info = json.loads(summary.read_text())
         if info.get("exit_code", 0) == 0:
             continue
-        log = Path(info["log"])
-        parts = (
-            log.parent.relative_to(logdir).parts
-            if log.parent.is_relative_to(logdir)
-            else log.parent.parts[-3:]
-        )
+        # the summary's folder, not its `log` (a path relative to where the run was started)
+        parts = summary.parent.relative_to(logdir).parts
         disturbance, _, level = parts[1].rpartition("-")
         label = parts[2] if len(parts) > 2 else "orbslam3-orbslam3"
         rows.append({"sequence": parts[0], "disturbance": disturbance, "level": float(level), "label": label,
