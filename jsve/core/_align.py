@@ -274,8 +274,8 @@ def fit_first_pose(
     (`first_pose_transform`, orientations given as quaternions)."""
     selected = w > 0
     first = jnp.argmax(selected)
-    r_est = quat_to_matrix(quat_normalize(est_q[first]))
-    r_ref = quat_to_matrix(quat_normalize(ref_q[first]))
+    r_est = cast(Array, quat_to_matrix(quat_normalize(est_q[first])))
+    r_ref = cast(Array, quat_to_matrix(quat_normalize(ref_q[first])))
     return first_pose_transform(r_est, x[first], r_ref, y[first], ~jnp.any(selected))
 
 
