@@ -3,7 +3,7 @@
 # a name is used; type checkers and readers see the whole surface here.
 #
 # Layers, lowest first (tests/test_layers.py enforces that nothing imports a higher layer):
-#   core        pure JAX: SVE metrics, rules + ORB-SLAM3 state machine, replay, alignment + APE, objective
+#   core        pure JAX: SVE metrics, rules + ORB-SLAM3 state machine, replay, alignment + APE/RPE, objective
 #   io          the file edge: logs (format v1), ground truth, Parquet, importers, keypoint side files
 #   evaluation  rules over logs at scale: chunked replay + APE per run, tables, aggregation
 #   image       disturbances, disturbed datasets, ORB extraction, measurement on real frames
@@ -44,14 +44,18 @@ from .core import align as align
 from .core import ape_statistics as ape_statistics
 from .core import batch_features as batch_features
 from .core import batched_run_error as batched_run_error
+from .core import error_statistics as error_statistics
 from .core import failure_reason as failure_reason
 from .core import frame_features as frame_features
 from .core import imu_predict as imu_predict
 from .core import machine_step as machine_step
 from .core import objective as objective
+from .core import pose_errors as pose_errors
 from .core import power_mean as power_mean
 from .core import preset as preset
+from .core import relative_pose_errors as relative_pose_errors
 from .core import replay as replay
+from .core import rpe_pairs as rpe_pairs
 from .core import rule_from_dict as rule_from_dict
 from .core import rule_to_dict as rule_to_dict
 from .core import run_error as run_error

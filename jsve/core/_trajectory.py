@@ -84,10 +84,15 @@ def failure_bits(*causes: Array) -> Int[Array, "*runs"]:
     )
 
 
-def failure_reason(bits: ArrayLike) -> str:
-    """The causes set in RunError.failure, in words joined by '; ' ('' for a run that did not fail)."""
+def failure_reason(bits: ArrayLike, causes: tuple[str, ...] = FAILURE_CAUSES) -> str:
+    """The causes set in RunError.failure, in words joined by '; ' ('' for a run that did not fail).
+
+    Arguments:
+        bits: the failure bits of one run.
+        causes: what each bit means: FAILURE_CAUSES (APE), or jsve.core._pose_error.RPE_FAILURE_CAUSES.
+    """
     value = int(bits)  # type: ignore[arg-type]  (a scalar: int, numpy or JAX)
-    return "; ".join(cause for k, cause in enumerate(FAILURE_CAUSES) if value >> k & 1)
+    return "; ".join(cause for k, cause in enumerate(causes) if value >> k & 1)
 
 
 def non_finite(stats: ErrorStats) -> Bool[Array, "*runs"]:
