@@ -264,13 +264,18 @@ int main(int argc, char** argv) {
         status = 1;
     }
     slam.Shutdown();
-    // SaveTrajectoryEuRoC on a system that never built a map crashes ORB-SLAM3: skip it then.
-    if (status == 0 && ever_tracked && !args.trajectory.empty()) slam.SaveTrajectoryEuRoC(args.trajectory);
+    // SaveTrajectoryEuRoC crashes ORB-SLAM3 when the active map has no keyframe (never built, or reset
+    // at the end of the run): skip it then, and write the summary first, so that it says so.
+    const jsve_hook::HookState& hook = jsve_hook::state();
+    const bool save = status == 0 && ever_tracked && hook.keyframes > 0 && !args.trajectory.empty();
     if (!args.summary.empty()) {
         std::ofstream out(args.summary);
         out << "{\"frames\": " << images.size() << ", \"track_seconds\": " << track_seconds
-            << ", \"hook_seconds\": " << log_seconds << ", \"imu_invalid_frames\": " << jsve_hook::state().imu_invalid_frames << ", \"pose_invalid_frames\": " << jsve_hook::state().pose_invalid_frames << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
-            << ", \"status\": " << status << "}\n";
+            << ", \"hook_seconds\": " << log_seconds << ", \"imu_invalid_frames\": " << hook.imu_invalid_frames
+            << ", \"pose_invalid_frames\": " << hook.pose_invalid_frames
+            << ", \"keyframes_at_end\": " << hook.keyframes << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
+            << ", \"trajectory_saved\": " << (save ? "true" : "false") << ", \"status\": " << status << "}\n";
     }
+    if (save) slam.SaveTrajectoryEuRoC(args.trajectory);
     return status;
 }

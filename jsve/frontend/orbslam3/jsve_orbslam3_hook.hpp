@@ -45,6 +45,7 @@ struct HookState {
     double log_seconds = 0.0;  // time spent in log_frame, s (the hook's cost, reported by the driver)
     long imu_invalid_frames = 0;  // frames whose preintegration was NaN, logged as none (see log_frame)
     long pose_invalid_frames = 0;  // frames whose pose was NaN, logged without one (see log_frame)
+    long keyframes = 0;  // keyframes in the active map after the last logged frame
 };
 
 // The process's hook state (defined in Tracking.cc's translation unit).
@@ -410,6 +411,7 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
     // logged as LOST, which is what the state machine makes of it (a failure before BA2 resets).
     if (!frame.isSet() && (f.state == 2 || f.state == 3 || f.state == 5)) f.state = 4;
     ORB_SLAM3::Map* map = atlas->GetCurrentMap();
+    s.keyframes = static_cast<long>(atlas->KeyFramesInMap());
     f.imu_init = atlas->isImuInitialized();
     f.map_id = map ? static_cast<std::int64_t>(map->GetId()) : 0;
     f.imu_ba2 = f.imu_init && map && map->GetIniertialBA2();
