@@ -101,3 +101,34 @@ def test_the_hook_scores_and_decides_as_jsve(hook_rule, seed, x64):
         score, ok = _oracle(rule, counts, flags)
         assert float(score_text) == pytest.approx(score, rel=1e-12, abs=1e-13), (rule, counts)
         assert (ok_text == "1") == ok, (rule, counts, flags, score)
+
+
+def test_the_driver_reads_every_rule_jsve_frontend_run_passes(hook_rule):
+    """The driver's --rule-inliers / --rule-sve, as `jsve.frontend._run.driver_rule` writes them for every
+    preset, parsed by the hook's parse_rule into the rule's own numbers."""
+    from jsve.core import PRESETS
+    from jsve.frontend._run import driver_rule
+
+    for name in PRESETS:
+        args, _ = driver_rule(name, preset(name), "imu-coast")
+        out = subprocess.run([str(hook_rule), "--parse", args[0], args[1]], capture_output=True, text=True)
+        assert out.returncode == 0, (name, args, out.stdout)
+        kind, inputs, *numbers = out.stdout.split()
+        rule = preset(name)
+        t = rule.thresholds
+        expected = [float(x) for x in (t.imu_init, t.not_init, t.reloc, t.recovery)]
+        if isinstance(rule, InlierRule):
+            assert kind == "0"
+        else:
+            c = rule.combination
+            assert kind == "1" and int(inputs) == INPUTS.index(c.inputs)
+            expected = [float(x) for x in (c.w_a, c.u_b, c.p, c.q, c.rho)] + expected
+        assert [float(x) for x in numbers[-len(expected) :]] == expected, name
+    for flag, text, message in (
+        ("--rule-sve", "jsve,0.5,0.5,0,1,0.25,0.06,0.2,0.2", "wants INPUTS"),
+        ("--rule-sve", "authors-eq1,0.2,0.5,0,1,0.5,0.1,0.3,0.3,0.1", "P and Q must be 1"),
+        ("--rule-sve", "mine,0.5,0.5,0,1,0.25,0.06,0.2,0.2,0.04", "INPUTS must be"),
+        ("--rule-inliers", "15,50,50,1O", "'1O' is not a number"),
+    ):
+        out = subprocess.run([str(hook_rule), "--parse", flag, text], capture_output=True, text=True)
+        assert out.returncode == 1 and message in out.stdout, (text, out.stdout)

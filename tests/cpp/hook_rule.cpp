@@ -5,10 +5,26 @@
 // (17 significant digits) and the success test (0 / 1); tests/test_hook_rule.py compares both with jsve.
 #include <cstdio>
 #include <iostream>
+#include <string>
 
 #include "jsve_orbslam3_hook.hpp"
 
-int main() {
+// `hook_rule --parse FLAG TEXT`: the driver's rule option through jsve_hook::parse_rule; prints the rule
+// (kind inputs w_a u_b p q rho imu_init not_init reloc recovery) or the error, exit 1.
+int parse(const std::string& flag, const std::string& text) {
+    jsve_hook::Rule r;
+    std::string error;
+    if (!jsve_hook::parse_rule(flag, text, &r, &error)) {
+        std::printf("error: %s\n", error.c_str());
+        return 1;
+    }
+    std::printf("%d %d %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g %.17g\n", r.kind == jsve_hook::ScoreKind::kSve,
+                static_cast<int>(r.inputs), r.w_a, r.u_b, r.p, r.q, r.rho, r.imu_init, r.not_init, r.reloc, r.recovery);
+    return 0;
+}
+
+int main(int argc, char** argv) {
+    if (argc == 4 && std::string(argv[1]) == "--parse") return parse(argv[2], argv[3]);
     int kind = 0, inputs = 0;
     while (std::cin >> kind >> inputs) {
         jsve_hook::Rule r;

@@ -84,35 +84,8 @@ Args parse_args(int argc, char** argv) {
         else if (key == "--coast") a.coast = true;
         else if (key == "--rule-inliers" || key == "--rule-sve") {
             if (a.has_rule) usage_error("one rule: --rule-inliers or --rule-sve, once");
-            const bool sve = key == "--rule-sve";
-            std::stringstream items(value());
-            std::vector<double> t;
-            std::string inputs;
-            for (std::string item; std::getline(items, item, ',');) {
-                if (sve && inputs.empty()) {
-                    inputs = item;
-                    continue;
-                }
-                double d = 0.0;
-                if (!parse_double(item, &d)) usage_error(key + ": '" + item + "' is not a number");
-                t.push_back(d);
-            }
-            jsve_hook::Rule& r = a.rule;
-            if (sve) {
-                if (t.size() != 10) usage_error("--rule-sve wants INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY");
-                if (inputs == "jsve") r.inputs = jsve_hook::SveInputs::kJsve;
-                else if (inputs == "authors-eq1") r.inputs = jsve_hook::SveInputs::kAuthorsEq1;
-                else if (inputs == "authors-option1") r.inputs = jsve_hook::SveInputs::kAuthorsOption1;
-                else usage_error("--rule-sve: INPUTS must be jsve, authors-eq1 or authors-option1, got '" + inputs + "'");
-                if (r.inputs != jsve_hook::SveInputs::kJsve && (t[2] != 1.0 || t[3] != 1.0))
-                    usage_error("--rule-sve: the authors' inputs are combined linearly: P and Q must be 1");
-                r.kind = jsve_hook::ScoreKind::kSve;
-                r.w_a = t[0], r.u_b = t[1], r.p = t[2], r.q = t[3], r.rho = t[4];
-                t.erase(t.begin(), t.begin() + 5);
-            } else if (t.size() != 4) {
-                usage_error("--rule-inliers wants IMU_INIT,NOT_INIT,RELOC,RECOVERY");
-            }
-            r.imu_init = t[0], r.not_init = t[1], r.reloc = t[2], r.recovery = t[3];
+            std::string error;
+            if (!jsve_hook::parse_rule(key, value(), &a.rule, &error)) usage_error(error);
             a.has_rule = true;
         }
         else if (key == "--n-features") {

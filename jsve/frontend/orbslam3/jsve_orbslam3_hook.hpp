@@ -28,9 +28,11 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <locale>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -135,6 +137,60 @@ inline bool rule_succeeds(const Rule& r, double score, bool in_reloc, bool recen
     const bool recover = recently_lost && score > r.recovery;
     const bool pass_main = !(score < ((imu_ok || stereo) ? r.imu_init : r.not_init));
     return !fail_reloc && (recover || pass_main);
+}
+
+// The driver's rule options into `rule` (its nFeatures kept): `--rule-inliers IMU_INIT,NOT_INIT,RELOC,
+// RECOVERY` or `--rule-sve INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY` (INPUTS: jsve,
+// authors-eq1, authors-option1; the authors' inputs need P = Q = 1). False with `*error` set otherwise.
+inline bool parse_rule(const std::string& flag, const std::string& text, Rule* rule, std::string* error) {
+    const bool sve = flag == "--rule-sve";
+    std::vector<std::string> items;
+    std::size_t start = 0;
+    for (std::size_t comma = text.find(','); ; comma = text.find(',', start)) {
+        items.push_back(text.substr(start, comma == std::string::npos ? std::string::npos : comma - start));
+        if (comma == std::string::npos) break;
+        start = comma + 1;
+    }
+    const std::size_t expected = sve ? 10 : 4;
+    if (items.size() != expected) {
+        *error = sve ? "--rule-sve wants INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY"
+                     : "--rule-inliers wants IMU_INIT,NOT_INIT,RELOC,RECOVERY";
+        return false;
+    }
+    std::vector<double> t;
+    for (std::size_t k = sve ? 1 : 0; k < items.size(); ++k) {
+        std::istringstream in(items[k]);
+        in.imbue(std::locale::classic());  // '.' whatever LC_NUMERIC says
+        double d = 0.0;
+        in >> d;
+        if (items[k].empty() || !in || in.peek() != EOF || !std::isfinite(d)) {
+            *error = flag + ": '" + items[k] + "' is not a number";
+            return false;
+        }
+        t.push_back(d);
+    }
+    Rule r;
+    r.n_features = rule->n_features;
+    if (sve) {
+        const std::string& inputs = items[0];
+        if (inputs == "jsve") r.inputs = SveInputs::kJsve;
+        else if (inputs == "authors-eq1") r.inputs = SveInputs::kAuthorsEq1;
+        else if (inputs == "authors-option1") r.inputs = SveInputs::kAuthorsOption1;
+        else {
+            *error = "--rule-sve: INPUTS must be jsve, authors-eq1 or authors-option1, got '" + inputs + "'";
+            return false;
+        }
+        if (r.inputs != SveInputs::kJsve && (t[2] != 1.0 || t[3] != 1.0)) {
+            *error = "--rule-sve: the authors' inputs are combined linearly: P and Q must be 1";
+            return false;
+        }
+        r.kind = ScoreKind::kSve;
+        r.w_a = t[0], r.u_b = t[1], r.p = t[2], r.q = t[3], r.rho = t[4];
+        t.erase(t.begin(), t.begin() + 5);
+    }
+    r.imu_init = t[0], r.not_init = t[1], r.reloc = t[2], r.recovery = t[3];
+    *rule = r;
+    return true;
 }
 
 // Replace ORB-SLAM3's success test by `rule` from the next frame on; `coast`: a failed frame keeps
