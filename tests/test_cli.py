@@ -127,7 +127,7 @@ def choices(argv_prefix: list[str], option: str) -> tuple:
 def test_alignment_choices_are_the_library_methods():
     from jsve.core import ALIGN_METHODS
 
-    for name in ("ape", "table1", "evaluate"):
+    for name in ("ape", "rpe", "table1", "evaluate"):
         assert choices([name], "--align") == tuple(ALIGN_METHODS), name
 
 
@@ -138,6 +138,7 @@ def test_format_and_error_choices_are_the_library_lists():
     from jsve.io._trajectories import TRAJECTORY_FORMATS
 
     assert choices(["ape"], "--format") == choices(["table1"], "--format") == TRAJECTORY_FORMATS
+    assert choices(["rpe"], "--format") == TRAJECTORY_FORMATS
     assert choices(["ingest"], "--gt-format") == GT_FORMATS
     for name in ("ingest", "evaluate", "fit"):
         assert choices([name], "--on-error") == get_args(OnError), name
@@ -216,6 +217,7 @@ def _argv(command: str, tmp, out) -> list[str]:
                              "occlusion:450", "--runs", "1", "--workers", "1", "--no-progress"],
         "evaluate": lambda: ["evaluate", logs, "--rule", "orbslam3", "-o", str(out), "--no-progress"],
         "ape": lambda: ["ape", ref, est, "-o", str(out / "ape.csv")],
+        "rpe": lambda: ["rpe", ref, est, "-o", str(out / "rpe.csv")],
         "fit": lambda: ["fit", logs, "-o", str(out), "--no-progress", "--no-report"],
         "table1": lambda: ["table1", "--ref", ref, "--original", est, "--masked", est, "--format", "tum",
                            "-o", str(out), "--no-plots"],
@@ -224,7 +226,7 @@ def _argv(command: str, tmp, out) -> list[str]:
     }[command]()  # fmt: skip
 
 
-WRITERS = ("ingest", "simulate", "evaluate", "ape", "fit", "table1", "disturb")
+WRITERS = ("ingest", "simulate", "evaluate", "ape", "rpe", "fit", "table1", "disturb")
 
 
 def _one_error_line(capsys, command: str, path, reason: str) -> None:

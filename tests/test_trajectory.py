@@ -758,11 +758,16 @@ def test_cli_kitti_matches_evo(cli, capsys, kitti, tmp_path):
     table = pd.read_csv(csv_path)
     assert list(table["estimate"]) == [str(est_path), str(noisy_path)]
     np.testing.assert_allclose(table["rmse"], [r["rmse"] for r in rows], rtol=1e-12)
-    # The table printed without --json carries the same numbers (6 decimals).
+    # The table printed without --json carries the same numbers (6 decimals), after evo's title and the
+    # alignment used.
     assert cli(argv) == 0
     printed = capsys.readouterr().out.splitlines()
-    assert printed[0].split()[:3] == ["estimate", "rmse", "mean"]
-    assert float(printed[1].split()[1]) == pytest.approx(rows[0]["rmse"], abs=1e-6)
+    assert printed[:2] == [
+        "APE w.r.t. translation part (m) (with SE(3) Umeyama alignment)",
+        "aligned: SE(3) Umeyama (evo -a)",
+    ]
+    assert printed[2].split()[:3] == ["estimate", "rmse", "mean"]
+    assert float(printed[3].split()[1]) == pytest.approx(rows[0]["rmse"], abs=1e-6)
 
 
 def test_cli_tum_associates_pads_and_matches_evo(cli, capsys, kitti, tmp_path):
@@ -827,6 +832,6 @@ def test_cli_prints_why_an_estimate_failed(cli, capsys, kitti, tmp_path):
     assert rows[1]["rmse"] is None
     assert list(pd.read_csv(csv_path, keep_default_na=False)["failure_reason"]) == ["", reason]
     assert cli(["ape", *map(str, paths)]) == 0
-    header, first, second = capsys.readouterr().out.splitlines()
+    _, _, header, first, second = capsys.readouterr().out.splitlines()  # after the title and alignment
     assert header.split()[-2:] == ["failed", "failure_reason"]
     assert second.endswith(reason) and not first.rstrip().endswith(reason)

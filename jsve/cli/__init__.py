@@ -26,6 +26,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "evaluate",
     "check",
     "ape",
+    "rpe",
     "frontend",
     "frontend-include",
     "disturb",

@@ -152,17 +152,22 @@ def add_trajectory_options(parser: argparse.ArgumentParser, *, default_format: s
     )
     parser.add_argument(
         "--n-to-align",
+        "--n_to_align",
+        dest="n_to_align",
         type=int,
         default=-1,
         metavar="N",
-        help="align on the first N associated poses only (default -1: all)",
+        help="align on the first N associated poses only (evo's --n_to_align; default -1: all)",
     )
     parser.add_argument(
         "--t-max-diff",
+        "--t_max_diff",
+        dest="t_max_diff",
         type=float,
         default=0.01,
         metavar="S",
-        help="largest time difference in seconds for associating poses (tum, euroc; default 0.01)",
+        help="largest time difference in seconds for associating poses (tum, euroc; evo's --t_max_diff; "
+        "default 0.01)",
     )
 
 

@@ -1,24 +1,24 @@
 """`jsve ape REF EST [EST ...]`: absolute pose error of many estimates against one reference, in one call.
 
 An evo_ape-like command that scores every estimate in a single batched JAX computation (float64, equal to
-evo to 1e-6): files are read with evo's file_interface and associated by timestamps with evo's
+evo to 1e-9 relative): files are read with evo's file_interface and associated by timestamps with evo's
 associate_trajectories (tum, euroc) or by index (kitti), padded to the longest (jsve.io._trajectories),
-aligned and scored by jsve.core._pose_error.batched_pose_error, as Table I does.
-Prints one row per estimate (APE translation part, metres, with failed and failure_reason) or JSON; exit
-code 2 when a file cannot be used.
+aligned and scored by jsve.core._pose_error.batched_ape, as Table I does. evo's option spellings work
+(-a, -s, --align_origin, --n_to_align, -r/--pose_relation, --save_results, --save_plot).
+Prints evo's title, the alignment used and one row per estimate (with failed and failure_reason) or
+JSON; exit code 2 when a file or an option cannot be used.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 
 from jsve.cli import _common as common
+from jsve.cli import _pose_commands as pose
 
 HELP = "absolute pose error of many estimates against one reference (evo_ape-like, batched)"
 
-TABLE_COLUMNS = ("rmse", "mean", "median", "std", "min", "max", "sse", "count", "failed", "failure_reason")
-"""The columns printed after `estimate` (a failed run's statistics are NaN; failure_reason says why)."""
+DEFAULT_ALIGN = "se3"
 
 
 def register(subparsers) -> None:
@@ -26,67 +26,89 @@ def register(subparsers) -> None:
         "ape",
         help=HELP,
         description=(
-            "Absolute pose error (translation part, metres) of each EST against REF, aligned with --align "
-            "and scored in one batched computation. Statistics as evo defines them: rmse, mean, median, std "
-            "(population), min, max, sse, count."
+            "Absolute pose error of each EST against REF (evo_ape), aligned first and scored in one batched "
+            "computation. Statistics as evo defines them: rmse, mean, median, std (population), min, max, "
+            "sse, count, in the pose relation's unit. The output starts with evo's title and the "
+            "alignment used ('aligned: SE(3) Umeyama (evo -a)'). evo's spellings work: -a, -a -s, -s, "
+            "--align_origin, --n_to_align N, -r/--pose_relation, --save_results, --plot, --save_plot."
         ),
     )
     parser.add_argument("ref", metavar="REF", help="reference (ground-truth) trajectory file")
     parser.add_argument("est", metavar="EST", nargs="+", help="estimated trajectory file(s)")
-    common.add_align_option(
-        parser,
-        help="alignment: se3, sim3 (with scale), posyaw (yaw + translation), origin (first pose), none "
-        "(default: se3)",
+    pose.add_alignment_options(
+        parser, default=DEFAULT_ALIGN, evo_default=" (unlike evo_ape, which aligns only with -a)"
     )
+    pose.add_pose_relation_option(parser)
     common.add_trajectory_options(parser, default_format="tum")
-    parser.add_argument(
-        "--json", action="store_true", help="print JSON (a list of objects) instead of a table"
-    )
-    parser.add_argument(
-        "-o", "--output", metavar="TABLE.csv", help="also write the per-estimate table as CSV"
-    )
+    pose.add_output_options(parser, "APE")
     parser.set_defaults(func=run)
 
 
 @common.guarded("ape")
 def run(args: argparse.Namespace) -> int:
-    import jax
+    import numpy as np
     import pandas as pd
 
-    from jsve.core._pose_error import batched_pose_error
+    from jsve.core._pose_error import POSE_RELATIONS, batched_ape
     from jsve.evaluation._aggregate import per_run_table
     from jsve.io import _atomic as atomic
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 
     try:
-        n_first = common.n_first(args.n_to_align)
+        method, n_first, alignment = pose.resolve_alignment(args, DEFAULT_ALIGN)
+        pose.check_outputs(args)
         pairs = read_pose_pairs(args.ref, args.est, args.format, t_max_diff=args.t_max_diff)
     except ValueError as error:  # TrajectoryFileError is a ValueError: a file that cannot be used
         return common.fail("ape", error)
+    pose.warn_y_down("ape", method, pairs, args.ref)
 
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)  # evo computes in float64; so do we, to match it to 1e-6
-    try:
-        errors, _ = batched_pose_error(*stack_pose_pairs(pairs), align=args.align, n_first=n_first)
-        table = per_run_table(errors, pd.DataFrame({"estimate": list(args.est)}))
-    finally:
-        jax.config.update("jax_enable_x64", previous)
+    relation = args.pose_relation
+    with pose.enable_x64():  # evo computes in float64; so do we, to match it
+        result = batched_ape(*stack_pose_pairs(pairs), align=method, n_first=n_first, relation=relation)
+        table = per_run_table(result.errors, pd.DataFrame({"estimate": list(args.est)}))
+        aligned = np.asarray(result.aligned)
+        per_pose = np.asarray(result.per_pose)
+        matrices = np.asarray(pose.sim3_matrices(result.transforms))
+    extra = ()
+    if method in ("sim3", "scale"):
+        table["scale"] = np.asarray(result.transforms.scale, np.float64)
+        extra = ("scale",)
 
-    if args.output:
-        atomic.write_text(args.output, table.to_csv(index=False))  # CSV whatever the suffix
-    shown = table[["estimate", *TABLE_COLUMNS]]
-    if args.json:
-        records = shown.to_dict(orient="records")
-        print(json.dumps([{k: _plain(v) for k, v in r.items()} for r in records], indent=2))
-    else:
-        print(shown.to_string(index=False, float_format=lambda v: f"{v:.6f}"))
+    title = pose.evo_title("APE", relation, method, n_first)
+    arrays, curves, tracks = [], [], []
+    for i, pair in enumerate(pairs):
+        n = len(pair.ref)
+        x, timed = pose.seconds_or_index(pair)
+        est_p = aligned[i, :n, :3, 3]
+        errors = per_pose[i, :n]
+        entry = {"error_array": errors}
+        if timed:  # as evo_ape stores a trajectory with stamps (distances: path lengths, metres)
+            entry["seconds_from_start"] = x
+            entry["distances_from_start"] = pose.accumulated(pair.ref[:, :3, 3])
+            entry["distances"] = pose.accumulated(est_p)
+        if method != "none":
+            entry["alignment_transformation_sim3"] = matrices[i]
+        arrays.append(entry)
+        if not bool(table["failed"][i]):
+            curves.append((pair.name, x, errors, timed))
+            tracks.append((pair.name, est_p))
+    with atomic.all_or_nothing():  # the table, the result files and the figure, or none of them
+        if args.output:
+            atomic.write_text(args.output, table.to_csv(index=False))  # CSV whatever the suffix
+        if args.save_results:
+            pose.write_results(
+                "ape", args.save_results, list(args.est), args.ref, title, "APE", relation, table, arrays
+            )
+        pose.plot(
+            "ape",
+            args,
+            title=title,
+            alignment=alignment,
+            ylabel=f"APE ({POSE_RELATIONS[relation][1]})",
+            curves=curves,
+            trajectories=tracks,
+            reference=pairs[0].ref[:, :3, 3],
+            table=table,
+        )
+    pose.report(table, args, title, alignment, relation, extra)
     return 0
-
-
-def _plain(value):
-    """A JSON-ready Python scalar (NaN becomes null)."""
-    if hasattr(value, "item"):
-        value = value.item()
-    if isinstance(value, float) and value != value:
-        return None
-    return value
