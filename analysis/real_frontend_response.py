@@ -168,7 +168,11 @@ def plot(table: pd.DataFrame, path: str) -> None:
     colours = dict(
         zip([*METRICS, "tracked_share", "failed_share"], plt.get_cmap("tab10").colors, strict=False)
     )
-    labels = {**LABELS, "tracked_share": "frames tracked (OK)", "failed_share": "runs that lost tracking or never started (share)"}
+    labels = {
+        **LABELS,
+        "tracked_share": "frames tracked (OK)",
+        "failed_share": "runs that lost tracking or never started (share)",
+    }
     for ax, kind in zip(axes[0], kinds, strict=True):
         for source, style in (("real", "-"), ("simulator", "--")):
             own = table[table["source"] == source]
