@@ -500,10 +500,15 @@ def seconds_or_index(pair) -> tuple[object, bool]:
 
 
 def sim3_matrices(transforms):
-    """[R, 4, 4] Sim(3) matrices [[s R, t], [0, 1]] of batched transforms (evo's lie.sim3)."""
-    import jax
+    """[R, 4, 4] Sim(3) matrices [[s R, t], [0, 1]] of batched transforms (evo's lie.sim3), on the host."""
+    import numpy as np
 
-    return jax.vmap(lambda t: t.matrix())(transforms)
+    rotation = np.asarray(transforms.rotation, np.float64)
+    matrices = np.zeros((len(rotation), 4, 4))
+    matrices[:, :3, :3] = np.asarray(transforms.scale, np.float64)[:, None, None] * rotation
+    matrices[:, :3, 3] = np.asarray(transforms.translation, np.float64)
+    matrices[:, 3, 3] = 1.0
+    return matrices
 
 
 def enable_x64():

@@ -500,15 +500,30 @@ def _check_batch(est, ref, valid) -> None:
 
 
 @functools.partial(jax.jit, static_argnames=("method", "n_first", "relation"))
-def _align_and_score(est, ref, valid, *, method, n_first, relation):
-    """Over a leading runs axis: each run aligned on its valid poses and scored on them (one compile)."""
+def _ape_kernel(est, ref, valid, *, method, n_first, relation):
+    """`batched_ape` in one compiled program: each run aligned on its valid poses and scored there."""
 
     def one(e, r, m):
         aligned, transform = align_poses(e, r, m, method=method, n_first=n_first)
         per_pose = pose_errors(aligned, r, relation)
         return transform, aligned, per_pose, _error_statistics(per_pose, m & ~transform.degenerate)
 
-    return jax.vmap(one)(est, ref, valid)
+    transforms, aligned, per_pose, stats = jax.vmap(one)(est, ref, valid)
+    n_runs = est.shape[0]
+    no = jnp.zeros(n_runs, bool)
+    bad_input = jax.vmap(overflows)(est[..., :3, 3], valid) | jax.vmap(overflows)(ref[..., :3, 3], valid)
+    failure = failure_bits(
+        no, no, stats.count < MIN_ALIGNMENT_FRAMES, transforms.degenerate, non_finite(stats) | bad_input
+    )
+    errors = RunError(
+        stats=stats,
+        coverage=stats.count / jnp.sum(valid, axis=1),
+        n_segments=jnp.ones(n_runs, jnp.int32),
+        failed=failure != 0,
+        segment=jnp.zeros(n_runs, jnp.int32),
+        failure=failure,
+    )
+    return PoseErrorBatch(errors, transforms, aligned, per_pose)
 
 
 def batched_ape(
@@ -532,29 +547,13 @@ def batched_ape(
         relation: a key of POSE_RELATIONS (evo_ape --pose_relation).
 
     Returns:
-        PoseErrorBatch. Precision follows JAX's: enable jax_enable_x64 for float64 (evo's).
+        PoseErrorBatch (one compiled program per configuration and shape). Precision follows JAX's:
+        enable jax_enable_x64 for float64 (evo's).
     """
     _check_relation(relation)
     est, ref, valid = jnp.asarray(est), jnp.asarray(ref), jnp.asarray(valid, bool)
     _check_batch(est, ref, valid)
-    transforms, aligned, per_pose, stats = _align_and_score(
-        est, ref, valid, method=align, n_first=n_first, relation=relation
-    )
-    n_runs = est.shape[0]
-    no = jnp.zeros(n_runs, bool)
-    bad_input = jax.vmap(overflows)(est[..., :3, 3], valid) | jax.vmap(overflows)(ref[..., :3, 3], valid)
-    failure = failure_bits(
-        no, no, stats.count < MIN_ALIGNMENT_FRAMES, transforms.degenerate, non_finite(stats) | bad_input
-    )
-    errors = RunError(
-        stats=stats,
-        coverage=stats.count / jnp.sum(valid, axis=1),
-        n_segments=jnp.ones(n_runs, jnp.int32),
-        failed=failure != 0,
-        segment=jnp.zeros(n_runs, jnp.int32),
-        failure=failure,
-    )
-    return PoseErrorBatch(errors, transforms, aligned, per_pose)
+    return _ape_kernel(est, ref, valid, method=align, n_first=n_first, relation=relation)
 
 
 def batched_pose_error(
@@ -583,39 +582,78 @@ def batched_pose_error(
     return result.errors, result.transforms
 
 
-@functools.partial(jax.jit, static_argnames=("method", "n_first"))
-def _align_batch(est, ref, valid, *, method, n_first):
-    return jax.vmap(lambda e, r, m: align_poses(e, r, m, method=method, n_first=n_first))(est, ref, valid)
+def _score_pairs(est, ref, valid, aligned, transforms, first, second, mask, relation) -> RelativeErrorBatch:
+    """Each run's pair errors, statistics and failure causes (inside `_rpe_kernel` / `_rpe_scores`)."""
+    mask = mask & ~transforms.degenerate[:, None]
 
-
-@functools.partial(jax.jit, static_argnames=("unit", "all_pairs"))
-def _pairs_batch(poses, valid, delta, rel_tol, *, unit, all_pairs):
-    return jax.vmap(lambda p, m: rpe_pairs(p, m, delta, unit=unit, all_pairs=all_pairs, rel_tol=rel_tol))(
-        poses, valid
-    )
-
-
-@functools.partial(jax.jit, static_argnames=("relation",))
-def _score_pairs(aligned, ref, first, second, mask, *, relation):
     def one(e, r, i, j, m):
         per_pair = relative_pose_errors(e, r, i, j, relation)
         return per_pair, _error_statistics(per_pair, m)
 
-    return jax.vmap(one)(aligned, ref, first, second, mask)
-
-
-def _angle_pairs_batch(poses, valid, delta, rel_tol, degrees: bool):
-    """All pairs by angle of each run, compacted on the host to (first, second, mask) [R, P]."""
-    matrices = jax.vmap(lambda p, m: rpe_angle_pairs(p, m, delta, degrees=degrees, rel_tol=rel_tol))(
-        poses, valid
+    per_pair, stats = jax.vmap(one)(aligned, ref, first, second, mask)
+    bad_input = jax.vmap(overflows)(est[..., :3, 3], valid) | jax.vmap(overflows)(ref[..., :3, 3], valid)
+    no_pair = (stats.count == 0) & ~transforms.degenerate
+    failure = (  # bits of RPE_FAILURE_CAUSES
+        no_pair.astype(jnp.int32)
+        | transforms.degenerate.astype(jnp.int32) << 1
+        | (non_finite(stats) | bad_input).astype(jnp.int32) << 2
     )
-    found = [np.nonzero(np.asarray(m)) for m in matrices]
+    return RelativeErrorBatch(
+        stats=stats,
+        failed=failure != 0,
+        failure=failure,
+        transforms=transforms,
+        aligned=aligned,
+        first=first,
+        second=second,
+        mask=mask,
+        per_pair=per_pair,
+    )
+
+
+def _align_runs(est, ref, valid, method, n_first):
+    return jax.vmap(lambda e, r, m: align_poses(e, r, m, method=method, n_first=n_first))(est, ref, valid)
+
+
+@functools.partial(
+    jax.jit, static_argnames=("unit", "all_pairs", "from_reference", "relation", "method", "n_first")
+)
+def _rpe_kernel(
+    est, ref, valid, delta, rel_tol, *, unit, all_pairs, from_reference, relation, method, n_first
+):
+    """`batched_rpe` in one compiled program, for the pairs `rpe_pairs` chooses (a slot per pose)."""
+    aligned, transforms = _align_runs(est, ref, valid, method, n_first)
+    source = ref if from_reference else aligned
+    first, second, mask = jax.vmap(
+        lambda p, m: rpe_pairs(p, m, delta, unit=unit, all_pairs=all_pairs, rel_tol=rel_tol)
+    )(source, valid)
+    return _score_pairs(est, ref, valid, aligned, transforms, first, second, mask, relation)
+
+
+@functools.partial(jax.jit, static_argnames=("degrees", "from_reference", "method", "n_first"))
+def _angle_pair_masks(est, ref, valid, delta, rel_tol, *, degrees, from_reference, method, n_first):
+    """All pairs by angle: the aligned runs and each run's [T, T] mask (`rpe_angle_pairs`)."""
+    aligned, transforms = _align_runs(est, ref, valid, method, n_first)
+    source = ref if from_reference else aligned
+    masks = jax.vmap(lambda p, m: rpe_angle_pairs(p, m, delta, degrees=degrees, rel_tol=rel_tol))(
+        source, valid
+    )
+    return aligned, transforms, masks
+
+
+_rpe_scores = jax.jit(_score_pairs, static_argnames=("relation",))
+
+
+def _compact(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """[R, T, T] pair masks as (first, second, mask) [R, P], P the most pairs of a run (at least 1), each
+    run's pairs in np.nonzero's (evo's) order."""
+    found = [np.nonzero(m) for m in masks]
     width = max(1, *(len(i) for i, _ in found))
     first = np.zeros((len(found), width), np.int32)
     second, mask = first.copy(), np.zeros((len(found), width), bool)
     for r, (i, j) in enumerate(found):
         first[r, : len(i)], second[r, : len(j)], mask[r, : len(i)] = i, j, True
-    return jnp.asarray(first), jnp.asarray(second), jnp.asarray(mask)
+    return first, second, mask
 
 
 def check_delta(delta: float, unit: str, rel_tol: float = 0.1) -> None:
@@ -681,29 +719,14 @@ def batched_rpe(
     check_delta(delta, unit, rel_tol)
     est, ref, valid = jnp.asarray(est), jnp.asarray(ref), jnp.asarray(valid, bool)
     _check_batch(est, ref, valid)
-    aligned, transforms = _align_batch(est, ref, valid, method=align, n_first=n_first)
-    source = ref if pairs_from_reference else aligned
-    if unit in ("d", "r") and all_pairs:
-        first, second, mask = _angle_pairs_batch(source, valid, delta, rel_tol, degrees=unit == "d")
-    else:
-        first, second, mask = _pairs_batch(source, valid, delta, rel_tol, unit=unit, all_pairs=all_pairs)
-    mask = mask & ~transforms.degenerate[:, None]
-    per_pair, stats = _score_pairs(aligned, ref, first, second, mask, relation=relation)
-    bad_input = jax.vmap(overflows)(est[..., :3, 3], valid) | jax.vmap(overflows)(ref[..., :3, 3], valid)
-    no_pair = (stats.count == 0) & ~transforms.degenerate
-    failure = (
-        no_pair.astype(jnp.int32)
-        | transforms.degenerate.astype(jnp.int32) << 1
-        | (non_finite(stats) | bad_input).astype(jnp.int32) << 2
-    )
-    return RelativeErrorBatch(
-        stats=stats,
-        failed=failure != 0,
-        failure=failure,
-        transforms=transforms,
-        aligned=aligned,
-        first=first,
-        second=second,
-        mask=mask,
-        per_pair=per_pair,
-    )
+    if unit in ("d", "r") and all_pairs:  # a [T, T] mask per run, compacted on the host
+        aligned, transforms, masks = _angle_pair_masks(
+            est, ref, valid, delta, rel_tol, degrees=unit == "d", from_reference=pairs_from_reference,
+            method=align, n_first=n_first,
+        )  # fmt: skip
+        first, second, mask = _compact(np.asarray(masks))
+        return _rpe_scores(est, ref, valid, aligned, transforms, first, second, mask, relation=relation)
+    return _rpe_kernel(
+        est, ref, valid, delta, rel_tol, unit=unit, all_pairs=all_pairs, from_reference=pairs_from_reference,
+        relation=relation, method=align, n_first=n_first,
+    )  # fmt: skip
