@@ -75,7 +75,10 @@ def add_alignment_options(parser: argparse.ArgumentParser, *, default: str, evo_
         f"--align without METHOD is evo's -a (se3). Default: {default}{evo_default}",
     )
     parser.add_argument(
-        "-a", dest="evo_align", action="store_true", help="evo's -a/--align: SE(3) Umeyama, as --align se3"
+        "-a",
+        dest="evo_align",
+        action="store_true",
+        help="evo's -a/--align: SE(3) Umeyama, as --align se3. Default: off",
     )
     parser.add_argument(
         "-s",
