@@ -656,7 +656,7 @@ def _compact(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return first, second, mask
 
 
-def check_delta(delta: float, unit: str, rel_tol: float = 0.1) -> None:
+def check_delta(delta: float | int, unit: str, rel_tol: float | int = 0.1) -> None:
     """Refuse an RPE delta evo would refuse (or loop on): not a whole number >= 1 of frames, not positive,
     an angle beyond 180 degrees / pi radians; an unknown unit; a negative tolerance.
 
@@ -681,10 +681,10 @@ def batched_rpe(
     ref: Float[ArrayLike, "R T 4 4"],
     valid: Bool[ArrayLike, "R T"],
     *,
-    delta: float = 1,
+    delta: float | int = 1,
     unit: str = "f",
     all_pairs: bool = False,
-    rel_tol: float = 0.1,
+    rel_tol: float | int = 0.1,
     pairs_from_reference: bool = False,
     relation: str = "translation",
     align: str = "none",
