@@ -388,6 +388,48 @@ def write_results(
 # Plots
 
 
+def finish(
+    command: str,
+    args: argparse.Namespace,
+    *,
+    title: str,
+    alignment: str,
+    relation: str,
+    table,
+    arrays,
+    curves,
+    tracks,
+    reference,
+    extra=(),
+) -> int:
+    """What `jsve ape` and `jsve rpe` end with: the table (-o), the result files and the figure, all or
+    none of them, then the report on the screen. Returns the exit status (0)."""
+    from jsve.core._pose_error import POSE_RELATIONS
+    from jsve.io import _atomic as atomic
+
+    metric = command.upper()
+    with atomic.all_or_nothing():  # the table, the result files and the figure, or none of them
+        if args.output:
+            atomic.write_text(args.output, table.to_csv(index=False))  # CSV whatever the suffix
+        if args.save_results:
+            write_results(
+                command, args.save_results, list(args.est), args.ref, title, metric, relation, table, arrays
+            )
+        plot(
+            command,
+            args,
+            title=title,
+            alignment=alignment,
+            ylabel=f"{metric} ({POSE_RELATIONS[relation][1]})",
+            curves=curves,
+            trajectories=tracks,
+            reference=reference,
+            table=table,
+        )
+    report(table, args, title, alignment, relation, extra)
+    return 0
+
+
 def _top_view_axes(mode: str, ref_points) -> tuple[int, int]:
     import numpy as np
 

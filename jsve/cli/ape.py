@@ -49,9 +49,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import pandas as pd
 
-    from jsve.core._pose_error import POSE_RELATIONS, batched_ape
+    from jsve.core._pose_error import batched_ape
     from jsve.evaluation._aggregate import per_run_table
-    from jsve.io import _atomic as atomic
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 
     try:
@@ -92,23 +91,16 @@ def run(args: argparse.Namespace) -> int:
         if not bool(table["failed"][i]):
             curves.append((pair.name, x, errors, timed))
             tracks.append((pair.name, est_p))
-    with atomic.all_or_nothing():  # the table, the result files and the figure, or none of them
-        if args.output:
-            atomic.write_text(args.output, table.to_csv(index=False))  # CSV whatever the suffix
-        if args.save_results:
-            pose.write_results(
-                "ape", args.save_results, list(args.est), args.ref, title, "APE", relation, table, arrays
-            )
-        pose.plot(
-            "ape",
-            args,
-            title=title,
-            alignment=alignment,
-            ylabel=f"APE ({POSE_RELATIONS[relation][1]})",
-            curves=curves,
-            trajectories=tracks,
-            reference=pairs[0].ref[:, :3, 3],
-            table=table,
-        )
-    pose.report(table, args, title, alignment, relation, extra)
-    return 0
+    return pose.finish(
+        "ape",
+        args,
+        title=title,
+        alignment=alignment,
+        relation=relation,
+        table=table,
+        arrays=arrays,
+        curves=curves,
+        tracks=tracks,
+        reference=pairs[0].ref[:, :3, 3],
+        extra=extra,
+    )

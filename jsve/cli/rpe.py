@@ -90,13 +90,11 @@ def run(args: argparse.Namespace) -> int:
 
     from jsve.core._pose_error import (
         DELTA_UNITS,
-        POSE_RELATIONS,
         RPE_FAILURE_CAUSES,
         batched_rpe,
         check_delta,
     )
     from jsve.core._trajectory import failure_reason
-    from jsve.io import _atomic as atomic
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 
     try:
@@ -155,23 +153,15 @@ def run(args: argparse.Namespace) -> int:
             order = np.argsort(ends, kind="stable")
             curves.append((pair.name, x[ends][order], errors[order], timed))
             tracks.append((pair.name, est_p))
-    with atomic.all_or_nothing():  # the table, the result files and the figure, or none of them
-        if args.output:
-            atomic.write_text(args.output, table.to_csv(index=False))  # CSV whatever the suffix
-        if args.save_results:
-            pose.write_results(
-                "rpe", args.save_results, list(args.est), args.ref, title, "RPE", relation, table, arrays
-            )
-        pose.plot(
-            "rpe",
-            args,
-            title=title,
-            alignment=alignment,
-            ylabel=f"RPE ({POSE_RELATIONS[relation][1]})",
-            curves=curves,
-            trajectories=tracks,
-            reference=pairs[0].ref[:, :3, 3],
-            table=table,
-        )
-    pose.report(table, args, title, alignment, relation)
-    return 0
+    return pose.finish(
+        "rpe",
+        args,
+        title=title,
+        alignment=alignment,
+        relation=relation,
+        table=table,
+        arrays=arrays,
+        curves=curves,
+        tracks=tracks,
+        reference=pairs[0].ref[:, :3, 3],
+    )
