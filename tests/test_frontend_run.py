@@ -90,6 +90,20 @@ def test_plan_keeps_complete_logs_of_the_same_key_and_stops_at_others(tmp_path):
     assert [j.run for j in todo] == [0, 1]
 
 
+def test_two_datasets_of_one_identity_are_refused_not_overwritten(tmp_path):
+    build = make_build(tmp_path / "build")
+    a = make_dataset(tmp_path / "a", manifest={"trajectory": "V101_GT.txt"})
+    b = make_dataset(tmp_path / "b", manifest={"trajectory": "other/V101_GT.txt"})
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    kw = dict(runs=1, out=tmp_path / "logs", vocabulary=voc, settings=settings)
+    with pytest.raises(ValueError, match="would write the same logs"):
+        plan(build, [a, b], **kw)
+    (tmp_path / "x").mkdir()
+    todo, _ = plan(build, [a, tmp_path / "x" / ".." / "a"], **kw)  # one folder named twice: planned once
+    assert [j.log for j in todo] == [tmp_path / "logs" / "V101" / "none-0" / "run_000.csv"]
+
+
 def test_rules_in_the_loop_become_driver_arguments_and_metadata():
     from jsve.core import preset
     from jsve.evaluation._identity import recorded_rule

@@ -269,6 +269,8 @@ def plan(
 
     Raises:
         StaleOutputError when a complete log was made from other inputs (unless `force`).
+        ValueError when two datasets would write the same logs (same sequence, disturbance and level
+        in their manifests): their runs would overwrite each other.
     """
     from jsve.core._machine import check_switch_model
     from jsve.core._rules import preset
@@ -288,9 +290,19 @@ def plan(
     }
     t_bc = camera_in_body(settings_text)
     todo, done = [], []
+    folders: dict[Path, Path] = {}
     for path in datasets:
         ds = describe_dataset(path)
         folder = out / ds.sequence / f"{ds.disturbance}-{ds.level:g}"
+        if folders.get(folder) == ds.path.resolve():
+            continue  # named twice: one dataset, planned once
+        if folder in folders:
+            raise ValueError(
+                f"{folders[folder]} and {ds.path}: both are {ds.sequence}, {ds.disturbance} {ds.level:g} by "
+                f"their manifests, so their runs would write the same logs under {folder}; run them into "
+                "separate output folders"
+            )
+        folders[folder] = ds.path.resolve()
         if not stock:
             folder = folder / f"{name}-{switch_model}"
         folder.mkdir(parents=True, exist_ok=True)
