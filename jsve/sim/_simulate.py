@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from jsve.core._levels import LEVELS, SEED_DISTURBANCES
+from jsve.core._levels import LEVELS, SEED_DISTURBANCES, parse_disturbances
 from jsve.io import _schema as schema
 from jsve.io._resume import differences, file_digest, fingerprint, stop_if_stale
 from jsve.io._schema import RunLog
@@ -111,29 +111,23 @@ def settings(spec: str | Iterable[str] = "seed") -> list[Setting]:
     "seed": the seed paper's 31 (blur 0, 5, ..., 50: 11; downsample 1.0, 0.9, ..., 0.1: 10;
     occlusion 0, 50, ..., 450: 10; three of them, blur 0, downsample 1.0 and occlusion 0, are the
     undisturbed camera, run separately as each of the paper's figures starts from its own). "all":
-    those and every level of the five further disturbances (72). Otherwise a comma-separated list of
-    names, each optionally with levels: "blur,occlusion" or "blur:0:25:50,noise".
+    those and every level of the five further disturbances (72). Otherwise names, each optionally with
+    levels (jsve.core._levels.parse_disturbances): "blur,occlusion", "blur=0,25,50,noise" (the earlier
+    "blur:0:25:50,noise" too). A list of specs is read as one spec, joined by commas.
     """
     items = [spec] if isinstance(spec, str) else list(spec)
-    names: list[str] = []
-    for item in items:
-        names.extend(part.strip() for part in item.split(",") if part.strip())
     out: list[Setting] = []
-    for name in names:
+    for name, levels in parse_disturbances(",".join(items), ("seed", "all", "none", *GRIDS)):
+        if name in ("seed", "all", "none") and levels is not None:
+            raise ValueError(f"disturbances: {name!r} takes no levels")
         if name == "seed":
             out.extend(Setting(d, float(lv)) for d in SEED_GRIDS for lv in SEED_GRIDS[d])
-            continue
-        if name == "all":
+        elif name == "all":
             out.extend(Setting(d, float(lv)) for d in GRIDS for lv in GRIDS[d])
-            continue
-        base, _, levels = name.partition(":")
-        if base == "none":
+        elif name == "none":
             out.append(Setting("none", 0.0))
-            continue
-        if base not in GRIDS:
-            raise ValueError(f"unknown disturbance {base!r}; choose seed, all, none or {', '.join(GRIDS)}")
-        grid = [float(v) for v in levels.split(":")] if levels else [float(v) for v in GRIDS[base]]
-        out.extend(Setting(base, lv) for lv in grid)
+        else:
+            out.extend(Setting(name, float(lv)) for lv in (GRIDS[name] if levels is None else levels))
     seen, unique = set(), []
     for s in out:
         if (s.disturbance, s.level) not in seen:
@@ -805,6 +799,32 @@ def _sequence_size(spec: SequenceSpec) -> float:
             return float(sum(1 for _ in f))
     except OSError:
         return 0.0
+
+
+LOG_BYTES_PER_FRAME = 515
+"""Bytes of a simulated log per frame, ground-truth columns included (measured: 4.26 MB for 3 logs of
+2761 frames of one procedural flight under blur and occlusion), for study_size."""
+
+
+def study_size(
+    sequences: Sequence[str] | str | None = None,
+    *,
+    procedural: int | None = None,
+    euroc_gt: str | os.PathLike | None = None,
+    disturbances: str | Iterable[str] = "seed",
+    runs: int | Sequence[int] = 10,
+) -> tuple[int, float, float]:
+    """What write_study would write, before it writes: (logs, mean frames per log, estimated bytes).
+
+    Frames come from each sequence's ground-truth file (a procedural flight's expected length), bytes from
+    LOG_BYTES_PER_FRAME. Arguments as write_study.
+    """
+    specs = _as_specs(sequences, euroc_gt, procedural)
+    n_runs = runs if isinstance(runs, int) else len(runs)
+    per_sequence = len(settings(disturbances)) * n_runs
+    logs = len(specs) * per_sequence
+    frames = sum(_sequence_size(spec) for spec in specs) * per_sequence
+    return logs, frames / max(logs, 1), frames * LOG_BYTES_PER_FRAME
 
 
 def _recorded_generator(path: Path) -> dict | None:
