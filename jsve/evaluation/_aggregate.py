@@ -2,8 +2,9 @@
 
 The JAX side (`jsve.core._trajectory.batched_run_error`) returns one `RunError` per run; these functions
 turn it into a table with one row per run and summarise groups of runs (per sequence / disturbance / level /
-rule) the way the literature reports them: mean, median, std, min and max of per-run RMSE, the failure
-rate next to them, and statistics pooled over all frames of the group. Errors are in metres.
+rule): first the objective the fit minimises (`_run_loss`: a failed run costs the failure penalty, never
+the RMSE of the part it tracked) with the failure rate and coverage, then the literature's mean, median,
+std, min and max of per-run RMSE, and statistics pooled over all frames of the group. Errors are in metres.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pandas as pd
 
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, check_support
 from jsve.core._trajectory import RunError, failure_reason
 
 STAT_COLUMNS: tuple[str, ...] = ("rmse", "mean", "median", "std", "min", "max", "sse", "count")
@@ -62,6 +64,26 @@ def per_run_table(run_errors: RunError, meta: pd.DataFrame) -> pd.DataFrame:
     for name in ("coverage", "n_segments", "failed", "failure_reason"):
         table[name] = columns[name]
     return table
+
+
+def _run_loss(table: pd.DataFrame, failure_penalty: float = DEFAULT_FAILURE_PENALTY_M) -> pd.Series:
+    """Each run's loss in the objective the fit minimises (jsve.core._objective, the hard replay): its
+    ATE RMSE (metres) when it succeeded, `failure_penalty` (metres) when it failed, has no finite RMSE,
+    or left the log's support (`unsupported_fraction` > 0, where the table has that column).
+
+    Arguments:
+        table: a per-run table (per_run_table, jsve.evaluation.evaluate).
+        failure_penalty: metres charged for a failed run (ObjectiveConfig's default).
+    """
+    return table["rmse"].astype(float).where(~_charged(table), float(failure_penalty))
+
+
+def _charged(table: pd.DataFrame) -> pd.Series:
+    """The runs that cost the failure penalty: failed, without a finite RMSE, or out of support."""
+    charged = table["failed"].astype(bool) | ~np.isfinite(table["rmse"].astype(float))
+    if "unsupported_fraction" in table:
+        charged |= table["unsupported_fraction"].astype(float) > 0
+    return charged
 
 
 def bootstrap_ci(
@@ -133,8 +155,10 @@ def aggregate(
     n_boot: int = 1000,
     level: float = 0.95,
     seed: int = 0,
+    failure_penalty: float = DEFAULT_FAILURE_PENALTY_M,
+    support: str = "penalise",
 ) -> pd.DataFrame:
-    """Summarise per-run errors per group, with failure and coverage next to every error.
+    """Summarise per-run errors per group: the objective, with failure and coverage next to every error.
 
     Arguments:
         table: the output of `per_run_table` (or any table with its columns).
@@ -143,10 +167,17 @@ def aggregate(
         ci: add percentile bootstrap confidence intervals of the mean per-run RMSE.
         n_boot, level, seed: passed to `bootstrap_ci` (the same seed for every group, so results are
             reproducible).
+        failure_penalty: metres charged for a failed (or unsupported) run in `objective`.
+        support: "penalise" or "exclude", the objective's policy for runs that left the log's support
+            (jsve.core._objective.SUPPORT_POLICIES).
 
     Returns:
         One row per group (the `by` columns first), with
         n_runs, n_failed, failure_rate, mean_coverage;
+        objective: the mean `_run_loss` of the group's runs, metres, as jsve.core._objective.objective
+            computes it with equal weights (under "exclude" the mean over the supported runs, the
+            penalty when there is none); share_penalised: the share of runs charged the penalty
+            (failed, non-finite or unsupported);
         mean_changed, mean_unsupported, share_unsupported_runs: when the table has the support columns
             of jsve.evaluation._evaluate (the mean share of frames whose replayed mode differs from the
             recorded state, the mean share out of the log's support, the share of runs with any);
@@ -155,8 +186,11 @@ def aggregate(
         rmse_{mean,median,std,min,max}_nonfailed: the same over the runs whose failed flag is False;
         pooled_{rmse,mean,count}_{all,nonfailed}: over all frames of the runs, pooled_rmse =
             sqrt(sum sse / sum count), pooled_mean = sum(mean * count) / sum count, pooled_count = sum count;
-        with ci: rmse_mean_{all,nonfailed}_ci_{low,high}.
+        with ci: objective_ci_{low,high} and rmse_mean_{all,nonfailed}_ci_{low,high}.
+        The rmse_*_all columns average a failed run's RMSE over the part it tracked, so a rule that fails
+        every run can look best by them: read them beside failure_rate, or read `objective`.
     """
+    check_support(support)
     by = list(by)
     missing = sorted(set(by + ["rmse", "mean", "sse", "count", "coverage", "failed"]) - set(table.columns))
     if missing:
@@ -173,6 +207,12 @@ def aggregate(
         row["n_failed"] = int(failed.sum())
         row["failure_rate"] = float(failed.mean())
         row["mean_coverage"] = float(group["coverage"].mean())
+        loss = _run_loss(group, failure_penalty)
+        scored = loss
+        if support == "exclude" and "unsupported_fraction" in group:
+            scored = loss[~(group["unsupported_fraction"].astype(float) > 0)]
+        row["objective"] = float(scored.mean()) if len(scored) else float(failure_penalty)
+        row["share_penalised"] = float(_charged(group).mean())
         if "changed_fraction" in group:
             row["mean_changed"] = float(group["changed_fraction"].mean())
             row["mean_unsupported"] = float(group["unsupported_fraction"].mean())
@@ -182,6 +222,8 @@ def aggregate(
         row.update(_pooled(group, "all"))
         row.update(_pooled(ok, "nonfailed"))
         if ci:
+            low, high = bootstrap_ci(scored.to_numpy(), np.mean, n_boot, level, seed)
+            row["objective_ci_low"], row["objective_ci_high"] = low, high
             for suffix, part in (("all", group), ("nonfailed", ok)):
                 low, high = bootstrap_ci(part["rmse"].to_numpy(), np.mean, n_boot, level, seed)
                 row[f"rmse_mean_{suffix}_ci_low"] = low

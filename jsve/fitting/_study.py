@@ -482,7 +482,15 @@ def run_study(
         write_table(per_run, out, "runs")
         group = [c for c in ("disturbance", "level") if c in per_run.columns]
         write_table(
-            aggregate(per_run, group + ["rule"], n_boot=config.n_boot, level=config.level, seed=config.seed),
+            aggregate(
+                per_run,
+                group + ["rule"],
+                n_boot=config.n_boot,
+                level=config.level,
+                seed=config.seed,
+                failure_penalty=config.failure_penalty,
+                support=config.support,
+            ),  # fmt: skip
             out,
             "summary",
         )
