@@ -7,9 +7,12 @@ Each subcommand NAME lives in the module jsve.cli.<NAME with '_' for '-'>, which
     run(args)             the command itself, a thin layer over jsve's public functions
 
 Subcommand modules import only the standard library and jsve.cli._common at top level; library code
-(JAX, pandas, OpenCV) is imported inside `register` (for the choices of an option) or `run`. `main`
-builds the full parser of the chosen subcommand only, so `jsve --help` lists every subcommand without
-importing any library, and a command pays for the imports it needs.
+(JAX, pandas, OpenCV, matplotlib, evo) is imported inside `run`, never by `register`: an option whose
+choices come from the library takes them as `_common.LibraryNames`, read when a value is checked or a
+help printed. `main` builds the full parser of the chosen subcommand only, so `jsve --help` lists every
+subcommand without importing any library, and a command pays for the imports it needs (measured in
+README, "Commands"; tests/test_cli.py checks that building every parser imports no library).
+Every parser is a `_common.ArgumentParser`, whose help shows each option's default.
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ import importlib
 import logging
 import sys
 from collections.abc import Iterable, Sequence
+
+from jsve.cli import _common as common
 
 SUBCOMMANDS: tuple[str, ...] = (
     "ingest",
@@ -53,12 +58,12 @@ def build_parser(full: Iterable[str] | None = None) -> argparse.ArgumentParser:
         full: the subcommands whose parser is built in full (their `register` runs); the others are
             listed by their HELP only. None: every subcommand in full.
     """
-    parser = argparse.ArgumentParser(
+    parser = common.ArgumentParser(
         prog="jsve",
         description="Scene-visibility-based switching for VI-SLAM: replay, evaluate and fit switching rules.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details to stderr")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=common.ArgumentParser)
     full = set(SUBCOMMANDS if full is None else full)
     for name in SUBCOMMANDS:
         module = _module(name)

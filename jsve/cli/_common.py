@@ -1,17 +1,23 @@
-"""What the subcommands share: options whose choices come from the library, reading runs, errors.
+"""What the subcommands share: the parser class, options whose choices come from the library, reading
+runs, errors.
 
 Subcommand modules use this module, never each other. Like them, it imports library code only inside
-functions, so that `jsve --help` stays free of JAX and pandas: a `register()` that calls an `add_*`
-helper pays for the import of the constants its choices come from, and only when its command runs.
+functions, and an option's choices from the library are LibraryNames, read when argparse first needs
+them (a value to check, a help to print): building any parser, the full one included, imports no
+library, so `jsve --help` and `jsve frontend-include` start in about 0.1 s.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import importlib
+import os
+import shutil
 import sys
-from collections.abc import Callable
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal, get_args, get_origin
 
 if TYPE_CHECKING:
     from jsve.io._ingest import OnError
@@ -69,7 +75,112 @@ def guarded(command: str) -> Callable:
 
 
 # --------------------------------------------------------------------------------------------------
+# Parsers
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Every option's help says its default: `(default: VALUE)` is appended where the help does not
+    already speak of one (a flag's default is `off`; an option whose default is None must say in words
+    what happens without it, which tests/test_cli.py checks)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (
+            not action.option_strings  # a positional
+            or action.required
+            or action.default is argparse.SUPPRESS
+            or "default" in text.lower()
+        ):
+            return text
+        if action.nargs == 0 and not action.default:  # store_true
+            return f"{text} (default: off)"
+        if action.default is None or action.default == []:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+class RawDescriptionHelpFormatter(HelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """HelpFormatter for a description laid out by hand (kept as written)."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """The parser of `jsve` and of each subcommand: HelpFormatter unless told otherwise."""
+
+    def __init__(self, *args, formatter_class: type[argparse.HelpFormatter] = HelpFormatter, **kwargs):
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
+
+
+class LibraryValue:
+    """A value that lives in the library (a default to state in a help), read when first printed: never
+    when the option is registered, so building a parser imports no library and the value is never
+    re-typed. Put it on the option's action and name it in the help: `action.penalty =
+    LibraryValue(...)`, `help="... (default: %(penalty)s m)"`.
+
+    Arguments:
+        module: the dotted name of the module that defines it. attribute: its name there.
+        scale: a factor for a number shown in another unit (1e-6: ns shown as ms).
+    """
+
+    def __init__(self, module: str, attribute: str, scale: float = 1.0):
+        self.module, self.attribute, self.scale = module, attribute, scale
+
+    @functools.cached_property
+    def value(self):
+        return getattr(importlib.import_module(self.module), self.attribute)
+
+    def __str__(self) -> str:
+        return f"{self.value * self.scale:g}" if isinstance(self.value, (int, float)) else str(self.value)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.module}.{self.attribute})"
+
+
+class LibraryNames(LibraryValue, Sequence):
+    """Names that live in the library (an option's choices, a list in a help), read when argparse first
+    needs them: to check a value or print a help, never when the option is registered. So building a
+    parser imports no library, and the names stay the library's own, never re-typed.
+
+    An option with LibraryNames as its choices needs a metavar (argparse would list the choices in its
+    usage line when the option is added); `%(choices)s` in its help lists them; str() lists them too,
+    for a list in a help text (as LibraryValue).
+
+    Arguments:
+        module: the dotted name of the module that defines them.
+        attribute: the name of a tuple or dict (its keys) of names, or of a typing.Literal.
+    """
+
+    def __init__(self, module: str, attribute: str):
+        super().__init__(module, attribute)
+
+    @functools.cached_property
+    def names(self) -> tuple[str, ...]:
+        value = self.value
+        return tuple(get_args(value) if get_origin(value) is Literal else value)
+
+    def __getitem__(self, index):
+        return self.names[index]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names)
+
+    def __contains__(self, value) -> bool:
+        return value in self.names
+
+    def __str__(self) -> str:
+        return ", ".join(self.names)
+
+
+# --------------------------------------------------------------------------------------------------
 # Options
+
+
+def add_output_option(parser: argparse.ArgumentParser, *, metavar: str, help: str, **kwargs) -> None:
+    """-o/--output, every command's spelling of what it writes (`--out`, the earlier spelling of some
+    commands, still works: argparse takes a unique prefix of an option)."""
+    parser.add_argument("-o", "--output", dest="output", metavar=metavar, help=help, **kwargs)
 
 
 def add_force_option(parser: argparse.ArgumentParser) -> None:
@@ -85,19 +196,22 @@ def add_force_option(parser: argparse.ArgumentParser) -> None:
 
 def add_align_option(parser: argparse.ArgumentParser, help: str | None = None) -> None:
     """--align, its choices jsve.core's alignment methods (default se3)."""
-    from jsve.core import ALIGN_METHODS
-
-    parser.add_argument("--align", choices=tuple(ALIGN_METHODS), default="se3", help=help)
+    parser.add_argument(
+        "--align",
+        choices=LibraryNames("jsve.core._align", "ALIGN_METHODS"),
+        default="se3",
+        metavar="METHOD",
+        help=help or "alignment to the ground truth, one of %(choices)s",
+    )
 
 
 def add_switch_model_option(parser: argparse.ArgumentParser) -> None:
     """--switch-model: the pose of a frame in RECENTLY_LOST (jsve.core._machine.SWITCH_MODELS)."""
-    from jsve.core._machine import SWITCH_MODELS
-
     parser.add_argument(
         "--switch-model",
-        choices=SWITCH_MODELS,
+        choices=LibraryNames("jsve.core._machine", "SWITCH_MODELS"),
         default=None,
+        metavar="MODEL",
         help="orbslam3 (default): a tracked frame keeps its logged pose, as ORB-SLAM3 v1.0 does; "
         "imu-coast: a frame in RECENTLY_LOST takes the IMU prediction (docs/state-machine.md)",
     )
@@ -106,12 +220,11 @@ def add_switch_model_option(parser: argparse.ArgumentParser) -> None:
 def add_support_option(parser: argparse.ArgumentParser) -> None:
     """--support: what the objective does with a run whose replay leaves the log's support
     (jsve.core._objective.SUPPORT_POLICIES)."""
-    from jsve.core._objective import SUPPORT_POLICIES
-
     parser.add_argument(
         "--support",
-        choices=SUPPORT_POLICIES,
+        choices=LibraryNames("jsve.core._objective", "SUPPORT_POLICIES"),
         default=None,
+        metavar="POLICY",
         help="a run whose replay needs a recorded pose the log lacks has an unknown outcome: penalise "
         "(default) scores it as failed, exclude drops the run-rule pair from the objective "
         "(docs/fitting.md)",
@@ -120,35 +233,36 @@ def add_support_option(parser: argparse.ArgumentParser) -> None:
 
 def add_segments_option(parser: argparse.ArgumentParser) -> None:
     """--segments: which map segment of a run is scored (jsve.core._trajectory.run_error)."""
-    from jsve.core._trajectory import SEGMENT_MODES
-
     parser.add_argument(
         "--segments",
         default="largest",
-        choices=SEGMENT_MODES,
-        help="which map segment of a run is scored (default: largest)",
+        choices=LibraryNames("jsve.core._trajectory", "SEGMENT_MODES"),
+        metavar="MODE",
+        help="which map segment of a run is scored: %(choices)s",
     )
 
 
-def on_error_choices() -> tuple[str, ...]:
-    """What a batch read does with a bad log: jsve.io's OnError ("raise", "quarantine")."""
-    from typing import get_args
-
-    from jsve.io._ingest import OnError
-
-    return get_args(OnError)
+def add_on_error_option(parser: argparse.ArgumentParser) -> None:
+    """--on-error: what a batch read does with a bad log (jsve.io._ingest.OnError)."""
+    parser.add_argument(
+        "--on-error",
+        choices=LibraryNames("jsve.io._ingest", "OnError"),
+        default="raise",
+        metavar="MODE",
+        help="raise: stop at the first bad log (exit 2); quarantine: set bad logs aside, list them on "
+        "stderr and go on with the others",
+    )
 
 
 def add_trajectory_options(parser: argparse.ArgumentParser, *, default_format: str) -> None:
     """--format, --n-to-align and --t-max-diff: how trajectory files are read and paired
     (jsve.io._trajectories)."""
-    from jsve.io._trajectories import TRAJECTORY_FORMATS
-
     parser.add_argument(
         "--format",
-        choices=TRAJECTORY_FORMATS,
+        choices=LibraryNames("jsve.io._trajectories", "TRAJECTORY_FORMATS"),
         default=default_format,
-        help=f"file format (default: {default_format})",
+        metavar="FORMAT",
+        help="file format: %(choices)s (default: %(default)s)",
     )
     parser.add_argument(
         "--n-to-align",
@@ -180,6 +294,105 @@ def n_first(n_to_align: int) -> int | None:
     if n_to_align == 0 or n_to_align < -1:
         raise ValueError(f"--n-to-align must be a positive number or -1 (all), got {n_to_align}")
     return None if n_to_align == -1 else n_to_align
+
+
+def add_workers_option(
+    parser: argparse.ArgumentParser, what: str = "processes reading the logs", *, default: int | None = None
+) -> None:
+    """--workers N: how many processes; default None: one per core."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=(os.cpu_count() or 1) if default is None else default,
+        metavar="N",
+        help=f"{what} (default: {'all cores' if default is None else default})",
+    )
+
+
+def add_progress_option(parser: argparse.ArgumentParser) -> None:
+    """--no-progress: no progress bar (on stderr)."""
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+def add_yes_option(parser: argparse.ArgumentParser) -> None:
+    """--yes: write even when the size estimate (announce_size) exceeds the free disk space."""
+    parser.add_argument(
+        "--yes",
+        action="store_true",
+        help="write even when the estimated output is larger than the free space on its disk (without "
+        "it the command stops before writing, exit 2)",
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Output size
+
+
+def format_bytes(n: float) -> str:
+    """Bytes in decimal units with two or three digits: 512 B, 42 kB, 1.3 MB, 4.6 GB."""
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            value = n / scale
+            return f"{value:.1f} {unit}" if value < 10 else f"{value:.0f} {unit}"
+    return f"{n:.0f} B"
+
+
+def _bytes_under(path: Path) -> int:
+    """Bytes of the files at or under path (0 when it does not exist)."""
+    if path.is_file():
+        return path.stat().st_size
+    total = 0
+    for folder, _, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(folder, name)).st_size
+            except OSError:
+                pass  # removed while we walk
+    return total
+
+
+def _free_bytes(path: Path) -> int:
+    """Free bytes on the file system that path is (or would be) on: its nearest existing ancestor's."""
+    path = path.absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return shutil.disk_usage(path).free
+
+
+def announce_size(
+    command: str, output: str | os.PathLike, total: float, detail: str, *, yes: bool
+) -> int | None:
+    """Say on stderr how much COMMAND is about to write, before it writes; stop when it cannot fit.
+
+    The line reads `jsve COMMAND: about 4.6 GB to write to OUT (DETAIL; 1.2 GB there already), 38 GB free`.
+    Bytes already at or under `output` (a resumed job keeps its finished outputs) are taken off the
+    estimate; when the rest exceeds the free space of output's disk the command stops (exit 2) unless
+    `yes`, so that a study never fills the disk half-way.
+
+    Arguments:
+        output: the file or folder the command writes. total: estimated bytes of the whole output.
+        detail: how total was estimated, e.g. "3410 logs x ~2600 frames x ~520 B".
+        yes: --yes, write anyway.
+    Returns:
+        None to go on, or 2 (after printing why).
+    """
+    output = Path(output)
+    there = _bytes_under(output) if output.exists() else 0
+    to_write = max(0.0, total - there)
+    free = _free_bytes(output)
+    already = f"; {format_bytes(there)} there already" if there else ""
+    print(
+        f"jsve {command}: about {format_bytes(to_write)} to write to {output} ({detail}{already}), "
+        f"{format_bytes(free)} free",
+        file=sys.stderr,
+    )
+    if to_write > free and not yes:
+        return fail(
+            command,
+            f"about {format_bytes(to_write)} to write but {format_bytes(free)} free on the disk of {output}; "
+            "free space, choose another -o, or pass --yes to write anyway",
+        )
+    return None
 
 
 # --------------------------------------------------------------------------------------------------

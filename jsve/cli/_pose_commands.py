@@ -60,14 +60,12 @@ TABLE_COLUMNS = (*STAT_NAMES, "count", "failed", "failure_reason")
 def add_alignment_options(parser: argparse.ArgumentParser, *, default: str, evo_default: str) -> None:
     """--align [METHOD] (jsve's, its choices the library's methods; bare, evo's -a), evo's -a, -s /
     --correct_scale and --align_origin."""
-    from jsve.core import ALIGN_METHODS
-
     parser.add_argument(
         "--align",
         nargs="?",
         const="se3",
         default=None,
-        choices=tuple(ALIGN_METHODS),
+        choices=common.LibraryNames("jsve.core._align", "ALIGN_METHODS"),
         metavar="METHOD",
         help=f"alignment: se3 (rotation + translation, Umeyama), sim3 (with scale), posyaw (yaw about the "
         f"world z axis + translation: assumes z is up, meaningless for y-down frames such as KITTI's "
@@ -146,7 +144,6 @@ def resolve_alignment(args: argparse.Namespace, default: str) -> tuple[str, int 
 def add_pose_relation_option(parser: argparse.ArgumentParser) -> None:
     """-r / --pose-relation / --pose_relation: jsve.core._pose_error.POSE_RELATIONS (evo's trans_part
     accepted for translation)."""
-    from jsve.core._pose_error import POSE_RELATIONS
 
     def relation(text: str) -> str:
         return "translation" if text == "trans_part" else text
@@ -157,7 +154,7 @@ def add_pose_relation_option(parser: argparse.ArgumentParser) -> None:
         "--pose_relation",
         dest="pose_relation",
         type=relation,
-        choices=tuple(POSE_RELATIONS),
+        choices=common.LibraryNames("jsve.core._pose_error", "POSE_RELATIONS"),
         metavar="RELATION",
         default="translation",
         help="the error of a pose (evo's --pose_relation): translation (metres; evo's trans_part, also "

@@ -17,11 +17,18 @@ HELP = "identity replay: does replaying each log's own rule give back its logged
 def register(sub) -> None:
     p = sub.add_parser("check", help=HELP, description=HELP)
     p.add_argument("logs", metavar="LOGS", help="folder of logs, a log, or a Parquet file from `jsve ingest`")
-    p.add_argument("--rule", metavar="PRESET", help="the rule of logs whose metadata names none")
-    p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
-    p.add_argument("-o", "--output", metavar="CSV", help="write the per-log table here")
-    p.add_argument("--workers", type=int, metavar="N")
-    p.add_argument("--no-progress", action="store_true")
+    rule = p.add_argument(
+        "--rule",
+        metavar="PRESET",
+        help="the rule (%(presets)s) of logs whose metadata names none (default: such a log is an error)",
+    )
+    rule.presets = common.LibraryNames("jsve.core._rules", "PRESETS")
+    common.add_on_error_option(p)
+    common.add_output_option(
+        p, metavar="CSV", help="write the per-log table here (default: print the flagged logs only)"
+    )
+    common.add_workers_option(p)
+    common.add_progress_option(p)
     p.set_defaults(func=run)
 
 

@@ -9,7 +9,7 @@ redone; a finished dataset of another seed, source or parameters stops the comma
 from __future__ import annotations
 
 import argparse
-import os
+from pathlib import Path
 
 from jsve.cli import _common as common
 
@@ -29,43 +29,50 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("datasets", metavar="DATASET", nargs="*", help="EuRoC dataset folder(s)")
-    parser.add_argument("-o", "--out", metavar="OUT", help="output root folder")
+    common.add_output_option(parser, metavar="OUT", help="output root folder (needed unless --list)")
+    parser.add_argument(
+        "--disturbances",
+        metavar="SPEC",
+        help="comma-separated names each with optional levels: blur,noise (their default levels) or "
+        "blur=5,15,25,occlusion=100,200 (default: every disturbance at its default levels; see --list)",
+    )
     parser.add_argument(
         "--disturbance",
         metavar="NAMES",
-        help="comma-separated disturbances (default: all; see --list)",
+        help="the earlier spelling: comma-separated names, levels from --levels (default: none; use "
+        "--disturbances)",
     )
     parser.add_argument(
         "--levels",
         metavar="LEVELS",
         action="append",
-        help="levels instead of the default grid: `5,15,25` (one disturbance selected) or "
-        "`NAME=5,15,25` (repeatable)",
+        help="the earlier spelling of levels, with --disturbance: `5,15,25` (one disturbance selected) or "
+        "`NAME=5,15,25` (repeatable) (default: the registry's grid; use --disturbances NAME=5,15,25)",
     )
     parser.add_argument(
         "--downsample-mode",
         choices=("rescale", "calibration"),
         default="rescale",
         help="rescale: scale back to the original size (calibration unchanged); calibration: keep the "
-        "small image and write scaled intrinsics to sensor.yaml (default: rescale)",
+        "small image and write scaled intrinsics to sensor.yaml",
     )
     parser.add_argument(
         "--param",
         metavar="NAME.KEY=VALUE",
         action="append",
         default=[],
-        help="a disturbance parameter, e.g. motion_blur.angle=45 or haze.patchiness=0.5 (repeatable)",
+        help="a disturbance parameter, e.g. motion_blur.angle=45 or haze.patchiness=0.5; repeatable "
+        "(default: the registry's parameters)",
     )
     parser.add_argument(
-        "--seed", type=int, default=0, help="base seed of the random disturbances (default 0)"
+        "--seed", type=int, default=0, metavar="N", help="base seed of the random disturbances"
     )
-    parser.add_argument(
-        "--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: all cores)"
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_workers_option(parser, "processes writing datasets")
+    common.add_progress_option(parser)
     parser.add_argument(
         "--list", action="store_true", help="list the disturbances and their levels, and exit"
     )
+    common.add_yes_option(parser)
     common.add_force_option(parser)
     parser.set_defaults(func=run)
 
@@ -95,6 +102,39 @@ def _parse_levels(items: list[str] | None, names: list[str]) -> dict[str, list[f
     return levels
 
 
+def _disturbances(args: argparse.Namespace, known: list[str]) -> tuple[list[str], dict[str, list[float]]]:
+    """(names, levels) from --disturbances, or from the earlier --disturbance and --levels."""
+    if args.disturbances is not None:
+        if args.disturbance is not None or args.levels:
+            raise ValueError("--disturbances replaces --disturbance and --levels: give one or the other")
+        from jsve.core._levels import parse_disturbances
+
+        parsed = parse_disturbances(args.disturbances, known)
+        names = list(dict.fromkeys(name for name, _ in parsed))
+        levels: dict[str, list[float]] = {}
+        for name, values in parsed:
+            if values is not None:
+                levels.setdefault(name, []).extend(v for v in values if v not in levels.get(name, []))
+        return names, levels
+    names = [n.strip() for n in args.disturbance.split(",")] if args.disturbance else known
+    return names, _parse_levels(args.levels, names)
+
+
+def _size(jobs) -> tuple[float, str]:
+    """(estimated bytes, how) of the datasets `jobs` write: each the size of its source's camera images
+    (the rest of a dataset is hard-linked, or copied where links fail)."""
+    from jsve.image._datasets import camera_dirs
+
+    images: dict[Path, int] = {}
+    for job in jobs:
+        if job.source not in images:
+            files = (f for cam in camera_dirs(job.source) for f in (cam / "data").iterdir())
+            images[job.source] = sum(f.stat().st_size for f in files if f.is_file())
+    total = sum(images[job.source] for job in jobs)
+    mean = total / max(len(jobs), 1)
+    return total, f"{len(jobs)} datasets x ~{common.format_bytes(mean)} of camera images"
+
+
 def _parse_params(items: list[str]) -> dict[str, dict[str, object]]:
     params: dict[str, dict[str, object]] = {}
     for item in items:
@@ -108,24 +148,28 @@ def _parse_params(items: list[str]) -> dict[str, dict[str, object]]:
 
 @common.guarded("disturb")
 def run(args: argparse.Namespace) -> int:
-    from jsve.image._datasets import DatasetError, disturb_datasets, format_level
+    from jsve.image._datasets import DatasetError, disturb_datasets, format_level, make_jobs
     from jsve.image._disturb import DISTURBANCES
 
     if args.list:
         for name, (_, levels, unit, doc) in DISTURBANCES.items():
             print(f"{name:12s} [{unit}] {', '.join(format_level(v) for v in levels)}\n{'':12s} {doc}")
         return 0
-    if not args.datasets or not args.out:
+    if not args.datasets or not args.output:
         return common.fail("disturb", "need DATASET(s) and -o OUT (or --list)")
-    names = [n.strip() for n in args.disturbance.split(",")] if args.disturbance else list(DISTURBANCES)
     try:
-        levels = _parse_levels(args.levels, names)
+        names, levels = _disturbances(args, list(DISTURBANCES))
         params = _parse_params(args.param)
         if args.downsample_mode != "rescale" and "downsample" in names:
             params.setdefault("downsample", {})["mode"] = args.downsample_mode
+        jobs = make_jobs(args.datasets, args.output, names, levels, params, args.seed)
+        total, detail = _size(jobs)
+        stop = common.announce_size("disturb", args.output, total, detail, yes=args.yes)
+        if stop is not None:
+            return stop
         results = disturb_datasets(
             args.datasets,
-            args.out,
+            args.output,
             names,
             levels,
             params,
@@ -138,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         return common.fail("disturb", error)
     counts = {s: sum(r.status == s for r in results) for s in ("written", "redone", "skipped")}
     print(
-        f"{len(results)} datasets in {args.out}: {counts['written']} written, {counts['redone']} redone "
+        f"{len(results)} datasets in {args.output}: {counts['written']} written, {counts['redone']} redone "
         f"(stale partial), {counts['skipped']} already finished"
     )
     return 0

@@ -17,36 +17,63 @@ HELP = "replay switching rules over logs and measure their trajectory error"
 
 
 def register(subparsers) -> None:
-    from jsve.core._rules import PRESETS
-
     p = subparsers.add_parser(
         "evaluate",
         help=HELP,
         description="Replay each rule (a preset name or a JSON file, see docs/state-machine.md) over every "
-        "run, align to ground truth and report APE statistics with coverage and failures.",
+        "run, align to ground truth and report, per group, the objective the fit minimises (failed runs "
+        "charged the failure penalty) beside the failure rate, coverage and the APE of the runs that "
+        "did not fail.",
     )
     p.add_argument("logs", metavar="LOGS", help="folder of logs, a log, or a Parquet file from `jsve ingest`")
-    p.add_argument(
+    rule = p.add_argument(
         "--rule",
         action="append",
         metavar="PRESET|params.json",
-        help=f"{', '.join(PRESETS)}, or a rule JSON file; repeatable (default: all presets)",
+        help="a preset (%(presets)s) or a rule JSON file (e.g. jsve fit's fitted_sve.json); repeatable "
+        "(default: every preset)",
     )
+    rule.presets = common.LibraryNames("jsve.core._rules", "PRESETS")
     common.add_align_option(p)
-    p.add_argument("--n-to-align", type=int, metavar="N", help="align on the first N evaluated frames only")
+    p.add_argument(
+        "--n-to-align",
+        type=int,
+        metavar="N",
+        help="align on the first N evaluated frames only (default: all)",
+    )
     common.add_segments_option(p)
-    p.add_argument("--min-coverage", type=float, default=0.0, help="runs below this coverage count as failed")
+    p.add_argument(
+        "--min-coverage",
+        type=float,
+        default=0.0,
+        metavar="C",
+        help="a run whose coverage (share of frames with a replayed pose, 0 to 1) is below C "
+        "counts as failed",
+    )
+    penalty = p.add_argument(
+        "--failure-penalty",
+        type=float,
+        metavar="M",
+        help="metres charged for a failed run in the objective shown (default: the fit's, %(penalty)s m)",
+    )
+    penalty.penalty = common.LibraryValue("jsve.core._objective", "DEFAULT_FAILURE_PENALTY_M")
     p.add_argument(
         "--by",
         default="sequence,disturbance,level,rule",
-        help="comma-separated metadata keys to aggregate by (default: %(default)s)",
+        metavar="KEYS",
+        help="comma-separated metadata keys to aggregate by",
     )
     common.add_switch_model_option(p)
-    p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
-    p.add_argument("-o", "--output", metavar="DIR", help="write runs.parquet, runs.csv and summary.csv here")
-    p.add_argument("--workers", type=int, metavar="N")
-    p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--x64", action="store_true", help="evaluate in float64 (slower; default float32)")
+    common.add_support_option(p)
+    common.add_on_error_option(p)
+    common.add_output_option(
+        p,
+        metavar="DIR",
+        help="write runs.parquet, runs.csv and summary.csv to this folder (default: print the summary only)",
+    )
+    common.add_workers_option(p)
+    common.add_progress_option(p)
+    p.add_argument("--x64", action="store_true", help="evaluate in float64 (slower; float32 otherwise)")
     p.set_defaults(func=run)
 
 
@@ -59,6 +86,7 @@ def run(args) -> int:
     import jax.numpy as jnp
     import pandas as pd
 
+    from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
     from jsve.evaluation._aggregate import aggregate, failure_counts
     from jsve.evaluation._evaluate import evaluate
     from jsve.io import _atomic as atomic
@@ -102,35 +130,73 @@ def run(args) -> int:
     if unknown:
         known = ", ".join(map(str, per_run.columns))
         return common.fail("evaluate", f"--by keys {unknown} are not metadata of these logs; known: {known}")
-    summary = aggregate(per_run, by)
+    penalty = DEFAULT_FAILURE_PENALTY_M if args.failure_penalty is None else args.failure_penalty
+    try:
+        summary = aggregate(per_run, by, failure_penalty=penalty, support=args.support or "penalise")
+    except ValueError as err:
+        return common.fail("evaluate", err)
     if args.output:
         out = Path(args.output)
         with atomic.all_or_nothing():  # the three tables, or none
             atomic.write_table(per_run, out / "runs.parquet")
             atomic.write_table(per_run, out / "runs.csv")
             atomic.write_table(summary, out / "summary.csv")
-    shown = [
-        *by,
-        "n_runs",
-        "failure_rate",
-        "mean_coverage",
-        "mean_changed",
-        "mean_unsupported",
-        "rmse_mean_all",
-        "rmse_median_all",
-        "pooled_rmse_all",
-    ]
+    print(screen_summary(summary, by, penalty))
     failures = failure_counts(per_run, ["rule"])
-    with pd.option_context("display.width", 160, "display.max_columns", 20, "display.max_rows", 200):
-        print(summary[shown].to_string(index=False, float_format=lambda x: f"{x:.4g}"))
-        print()
-        if failures.empty:
-            print("failed runs: none")
-        else:
-            print("failed runs by failure_reason:")
-            # One line per (rule, reason): the count before the reason, whose length varies.
-            width = max(len("rule"), *(len(str(r)) for r in failures["rule"]))
-            print(f"{'rule':<{width}}  {'n_runs':>6}  failure_reason")
-            for rule, n_runs, reason in failures[["rule", "n_runs", "failure_reason"]].to_numpy():
-                print(f"{rule!s:<{width}}  {n_runs:>6}  {reason}")
+    print()
+    if failures.empty:
+        print("failed runs: none")
+    else:
+        print("failed runs by failure_reason:")
+        # One line per (rule, reason): the count before the reason, whose length varies.
+        width = max(len("rule"), *(len(str(r)) for r in failures["rule"]))
+        print(f"{'rule':<{width}}  {'n_runs':>6}  failure_reason")
+        for rule, n_runs, reason in failures[["rule", "n_runs", "failure_reason"]].to_numpy():
+            print(f"{rule!s:<{width}}  {n_runs:>6}  {reason}")
     return 0
+
+
+def screen_summary(summary, by: list[str], penalty: float) -> str:
+    """The summary as `jsve evaluate` prints it: per group the objective the fit minimises first, then
+    what it is made of (failures, runs out of support, coverage, the ATE of the runs that did not fail).
+    Never a mean ATE over all runs, which averages a failed run over the part it tracked and can rank
+    a rule that fails every run first. Text columns left-aligned, numbers right-aligned.
+
+    Arguments:
+        summary: jsve.evaluation.aggregate's table. by: its group columns. penalty: metres per failed run.
+    """
+    import math
+
+    def pct(x) -> str:
+        return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.0f} %"
+
+    def metres(x) -> str:
+        return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
+
+    columns = [
+        ("runs", lambda r: str(int(r["n_runs"]))),
+        ("objective m", lambda r: metres(r["objective"])),
+        ("failed", lambda r: pct(r["failure_rate"])),
+        ("unsupported", lambda r: pct(r.get("share_unsupported_runs"))),
+        ("coverage", lambda r: pct(r["mean_coverage"])),
+        ("ATE ok m", lambda r: metres(r["rmse_mean_nonfailed"])),
+        ("n ok", lambda r: str(int(r["n_runs"] - r["n_failed"]))),
+        ("changed", lambda r: pct(r.get("mean_changed"))),
+    ]
+    rows = [[str(r[k]) for k in by] + [cell(r) for _, cell in columns] for r in summary.to_dict("records")]
+    header = [*by, *(name for name, _ in columns)]
+    widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(header)]
+    left = len(by)  # the group keys are text: left-aligned
+
+    def line(cells) -> str:
+        return "  ".join(
+            c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths, strict=True))
+        ).rstrip()
+
+    legend = (
+        f"objective: the mean run loss the fit minimises, m (a run's ATE RMSE; {penalty:g} m for a run "
+        "that failed or left the log's support); failed, unsupported: share of runs; coverage: mean share "
+        "of frames with a pose; ATE ok: mean ATE RMSE of the n ok runs that did not fail; changed: mean "
+        "share of frames whose replayed state differs from the logged one"
+    )
+    return "\n".join([line(header), *(line(row) for row in rows), "", legend])

@@ -37,22 +37,37 @@ def register(subparsers) -> None:
         metavar="DIR",
         help="study folder (resumed if it holds a study of the same data and configuration)",
     )
-    p.add_argument("--config", metavar="TOML", help="study settings (see sweeps/fit.toml)")
+    p.add_argument(
+        "--config",
+        metavar="TOML",
+        help="study settings (see sweeps/fit.toml; default: jsve.fitting's StudyConfig defaults)",
+    )
     p.add_argument(
         "--family",
         action="append",
         choices=("sve", "inliers"),
         help="rule family to fit; repeatable (default: both)",
     )
-    p.add_argument("--failure-penalty", type=float, metavar="M", help="metres charged for a failed run")
+    penalty = p.add_argument(
+        "--failure-penalty",
+        type=float,
+        metavar="M",
+        help="metres charged for a failed run (default: --config's, else %(penalty)s m)",
+    )
+    penalty.penalty = common.LibraryValue("jsve.core._objective", "DEFAULT_FAILURE_PENALTY_M")
     common.add_switch_model_option(p)
     common.add_support_option(p)
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
-    p.add_argument("--seed", type=int, help="seed of designs, folds and bootstraps")
-    p.add_argument("--on-error", choices=common.on_error_choices(), default="raise")
-    p.add_argument("--workers", type=int, metavar="N")
-    p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--no-report", action="store_true", help="write the tables only")
+    p.add_argument(
+        "--seed",
+        type=int,
+        metavar="N",
+        help="seed of designs, folds and bootstraps (default: --config's, else 0)",
+    )
+    common.add_on_error_option(p)
+    common.add_workers_option(p)
+    common.add_progress_option(p)
+    p.add_argument("--no-report", action="store_true", help="write the tables only, not the report")
     common.add_force_option(p)
     p.set_defaults(func=run)
 

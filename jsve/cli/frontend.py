@@ -42,9 +42,16 @@ def register(subparsers) -> None:
     pango.add_argument(
         "--pangolin-src", metavar="DIR|TAR", help="Pangolin sources to build into BUILD/pangolin"
     )
-    b.add_argument("-o", "--out", required=True, metavar="BUILD", help="build folder")
-    b.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1, help="parallel compile jobs")
-    b.add_argument("--no-progress", action="store_true")
+    common.add_output_option(b, metavar="BUILD", required=True, help="build folder")
+    b.add_argument(
+        "-j",
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        metavar="N",
+        help="parallel compile jobs (default: all cores)",
+    )
+    common.add_progress_option(b)
     b.set_defaults(func=run_build)
     r = sub.add_parser(
         "run",
@@ -79,10 +86,12 @@ def register(subparsers) -> None:
         help="what a failed frame keeps: its optimised pose (orbslam3, as v1.0) or the pose "
         "TrackLocalMap started from (imu-coast)",
     )
-    r.add_argument("--runs", type=int, default=1, help="runs per dataset (default 1)")
-    r.add_argument("-o", "--out", required=True, metavar="LOGDIR", help="output folder")
-    r.add_argument("--workers", type=int, default=1, help="drivers at once (each runs 3 threads; default 1)")
-    r.add_argument("--timeout", type=float, metavar="S", help="seconds before a run is stopped")
+    r.add_argument("--runs", type=int, default=1, metavar="N", help="runs per dataset")
+    common.add_output_option(r, metavar="LOGDIR", required=True, help="output folder")
+    common.add_workers_option(r, "drivers at once (each runs 3 threads)", default=1)
+    r.add_argument(
+        "--timeout", type=float, metavar="S", help="seconds before a run is stopped (default: no limit)"
+    )
     r.add_argument("--force", action="store_true", help="redo runs whose logs came from other inputs")
     r.add_argument(
         "--no-wait",
@@ -90,7 +99,7 @@ def register(subparsers) -> None:
         help="feed frames as fast as tracking takes them "
         "(default: at the camera's rate, as a live camera; local mapping then keeps up)",
     )
-    r.add_argument("--no-progress", action="store_true")
+    common.add_progress_option(r)
     r.set_defaults(func=run_runs)
     v = sub.add_parser(
         "vocabulary",
@@ -101,6 +110,10 @@ def register(subparsers) -> None:
     from jsve.frontend._vocabulary import add_vocabulary_arguments, run_vocabulary
 
     add_vocabulary_arguments(v)
+    # jsve.frontend._vocabulary spells its output -o/--out; every jsve command also takes --output.
+    out = v._option_string_actions["--out"]
+    out.option_strings.insert(1, "--output")
+    v._option_string_actions["--output"] = out
     v.set_defaults(func=run_vocabulary)
 
 
@@ -113,7 +126,7 @@ def run_build(args: argparse.Namespace) -> int:
     try:
         driver = build(
             Path(args.orbslam3),
-            Path(args.out),
+            Path(args.output),
             pangolin=Path(args.pangolin) if args.pangolin else None,
             pangolin_src=Path(args.pangolin_src) if args.pangolin_src else None,
             jobs=args.jobs,
@@ -129,7 +142,7 @@ def run_runs(args: argparse.Namespace) -> int:
     from jsve.frontend._run import plan, run_all
     from jsve.io._resume import StaleOutputError
 
-    build, out = Path(args.build), Path(args.out)
+    build, out = Path(args.build), Path(args.output)
     for flag, value in (
         ("BUILD", build / "build.json"),
         ("--vocabulary", args.vocabulary),

@@ -10,7 +10,6 @@ another key stops the command (one line, exit 2) unless --force, which measures 
 from __future__ import annotations
 
 import argparse
-import os
 
 from jsve.cli import _common as common
 
@@ -31,30 +30,26 @@ def register(subparsers) -> None:
     parser.add_argument(
         "datasets", metavar="DATASET", nargs="+", help="dataset folder(s) or folders of datasets"
     )
-    parser.add_argument("-o", "--out", metavar="OUT", required=True, help="output folder for the tables")
-    parser.add_argument(
-        "--format", choices=("csv", "parquet"), default="csv", help="table format (default csv)"
-    )
-    parser.add_argument("--camera", default="cam0", help="camera folder under mav0 (default cam0)")
-    parser.add_argument("--stride", type=int, default=1, help="measure every N-th frame (default 1)")
+    common.add_output_option(parser, metavar="OUT", required=True, help="output folder for the tables")
+    parser.add_argument("--format", choices=("csv", "parquet"), default="csv", help="table format")
+    parser.add_argument("--camera", default="cam0", metavar="CAM", help="camera folder under mav0")
+    parser.add_argument("--stride", type=int, default=1, metavar="N", help="measure every N-th frame")
     parser.add_argument(
         "--extractor",
         choices=("orbslam3", "opencv"),
         default="orbslam3",
         help="orbslam3: ORB-SLAM3's per-cell FAST 20/7 and quadtree; opencv: cv2.ORB_create plus a FAST-7 "
-        "pass in empty cells (default orbslam3)",
+        "pass in empty cells",
     )
     parser.add_argument("--no-fallback", action="store_true", help="no FAST-7 retry (minThFAST)")
-    parser.add_argument("--n-features", type=int, default=1000, help="ORB nFeatures (default 1000)")
-    parser.add_argument(
-        "--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: all cores)"
-    )
+    parser.add_argument("--n-features", type=int, default=1000, metavar="N", help="ORB nFeatures")
+    common.add_workers_option(parser, "worker processes")
     parser.add_argument(
         "--overwrite",
         action="store_true",
         help="re-measure every dataset, even those with a table of its key",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_progress_option(parser)
     common.add_force_option(parser)
     parser.set_defaults(func=run)
 
@@ -69,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         orb = OrbSettings(extractor=args.extractor, fallback=not args.no_fallback, n_features=args.n_features)
         tables = measure_datasets(
             args.datasets,
-            args.out,
+            args.output,
             table_format=args.format,
             camera=args.camera,
             stride=args.stride,
@@ -81,5 +76,5 @@ def run(args: argparse.Namespace) -> int:
         )
     except (ValueError, DatasetError) as error:
         return common.fail("measure", error)
-    print(f"{len(tables)} tables in {args.out}")
+    print(f"{len(tables)} tables in {args.output}")
     return 0

@@ -37,7 +37,7 @@ body (IMU) poses, as that file holds.
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "render", help=HELP, description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+        "render", help=HELP, description=_DESCRIPTION, formatter_class=common.RawDescriptionHelpFormatter
     )
     p.add_argument(
         "--trajectory",
@@ -65,15 +65,26 @@ def register(subparsers) -> None:
         help="folder of photographs for the wall and furniture texture (e.g. real EuRoC cam0 frames); "
         "default: a procedural, corner-rich pattern",
     )
-    p.add_argument("-o", "--out", required=True, metavar="OUT", help="dataset folder to write")
+    common.add_output_option(p, metavar="OUT", required=True, help="dataset folder to write")
     p.add_argument(
-        "--seed", type=int, default=0, help="seed of the room, texture, IMU noise, gain and image noise"
+        "--seed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="seed of the room, texture, IMU noise, gain and image noise",
     )
-    p.add_argument("--frames", metavar="A:B", help="render only frames A to B-1 of those kept (e.g. 0:600)")
-    p.add_argument("--workers", type=int, default=2, help="processes rendering frames (default 2)")
-    p.add_argument("--exposure-ms", type=float, default=8.0, help="exposure time for motion blur (default 8)")
+    p.add_argument(
+        "--frames",
+        metavar="A:B",
+        help="render only frames A to B-1 of those kept, e.g. 0:600 (default: every frame)",
+    )
+    common.add_workers_option(p, "processes rendering frames", default=2)
+    p.add_argument(
+        "--exposure-ms", type=float, default=8.0, metavar="MS", help="exposure time for motion blur, ms"
+    )
     p.add_argument("--force", action="store_true", help="replace an OUT rendered with another configuration")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_progress_option(p)
+    common.add_yes_option(p)
     p.set_defaults(func=run)
 
 
@@ -82,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
     from jsve.io._resume import StaleOutputError
     from jsve.render import RenderConfig, render_sequence
+    from jsve.render._sequence import sequence_size
 
     if args.workers < 1:
         return common.fail("render", "--workers must be >= 1")
@@ -92,10 +104,18 @@ def run(args: argparse.Namespace) -> int:
         config, sensor=dataclasses.replace(config.sensor, exposure_s=args.exposure_ms / 1000.0)
     )
     try:
+        n_frames, images, side = sequence_size(args.trajectory, args.timestamps, args.frames)
+        detail = (
+            f"{n_frames} frames x ~{common.format_bytes(images / n_frames)} and "
+            f"{common.format_bytes(side)} of IMU and ground truth"
+        )
+        stop = common.announce_size("render", args.output, images + side, detail, yes=args.yes)
+        if stop is not None:
+            return stop
         result = render_sequence(
             args.trajectory,
             args.timestamps,
-            args.out,
+            args.output,
             imu=args.imu,
             texture=args.texture,
             config=config,

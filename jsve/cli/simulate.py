@@ -2,7 +2,7 @@
 
     jsve simulate -o study/                                          11 procedural flights x 31 x 10
     jsve simulate -o study/ --sequences MH_01,V1_01 --euroc-gt ../shared/data/euroc/groundtruth_left_cam
-    jsve simulate -o study/ --procedural 3 --disturbances blur,occlusion --runs 5 --workers 2 --parquet
+    jsve simulate -o study/ --procedural 3 --disturbances blur=0,25,50,occlusion --runs 5 --parquet
 
 A thin layer over jsve.sim._simulate.write_study: one log per sequence x setting x run under
 OUT/<sequence>/<disturbance>-<level>/run_<k>.csv, in parallel processes; a re-run skips logs that
@@ -14,7 +14,6 @@ are already complete and were simulated under the same seed, --imu, configuratio
 from __future__ import annotations
 
 import argparse
-import os
 
 from jsve.cli import _common as common
 
@@ -28,43 +27,52 @@ def register(subparsers) -> None:
         description="Simulate ORB-SLAM3 + logger on EuRoC ground-truth trajectories or procedural flights, "
         "under the seed paper's disturbances (or more), and write one format-v1 log per run. Deterministic "
         "under --seed; resumable (complete logs of the same seed and configuration are skipped; logs of "
-        "another stop the command unless --force). See docs/simulator.md.",
+        "another stop the command unless --force). Says the estimated size of the logs before writing "
+        "and stops when it exceeds the free disk space (unless --yes). See docs/simulator.md.",
     )
-    p.add_argument("-o", "--out", required=True, metavar="OUTDIR", help="output folder")
+    common.add_output_option(p, metavar="OUTDIR", required=True, help="output folder")
     source = p.add_mutually_exclusive_group()
-    source.add_argument("--sequences", metavar="MH_01,...", help="EuRoC sequences (needs --euroc-gt)")
-    source.add_argument("--procedural", type=int, metavar="N", help="N procedural flights (default 11)")
+    source.add_argument(
+        "--sequences",
+        metavar="MH_01,...",
+        help="comma-separated EuRoC sequence names (needs --euroc-gt; default: procedural flights)",
+    )
+    source.add_argument(
+        "--procedural", type=int, metavar="N", help="N procedural flights (default: 11, without --sequences)"
+    )
     p.add_argument(
         "--euroc-gt",
         metavar="DIR",
         help="ORB-SLAM3's EuRoC left-camera ground truth folder (MH01_GT.txt, ...); sibling "
-        "timestamps/ and imu/ folders are used when present",
+        "timestamps/ and imu/ folders are used when present (default: none, needed by --sequences)",
     )
     p.add_argument(
         "--disturbances",
         default="seed",
-        help="seed (31 settings), all, or names with optional levels: blur,occlusion or "
-        "blur:0:25:50 (default seed)",
+        metavar="SPEC",
+        help="seed (the seed paper's 31 settings), all, none, or comma-separated names each with optional "
+        "levels: blur,occlusion (default levels) or blur=0,25,50,occlusion=100,200 (the earlier "
+        "blur:0:25:50 works too); see `jsve disturb --list` for names and units",
     )
-    p.add_argument("--runs", type=int, default=10, help="runs per setting (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="study seed (default 0)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
+    p.add_argument("--runs", type=int, default=10, metavar="N", help="runs per setting")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="study seed")
+    common.add_workers_option(p, "processes simulating sequences")
     p.add_argument(
         "--imu",
         choices=("synthetic", "real"),
         default="synthetic",
-        help="synthetic IMU (default) or the real EuRoC imu0 stream where --euroc-gt's sibling "
-        "imu/ folder has one",
+        help="synthetic IMU or the real EuRoC imu0 stream where --euroc-gt's sibling imu/ folder has one",
     )
     p.add_argument("--parquet", action="store_true", help="also consolidate the logs into OUT/study.parquet")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_progress_option(p)
+    common.add_yes_option(p)
     common.add_force_option(p)
     p.set_defaults(func=run)
 
 
 @common.guarded("simulate")
 def run(args: argparse.Namespace) -> int:
-    from jsve.sim._simulate import SimConfig, settings, write_study
+    from jsve.sim._simulate import LOG_BYTES_PER_FRAME, SimConfig, settings, study_size, write_study
 
     if args.sequences and not args.euroc_gt:
         return common.fail("simulate", "--sequences needs --euroc-gt DIR (or use --procedural N)")
@@ -72,8 +80,19 @@ def run(args: argparse.Namespace) -> int:
         return common.fail("simulate", "--runs must be >= 1")
     try:
         grid = settings(args.disturbances)
+        logs, frames, total = study_size(
+            args.sequences,
+            procedural=args.procedural,
+            euroc_gt=args.euroc_gt,
+            disturbances=args.disturbances,
+            runs=args.runs,
+        )
+        detail = f"{logs} logs x ~{frames:.0f} frames x ~{LOG_BYTES_PER_FRAME} B"
+        stop = common.announce_size("simulate", args.output, total, detail, yes=args.yes)
+        if stop is not None:
+            return stop
         result = write_study(
-            args.out,
+            args.output,
             args.sequences,
             procedural=args.procedural,
             euroc_gt=args.euroc_gt,
@@ -89,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as err:
         return common.fail("simulate", err)
     print(
-        f"{result.written} logs written, {result.skipped} already complete, to {args.out} "
+        f"{result.written} logs written, {result.skipped} already complete, to {args.output} "
         f"in {result.seconds:.1f} s"
         f" ({len(grid)} settings; simulation {result.simulate_s:.1f} s and writing {result.write_s:.1f} s"
         f" summed over workers)" + (f"; Parquet: {result.parquet}" if result.parquet else "")
