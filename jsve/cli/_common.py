@@ -13,6 +13,7 @@ import argparse
 import functools
 import importlib
 import os
+import re
 import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -78,10 +79,15 @@ def guarded(command: str) -> Callable:
 # Parsers
 
 
+def states_default(text: str) -> bool:
+    """Whether a help text states a default: `(default: X)`, `X (default)`, `Default: X`."""
+    return re.search(r"\(default\b|\bdefault:", text, re.IGNORECASE) is not None
+
+
 class HelpFormatter(argparse.HelpFormatter):
     """Every option's help says its default: `(default: VALUE)` is appended where the help does not
-    already speak of one (a flag's default is `off`; an option whose default is None must say in words
-    what happens without it, which tests/test_cli.py checks)."""
+    state one (states_default; a flag's default is `off`; an option whose default is None must say in
+    words what happens without it, which tests/test_cli.py checks)."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
@@ -89,7 +95,7 @@ class HelpFormatter(argparse.HelpFormatter):
             not action.option_strings  # a positional
             or action.required
             or action.default is argparse.SUPPRESS
-            or "default" in text.lower()
+            or states_default(text)
         ):
             return text
         if action.nargs == 0 and not action.default:  # store_true

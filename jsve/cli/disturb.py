@@ -29,7 +29,7 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("datasets", metavar="DATASET", nargs="*", help="EuRoC dataset folder(s)")
-    common.add_output_option(parser, metavar="OUT", help="output root folder (needed unless --list)")
+    common.add_output_option(parser, metavar="OUT", help="output root folder (required unless --list)")
     parser.add_argument(
         "--disturbances",
         metavar="SPEC",

@@ -37,10 +37,15 @@ def register(subparsers) -> None:
     b.add_argument("--orbslam3", required=True, metavar="DIR|TAR", help="ORB-SLAM3 v1.0 sources")
     pango = b.add_mutually_exclusive_group()
     pango.add_argument(
-        "--pangolin", metavar="PREFIX", help="an installed Pangolin (holds lib/cmake/Pangolin)"
+        "--pangolin",
+        metavar="PREFIX",
+        help="an installed Pangolin (holds lib/cmake/Pangolin) (default: one built in BUILD/pangolin, "
+        "else CMake's search)",
     )
     pango.add_argument(
-        "--pangolin-src", metavar="DIR|TAR", help="Pangolin sources to build into BUILD/pangolin"
+        "--pangolin-src",
+        metavar="DIR|TAR",
+        help="Pangolin sources to build into BUILD/pangolin (default: none, build no Pangolin)",
     )
     common.add_output_option(b, metavar="BUILD", required=True, help="build folder")
     b.add_argument(

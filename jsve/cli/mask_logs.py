@@ -30,17 +30,22 @@ def register(subparsers) -> None:
     )
     parser.add_argument("logs", metavar="LOG", nargs="+", help="format-v1 tracking logs")
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--mots", metavar="FILE", help="KITTI MOTS instances_txt file of the sequence")
     source.add_argument(
-        "--png", metavar="DIR", help="folder of one mask PNG per frame (frame number in the name)"
+        "--mots",
+        metavar="FILE",
+        help="KITTI MOTS instances_txt file of the sequence (this or --png required)",
+    )
+    source.add_argument(
+        "--png",
+        metavar="DIR",
+        help="folder of one mask PNG per frame, frame number in the name (this or --mots required)",
     )
     parser.add_argument(
         "--classes",
         default=None,
         metavar="LIST",
-        help="class ids to mask, comma-separated (MOTS default 1,2 = car, pedestrian; add 10 for ignore "
-        "regions). With --png, LIST reads the PNGs as MOTS instance maps; without it, any non-zero "
-        "pixel is set",
+        help="class ids to mask, comma-separated; add 10 for MOTS ignore regions. With --png, LIST reads "
+        "the PNGs as MOTS instance maps (default: --mots 1,2 = car, pedestrian; --png any non-zero pixel)",
     )
     parser.add_argument(
         "--key",
@@ -52,7 +57,7 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--missing-empty", action="store_true", help="--png: a frame without a PNG has no mask"
     )
-    parser.add_argument("-o", "--output", required=True, metavar="OUT", help="folder for the masked logs")
+    common.add_output_option(parser, metavar="OUT", required=True, help="folder for the masked logs")
     parser.add_argument(
         "--no-verify", action="store_true", help="do not check that the keypoints reproduce the log's counts"
     )

@@ -51,7 +51,7 @@ def register(subparsers) -> None:
         default="seed",
         metavar="SPEC",
         help="seed (the seed paper's 31 settings), all, none, or comma-separated names each with optional "
-        "levels: blur,occlusion (default levels) or blur=0,25,50,occlusion=100,200 (the earlier "
+        "levels: blur,occlusion (their default levels) or blur=0,25,50,occlusion=100,200 (the earlier "
         "blur:0:25:50 works too); see `jsve disturb --list` for names and units",
     )
     p.add_argument("--runs", type=int, default=10, metavar="N", help="runs per setting")

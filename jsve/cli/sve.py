@@ -22,7 +22,7 @@ def register(subparsers) -> None:
         "the Eq.1 / Option 1 / Option 2 combinations for every frame of a format-v1 log.",
     )
     p.add_argument("log", metavar="LOG", help="a format-v1 tracking log")
-    p.add_argument("-o", "--output", metavar="OUT.csv", help="write here (default: standard output)")
+    common.add_output_option(p, metavar="OUT.csv", help="write here (default: standard output)")
     p.set_defaults(func=run)
 
 

@@ -40,9 +40,10 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--times",
         metavar="FILE",
-        help="kitti: frame times in seconds, one per reference pose (KITTI's times.txt), for the time axis",
+        help="kitti: frame times in seconds, one per reference pose (KITTI's times.txt), for the time axis "
+        "(default: none, the pose index)",
     )
-    parser.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the report")
+    common.add_output_option(parser, metavar="DIR", required=True, help="folder for the report")
     parser.add_argument(
         "--plot-formats", default="png,svg", metavar="LIST", help="comma-separated: png, svg (default both)"
     )
