@@ -28,6 +28,31 @@ def test_tables_by_suffix_without_the_index(table, tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["runs.csv", "runs.parquet"]
 
 
+def test_list_valued_metadata_round_trips_through_csv_as_json_lists(tmp_path):
+    """run_meta_table keeps list-valued metadata as tuples (groupable); runs.csv (jsve evaluate, jsve
+    fit) writes them as JSON lists, which any CSV reader can parse, and read_table gives the tuples back;
+    other text, even text that starts with '[', stays as it was."""
+    from logfactory import make_run
+
+    from jsve.io._batching import run_meta_table
+
+    runs = [
+        make_run(20, k, sequence="S", run=k, image_size=[752, 480], gravity=[0.0, 0.0, -9.81], note="[draft")
+        for k in range(2)
+    ]
+    meta = run_meta_table(runs)
+    meta["mixed"] = [("a", 1), "plain"]
+    assert meta.loc[0, "image_size"] == (752, 480)
+    path = atomic.write_table(meta, tmp_path / "runs.csv")
+    rows = pd.read_csv(path)  # a plain reader sees JSON
+    assert json.loads(rows.loc[0, "gravity"]) == [0.0, 0.0, -9.81]
+    assert rows.loc[0, "image_size"] == "[752, 480]" and rows.loc[0, "mixed"] == '["a", 1]'
+    back = atomic.read_table(path)
+    for column in ("image_size", "gravity", "mixed", "note", "sequence"):
+        assert back[column].tolist() == meta[column].tolist(), column
+    assert meta.loc[0, "image_size"] == (752, 480)  # the caller's table is not changed
+
+
 def test_a_failed_write_leaves_the_old_file_and_no_partial(table, tmp_path, monkeypatch):
     path = atomic.write_table(table, tmp_path / "runs.csv")
     before = path.read_bytes()

@@ -28,6 +28,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from jsve.io._text import json_default
@@ -202,6 +203,10 @@ def write_json(path: str | os.PathLike, obj) -> Path:
 def write_table(table: pd.DataFrame, path: str | os.PathLike, **csv_options) -> Path:
     """Write a table as Parquet (`.parquet`) or CSV (any other suffix) atomically, without the index.
 
+    In CSV a cell holding a list, tuple or array (list-valued metadata such as `image_size`, a tuple in
+    jsve.io._batching.run_meta_table) is written as a JSON list, `[752, 480]`, not as Python's repr;
+    read_table reads it back as a tuple.
+
     Arguments:
         table: the rows; its index is not written.
         path: destination; parent folders are created.
@@ -214,5 +219,52 @@ def write_table(table: pd.DataFrame, path: str | os.PathLike, **csv_options) -> 
         if Path(path).suffix == ".parquet":
             table.to_parquet(partial, index=False)
         else:
-            table.to_csv(partial, index=False, **csv_options)
+            _json_lists(table).to_csv(partial, index=False, **csv_options)
     return Path(path)
+
+
+def _is_list(value) -> bool:
+    return isinstance(value, (list, tuple, np.ndarray))
+
+
+def _json_lists(table: pd.DataFrame) -> pd.DataFrame:
+    """The table with every list-like cell as JSON text (a copy where there is one)."""
+    lists = [
+        name for name in table.columns if table[name].dtype == object and table[name].map(_is_list).any()
+    ]
+    if not lists:
+        return table
+    table = table.copy()
+    for name in lists:
+        table[name] = [json.dumps(v, default=json_default) if _is_list(v) else v for v in table[name]]
+    return table
+
+
+def read_table(path: str | os.PathLike) -> pd.DataFrame:
+    """A table write_table wrote: Parquet as it is; CSV with its JSON-list cells as tuples again.
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    if Path(path).suffix == ".parquet":
+        return pd.read_parquet(path)
+    table = pd.read_csv(path)
+    for name in table.columns:
+        column = table[name]
+        if column.dtype == object or pd.api.types.is_string_dtype(column):
+            cells = [_from_json_list(v) for v in column]
+            if any(isinstance(v, tuple) for v in cells):
+                table[name] = pd.Series(cells, index=table.index, dtype=object)
+    return table
+
+
+def _from_json_list(value):
+    """A cell's JSON list as a tuple; any other value as it is."""
+    if isinstance(value, str) and value.startswith("[") and value.endswith("]"):
+        try:
+            parsed = json.loads(value)
+        except ValueError:
+            return value
+        if isinstance(parsed, list):
+            return tuple(parsed)
+    return value
