@@ -301,6 +301,36 @@ def test_command_line(tmp_path, inputs):
     assert main([*args, "-o", str(tmp_path / "c"), "--no-progress", "--seed", "2"]) == 2  # another config
 
 
+def test_imu_noise_option_picks_the_synthesised_stream(tmp_path, inputs, capsys):
+    # --imu-noise datasheet: the sensor at rest only, whose dead reckoning agrees with the images; the default
+    # in-flight model adds the correlated errors of the flying MAV. Both against the ideal readings.
+    from jsve.cli import main
+    from jsve.render._sequence import load_trajectory
+    from jsve.sim import synthesize_imu
+
+    gt, stamps = inputs
+    args = ["render", "--trajectory", str(gt), "--timestamps", str(stamps), "--frames", "0:1", "--workers", "1"]
+    error = {}
+    for noise in ("in-flight", "datasheet"):
+        out = tmp_path / noise
+        assert main([*args, "--imu-noise", noise, "-o", str(out), "--no-progress"]) == 0
+        rows = np.loadtxt(out / "mav0/imu0/data.csv", delimiter=",", comments="#")
+        ideal = synthesize_imu(load_trajectory(str(gt)), np.random.default_rng(0), None)
+        assert np.array_equal(rows[:, 0].astype(np.int64) // 1000, ideal.t_ns // 1000)
+        bias = np.loadtxt(out / "mav0/state_groundtruth_estimate0/data.csv", delimiter=",", comments="#")
+        # remove the stream's own random-walk biases (the ground truth's bias columns): what is left is noise
+        # and, in flight, the correlated errors
+        n = len(bias)
+        left = rows[:n, 4:7] - ideal.accel[:n] - bias[:, 14:17]
+        error[noise] = float(np.sqrt(np.mean(left**2)))
+        assert json.loads((out / "jsve_render.json").read_text())["key"]["config"]["imu_noise"]["accel_gm"] == (
+            0.0 if noise == "datasheet" else 0.07
+        )
+    assert error["datasheet"] < error["in-flight"]
+    assert main([*args, "--imu-noise", "datasheet", "--imu", str(gt), "-o", str(tmp_path / "x")]) == 2
+    assert "cannot go with --imu" in capsys.readouterr().err
+
+
 # --------------------------------------------------------------------------------------------------
 # Against the real data
 

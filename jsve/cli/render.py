@@ -60,6 +60,15 @@ def register(subparsers) -> None:
         "trajectory with the ADIS16448 noise model",
     )
     p.add_argument(
+        "--imu-noise",
+        choices=("in-flight", "datasheet"),
+        default="in-flight",
+        help="noise model of a synthesised IMU (without --imu): 'in-flight' adds to the ADIS16448 datasheet "
+        "noise and bias walk the correlated errors that make dead reckoning drift as the real V1_01 stream "
+        "drifts against its ground truth; 'datasheet' is the sensor at rest only, an IMU consistent with "
+        "the rendered images (docs/render.md, 'Which IMU'). Default: in-flight",
+    )
+    p.add_argument(
         "--texture",
         metavar="DIR",
         help="folder of photographs for the wall and furniture texture (e.g. real EuRoC cam0 frames); "
@@ -99,7 +108,12 @@ def run(args: argparse.Namespace) -> int:
         return common.fail("render", "--workers must be >= 1")
     if args.exposure_ms < 0:
         return common.fail("render", "--exposure-ms must be >= 0")
-    config = RenderConfig(seed=args.seed)
+    if args.imu and args.imu_noise != "in-flight":
+        return common.fail("render", "--imu-noise describes a synthesised IMU; it cannot go with --imu")
+    from jsve.sim import ImuNoise
+
+    noise = ImuNoise.datasheet() if args.imu_noise == "datasheet" else ImuNoise()
+    config = RenderConfig(seed=args.seed, imu_noise=noise)
     config = dataclasses.replace(
         config, sensor=dataclasses.replace(config.sensor, exposure_s=args.exposure_ms / 1000.0)
     )
