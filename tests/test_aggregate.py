@@ -172,3 +172,87 @@ def test_failure_counts_count_the_failed_runs_of_each_reason_per_group():
     assert failure_counts(table[~table["failed"]]).empty
     with pytest.raises(ValueError, match=r"lacks columns \['failure_reason'\]"):
         failure_counts(table.drop(columns="failure_reason"))
+
+
+# --------------------------------------------------------------------------------------------------
+# The objective column: what the fit minimises, per group
+
+
+def _with_one_map(run):
+    """knownanswer's run with one recorded map whose IMU and inertial BA2 are done from frame 0 (as in
+    tests/test_objective.py: a failed frame goes to RECENTLY_LOST, never to a reset)."""
+    frames = run.frames.copy()
+    frames["map_id"] = frames["map_id"].fillna(0)
+    frames["imu_ba2"] = frames["imu_ba2"].fillna(frames["imu_init"])
+    return type(run)(meta=run.meta, frames=frames, source=run.source)
+
+
+@pytest.fixture(scope="module")
+def lossy_runs():
+    """8 runs: 2 whose recorded map is lost on the last 20 frames (a rule that keeps tracking leaves the
+    log's support), 2 lost on the last 60 without matches, 4 as recorded. (Runs, not a batch: a
+    module-scoped batch would be made before the test's x64 fixture turns float64 on.)"""
+    import knownanswer as ka
+
+    runs = ka.make_study("counts", range(8), n_frames=400)
+    runs = (
+        [ka.lose_map(r, 380, blind=False) for r in runs[:2]]
+        + [ka.lose_map(r, 340) for r in runs[2:4]]
+        + list(runs[4:])
+    )
+    return [_with_one_map(r) for r in runs]
+
+
+OBJECTIVE_RULES = {
+    "at K": dict(imu_init=39.5, not_init=49.5, reloc=49.5, recovery=38.5),  # keeps tracking: unsupported runs
+    "reject all": dict(imu_init=1e6, not_init=0.0, reloc=0.0, recovery=1e6),  # every run fails
+}
+
+
+@pytest.mark.parametrize("support", ["penalise", "exclude"])
+@pytest.mark.parametrize("name", OBJECTIVE_RULES)
+def test_objective_is_what_the_fit_minimises(x64, lossy_runs, name, support):
+    """aggregate's `objective` over a group equals jsve.core._objective.objective with equal weights (to
+    1e-12 m in float64: the same RMSEs, another order of summation), on runs that fail, leave the log's
+    support or succeed; never a mean RMSE over the part a failed run tracked."""
+    from jsve.core._objective import ObjectiveConfig, objective
+    from jsve.core._replay import batch_features
+    from jsve.core._rules import InlierRule, Thresholds
+    from jsve.evaluation._evaluate import evaluate
+    from jsve.io._batching import from_runs
+
+    rule = InlierRule(Thresholds(**OBJECTIVE_RULES[name]))
+    bucket = from_runs(lossy_runs, dtype=jnp.float64)
+    batch = bucket.batch
+    per_run = evaluate([bucket], rule, rule_name=name, progress=False)
+    config = ObjectiveConfig(failure_penalty=2.5, support=support)
+    expected = objective(batch, rule, jnp.ones(batch.n_runs), batch_features(batch), config)
+    row = aggregate(per_run, [], failure_penalty=2.5, support=support, ci=False).iloc[0]
+    np.testing.assert_allclose(row["objective"], float(expected.value), rtol=0, atol=1e-12)
+    unsupported = per_run["unsupported_fraction"].to_numpy() > 0
+    charged = per_run["failed"].to_numpy() | unsupported
+    assert row["share_penalised"] == charged.mean()
+    if name == "at K":
+        assert unsupported[:2].all() and not per_run["failed"].any()  # the replay's own facts: no failure
+        assert row["objective"] > row["rmse_mean_all"]  # the unsupported runs cost the penalty
+    else:
+        assert row["failure_rate"] == 1.0 and row["objective"] == 2.5
+
+
+def test_objective_ci_brackets_the_objective():
+    table = pd.DataFrame(
+        {
+            "rule": ["a"] * 6,
+            "rmse": [0.1, 0.2, 0.15, 0.05, np.nan, 0.3],
+            "mean": [0.1] * 6,
+            "sse": [1.0] * 6,
+            "count": [10, 10, 10, 10, 0, 10],
+            "coverage": [1.0] * 6,
+            "failed": [False, False, False, False, True, True],
+        }
+    )
+    row = aggregate(table, ["rule"], failure_penalty=1.0).iloc[0]
+    np.testing.assert_allclose(row["objective"], (0.1 + 0.2 + 0.15 + 0.05 + 1.0 + 1.0) / 6, rtol=1e-12)
+    assert row["share_penalised"] == pytest.approx(2 / 6)
+    assert row["objective_ci_low"] <= row["objective"] <= row["objective_ci_high"]
+    assert row["rmse_mean_all"] < row["objective"]  # the failed run's tracked part (0.3 m) hides its failure

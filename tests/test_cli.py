@@ -453,7 +453,6 @@ KNOWN_HELP_GAPS = {
     # (command, option) -> why it still lacks a help or a stated default. Each entry goes with its fix,
     # and test_known_help_gaps_are_still_there fails once the gap is gone.
     ("jsve demo", "--config"): "jsve/cli/demo.py belongs to the report work (issue 13, report part)",
-    ("jsve demo", "--no-progress"): "jsve/cli/demo.py belongs to the report work (issue 13, report part)",
 }
 
 

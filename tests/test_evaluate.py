@@ -8,6 +8,7 @@ single number. The CLI tests check the files it writes against the library funct
 from __future__ import annotations
 
 import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -120,6 +121,28 @@ def test_cli_evaluate_writes_tables_matching_the_library(runs, log_dir, tmp_path
     assert sorted(shown) == sorted((r, str(n), why) for (r, why), n in expected.items())
     assert sum(int(n) for _, n, _ in shown) == summary["n_failed"].sum() > 0
     assert not list(out.glob("*.partial"))
+    # The summary leads with the objective the fit minimises, then failures and coverage; never the mean
+    # ATE over all runs (a failed run's tracked part), only the ATE of the runs that did not fail.
+    table, legend = printed.split("\n\n")
+    header, *rows = table.splitlines()
+    assert header.split()[:5] == ["disturbance", "rule", "runs", "objective", "m"]
+    assert (
+        "ATE ok m" in header and "rmse_mean_all" not in printed and legend.startswith("objective: the mean")
+    )
+    pattern = re.compile(
+        r"^(\S+)\s+(\S+)\s+(\d+)\s+([\d.]+)\s+(\d+) %\s+(\d+) %\s+(\d+) %\s+([\d.]+|-)\s+(\d+)"
+    )
+    seen = {}
+    for row in rows:
+        disturbance, rule, n_runs, objective, failed, _, coverage, ate_ok, n_ok = pattern.match(row).groups()
+        seen[disturbance, rule] = (int(n_runs), float(objective), int(failed), int(n_ok))
+    for r in summary.itertuples():
+        n_runs, objective, failed, n_ok = seen[str(r.disturbance), r.rule]
+        assert (n_runs, n_ok) == (r.n_runs, r.n_runs - r.n_failed)
+        assert objective == pytest.approx(r.objective, abs=5e-5) and failed == round(100 * r.failure_rate)
+        charged = per_run[(per_run["disturbance"] == r.disturbance) & (per_run["rule"] == r.rule)]
+        loss = np.where(charged["failed"] | (charged["unsupported_fraction"] > 0), 1.0, charged["rmse"])
+        assert r.objective == pytest.approx(loss.mean(), rel=1e-12)  # 1 m, the default penalty
 
 
 def test_cli_evaluate_rule_file_round_trip(runs, log_dir, tmp_path):

@@ -236,6 +236,16 @@ def test_sequence_layout_and_determinism(tmp_path, inputs):
     np.testing.assert_allclose(np.linalg.norm(gt_rows[:, 4:8], axis=1), 1.0, atol=1e-9)
     manifest = json.loads((one.out / seq.MANIFEST_NAME).read_text())
     assert manifest["frames"] == 6 and manifest["texture"].startswith("procedural")
+    # `jsve render` prints this estimate before rendering: each part within a third of what was written
+    # (the PNG size depends on the texture; an estimate to plan a disk, not a measurement).
+    n_frames, images, side = seq.sequence_size(gt, stamps, "0:6")
+    pngs = sum(f.stat().st_size for f in (mav0 / "cam0/data").iterdir())
+    tables = sum(
+        (mav0 / name / "data.csv").stat().st_size for name in ("imu0", "state_groundtruth_estimate0")
+    )
+    assert n_frames == 6
+    assert abs(images / pngs - 1) < 1 / 3, (images, pngs)
+    assert abs(side / tables - 1) < 1 / 3, (side, tables)
 
 
 def test_seed_resume_and_stale_output(tmp_path, inputs, monkeypatch):

@@ -42,6 +42,14 @@ def test_seed_settings_are_the_31():
     ]
     assert [s.level for s in grid if s.disturbance == "occlusion"] == [float(v) for v in range(0, 500, 50)]
     assert len(sim.settings("blur:0:25,occlusion,blur:25")) == 1 + 1 + 10  # duplicates dropped
+    assert sim.settings("blur=0,25,occlusion,blur=25") == sim.settings("blur:0:25,occlusion,blur:25")
+    assert [(s.disturbance, s.level) for s in sim.settings("blur=10,20,none")] == [
+        ("blur", 10.0),
+        ("blur", 20.0),
+        ("none", 0.0),
+    ]
+    with pytest.raises(ValueError, match="'seed' takes no levels"):
+        sim.settings("seed=5")
     with pytest.raises(ValueError, match="unknown disturbance"):
         sim.settings("fog")
 
