@@ -334,6 +334,11 @@ def add_yes_option(parser: argparse.ArgumentParser) -> None:
 # Output size
 
 
+def plural(n: int, word: str) -> str:
+    """`1 log`, `3410 logs`."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
 def format_bytes(n: float) -> str:
     """Bytes in decimal units with two or three digits: 512 B, 42 kB, 1.3 MB, 4.6 GB."""
     for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):

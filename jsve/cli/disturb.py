@@ -3,7 +3,9 @@
 A thin layer over jsve.image._datasets.disturb_datasets: parallel, with a progress bar, resumable (finished
 datasets made from the same source content, parameters and seed are skipped, stale `.partial` folders
 redone; a finished dataset of another seed, source or parameters stops the command, exit 2, unless
---force rewrites it). `--list` shows the registered disturbances.
+--force rewrites it). `--list` shows the registered disturbances. `--disturbances blur=5,15,occlusion`
+chooses disturbances and levels (the earlier `--disturbance NAMES --levels ...` still works). Before
+writing, the estimated size is printed; above the free disk space the command stops unless --yes.
 """
 
 from __future__ import annotations
@@ -132,7 +134,7 @@ def _size(jobs) -> tuple[float, str]:
             images[job.source] = sum(f.stat().st_size for f in files if f.is_file())
     total = sum(images[job.source] for job in jobs)
     mean = total / max(len(jobs), 1)
-    return total, f"{len(jobs)} datasets x ~{common.format_bytes(mean)} of camera images"
+    return total, f"{common.plural(len(jobs), 'dataset')} x ~{common.format_bytes(mean)} of camera images"
 
 
 def _parse_params(items: list[str]) -> dict[str, dict[str, object]]:

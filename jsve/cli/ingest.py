@@ -32,7 +32,8 @@ def parquet_size(paths: list[str]) -> tuple[float, str]:
         else:
             plain += size
     total = PARQUET_PER_CSV_BYTE * plain + gz
-    return total, f"{len(paths)} logs, {common.format_bytes(plain + gz)} of text x ~{PARQUET_PER_CSV_BYTE:g}"
+    text = common.format_bytes(plain + gz)
+    return total, f"{common.plural(len(paths), 'log')}, {text} of text x ~{PARQUET_PER_CSV_BYTE:g}"
 
 
 def register(subparsers) -> None:

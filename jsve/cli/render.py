@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         n_frames, images, side = sequence_size(args.trajectory, args.timestamps, args.frames)
         detail = (
-            f"{n_frames} frames x ~{common.format_bytes(images / n_frames)} and "
+            f"{common.plural(n_frames, 'frame')} x ~{common.format_bytes(images / n_frames)} and "
             f"{common.format_bytes(side)} of IMU and ground truth"
         )
         stop = common.announce_size("render", args.output, images + side, detail, yes=args.yes)

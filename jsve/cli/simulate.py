@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             disturbances=args.disturbances,
             runs=args.runs,
         )
-        detail = f"{logs} logs x ~{frames:.0f} frames x ~{LOG_BYTES_PER_FRAME} B"
+        detail = f"{common.plural(logs, 'log')} x ~{frames:.0f} frames x ~{LOG_BYTES_PER_FRAME} B"
         stop = common.announce_size("simulate", args.output, total, detail, yes=args.yes)
         if stop is not None:
             return stop
