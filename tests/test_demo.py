@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 import tomllib
 
@@ -67,47 +70,170 @@ def test_cli_errors_exit_2(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path / "o"), "--config", str(bad), "--no-progress"]) == 2
     assert "bad.toml" in capsys.readouterr().err
     assert main(["report", str(tmp_path)]) == 2
-    assert "no summary.parquet" in capsys.readouterr().err
+    assert "nothing to report" in capsys.readouterr().err
     assert main(["fit", str(tmp_path / "missing"), "-o", str(tmp_path / "o2"), "--no-progress"]) == 2
 
 
-@pytest.mark.slow
-def test_demo_end_to_end_then_fit_on_its_logs(tmp_path, capsys):
-    """A tiny demo (2 flights x 6 settings x 1 run) writes logs, every table and the report; `jsve fit`
-    on its logs reproduces the demo's fitted SVE objective; `jsve report` re-renders the same page."""
-    cfg = tmp_path / "tiny.toml"
+@pytest.fixture(scope="module")
+def tiny_demo(tmp_path_factory):
+    """A tiny demo (2 flights x 6 settings x 1 run) run from the command line, and what it printed."""
+    import contextlib
+    import io
+
+    root = tmp_path_factory.mktemp("tiny")
+    cfg = root / "tiny.toml"
     cfg.write_text(TINY)
-    out = tmp_path / "demo"
-    assert main(["demo", "-o", str(out), "--config", str(cfg), "--no-progress"]) == 0
-    printed = capsys.readouterr().out
-    timings = json.loads(printed.strip().splitlines()[-1])
-    assert timings["total"] > 0 and "report.html" in printed
+    out = root / "demo"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["demo", "-o", str(out), "--config", str(cfg), "--no-progress"]) == 0
+    return root, out, printed.getvalue()
+
+
+@pytest.mark.slow
+def test_demo_ends_with_a_human_summary_and_reports(tiny_demo, capsys):
+    """The demo writes logs, every table and the report, and ends with a few lines a person reads (the
+    recommended rule, its held-out objective and differences, where the report is); --json adds the
+    timings as the last line (a rerun resumes: every stage is done)."""
+    _, out, printed = tiny_demo
     assert (out / "logs" / "study.parquet").is_file() and (out / "report.html").is_file()
-    page = (out / "report.html").read_text()
-    fit_out = tmp_path / "fit"
-    toml = "\n".join(line for line in TINY.split("[demo]")[0].splitlines())
-    (tmp_path / "study.toml").write_text(toml)
+    lines = printed.strip().splitlines()
+    assert lines[0].startswith("jsve demo: done in ") and lines[-1] == f"  report: {out / 'report.html'}"
+    assert re.fullmatch(
+        rf"  recommended: fitted-(sve|inliers) \(rule file {re.escape(str(out))}/fitted_\1\.json, .*\)",
+        lines[1],
+    )
+    assert re.fullmatch(r"  held-out objective \(kfold\): \d+\.\d \[\d+\.\d, \d+\.\d\] cm", lines[2])
+    assert any(line.startswith("    vs orbslam3: ") for line in lines) and not printed.lstrip().startswith(
+        "{"
+    )
     assert (
-        main(
-            [
-                "fit",
-                str(out / "logs" / "study.parquet"),
-                "-o",
-                str(fit_out),
-                "--config",
-                str(tmp_path / "study.toml"),
-                "--no-progress",
-            ]
-        )
+        main(["demo", "-o", str(out), "--config", str(out.parent / "tiny.toml"), "--no-progress", "--json"])
         == 0
     )
+    timings = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert timings["total"] > 0 and set(timings) >= {"simulate", "study", "report"}
+
+
+@pytest.mark.slow
+def test_report_rerenders_the_demo_byte_for_byte(tiny_demo):
+    """`jsve report DIR` without --title gives the demo's page byte for byte: the title is kept in the
+    folder (report.json), the figures are deterministic."""
+    _, out, _ = tiny_demo
+    before = {p: p.read_bytes() for p in [out / "report.md", out / "report.html", *out.glob("figures/*.png")]}
+    assert json.loads((out / "report.json").read_text())["title"].startswith("jsve demo: ")
+    assert main(["report", str(out)]) == 0
+    assert {p: p.read_bytes() for p in before} == before
+    assert (
+        "<title>jsve demo: fitted switching rules on a simulated study</title>"
+        in before[out / "report.html"].decode()
+    )
+
+
+@pytest.mark.slow
+def test_headline_numbers_rederived_from_the_tables(tiny_demo):
+    """Every number of the demo's headline, recomputed here from the per-run tables without the report's
+    code: the recommended rule (lowest worst-fold held-out objective), its held-out objective and paired
+    differences (jsve.fitting.compare over heldout.parquet), the frames it rejects and the runs that reach
+    LOST (runs.parquet, weighted as the fit weighs runs)."""
+    from jsve.evaluation import group_weights
+    from jsve.fitting import compare
+
+    _, out, _ = tiny_demo
+    md = (out / "report.md").read_text()
+    head = md.split("## Headline\n")[1].split("\n## ")[0]
+    study = json.loads((out / "study.json").read_text())
+    heldout = pd.read_parquet(out / "heldout.parquet")
+    summary = compare(heldout, n_boot=study["config"]["n_boot"], level=study["config"]["level"], seed=0)
+    pd.testing.assert_frame_equal(
+        summary, pd.read_parquet(out / "heldout_summary.parquet"), check_dtype=False
+    )
+    fitted = summary[summary["rule"].str.startswith("fitted-")]
+    worst = fitted.groupby("rule")["mean_loss"].max().round(6)
+    kfold = fitted[fitted["fold_kind"] == "kfold"].set_index("rule")["mean_loss"].round(6)
+    order = sorted(worst.index, key=lambda r: (worst[r], kfold[r], r != "fitted-inliers"))
+    rule = order[0]
+    assert f"**Recommended: `{rule}`**" in head
+    row = summary[(summary["fold_kind"] == "kfold") & (summary["rule"] == rule)].iloc[0]
+    cm = lambda m: f"{100 * m:.1f}".replace("-0.0", "0.0")  # noqa: E731
+    assert f"it scores {cm(row['mean_loss'])} [{cm(row['ci_low'])}, {cm(row['ci_high'])}] cm" in head
+    for base in ("orbslam3", "sve-option2"):
+        d, lo, hi = (row[f"diff_vs_{base}{s}"] for s in ("", "_ci_low", "_ci_high"))
+        if hi < 0:
+            assert f"better than `{base}` by {cm(-d)} cm (95 % CI {cm(-hi)} to {cm(-lo)})" in head
+        elif lo > 0:
+            assert f"worse than `{base}` by {cm(d)} cm (95 % CI {cm(lo)} to {cm(hi)})" in head
+        else:
+            assert f"not clearly different from `{base}`" in head
+    runs = pd.read_parquet(out / "runs.parquet")
+    shares = {}
+    for name, g in runs.groupby("rule"):
+        w = group_weights(g, study["balance_by"])
+        rejected = 1 - np.sum(w * g["accepted_fraction"]) / np.sum(w)
+        lost = np.sum(w * g["lost_any"]) / np.sum(w)
+        shares[name] = (rejected, lost)
+
+    def pct(x):
+        p = 100 * x
+        return "0 %" if p == 0 else "< 0.01 %" if p < 0.01 else f"{p:.2f} %" if p < 0.1 else f"{p:.1f} %"
+
+    r, lost = shares[rule]
+    assert f"`{rule}` rejects {pct(r)} of frames and {pct(lost)} of runs reach LOST" in head
+    r, lost = shares["orbslam3"]
+    assert f"`orbslam3` {pct(r)} and {pct(lost)}" in head
+
+
+@pytest.mark.slow
+def test_fitted_rule_files_work_with_evaluate_and_the_front_end(tiny_demo):
+    """`jsve evaluate LOGS --rule fitted_<family>.json` takes the study's file as it is and replays the same
+    rule the study evaluated (the same runs fail, the same RMSE); the front-end's rule option reads it
+    too (the driver's --rule-* arguments carry the fitted numbers); `jsve report` reads the evaluate
+    folder."""
+    from jsve.frontend._run import driver_rule
+    from jsve.io import load_rules
+
+    root, out, _ = tiny_demo
+    evaluated = root / "evaluated"
+    files = [str(out / "fitted_sve.json"), str(out / "fitted_inliers.json")]
+    argv = ["evaluate", str(out / "logs" / "study.parquet"), "--rule", files[0], "--rule", files[1]]
+    assert main([*argv, "--rule", "orbslam3", "-o", str(evaluated), "--no-progress"]) == 0
+    mine = pd.read_parquet(evaluated / "runs.parquet")
+    study = pd.read_parquet(out / "runs.parquet")
+    for family in ("sve", "inliers"):
+        a = mine[mine["rule"] == f"fitted_{family}"].set_index("run_id").sort_index()
+        b = study[study["rule"] == f"fitted-{family}"].set_index("run_id").loc[a.index]
+        assert len(a) == len(b) > 0 and (a["failed"] == b["failed"]).all()
+        np.testing.assert_allclose(a["rmse"], b["rmse"], rtol=1e-6)  # both float32 replays of one rule
+    (name, rule), (_, inliers) = load_rules(files)
+    assert name == "fitted_sve"
+    args, _ = driver_rule("fitted_inliers", inliers, "orbslam3")
+    thresholds = json.loads((out / "fitted_inliers.json").read_text())["thresholds"]
+    expected = [thresholds[k] for k in ("imu_init", "not_init", "reloc", "recovery")]
+    assert args[0] == "--rule-inliers" and [float(x) for x in args[1].split(",")] == pytest.approx(expected)
+    assert driver_rule("fitted_sve", rule, "orbslam3")[0][0] == "--rule-sve"
+    assert main(["report", str(evaluated)]) == 0
+    page = (evaluated / "report.md").read_text()
+    assert page.startswith("# jsve evaluation report") and "`fitted_sve`" in page
+
+
+@pytest.mark.slow
+def test_fit_on_the_demo_logs_reproduces_its_fit(tiny_demo):
+    """`jsve fit` on the demo's logs with the demo's study settings reproduces its fitted objective."""
+    root, out, _ = tiny_demo
+    fit_out = root / "fit"
+    (root / "study.toml").write_text(TINY.split("[demo]")[0])
+    argv = [
+        "fit",
+        str(out / "logs" / "study.parquet"),
+        "-o",
+        str(fit_out),
+        "--config",
+        str(root / "study.toml"),
+    ]
+    assert main([*argv, "--no-progress"]) == 0
     a = json.loads((out / "fitted_sve.json").read_text())
     b = json.loads((fit_out / "fitted_sve.json").read_text())
     assert a["objective"] == pytest.approx(b["objective"], rel=1e-6)
-    assert (
-        main(["report", str(out), "--title", "jsve demo: fitted switching rules on a simulated study"]) == 0
-    )
-    assert (out / "report.html").read_text() == page
 
 
 def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_path, capsys, monkeypatch):
@@ -138,6 +264,7 @@ def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_pat
     calls = []
     monkeypatch.setattr(_study, "run_study", lambda *a, **kw: calls.append(kw["force"]) or {})
     monkeypatch.setattr(_report, "write_report", lambda *a, **kw: None)
+    monkeypatch.setattr(_report, "summary_lines", lambda out: [f"report: {out}"])
     assert main([*argv, "--force"]) == 0
     assert calls == [True]
     write_study(tmp_path / "fresh", seed=0, config=sim, **small)

@@ -1,8 +1,10 @@
-"""jsve.fitting._study and jsve.report._report: a small study end to end, its tables, resumption and the
-report (slow: compiles every stage), and the report alone from hand-made tables (fast).
+"""jsve.fitting._study and jsve.report: a small study end to end, its tables, resumption and the report
+(slow: compiles every stage), and the report alone from hand-made tables with known answers (fast).
 
-The report's numbers must be the tables' numbers; the HTML must be self-contained; rendering twice gives
-the same bytes; a rerun with the same configuration skips finished stages and changes nothing.
+The report's numbers must be the tables' numbers: its headline first, failure-aware (a failed run at the
+penalty, never averaged over the part it tracked), presets once, heat maps honest about what they hold
+and whether they are flat, parameters flagged where the data cannot pin them; the HTML self-contained;
+rendering twice gives the same bytes and keeps the title.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ from jsve.evaluation import group_weights
 from jsve.fitting._fit import FitConfig, FitData
 from jsve.fitting._study import StudyConfig, data_fingerprint, fingerprint, read_table, run_study, study_files
 from jsve.io._resume import StaleOutputError
-from jsve.report._report import markdown_table, write_report
+from jsve.report import _format as fmt
+from jsve.report._report import write_report
 
 SMALL = StudyConfig(
     fit=FitConfig(n_search=64, n_starts=1, nm_steps=10),
@@ -172,106 +175,219 @@ def test_report_is_self_contained_deterministic_and_matches_the_tables(study, tm
     assert page.startswith("<!DOCTYPE html>") and "data:image/png;base64," in page
     assert not re.search(r'src="(?!data:)', page)  # nothing loaded from elsewhere
     for fig in (
-        "figures/ate_levels.png",
+        "figures/levels.png",
         "figures/heatmap_sve.png",
+        "figures/heatmap_inliers.png",
         "figures/heldout.png",
         "figures/sve_levels_occlusion.png",
     ):
         assert f"({fig})" in md and (out / fig).is_file()
-    # numbers in the report are the tables' numbers
+    assert md.index("## Headline") < md.index("## Figures") < md.index("## Held-out comparison")
+    # numbers in the report are the tables' numbers, in centimetres
     heldout = read_table(out, "heldout_summary")
     row = heldout[(heldout["fold_kind"] == "kfold") & (heldout["rule"] == "fitted-sve")].iloc[0]
-    assert f"{row['mean_loss']:.4g} [{row['ci_low']:.4g}, {row['ci_high']:.4g}]" in md
+    cm = lambda m: f"{100 * m:.1f}"  # noqa: E731
+    assert f"| {cm(row['mean_loss'])} [{cm(row['ci_low'])}, {cm(row['ci_high'])}] |" in md
     params = read_table(out, "params")
     p = params[(params["family"] == "inliers") & (params["parameter"] == "imu_init")].iloc[0]
-    assert f"[{p['ci_low']:.4g}, {p['ci_high']:.4g}]" in md
-    # rendering again gives the same bytes
-    again = write_report(out, title="test report")
+    assert f"| [{p['ci_low']:.1f}, {p['ci_high']:.1f}] | [0.0, 100.0] | 15.0 |" in md  # 0.5 % of the range
+    # rendering again gives the same bytes, title kept in report.json
+    again = write_report(out)
     assert again["markdown"].read_text() == md and again["html"].read_text() == page
-    assert (out / "figures/ate_levels.png").read_bytes() == written[
-        "figure RMS ATE and failures per level"
-    ].read_bytes()
-    with pytest.raises(FileNotFoundError, match="no summary.parquet"):
+    assert json.loads((out / "report.json").read_text()) == {"title": "test report"}
+    assert (out / "figures/levels.png").read_bytes() == written["figure levels.png"].read_bytes()
+    with pytest.raises(FileNotFoundError, match="nothing to report"):
         write_report(tmp_path)
 
 
-def test_markdown_table_formats_numbers():
-    table = pd.DataFrame({"a": [1, 2], "b": [0.123456, float("nan")], "c": ["x", "y"]})
-    assert markdown_table(table).splitlines() == [
-        "| a | b | c |",
-        "|---|---|---|",
-        "| 1 | 0.1235 | x |",
-        "| 2 | - | y |",
+# ---------------------------------------------------------------------------------------------------
+# The report from tables made by hand (fast): known answers
+
+
+def test_numbers_are_never_scientific_and_shares_read_as_percent():
+    assert fmt.number(1e-5) == "0.00001" and fmt.number(0.123456) == "0.1235" and fmt.number(3.0) == "3"
+    assert fmt.number(223200) == "223,200" and fmt.number(float("nan")) == "-"
+    assert fmt.cm(0.039030) == "3.9" and fmt.cm(-0.0004) == "0.0" and fmt.cm(-0.0117, sign=True) == "-1.2"
+    assert fmt.cm_ci(0.0117, 0.0, 0.0273, sign=True) == "+1.2 [0.0, +2.7]"
+    assert [fmt.percent(x) for x in (0, 1, 0.108, 0.0005, 0.00005)] == [
+        "0 %",
+        "100 %",
+        "10.8 %",
+        "0.05 %",
+        "< 0.01 %",
     ]
+    assert fmt.decimals_for(0.6) == 3 and fmt.decimals_for(8.0) == 2 and fmt.decimals_for(200.0) == 1
+    assert fmt.fixed(-0.0001, 3) == "0.000"
+
+
+def test_markdown_table_aligns_words_left_and_numbers_right():
+    table = pd.DataFrame(
+        {"a": [1, 2], "b": [0.123456, float("nan")], "c": ["x", "y"], "d": ["3.9 [3.3, 4.6]", "-"]}
+    )
+    assert fmt.markdown_table(table).splitlines() == [
+        "| a | b | c | d |",
+        "|---:|---:|:---|---:|",
+        "| 1 | 0.1235 | x | 3.9 [3.3, 4.6] |",
+        "| 2 | - | y | - |",
+    ]
+    cells = fmt.html_table(table)
+    assert '<td class="w">x</td>' in cells and '<td class="n">0.1235</td>' in cells
+
+
+def test_every_disturbance_has_a_level_axis_with_its_unit():
+    from jsve.image._disturb import DISTURBANCES
+
+    assert set(fmt.DISTURBANCE_AXES) == set(DISTURBANCES)
+    assert fmt.level_axis("blur") == "blur kernel n (n x n px)"
+    assert fmt.level_axis("downsample") == "downsampling scale factor s (image scaled by s)"
+    assert fmt.level_axis("occlusion") == "occluder side n (n x n px square)"
+
+
+def test_every_parameter_has_words():
+    from jsve.core._rules import RULE_KINDS, param_names
+    from jsve.report._study_report import PARAMETER_TEXT
+
+    names = {n for kind in RULE_KINDS for n in param_names(kind)} | {"weight_a", "weight_b", "weight_c"}
+    assert names <= set(PARAMETER_TEXT)
+
+
+RULES = ("fitted-sve", "orbslam3", "sve-option2")
+"""The rules of the hand-made study."""
+
+
+def _run(sequence, disturbance, level, rule, rmse, failed=False, accepted=1.0, unsupported=0.0):
+    return {
+        "run_id": f"{sequence}/{disturbance}-{level}/0",
+        "sequence": sequence,
+        "disturbance": disturbance,
+        "level": float(level),
+        "run": 0,
+        "rule": rule,
+        "switch_model": "orbslam3",
+        "rmse": rmse,
+        "mean": rmse,
+        "sse": rmse * rmse * 100,
+        "count": 100,
+        "coverage": 0.8 if failed else 1.0,
+        "failed": failed,
+        "failure_reason": "lost tracking (a reset, an expiry to LOST or a recorded map loss)"
+        if failed
+        else "",
+        "accepted_fraction": accepted,
+        "changed_fraction": 0.0,
+        "unsupported_fraction": unsupported,
+        "lost_any": failed,
+    }
+
+
+def _runs() -> pd.DataFrame:
+    """Two sequences x (blur 0, 50; occlusion 0, 450) x the three rules. At blur 50 orbslam3 fails both runs
+    after tracking part of them at 5 cm; fitted-sve keeps tracking at 20 and 30 cm."""
+    rows = []
+    for seq in ("s1", "s2"):
+        for dist, harsh in (("blur", 50), ("occlusion", 450)):
+            for rule in RULES:
+                rows.append(_run(seq, dist, 0, rule, 0.02))
+            rows.append(_run(seq, dist, harsh, "fitted-sve", {"s1": 0.2, "s2": 0.3}[seq], accepted=0.9999))
+            if dist == "blur":
+                rows.append(_run(seq, dist, harsh, "orbslam3", 0.05, failed=True, accepted=0.9))
+                rows.append(_run(seq, dist, harsh, "sve-option2", 0.03, failed=seq == "s1", accepted=0.96))
+            else:
+                rows.append(
+                    _run(seq, dist, harsh, "orbslam3", {"s1": 0.03, "s2": 0.04}[seq], failed=seq == "s1")
+                )
+                rows.append(_run(seq, dist, harsh, "sve-option2", 0.03))
+    return pd.DataFrame(rows)
+
+
+def _heldout_row(kind, rule, mean, **diffs):
+    row = {
+        "fold_kind": kind,
+        "rule": rule,
+        "n_runs": 8,
+        "mean_loss": mean,
+        "ci_low": mean - 0.01,
+        "ci_high": mean + 0.01,
+        "failure_rate": 0.0,
+        "coverage": 1.0,
+        "unsupported": 0.0,
+    }
+    for base, (d, lo, hi) in diffs.items():
+        row |= {f"diff_vs_{base}": d, f"diff_vs_{base}_ci_low": lo, f"diff_vs_{base}_ci_high": hi}
+    return row
+
+
+SVE_SPACE = {"w_a": [0.0, 1.0], "imu_init": [0.0, 0.6], "recovery": [0.0, 0.6]}
+INLIER_SPACE = {
+    "imu_init": [0.0, 100.0],
+    "not_init": [0.0, 200.0],
+    "reloc": [0.0, 200.0],
+    "recovery": [0.0, 100.0],
+}
 
 
 def _fake_study(out):
-    """The tables write_report reads, made by hand (two disturbances, two rules, one family)."""
+    """Every table write_report reads, made by hand with known answers."""
     from jsve.fitting._study import write_json, write_table
 
+    config = {
+        "failure_penalty": 1.0,
+        "align": "se3",
+        "min_coverage": 0.0,
+        "switch_model": "orbslam3",
+        "support": "penalise",
+        "families": ["sve", "inliers"],
+        "kfold": 2,
+        "leave_one_out": ["sequence"],
+        "n_boot": 100,
+        "level": 0.95,
+        "fit": {"design": "sobol", "n_search": 64, "n_starts": 1, "nm_steps": 10, "relaxed": False},
+    }
     write_json(
-        {"n_runs": 8, "n_frames": 800, "balance_by": ["sequence"], "config": {"failure_penalty": 1.0}},
+        {
+            "n_runs": 8,
+            "n_frames": 800,
+            "balance_by": ["sequence", "disturbance", "level"],
+            "config": config,
+            "data": {"source": "jsve simulator (hand-made)"},
+        },
         out / "study.json",
     )
+    write_table(_runs(), out, "runs")
+    oslam, option2 = ("orbslam3", "sve-option2")
     rows = []
-    for dist in ("blur", "occlusion"):
-        for level in (0, 25, 50):
-            for i, rule in enumerate(("orbslam3", "fitted-sve")):
-                rows.append(
-                    {
-                        "disturbance": dist,
-                        "level": level,
-                        "rule": rule,
-                        "n_runs": 2,
-                        "failure_rate": 0.5 * i,
-                        "mean_coverage": 1.0 - 0.1 * i,
-                        "rmse_mean_nonfailed": 0.01 * (level + 1 + i),
-                        "rmse_std_nonfailed": 0.001,
-                        "rmse_mean_all": 0.02,
-                        "rmse_std_all": 0.002,
-                    }
-                )
-    write_table(pd.DataFrame(rows), out, "summary")
-    write_table(
-        pd.DataFrame(
-            [
-                {
-                    "fold_kind": "kfold",
-                    "rule": "fitted-sve",
-                    "n_runs": 8,
-                    "mean_loss": 0.0123456,
-                    "ci_low": 0.011,
-                    "ci_high": 0.0141,
-                    "failure_rate": 0.0,
-                    "coverage": 1.0,
-                    "diff_vs_orbslam3": -0.2,
-                    "diff_vs_orbslam3_ci_low": -0.3,
-                    "diff_vs_orbslam3_ci_high": -0.1,
-                },
-                {
-                    "fold_kind": "kfold",
-                    "rule": "orbslam3",
-                    "n_runs": 8,
-                    "mean_loss": 0.2123,
-                    "ci_low": 0.15,
-                    "ci_high": 0.25,
-                    "failure_rate": 0.25,
-                    "coverage": 0.9,
-                },
-            ]
-        ),
-        out,
-        "heldout_summary",
-    )
+    for kind in ("kfold", "leave-one-sequence-out"):
+        # fitted-inliers has the lower k-fold objective, fitted-sve the lower worst case: sve is recommended
+        sve, inl = (0.03, 0.025) if kind == "kfold" else (0.05, 0.08)
+        rows += [
+            _heldout_row(
+                kind, "fitted-sve", sve, **{oslam: (sve - 0.39, -0.5, -0.2), option2: (-0.012, -0.027, 0.0)}
+            ),
+            _heldout_row(
+                kind, "fitted-inliers", inl, **{oslam: (inl - 0.39, -0.5, -0.2), option2: (0.01, 0.002, 0.03)}
+            ),
+            _heldout_row(kind, oslam, 0.39, **{option2: (0.3, 0.2, 0.4)}) | {"failure_rate": 0.375},
+            _heldout_row(kind, option2, 0.09, **{oslam: (-0.3, -0.4, -0.2)}) | {"failure_rate": 0.125},
+        ]
+    write_table(pd.DataFrame(rows), out, "heldout_summary")
     write_table(
         pd.DataFrame(
             {
-                "family": "sve",
-                "parameter": ["imu_init", "recovery"],
-                "value": [0.06, 0.04],
-                "ci_low": [0.05, 0.01],
-                "ci_high": [0.0712345, 0.09],
-                "boot_std": [0.01, 0.02],
+                "family": ["sve"] * 4 + ["inliers"] * 4,
+                "parameter": [
+                    "w_a",
+                    "imu_init",
+                    "recovery",
+                    "weight_a",
+                    "imu_init",
+                    "not_init",
+                    "reloc",
+                    "recovery",
+                ],
+                "value": [0.5, 0.6, 0.04, 0.5, 2.7, 40.2, 3.2, 3.4],
+                "ci_low": [0.1, 0.55, 0.03, 0.1, 0.7, 38.0, 0.4, 6.1],
+                "ci_high": [0.9, 0.6, 0.05, 0.9, 6.2, 42.0, 10.8, 14.2],
+                "boot_std": 0.01,
                 "n_boot": 100,
             }
         ),
@@ -279,21 +395,15 @@ def _fake_study(out):
         "params",
     )
     xs, ys = np.meshgrid(np.linspace(0, 0.6, 4), np.linspace(0, 0.6, 4))
-    write_table(
-        pd.DataFrame(
-            {
-                "family": "sve",
-                "x_name": "imu_init",
-                "y_name": "recovery",
-                "x": xs.ravel(),
-                "y": ys.ravel(),
-                "objective": (xs + ys).ravel(),
-                "failure_rate": 0.0,
-            }
-        ),
-        out,
-        "heatmap",
-    )
+    ix, iy = np.meshgrid(np.linspace(0, 100, 4), np.linspace(0, 100, 4))
+    heat = [
+        # SVE: flat, 3.9 cm +- 0.02 mm; inliers: 4 to 24 cm along imu_init
+        {"family": "sve", "x_name": "imu_init", "y_name": "recovery", "x": xs.ravel(), "y": ys.ravel(),
+         "objective": 0.039 + 2e-5 * xs.ravel(), "failure_rate": 0.0},
+        {"family": "inliers", "x_name": "imu_init", "y_name": "recovery", "x": ix.ravel(), "y": iy.ravel(),
+         "objective": 0.04 + 0.002 * ix.ravel(), "failure_rate": 0.0},
+    ]  # fmt: skip
+    write_table(pd.concat([pd.DataFrame(h) for h in heat], ignore_index=True), out, "heatmap")
     write_table(
         pd.DataFrame(
             [
@@ -305,79 +415,174 @@ def _fake_study(out):
                     "sve_mean": 0.5,
                     "sve_std": 0.1,
                 }
-                for d in ("blur",)
-                for lv in (0, 25, 50)
+                for d in ("blur", "occlusion")
+                for lv in (0.0, 50.0)
                 for c in ("sve-option2", "fitted-sve")
             ]
         ),
         out,
         "sve_levels",
     )
-    write_json(
-        {
-            "params": {"imu_init": 0.06, "recovery": 0.04},
-            "rule": {"kind": "sve"},
-            "objective": 0.0123,
-            "failure_rate": 0.0,
-            "coverage": 1.0,
-            "stages": [{"stage": "search", "objective": 0.013}],
-        },
-        out / "fitted_sve.json",
+    for family, params, space in (
+        ("sve", {"w_a": 0.5, "imu_init": 0.6, "recovery": 0.04}, SVE_SPACE),
+        ("inliers", {"imu_init": 2.7, "not_init": 40.2, "reloc": 3.2, "recovery": 3.4}, INLIER_SPACE),
+    ):
+        write_json(
+            {
+                "kind": family,
+                "family": family,
+                "params": params,
+                "space": {"kind": family, "free": space, "fixed": {}},
+                "objective": 0.0312,
+                "failure_rate": 0.0,
+                "coverage": 1.0,
+                "stages": [{"stage": "search", "objective": 0.033, "seconds": 1.5}],
+            },
+            out / f"fitted_{family}.json",
+        )
+
+
+def _section(md: str, heading: str) -> str:
+    return md.split(f"## {heading}\n")[1].split("\n## ")[0]
+
+
+def test_headline_comes_first_and_says_what_the_tables_say(tmp_path):
+    _fake_study(tmp_path)
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    assert md.startswith("# fake\n\n## Headline\n")
+    head = _section(md, "Headline")
+    assert (
+        "The SVE rule (3 free parameters: w_a, imu_init, recovery) and ORB-SLAM3's inlier rule (4 free"
+        in head
     )
+    # sve's worst fold kind (5.0 cm) beats inliers' (8.0 cm), although inliers wins k-fold
+    assert "**Recommended: `fitted-sve`**" in head and "`jsve evaluate LOGS --rule fitted_sve.json`" in head
+    assert "it scores 3.0 [2.0, 4.0] cm: better than `orbslam3` by 36.0 cm (95 % CI 20.0 to 50.0)" in head
+    assert "not clearly different from `sve-option2` (-1.2 cm, 95 % CI -2.7 to 0.0: it contains 0)" in head
+    # switching, from runs: fitted-sve rejects 0.01 % of frames in 4 of 8 runs (0.005 %), orbslam3 10 % in 2
+    assert "`fitted-sve` rejects < 0.01 % of frames and 0 % of runs reach LOST" in head
+    assert "(`orbslam3` 2.5 % and 37.5 %; `sve-option2` 1.0 % and 12.5 %)" in head
+    assert "Simulated data" in head and "Switch model `orbslam3`" in head and "Support: none of" in head
+    assert "of `orbslam3`'s 39.0 cm, 37.5 cm is the penalty of its failed runs (37.5 % of runs at 1 m" in head
+    assert "practically never switches" in head
+    assert "2 parameters of `fitted-sve` flagged (at a bound, not identified)" in head
 
 
-def test_report_from_tables_is_deterministic_and_self_contained(tmp_path):
+def test_tables_are_failure_aware_and_presets_appear_once(tmp_path):
     _fake_study(tmp_path)
     written = write_report(tmp_path, title="fake")
     md, page = written["markdown"].read_text(), written["html"].read_text()
-    assert "0.01235 [0.011, 0.0141]" in md and "-0.2 [-0.3, -0.1]" in md  # held-out row, from the table
-    assert "[0.05, 0.07123]" in md  # parameter CI
-    assert "| blur | " not in md and "## Per level: occlusion" in md
-    for name in ("ate_levels", "heatmap_sve", "heldout", "sve_levels_blur"):
-        assert (tmp_path / "figures" / f"{name}.png").is_file() and f"figures/{name}.png" in md
-    assert page.count("data:image/png;base64,") == 4 and not re.search(r'src="(?!data:)', page)
+    held = _section(md, "Held-out comparison")
+    assert held.count("| orbslam3 |") == 1 and held.count("| fitted-sve |") == 2
+    assert "| orbslam3 | (not fitted) | 8 | 39.0 [38.0, 40.0] | 37.5 % |" in held
+    # blur 50: orbslam3 failed both runs after tracking part of them at 5 cm: the objective is the penalty,
+    # and no mean over all runs shows 5 cm
+    levels = _section(md, "Per level")
+    head = "| blur kernel n (n x n px) | fitted-sve | orbslam3 | sve-option2 |"
+    assert head in levels
+    assert "| 50 | 25.0 (0 %) | 100.0 (100 %) | 51.5 (50.0 %) |" in levels
+    assert "| 50 | orbslam3 | 2 | 100.0 | 100 % | 80.0 % | - (n = 0) |" in levels
+    assert "| 450 | orbslam3 | 2 | 52.0 | 50.0 % | 90.0 % | 4.0 (n = 1) |" in levels
+    assert (
+        "ATE RMSE, m (all runs)" not in md
+        and "5.0" not in levels.split("| 50 | orbslam3 |")[1].split("\n")[0]
+    )
+    overall = _section(md, "All runs, per rule")
+    assert "| orbslam3 | 8 | 39.0 | 37.5 % | 92.5 % | 2.5 % | 37.5 % | 2.4 (n = 5) |" in overall
+    # words left, numbers right; the long tables collapsed
+    assert "<details><summary>blur: every rule and level in detail</summary>" in page
+    assert '<td class="w">orbslam3</td>' in page and '<td class="n">39.0</td>' in page
+
+
+def test_heat_maps_say_what_is_held_and_when_they_are_flat(tmp_path):
+    _fake_study(tmp_path)
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    figs = _section(md, "Figures")
+    sve = figs.split("### Objective over two thresholds: sve")[1].split("###")[0]
+    inl = figs.split("### Objective over two thresholds: inliers")[1].split("###")[0]
+    assert "other 1 parameter held at the fit (w_a 0.500)" in sve
+    assert "The surface is flat: 3.9 cm everywhere (it varies by 0.01 mm)" in sve
+    # presets at their own score (runs: sve-option2 0.09 m overall), not the cell under them
+    assert "`sve-option2` is drawn at its thresholds with its own score, 14.6 cm" in sve
+    assert "held at the fit (not_init 40.2, reloc 3.2)" in inl and "It spans 4.0 to 24.0 cm" in inl
+    assert "`orbslam3` is drawn at its thresholds with its own score, 39.0 cm (not_init 50, reloc 50)" in inl
+    assert "flat" not in inl
+
+
+def test_parameters_flag_what_the_data_cannot_say(tmp_path):
+    _fake_study(tmp_path)
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    params = _section(md, "Fitted parameters")
+    rows = {line.split(" | ")[0].strip("| "): line for line in params.splitlines() if line.startswith("| ")}
+    assert "not identified: its 95 % interval spans 80 % of the search range" in rows["w_a"]
+    assert "at a bound: the upper bound" in params.split("| imu_init |")[1].split("\n")[0]
+    assert "weight_a" not in rows and "weight_a equals w_a" in params  # the duplicate row, once
+    inliers = params.split("### inliers")[1]
+    lines = {line.split(" | ")[0].strip("| "): line for line in inliers.splitlines() if line.startswith("| ")}
+    assert "| >= 3 inliers | implausible: below 10 inliers" in lines["imu_init"]
+    assert "| >= 41 inliers | -" in lines["not_init"]  # score < 40.2 fails counts up to 40
+    assert "| >= 4 inliers | outside its interval" in lines["recovery"]  # recovery: score > 3.4 from 4 on
+
+
+def test_configuration_is_written_as_sentences(tmp_path):
+    _fake_study(tmp_path)
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    method = _section(md, "Method")
+    assert "coverage below 0" not in md and "there is no coverage floor" in method
+    assert "a failed run charged 1 m" in method and "Switch model `orbslam3`: a tracked" in method
+    assert "Cross-validation: 2-fold and leave-one-sequence-out" in method
+
+
+def test_report_is_deterministic_and_keeps_its_title(tmp_path):
+    _fake_study(tmp_path)
+    written = write_report(tmp_path, title="fake")
+    page = written["html"].read_text()
+    assert page.count("data:image/png;base64,") == 6 and not re.search(r'src="(?!data:)', page)
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
-    write_report(tmp_path, title="fake")
+    write_report(tmp_path)  # no title: the kept one
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    assert "<title>fake</title>" in page
 
 
-def test_report_shows_switch_model_support_policy_and_support_columns(tmp_path):
-    """The configuration section names the switch model and the support policy; the per-level tables carry
-    the summary's support columns (changed, out of support, runs out of support) for every rule, with the
-    tables' numbers; the fit section and the held-out table say how many runs left the logs' support. A
-    study written before these existed renders without them ("not recorded" in the configuration)."""
+def test_report_of_an_older_study_without_support_columns(tmp_path):
+    """A study written before the support columns and the configuration's switch model and support policy
+    existed renders without them."""
     from jsve.fitting._study import write_json, write_table
 
     _fake_study(tmp_path)
-    old = write_report(tmp_path, title="fake")["markdown"].read_text()
-    assert "| switch model | not recorded |" in old and "runs out of support" not in old
-    study = json.loads((tmp_path / "study.json").read_text())
-    study["config"] |= {"switch_model": "imu-coast", "support": "exclude"}
-    write_json(study, tmp_path / "study.json")
-    summary = read_table(tmp_path, "summary")
-    summary["mean_changed"] = 0.0125 * (summary["level"] + 1)
-    summary["mean_unsupported"] = 0.00375 * summary["level"]
-    summary["share_unsupported_runs"] = np.where(summary["rule"] == "fitted-sve", 0.5, 0.0)
-    write_table(summary, tmp_path, "summary")
-    heldout = read_table(tmp_path, "heldout_summary")
-    heldout["unsupported"] = [0.375, 0.0]
-    write_table(heldout, tmp_path, "heldout_summary")
-    fitted = json.loads((tmp_path / "fitted_sve.json").read_text())
-    fitted |= {"unsupported_rate": 0.25, "n_unsupported": 2, "n_excluded": 1}
-    write_json(fitted, tmp_path / "fitted_sve.json")
-
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
-    assert "| switch model | imu-coast | a frame in RECENTLY_LOST takes the IMU prediction" in md
-    assert (
-        "| support policy | exclude | a run whose replay needs a recorded pose the log lacks is left out"
-        in md
+    runs = read_table(tmp_path, "runs").drop(columns=["unsupported_fraction", "changed_fraction"])
+    write_table(runs, tmp_path, "runs")
+    write_table(
+        read_table(tmp_path, "heldout_summary").drop(columns=["unsupported"]), tmp_path, "heldout_summary"
     )
-    section = md.split("## Per level: occlusion")[1].split("##")[0]
-    head = next(line for line in section.splitlines() if line.startswith("| level |"))
-    assert head.endswith("| failure rate | coverage | changed | out of support | runs out of support |")
-    # level 50, fitted-sve: changed 0.6375, out of support 0.1875, runs out of support 0.5
-    assert "| 50 | fitted-sve | 2 |" in section and "| 0.6375 | 0.1875 | 0.5 |" in section
-    assert "| 50 | orbslam3 | 2 |" in section and "| 0.6375 | 0.1875 | 0 |" in section
-    assert "leaves the logs' support on 2 runs (weighted share 0.25); 1 run excluded" in md
-    assert "| runs out of support |" in md.split("## Held-out comparison")[1].split("##")[0]
-    assert "| 0.375 |" in md and "all rules support" in md
+    study = json.loads((tmp_path / "study.json").read_text())
+    del study["config"]["switch_model"], study["config"]["support"]
+    write_json(study, tmp_path / "study.json")
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    assert "runs out of support" not in md and "frames changed" not in md
+
+
+def test_report_of_an_evaluate_folder(tmp_path):
+    """`jsve evaluate -o` writes runs.parquet (and no study.json): the report scores every rule as the fit
+    would, pairs the differences over runs, and keeps the per-level tables and figure."""
+    from jsve.io import _atomic as atomic
+
+    runs = _runs()
+    atomic.write_table(runs, tmp_path / "runs.parquet")
+    written = write_report(tmp_path)
+    md = written["markdown"].read_text()
+    assert md.startswith("# jsve evaluation report\n\n## Headline\n")
+    head = _section(md, "Headline")
+    # losses, sve-option2: 0.02 x 4, 1, 0.03 x 3 -> 0.14625 m; fitted-sve: 0.02 x 4, 0.2, 0.3 x 2 -> 0.135 m
+    assert "**Lowest objective: `fitted-sve`**, 13.5 [" in head
+    assert (
+        "3 rules (`fitted-sve`, `orbslam3` and `sve-option2`) replayed by `jsve evaluate` on 8 runs" in head
+    )
+    overall = _section(md, "All runs, per rule")
+    assert "| sve-option2 | 8 | 14.6 [" in overall and "| orbslam3 | 8 | 39.0 [" in overall
+    assert "| lost tracking (a reset, an expiry to LOST or a recorded map loss) |" in _section(
+        md, "Why runs failed"
+    )
+    assert "| 50 | 25.0 (0 %) | 100.0 (100 %) | 51.5 (50.0 %) |" in _section(md, "Per level")
+    assert (tmp_path / "figures" / "levels.png").is_file()
+    assert not (tmp_path / "report.json").exists()  # no title given: none kept

@@ -34,7 +34,12 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, help="simulator seed (default 0)")
     p.add_argument("--workers", type=int, metavar="N", help="simulator processes (default: all cores)")
     common.add_switch_model_option(p)
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars (default: shown)")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="end with one JSON line of the seconds each part took, for scripts (default: the summary only)",
+    )
     common.add_force_option(p)
     p.set_defaults(func=run)
 
@@ -70,11 +75,15 @@ def run(args) -> int:
     timings = run_demo(
         args.output, config, progress=not args.no_progress, workers=args.workers, force=args.force
     )
-    out = Path(args.output)
-    print(f"jsve demo: report in {out / 'report.html'} ({timings['total']:.0f} s)")
-    print(
-        json.dumps(
-            {k: round(v, 1) if isinstance(v, float) else v for k, v in timings.items() if k != "stages"}
+    from jsve.report._report import summary_lines
+
+    print(f"jsve demo: done in {timings['total']:.0f} s")
+    for line in summary_lines(args.output):
+        print(f"  {line}")
+    if args.json:
+        print(
+            json.dumps(
+                {k: round(v, 1) if isinstance(v, float) else v for k, v in timings.items() if k != "stages"}
+            )
         )
-    )
     return 0

@@ -1,24 +1,32 @@
-"""`jsve report OUT`: render the threshold report (Markdown, self-contained HTML, figures) of a study folder.
+"""`jsve report DIR`: render the report (Markdown, self-contained HTML, figures) of a study or an evaluation.
 
-The folder is what `jsve fit` or `jsve demo` wrote; every number of the report comes from its tables.
+The folder is what `jsve fit` or `jsve demo` wrote (a fitting study), or what `jsve evaluate -o` wrote (an
+evaluation: every rule on every run, nothing fitted); every number of the report comes from its tables.
 """
 
 from __future__ import annotations
 
 from jsve.cli import _common as common
 
-HELP = "render the threshold report of a `jsve fit` / `jsve demo` folder"
+HELP = "render the report of a `jsve fit` / `jsve demo` / `jsve evaluate -o` folder"
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "report",
         help=HELP,
-        description="Write OUT/report.md, OUT/report.html (figures embedded) and OUT/figures/*.png from the "
-        "study's tables. Deterministic: the same tables give the same files.",
+        description="Write DIR/report.md, DIR/report.html (figures embedded) and DIR/figures/*.png from the "
+        "folder's tables: a study's report (headline, figures, held-out comparison, fitted parameters) for "
+        "a `jsve fit` or `jsve demo` folder, an evaluation's report for a `jsve evaluate -o` folder. "
+        "Deterministic: the same tables give the same files.",
     )
-    p.add_argument("output", metavar="OUT", help="study folder")
-    p.add_argument("--title", default="jsve threshold report")
+    p.add_argument("output", metavar="DIR", help="a study folder or a `jsve evaluate -o` folder")
+    p.add_argument(
+        "--title",
+        default=None,
+        help="the page title, kept in DIR/report.json for later renders (default: the title stored there, "
+        "else 'jsve threshold report' or 'jsve evaluation report')",
+    )
     p.set_defaults(func=run)
 
 
@@ -30,6 +38,5 @@ def run(args) -> int:
         written = write_report(args.output, title=args.title)
     except (FileNotFoundError, ValueError) as err:
         return common.fail("report", err)
-    for name, path in written.items():
-        print(f"{name}: {path}")
+    print(f"jsve report: {written['html']} ({len(written) - 2} figures; Markdown: {written['markdown']})")
     return 0

@@ -67,6 +67,7 @@ STUDY_FILES = (
     *(f"{name}.{suffix}" for name in TABLES for suffix in ("parquet", "csv")),
     "report.md",
     "report.html",
+    "report.json",
     "figures/*.png",
 )
 """Glob patterns of every file a study and its report write in their folder: what force=True deletes
@@ -336,12 +337,15 @@ def heatmap_table(data: FitData, space: ParamSpace, values, weights, x: str, y: 
 
 
 def _fit_record(name: str, result: FitResult) -> dict:
+    """fitted_<family>.json: the rule as `rule_to_dict` writes it at the top level (kind and parameter
+    tables), so that the file is a rule file for `jsve evaluate --rule` and `jsve frontend run --rule`,
+    then the fit's facts (rule_from_dict ignores them)."""
     return {
+        **rule_to_dict(result.rule),
         "family": name,
         "space": result.space.describe(),
         "values": result.values.tolist(),
         "params": result.params(),
-        "rule": rule_to_dict(result.rule),
         "objective": result.objective,
         "failure_rate": result.failure_rate,
         "coverage": result.coverage,
