@@ -123,14 +123,15 @@ def run(args: argparse.Namespace) -> int:
         paths = find_logs(args.logdir)
     except FileNotFoundError as e:
         return common.fail("ingest", e)
-    total, detail = parquet_size(paths)
-    stop = common.announce_size("ingest", args.output, total, detail, yes=args.yes)
-    if stop is not None:
-        return stop
+    if paths:  # none: ingest says so, naming LOGDIR
+        total, detail = parquet_size(paths)
+        stop = common.announce_size("ingest", args.output, total, detail, yes=args.yes)
+        if stop is not None:
+            return stop
     try:
         with atomic.all_or_nothing():  # the Parquet file and its quarantine report, or neither
             summary = ingest(
-                paths,
+                paths or args.logdir,
                 args.output,
                 on_error=args.on_error,
                 workers=args.workers,
