@@ -103,7 +103,7 @@ def test_demo_ends_with_a_human_summary_and_reports(tiny_demo, capsys):
         rf"  recommended: fitted-(sve|inliers) \(rule file {re.escape(str(out))}/fitted_\1\.json, .*\)",
         lines[1],
     )
-    assert re.fullmatch(r"  held-out objective \(kfold\): \d+\.\d \[\d+\.\d, \d+\.\d\] cm", lines[2])
+    assert re.fullmatch(r"  held-out objective \(k-fold\): \d+\.\d \[\d+\.\d, \d+\.\d\] cm", lines[2])
     assert any(line.startswith("    vs orbslam3: ") for line in lines) and not printed.lstrip().startswith(
         "{"
     )

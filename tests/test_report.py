@@ -516,7 +516,7 @@ def test_parameters_flag_what_the_data_cannot_say(tmp_path):
     rows = {line.split(" | ")[0].strip("| "): line for line in params.splitlines() if line.startswith("| ")}
     assert "not identified: its 95 % interval spans 80 % of the search range" in rows["w_a"]
     assert "at a bound: the upper bound" in params.split("| imu_init |")[1].split("\n")[0]
-    assert "weight_a" not in rows and "weight_a equals w_a" in params  # the duplicate row, once
+    assert "weight_a" not in rows and "sve's weight_a is w_a" in params  # the duplicate row, once
     inliers = params.split("### inliers")[1]
     lines = {line.split(" | ")[0].strip("| "): line for line in inliers.splitlines() if line.startswith("| ")}
     assert "| >= 3 inliers | implausible: below 10 inliers" in lines["imu_init"]

@@ -279,7 +279,7 @@ def parameter_table(params: pd.DataFrame, fitted: dict) -> tuple[pd.DataFrame, l
             name = rec["parameter"]
             key = (round(rec["value"], 12), round(rec["ci_low"], 12), round(rec["ci_high"], 12))
             if name.startswith("weight_") and key in seen:
-                notes.append(f"{family}: {name} equals {seen[key]} (the same number, shown once)")
+                notes.append(f"{family}'s {name} is {seen[key]}")
                 continue
             seen.setdefault(key, name)
             bounds = _bounds(fitted, family, name)

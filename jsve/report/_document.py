@@ -54,7 +54,7 @@ STYLE = (
     "body{font-family:sans-serif;max-width:72em;margin:2em auto;padding:0 1em;line-height:1.4}"
     "table{border-collapse:collapse;margin:0.6em 0 1em;font-size:90%}"
     "td,th{border:1px solid #ccc;padding:2px 6px;vertical-align:top}th{background:#f4f4f4}"
-    "td.n,th.n{text-align:right;white-space:nowrap}td.w,th.w,td.t{text-align:left}td.w{white-space:nowrap}"
+    "td.n{white-space:nowrap}td.n,th.n{text-align:right}td.w,th.w,td.t{text-align:left}td.w{white-space:nowrap}"
     "img{max-width:100%}details{margin:0.5em 0 1em}summary{cursor:pointer;font-weight:bold}"
     "code{background:#f4f4f4;padding:0 3px}"
 )

@@ -39,7 +39,7 @@ def _paired(scored: pd.DataFrame, n_boot: int = 1000) -> pd.DataFrame:
         else scored.groupby("rule").cumcount(),
         fold_kind="all runs",
         failed=scored["objective_failed"],
-        unsupported=scored.get("unsupported_fraction", 0) > 0,
+        unsupported=scored["unsupported_fraction"] > 0 if "unsupported_fraction" in scored else False,
         loss=scored["loss"].where(scored["included"]),
     )
     return compare(table, n_boot=n_boot, seed=0)
@@ -80,7 +80,9 @@ def evaluation_sections(out: Path, fig_dir: Path) -> list[Section]:
         if best["rule"] != base and key in best and pd.notna(best[key]):
             low, high = best[f"{key}_ci_low"], best[f"{key}_ci_high"]
             gap = cm_ci(best[key], low, high, sign=True)
-            sentences.append(f"{derive.verdict(low, high)} against `{base}` ({gap} cm)")
+            word = derive.verdict(low, high)
+            phrase = {"better": "better than", "worse": "worse than"}.get(word, f"{word} from")
+            sentences.append(f"{phrase} `{base}` ({gap} cm)")
     objective = cm_ci(best["mean_loss"], best["ci_low"], best["ci_high"])
     head.append(
         f"**Lowest objective: `{best['rule']}`**, {objective} cm"

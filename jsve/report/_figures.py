@@ -40,7 +40,24 @@ RULE_COLORS = dict(zip(PRESETS, PRESET_PALETTE[: len(PRESETS)], strict=True)) | 
 }
 """One colour per rule (presets beyond the palette, or a new family, must choose their own: the zip is
 strict)."""
+OTHER_COLORS = ("#bcbd22", "#17becf", "#e377c2", "#8c564b", "#9edae5", "#c49c94")
+"""Colours of other rules (rule files evaluated by name), in the order they are drawn."""
 PNG_META = {"Software": None}
+
+
+def rule_color(rule: str, others: list[str]) -> str:
+    """A rule's colour: its own (RULE_COLORS), its family's for a fitted rule file ("fitted_sve", as
+    `jsve evaluate --rule fitted_sve.json` names it), else the next of OTHER_COLORS."""
+    if rule in RULE_COLORS:
+        return RULE_COLORS[rule]
+    family = rule.removeprefix("fitted_")
+    if rule.startswith("fitted_") and family in FITTED_COLORS:
+        return FITTED_COLORS[family]
+    if rule not in others:
+        others.append(rule)
+    return OTHER_COLORS[others.index(rule) % len(OTHER_COLORS)]
+
+
 FOLD_KIND_WORDS = {
     "kfold": "k-fold",
     "leave-one-sequence-out": "held-out sequence",
@@ -79,14 +96,14 @@ def _orient(ax, disturbance: str) -> None:
 def figure_heldout(rows: pd.DataFrame, path: Path) -> Path:
     """Held-out objective (cm) with its 95 % interval, one bar per fitted rule and fold kind and one per
     preset (jsve.report._derive.heldout_rows), best at the top of each group."""
-    labels, y, low, high, colors = [], [], [], [], []
+    labels, y, low, high, colors, others = [], [], [], [], [], []
     for d in rows.to_dict("records"):
         kind = FOLD_KIND_WORDS.get(d["fold_kind"], d["fold_kind"])
         labels.append(d["rule"] if d["fold_kind"] == "-" else f"{d['rule']}, {kind}")
         y.append(100 * d["mean_loss"])
         low.append(100 * d["ci_low"])
         high.append(100 * d["ci_high"])
-        colors.append(RULE_COLORS.get(d["rule"], "#999999"))
+        colors.append(rule_color(d["rule"], others))
     n = len(labels)
     fig, ax = plt.subplots(figsize=(7.2, 0.34 * n + 1.4))
     pos = np.arange(n)[::-1]
@@ -115,14 +132,14 @@ def figure_levels(levels: pd.DataFrame, path: Path) -> Path:
     fig, axes = plt.subplots(
         3, len(disturbances), figsize=(4.3 * len(disturbances), 8.2), squeeze=False, sharey="row"
     )
-    rules = rule_order(levels["rule"])
+    rules, others = rule_order(levels["rule"]), []
     for j, dist in enumerate(disturbances):
         part = levels[levels["disturbance"].astype(str) == dist]
         for rule in rules:
             g = part[part["rule"] == rule].sort_values("level", key=lambda s: s.astype(float))
             x = _levels_x(g["level"])
-            style = dict(marker="o", ms=3, label=rule, color=RULE_COLORS.get(rule), lw=1.2)
-            if rule.startswith("fitted-"):
+            style = dict(marker="o", ms=3, label=rule, color=rule_color(rule, others), lw=1.2)
+            if rule.startswith("fitted"):  # the study's fitted-<family>, evaluate's fitted_<family>
                 style.update(lw=2.0, ls="--")
             axes[0, j].plot(x, 100 * g["objective"].to_numpy(), **style)
             tracked = np.where(g["n_tracking"].to_numpy() > 0, 100 * g["ate_tracking"].to_numpy(), np.nan)
@@ -239,11 +256,12 @@ def figure_sve_levels(sve_levels: pd.DataFrame, disturbance: str, path: Path) ->
     4-6)."""
     part = sve_levels[sve_levels["disturbance"] == disturbance]
     fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    others: list[str] = []
     for name in rule_order(part["combination"]):
         g = part[part["combination"] == name].sort_values("level", key=lambda s: s.astype(float))
         x = _levels_x(g["level"])
         m, s = g["sve_mean"].to_numpy(), g["sve_std"].to_numpy()
-        color = RULE_COLORS.get(name)
+        color = rule_color(name, others)
         ax.plot(x, m, marker="o", ms=3, label=name, color=color)
         ax.fill_between(x, m - s, m + s, alpha=0.15, color=color)
     ax.set_xlabel(level_axis(disturbance))

@@ -45,18 +45,19 @@ def level_axis(disturbance: str) -> str:
 
 
 def number(x, digits: int = 4) -> str:
-    """A plain number: integers as integers, floats to `digits` significant digits in positional
-    notation (never 1e-05); '-' for None and NaN, yes/no for booleans, other values as text."""
+    """A plain number: integers as integers with thousands separated ("1,024"), floats to `digits`
+    significant digits in positional notation (never 1e-05); '-' for None and NaN, yes/no for booleans,
+    other values as text."""
     if x is None or (isinstance(x, (float, np.floating)) and not np.isfinite(x)):
         return "-"
     if isinstance(x, (bool, np.bool_)):
         return "yes" if x else "no"
     if isinstance(x, (int, np.integer)):
-        return f"{int(x):,}" if abs(int(x)) >= 10_000 else str(int(x))
+        return f"{int(x):,}"
     if isinstance(x, (float, np.floating)):
         x = float(x)
         if x == int(x) and abs(x) < 1e15:
-            return str(int(x))
+            return f"{int(x):,}"
         return np.format_float_positional(x, precision=digits, unique=False, fractional=False, trim="-")
     return str(x)
 

@@ -29,7 +29,7 @@ from jsve.report import _derive as derive
 from jsve.report._document import Details, Figure, Section, render
 from jsve.report._evaluation_report import evaluation_sections
 from jsve.report._format import cm_ci, percent
-from jsve.report._study_report import read_study, study_sections
+from jsve.report._study_report import FOLD_KIND_TEXT, read_study, study_sections
 from jsve.report._tables import read_json, rule_file
 
 STUDY_TITLE = "jsve threshold report"
@@ -107,7 +107,7 @@ def summary_lines(out_dir: str | os.PathLike) -> list[str]:
     objective = cm_ci(first["mean_loss"], first["ci_low"], first["ci_high"])
     lines = [
         f"recommended: {s.rec.rule} (rule file {s.out / rule_file(s.rec.rule)}, for `jsve evaluate --rule`)",
-        f"held-out objective ({first['fold_kind']}): {objective} cm",
+        f"held-out objective ({FOLD_KIND_TEXT.get(first['fold_kind'], first['fold_kind'])}): {objective} cm",
     ]
     for base in BASELINES.values():
         key = f"diff_vs_{base}"

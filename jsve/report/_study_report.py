@@ -48,6 +48,16 @@ from jsve.report._tables import (
     rule_file,
 )
 
+ALIGN_TEXT = {
+    "se3": "SE(3)",
+    "sim3": "Sim(3)",
+    "posyaw": "position and yaw (4-DoF)",
+    "origin": "origin",
+    "none": "no",
+}
+"""The alignments (jsve.core._align.ALIGNERS) in words."""
+DESIGN_TEXT = {"sobol": "Sobol", "grid": "grid", "random": "random", "lhs": "Latin hypercube"}
+"""Search designs (jsve.fitting._designs) in words."""
 GROUP_COLUMNS = ("sequence", "disturbance", "level")
 """`jsve fit`'s default run weighting (jsve.fitting._study.StudyConfig.balance_by), for a study.json that
 records none."""
@@ -286,11 +296,12 @@ def _method_bullets(study: dict, scoring: derive.Scoring) -> list[str]:
     cfg = study.get("config", {})
     fit = cfg.get("fit", {})
     floor = cfg.get("min_coverage", 0.0) or 0.0
+    align = str(cfg.get("align", "se3"))
     fails = "reaches LOST, its alignment is degenerate or fewer than 3 frames are evaluated"
     if floor > 0:
         fails += f", or fewer than {percent(floor)} of its frames with ground truth have an estimate"
     items = [
-        f"Objective: the mean per-run ATE RMSE after {str(cfg.get('align', 'se3')).upper()} alignment, "
+        f"Objective: the mean per-run ATE RMSE after {ALIGN_TEXT.get(align, align)} alignment, "
         f"a failed run charged {metres(scoring.penalty)}. A run fails when it {fails}"
         + ("; there is no coverage floor." if floor <= 0 else "."),
         (
@@ -305,7 +316,8 @@ def _method_bullets(study: dict, scoring: derive.Scoring) -> list[str]:
     if cfg.get("support"):
         items.append(f"Support policy `{scoring.support}`: {SUPPORT_TEXT.get(scoring.support, '')}.")
     if fit:
-        search = f"{number(fit.get('n_search'))} {fit.get('design', '')} settings per family plus the presets"
+        design = DESIGN_TEXT.get(fit.get("design"), fit.get("design", ""))
+        search = f"{number(fit.get('n_search'))} {design} settings per family plus the presets"
         polish = f"{count(int(fit.get('n_starts', 1)), 'Nelder-Mead polish')} of {fit.get('nm_steps')} steps"
         if fit.get("relaxed"):
             polish += f", then relaxed BFGS ({fit.get('bfgs_steps')} steps)"
@@ -322,15 +334,15 @@ def _method_bullets(study: dict, scoring: derive.Scoring) -> list[str]:
     if cfg.get("n_boot"):
         level = cfg.get("level", 0.95)
         items.append(
-            f"Intervals: {percent(level)} percentile bootstrap over runs, {number(cfg['n_boot'])} "
+            f"Intervals: {100 * level:g} % percentile bootstrap over runs, {number(cfg['n_boot'])} "
             "resamples; differences are paired (the same resampled runs for both rules; negative: better)."
         )
     data = study.get("data") or {}
     if data:
-        facts = [f"{k} {_fact(v)}" for k, v in data.items() if k != "source"]
+        facts = [f"{k}: {_fact(v)}" for k, v in data.items() if k != "source"]
         items.append(
             f"Data: {data.get('source', 'not described')}"
-            + (f" ({', '.join(facts)})" if facts else "")
+            + (f"; {'; '.join(facts)}" if facts else "")
             + f"; {number(study.get('n_runs'))} runs, {number(study.get('n_frames'))} frames."
         )
     return items
@@ -363,7 +375,7 @@ def _headline(s: StudyFolder) -> list:
         f"per-run ATE RMSE with a failed run charged {metres(scoring.penalty)}, over "
         f"{number(study.get('n_runs'))} runs ({number(study.get('n_frames'))} frames; data: {source})."
     )
-    if rec is None:
+    if rec is None or heldout_summary is None:
         blocks.append("No held-out comparison in this folder: nothing is recommended.")
         return blocks
     rows = heldout_summary[heldout_summary["rule"] == rec.rule]
@@ -413,7 +425,7 @@ def _headline(s: StudyFolder) -> list:
             f"{percent(mine['rejected'])} of frames and {percent(mine['reached_lost'])} of runs reach LOST"
             + (f" ({'; '.join(parts)})." if parts else ".")
         )
-    caveats = _caveats(s)
+    caveats = _caveats(s, rec, heldout_summary)
     return [*blocks, "**Caveats.**", Bullets(tuple(caveats))]
 
 
@@ -421,9 +433,8 @@ def _capital(text: str) -> str:
     return text[:1].upper() + text[1:]
 
 
-def _caveats(s: StudyFolder) -> list[str]:
-    study, scoring, rec = s.study, s.scoring, s.rec
-    heldout_summary, overview, param_table = s.heldout_summary, s.overview, s.param_table
+def _caveats(s: StudyFolder, rec: derive.Recommendation, heldout_summary: pd.DataFrame) -> list[str]:
+    study, scoring, overview, param_table = s.study, s.scoring, s.overview, s.param_table
     cfg = study.get("config", {})
     source = str((study.get("data") or {}).get("source", ""))
     items = []
@@ -538,7 +549,7 @@ def study_sections(s: StudyFolder, fig_dir: Path) -> list[Section]:
             name, moves = FAMILY_TEXT.get(family, (family, "its parameters"))
             blocks += [Sub(f"{family}: {name}, {moves}"), Table(_parameter_view(param_table, family))]
         if notes:
-            blocks.append("Shown once: " + "; ".join(notes) + ".")
+            blocks.append("Shown once (the same numbers): " + "; ".join(notes) + ".")
         sections.append(Section("Fitted parameters", blocks))
     sections.append(
         Section(

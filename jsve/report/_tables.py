@@ -15,7 +15,7 @@ from jsve.core._rules import BASELINES
 from jsve.report import _derive as derive
 from jsve.report import _figures as figures
 from jsve.report._document import Details, Figure, Section, Sub, Table
-from jsve.report._format import cm, cm_ci, level_axis, number, percent
+from jsve.report._format import SEVERITY_FALLS_WITH_LEVEL, cm, cm_ci, level_axis, number, percent
 
 SWITCH_MODEL_TEXT = {
     "orbslam3": "a tracked or RECENTLY_LOST frame keeps its logged (optimised) pose, as in ORB-SLAM3 v1.0",
@@ -79,8 +79,12 @@ def overview_table(overview: pd.DataFrame, diffs: pd.DataFrame | None = None) ->
     return pd.DataFrame(rows)
 
 
-def _level_label(level) -> str:
-    return number(float(level), 3)
+def _levels(part: pd.DataFrame, disturbance: str) -> tuple[list, dict]:
+    """A disturbance's levels from mild to harsh (decreasing where severity falls with the level, as for
+    downsampling) and each one's label, all with the same decimals ("1.0", "0.9", ...; "0", "50")."""
+    levels = sorted(part["level"].unique(), key=float, reverse=disturbance in SEVERITY_FALLS_WITH_LEVEL)
+    decimals = max((len(number(float(v), 3).partition(".")[2]) for v in levels), default=0)
+    return levels, {v: f"{float(v):.{decimals}f}" for v in levels}
 
 
 def _compact_levels(levels: pd.DataFrame, disturbance: str) -> pd.DataFrame:
@@ -88,9 +92,10 @@ def _compact_levels(levels: pd.DataFrame, disturbance: str) -> pd.DataFrame:
     part = levels[levels["disturbance"].astype(str) == disturbance]
     rules = derive.rule_order(part["rule"])
     rows = []
-    for level in sorted(part["level"].unique(), key=float):
+    levels_, labels = _levels(part, disturbance)
+    for level in levels_:
         g = part[part["level"] == level].set_index("rule")
-        row = {level_axis(disturbance): _level_label(level)}
+        row = {level_axis(disturbance): labels[level]}
         for rule in rules:
             if rule in g.index:
                 r = g.loc[rule]
@@ -103,7 +108,8 @@ def _detailed_levels(levels: pd.DataFrame, disturbance: str) -> pd.DataFrame:
     part = levels[levels["disturbance"].astype(str) == disturbance]
     rules = derive.rule_order(part["rule"])
     rows = []
-    for level in sorted(part["level"].unique(), key=float):
+    levels_, labels = _levels(part, disturbance)
+    for level in levels_:
         g = part[part["level"] == level].set_index("rule")
         for rule in rules:
             if rule not in g.index:
@@ -113,7 +119,7 @@ def _detailed_levels(levels: pd.DataFrame, disturbance: str) -> pd.DataFrame:
             spread = f" ± {cm(r['rmse_std_nonfailed'])}" if n > 1 else ""
             tracked = f"{cm(r['ate_tracking'])}{spread} (n = {n})" if n else "- (n = 0)"
             row = {
-                level_axis(disturbance): _level_label(level),
+                level_axis(disturbance): labels[level],
                 "rule": rule,
                 "runs": int(r["n_runs"]),
                 "objective, cm": cm(r["objective"]),
