@@ -30,7 +30,16 @@ def _table(rule, rmse, failed=None, coverage=1.0, level=0, sequence="V101"):
 
 def test_a_failed_run_costs_the_penalty_never_its_partial_error():
     t = _table("a", [0.05, 0.02, np.nan], failed=[False, True, False])
-    np.testing.assert_array_equal(run_loss(t, penalty=1.0), [0.05, 1.0, 1.0])
+    np.testing.assert_array_equal(run_loss(t, 1.0), [0.05, 1.0, 1.0])
+
+
+def test_a_replay_out_of_support_costs_the_penalty_as_in_the_fit():
+    # the fit's objective charges a replay that needed a pose the log lacks (penalise policy): so must the
+    # validation, which shares the one run loss
+    t = _table("a", [0.05, 0.02], failed=[False, False]).assign(unsupported_fraction=[0.0, 0.3])
+    np.testing.assert_array_equal(run_loss(t, 2.0), [0.05, 2.0])
+    s = rerun_summary(t, KEYS, penalty=2.0).iloc[0]
+    assert s["rerun_loss"] == pytest.approx(1.025)
 
 
 def test_bias_limits_and_band_on_known_numbers():

@@ -2,7 +2,7 @@
 
 The JAX side (`jsve.core._trajectory.batched_run_error`) returns one `RunError` per run; these functions
 turn it into a table with one row per run and summarise groups of runs (per sequence / disturbance / level /
-rule): first the objective the fit minimises (`_run_loss`: a failed run costs the failure penalty, never
+rule): first the objective the fit minimises (`run_loss`: a failed run costs the failure penalty, never
 the RMSE of the part it tracked) with the failure rate and coverage, then the literature's mean, median,
 std, min and max of per-run RMSE, and statistics pooled over all frames of the group. Errors are in metres.
 """
@@ -66,7 +66,7 @@ def per_run_table(run_errors: RunError, meta: pd.DataFrame) -> pd.DataFrame:
     return table
 
 
-def _run_loss(table: pd.DataFrame, failure_penalty: float = DEFAULT_FAILURE_PENALTY_M) -> pd.Series:
+def run_loss(table: pd.DataFrame, failure_penalty: float = DEFAULT_FAILURE_PENALTY_M) -> pd.Series:
     """Each run's loss in the objective the fit minimises (jsve.core._objective, the hard replay): its
     ATE RMSE (metres) when it succeeded, `failure_penalty` (metres) when it failed, has no finite RMSE,
     or left the log's support (`unsupported_fraction` > 0, where the table has that column).
@@ -174,7 +174,7 @@ def aggregate(
     Returns:
         One row per group (the `by` columns first), with
         n_runs, n_failed, failure_rate, mean_coverage;
-        objective: the mean `_run_loss` of the group's runs, metres, as jsve.core._objective.objective
+        objective: the mean `run_loss` of the group's runs, metres, as jsve.core._objective.objective
             computes it with equal weights (under "exclude" the mean over the supported runs, the
             penalty when there is none); share_penalised: the share of runs charged the penalty
             (failed, non-finite or unsupported);
@@ -207,7 +207,7 @@ def aggregate(
         row["n_failed"] = int(failed.sum())
         row["failure_rate"] = float(failed.mean())
         row["mean_coverage"] = float(group["coverage"].mean())
-        loss = _run_loss(group, failure_penalty)
+        loss = run_loss(group, failure_penalty)
         scored = loss
         if support == "exclude" and "unsupported_fraction" in group:
             scored = loss[~(group["unsupported_fraction"].astype(float) > 0)]

@@ -8,8 +8,9 @@ Two per-run tables in `jsve.evaluation.evaluate`'s form (one row per run and rul
 
 ORB-SLAM3 is not deterministic (threads, RANSAC), so a replayed run is compared with the distribution
 of the rule's re-runs of the same setting, never with one run. Every number is on the run loss the fit
-minimises: the ATE RMSE (m) of a run that succeeded, `penalty` for a failed one (never a mean over the
-part a failed run tracked):
+minimises (jsve.evaluation._aggregate.run_loss, its one home): the ATE RMSE (m) of a run that
+succeeded, `penalty` for a failed one or one whose replay left the log's support (never a mean over
+the part a failed run tracked):
 
     d_i        = loss(replay_i) - mean loss(re-runs)            per replayed run of a (setting, rule)
     bias       = mean d_i;   limits of agreement = bias -+ 1.96 sd(d_i)       (Bland & Altman 1986)
@@ -25,18 +26,11 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-DEFAULT_PENALTY_M = 1.0
-"""The loss of a failed run, m (jsve.core._objective.ObjectiveConfig's default)."""
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M as DEFAULT_PENALTY_M
+from jsve.evaluation._aggregate import run_loss
 
 SETTING = ("sequence", "disturbance", "level")
 """Columns that name a setting: one sequence under one disturbance level."""
-
-
-def run_loss(table: pd.DataFrame, penalty: float = DEFAULT_PENALTY_M) -> pd.Series:
-    """Each run's loss: its ATE RMSE (m), or `penalty` where it failed (or has no finite RMSE)."""
-    rmse = table["rmse"].astype(float)
-    failed = table["failed"].astype(bool) | ~np.isfinite(rmse)
-    return rmse.where(~failed, penalty)
 
 
 def rerun_summary(
