@@ -181,6 +181,33 @@ def test_cli_ingest_with_ground_truth(shared_data, tmp_path, capsys):
     assert run.has_ground_truth and run.meta["gt_missing_frames"] == 0
 
 
+def test_cli_ingest_with_one_ground_truth_per_sequence(tmp_path, capsys):
+    # --gt SEQ=FILE per sequence: each log gets its own sequence's trajectory, a sequence without one is
+    # left without ground truth, and a plain FILE beside SEQ=FILE is refused
+    folder = tmp_path / "logs"
+    t0 = 1_403_715_274_000_000_000
+    logs.write_log(with_stamps(t0 + 50_000_000 * np.arange(6), 1, sequence="V101"), folder / "a.csv")
+    logs.write_log(with_stamps(t0 + 50_000_000 * np.arange(6), 2, sequence="V201"), folder / "b.csv")
+    logs.write_log(with_stamps(t0 + 50_000_000 * np.arange(6), 3, sequence="MH01"), folder / "c.csv")
+    v101 = _euroc_file(tmp_path / "v101.csv")
+    v201 = _euroc_file(tmp_path / "v201.csv")
+    v201.write_text(v201.read_text().replace(",0,1,1,0,0,0", ",2,1,1,0,0,0"))  # y = 2 m, not 0
+    out = tmp_path / "s.parquet"
+    argv = ["ingest", str(folder), "-o", str(out), "--no-progress"]
+    argv += ["--gt", f"V101={v101}", "--gt", f"V201={v201}"]
+    assert jsve_main(argv) == 0
+    runs = {r.meta["sequence"]: r for r in ingest.read_parquet(out)}
+    assert runs["V101"].has_ground_truth and runs["V201"].has_ground_truth
+    assert not runs["MH01"].has_ground_truth
+    np.testing.assert_allclose(runs["V101"].frames["gt_py"].to_numpy(), 0.0)
+    np.testing.assert_allclose(runs["V201"].frames["gt_py"].to_numpy(), 2.0)
+    mixed = [*argv[:5], "--gt", str(v101), "--gt", f"V201={v201}"]
+    assert jsve_main(mixed) == 2
+    assert "not both" in capsys.readouterr().err
+    assert jsve_main([*argv[:5], "--gt", f"V101={v101}", "--gt", f"V101={v201}"]) == 2
+    assert "given twice" in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------------------------------------------
 # Values evo reads without a word (issue 12)
 

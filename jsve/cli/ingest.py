@@ -10,6 +10,7 @@ malformed with --on-error raise, or when there are no logs.
 from __future__ import annotations
 
 import argparse
+import os
 
 from jsve.cli import _common as common
 
@@ -62,7 +63,13 @@ def register(subparsers) -> None:
     common.add_progress_option(p)
     common.add_yes_option(p)
     gt = p.add_argument_group("ground truth (associated with logs that carry none)")
-    gt.add_argument("--gt", metavar="FILE", help="ground-truth trajectory file (default: none)")
+    gt.add_argument(
+        "--gt",
+        metavar="[SEQ=]FILE",
+        action="append",
+        help="ground-truth trajectory file for every log, or SEQ=FILE for the logs whose `sequence` is SEQ "
+        "(repeatable: a study of several sequences) (default: none)",
+    )
     gt.add_argument(
         "--gt-format",
         choices=common.LibraryNames("jsve.io._groundtruth", "GT_FORMATS"),
@@ -88,6 +95,27 @@ def register(subparsers) -> None:
     p.set_defaults(func=run, _parser=p)
 
 
+def ground_truth_files(values: list[str]) -> dict[str | None, str]:
+    """--gt values as {sequence: file}; one plain FILE (for every log) is {None: FILE}.
+
+    Raises:
+        ValueError: a plain FILE beside others, or a sequence named twice.
+    """
+    files: dict[str | None, str] = {}
+    for value in values:
+        sequence, sep, path = value.partition("=")
+        key = sequence if sep and sequence and os.sep not in sequence else None
+        path = path if key is not None else value
+        if key in files:
+            raise ValueError(
+                f"{value!r}: " + (f"sequence {key} given twice" if key else "more than one --gt FILE")
+            )
+        files[key] = path
+    if None in files and len(files) > 1:
+        raise ValueError("give either one --gt FILE for every log or --gt SEQ=FILE per sequence, not both")
+    return files
+
+
 @common.guarded("ingest")
 def run(args: argparse.Namespace) -> int:
     """Run `jsve ingest`; returns the exit status."""
@@ -107,16 +135,20 @@ def run(args: argparse.Namespace) -> int:
     ground_truth = None
     try:
         if args.gt is not None:
-            ground_truth = GroundTruth(
-                args.gt,
-                args.gt_format,
-                kitti_times=args.kitti_times,
-                max_gap_ns=(
-                    DEFAULT_MAX_GAP_NS if args.gt_max_gap_ms is None else int(round(args.gt_max_gap_ms * 1e6))
-                ),
-                interpolate=not args.no_interpolate,
-            )
-            check_ground_truth(ground_truth)  # the --gt file's own error, before any log is read
+            files = ground_truth_files(args.gt)
+            max_gap_ns = DEFAULT_MAX_GAP_NS if args.gt_max_gap_ms is None else round(args.gt_max_gap_ms * 1e6)
+            gt_of = {
+                sequence: GroundTruth(
+                    path,
+                    args.gt_format,
+                    kitti_times=args.kitti_times,
+                    max_gap_ns=int(max_gap_ns),
+                    interpolate=not args.no_interpolate,
+                )
+                for sequence, path in files.items()
+            }
+            ground_truth = gt_of[None] if None in gt_of else gt_of
+            check_ground_truth(ground_truth)  # the --gt files' own errors, before any log is read
     except ValueError as e:  # LogFormatError, TrajectoryFileError: the file, its line
         return common.fail("ingest", f"--gt: {e}")
     try:
