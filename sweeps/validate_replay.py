@@ -1,12 +1,22 @@
-"""Run the real front-end for the replay's validation (issue 11): every rule of the config in ORB-SLAM3's
-loop under every switch model, and `record`-mode recordings, N runs per dataset.
+"""Run the real front-end for the replay's validation (issue 11): recordings in `record` mode, a rule
+fitted on their replays, then every rule of the config in ORB-SLAM3's loop under every switch model.
 
     python sweeps/validate_replay.py sweeps/validation.toml [--dry-run]
 
-Each (rule, switch model) is one `jsve frontend run` over all datasets (parallel, resumable: runs already
-complete under the same key are kept, so a stopped sweep continues where it stopped; runs of another key
-stop it). Then `python analysis/replay_vs_rerun.py OUTPUT --ground-truth SEQ=GT ...` compares every
-recording's replay with the re-runs. The config format is in sweeps/validation.toml.
+Steps, in order (the config format is in sweeps/validation.toml):
+
+1. `record` runs of every dataset under each switch model (the logs that support every stricter rule);
+2. with a `[fit]` table: per switch model, `jsve ingest` of those recordings (each sequence with its own
+   ground truth) and `jsve fit` on them, so that a rule named `fit/{switch_model}/fitted_sve.json`
+   exists before it is run;
+3. each rule in the loop under each switch model.
+
+Every step is one `jsve` command: runs are parallel and resumable (runs already complete under the same
+key are kept, so a stopped sweep continues where it stopped; runs of another key stop it), ingest and
+fit resume their own outputs (the recordings are ingested afresh each time, and `jsve fit` resumes only
+a study of the same data and configuration). Then
+`python analysis/replay_vs_rerun.py OUTPUT --ground-truth SEQ=GT ...` compares every recording's
+replay with the re-runs.
 """
 
 from __future__ import annotations
@@ -20,20 +30,40 @@ from pathlib import Path
 import tomllib
 
 
-def commands(config: dict) -> list[list[str]]:
-    """The `jsve frontend run` command lines of a config, one per (rule, switch model), record last."""
-    base = ["jsve", "frontend", "run", config["build"], *config["datasets"],
-            "--vocabulary", config["vocabulary"], "--settings", config["settings"],
-            "--runs", str(config.get("runs", 5)), "--workers", str(config.get("workers", 2)),
-            "-o", config["output"]]  # fmt: skip
+def run_command(config: dict, rule: str, model: str) -> list[str]:
+    """`jsve frontend run` of every dataset with `rule` in the loop under switch model `model`."""
+    cmd = ["jsve", "frontend", "run", config["build"], *config["datasets"],
+           "--vocabulary", config["vocabulary"], "--settings", config["settings"],
+           "--runs", str(config.get("runs", 5)), "--workers", str(config.get("workers", 2)),
+           "-o", config["output"],
+           "--rule", rule.format(switch_model=model), "--switch-model", model]  # fmt: skip
     if config.get("no_wait", False):
-        base.append("--no-wait")
-    jobs = []
-    for model in config.get("switch_models", ["orbslam3"]):
-        for rule in config.get("rules", ["orbslam3"]):
-            jobs.append([*base, "--rule", rule, "--switch-model", model])
-        if config.get("record", True):
-            jobs.append([*base, "--rule", "record", "--switch-model", model])
+        cmd.append("--no-wait")
+    return cmd
+
+
+def fit_commands(config: dict, model: str) -> list[list[str]]:
+    """`jsve ingest` of the `record` runs under `model` and `jsve fit` on them (config's [fit] table)."""
+    fit = config["fit"]
+    root = Path(fit.get("output", "fit"))
+    folder = root / model
+    recordings = str(Path(config["output"]) / "*" / "*" / f"record-{model}" / "run_*.csv")
+    truth = [arg for seq, path in sorted(fit["ground_truth"].items()) for arg in ("--gt", f"{seq}={path}")]
+    parquet = str(root / f"recordings-{model}.parquet")
+    ingest = ["jsve", "ingest", recordings, "-o", parquet, *truth, "--yes"]
+    study = ["jsve", "fit", parquet, "-o", str(folder), "--switch-model", model]
+    if "config" in fit:
+        study += ["--config", fit["config"]]
+    return [ingest, study]
+
+
+def commands(config: dict) -> list[list[str]]:
+    """Every command of the sweep in order: recordings, fits, then the rules in the loop."""
+    models = config.get("switch_models", ["orbslam3"])
+    jobs = [run_command(config, "record", m) for m in models] if config.get("record", True) else []
+    if "fit" in config:
+        jobs += [cmd for m in models for cmd in fit_commands(config, m)]
+    jobs += [run_command(config, rule, m) for m in models for rule in config.get("rules", ["orbslam3"])]
     return jobs
 
 
@@ -48,11 +78,14 @@ def main(argv=None) -> int:
         print(f"[{k}/{len(jobs)}] {' '.join(cmd)}", flush=True)
         if args.dry_run:
             continue
+        if cmd[:2] == ["jsve", "ingest"]:  # re-ingested every time (seconds): never a stale table
+            Path(cmd[cmd.index("-o") + 1]).parent.mkdir(parents=True, exist_ok=True)
         start = time.monotonic()
         done = subprocess.run(cmd)
         print(f"[{k}/{len(jobs)}] exit {done.returncode} after {time.monotonic() - start:.0f} s", flush=True)
-        if done.returncode not in (0, 1):  # 1: some runs failed (counted); anything else stops the sweep
-            return done.returncode
+        frontend_run = cmd[:3] == ["jsve", "frontend", "run"]
+        if done.returncode != 0 and not (frontend_run and done.returncode == 1):
+            return done.returncode  # 1 from a front-end run: some runs failed (counted); the rest stops
     return 0
 
 
