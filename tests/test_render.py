@@ -319,7 +319,8 @@ def test_imu_noise_option_picks_the_synthesised_stream(tmp_path, inputs, capsys)
     from jsve.sim import synthesize_imu
 
     gt, stamps = inputs
-    args = ["render", "--trajectory", str(gt), "--timestamps", str(stamps), "--frames", "0:1", "--workers", "1"]
+    args = ["render", "--trajectory", str(gt), "--timestamps", str(stamps)]
+    args += ["--frames", "0:1", "--workers", "1"]
     error = {}
     for noise in ("in-flight", "datasheet"):
         out = tmp_path / noise
@@ -333,9 +334,8 @@ def test_imu_noise_option_picks_the_synthesised_stream(tmp_path, inputs, capsys)
         n = len(bias)
         left = rows[:n, 4:7] - ideal.accel[:n] - bias[:, 14:17]
         error[noise] = float(np.sqrt(np.mean(left**2)))
-        assert json.loads((out / "jsve_render.json").read_text())["key"]["config"]["imu_noise"]["accel_gm"] == (
-            0.0 if noise == "datasheet" else 0.07
-        )
+        config = json.loads((out / "jsve_render.json").read_text())["key"]["config"]
+        assert config["imu_noise"]["accel_gm"] == (0.0 if noise == "datasheet" else 0.07)
     assert error["datasheet"] < error["in-flight"]
     assert main([*args, "--imu-noise", "datasheet", "--imu", str(gt), "-o", str(tmp_path / "x")]) == 2
     assert "cannot go with --imu" in capsys.readouterr().err
