@@ -4,6 +4,7 @@ own shape errors with jaxtyping's runtime checker (on for jsve.core through pypr
 from __future__ import annotations
 
 import contextlib
+import os
 from pathlib import Path
 
 import jax
@@ -11,6 +12,11 @@ import jaxtyping
 import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+# The commands' persistent compilation cache (jsve._jax_cache) off: the suite neither writes into the
+# user's cache folder nor reads executables compiled by another checkout. tests/test_jax_cache.py turns
+# it on in its own processes.
+os.environ["JSVE_JAX_CACHE"] = "off"
 
 
 @pytest.fixture(scope="session")

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from logfactory import make_run
 
 from jsve.core import bucket_by_length, iter_chunks, pad_runs, preset, replay, take_runs
-from jsve.core._batch import runs_per_chunk_for
+from jsve.core._batch import LADDER_RATIO, bucket_by_ladder, ladder, ladder_chunk_size, runs_per_chunk_for
 from jsve.io import from_runs
 
 # ------------------------------------------------------------------------------------------------
@@ -113,3 +113,65 @@ def test_runs_per_chunk_for():
     assert runs_per_chunk_for(3600) == int(4e9 // (600 * 3600))
     assert runs_per_chunk_for(10**9) == 1  # never zero
     assert runs_per_chunk_for(100) > runs_per_chunk_for(1000)
+
+
+# ------------------------------------------------------------------------------------------------
+# The padded-length ladder: few compiled shapes whatever the study's exact lengths
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(n=st.integers(1, 200_000), multiple=st.sampled_from([1, 8, 64]))
+def test_ladder_rung_covers_n_with_bounded_padding(n, multiple):
+    rung = ladder(n, multiple=multiple)
+    assert rung >= n and rung % multiple == 0
+    # at most one ratio step above n, plus the rounding to the multiple
+    assert rung <= max(multiple, math.ceil(n * LADDER_RATIO / multiple) * multiple + multiple)
+    assert ladder(rung, multiple=multiple) == rung  # a rung is its own rung: lengths never creep up
+
+
+def test_ladder_is_monotone_and_has_few_rungs():
+    rungs = [ladder(n) for n in range(1, 20_001)]
+    assert all(a <= b for a, b in zip(rungs[:-1], rungs[1:], strict=True))
+    # runs of 1,000 to 4,000 frames (EuRoC's sequences at 20 fps) compile at most 9 frame counts
+    assert len({ladder(n) for n in range(1000, 4001)}) <= 9
+    with pytest.raises(ValueError, match="n must be >= 1"):
+        ladder(0)
+    with pytest.raises(ValueError, match="ratio must be > 1"):
+        ladder(10, ratio=1.0)
+
+
+@settings(max_examples=100, deadline=None, derandomize=True)
+@given(lengths=st.lists(st.integers(1, 5000), min_size=0, max_size=60))
+def test_bucket_by_ladder_groups_runs_by_rung(lengths):
+    groups = bucket_by_ladder(lengths)
+    flat = np.concatenate(groups) if groups else np.array([], int)
+    assert sorted(flat.tolist()) == list(range(len(lengths)))  # every run exactly once
+    rungs = [{ladder(lengths[i]) for i in g} for g in groups]
+    assert all(len(r) == 1 for r in rungs)  # one padded length per group
+    assert [r.pop() for r in rungs] == sorted(
+        {ladder(n) for n in lengths}
+    )  # one group per rung, shortest first
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(n_runs=st.integers(1, 5000), cap=st.integers(1, 600))
+def test_ladder_chunk_size_needs_the_fewest_chunks(n_runs, cap):
+    size = ladder_chunk_size(n_runs, cap)
+    assert 1 <= size <= cap
+    assert math.ceil(n_runs / size) == math.ceil(n_runs / cap)  # no more compiled calls than the cap needs
+
+
+def test_ladder_chunk_sizes_are_shared_between_buckets():
+    # buckets of 90 to 120 runs under a cap of 512 share a handful of chunk shapes, not 31
+    assert len({ladder_chunk_size(n, 512) for n in range(90, 121)}) <= 2
+
+
+def test_pad_runs_in_numpy_equals_jax_and_stays_on_the_host(mixed_runs):
+    batch = from_runs(mixed_runs).batch
+    on_host = jax.tree.map(np.asarray, batch)
+    padded_host, padded_jax = pad_runs(on_host, 5), pad_runs(batch, 5)
+    assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(padded_host))
+    for a, b in zip(jax.tree.leaves(padded_host), jax.tree.leaves(padded_jax), strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    assert padded_host.run_index.tolist() == [0, 1, 2, -1, -1]
+    assert not padded_host.valid[3:].any() and not padded_host.gt_valid[3:].any()

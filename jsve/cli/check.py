@@ -33,8 +33,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from jsve._jax_cache import enable_compilation_cache
     from jsve.evaluation._identity import IDENTITY_THRESHOLD, identity_table
     from jsve.io import _atomic as atomic
+
+    enable_compilation_cache()  # a second run compiles nothing
 
     try:
         runs = common.load_runs(

@@ -81,6 +81,10 @@ def register(subparsers) -> None:
 def run(args) -> int:
     import jax
 
+    from jsve._jax_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # before the first compilation: a second run compiles nothing
+
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp

@@ -102,11 +102,13 @@ def load_study_config(path: str | None, **overrides):
 
 @common.guarded("fit")
 def run(args) -> int:
+    from jsve._jax_cache import enable_compilation_cache
     from jsve.fitting._search import use_all_cores
     from jsve.io._atomic import check_writable
 
     check_writable(args.output)  # before reading the logs: an unwritable folder fails at once
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
+    enable_compilation_cache()  # a second run compiles nothing
     try:
         config = load_study_config(
             args.config,

@@ -88,6 +88,48 @@ def padded_length(n: int, multiple: int) -> int:
     return max(multiple, int(math.ceil(n / multiple)) * multiple)
 
 
+LADDER_RATIO = 2**0.25
+"""Step between padded lengths of the ladder: at most 19 % padding, 4 rungs per doubling, so a study's
+runs of 1,000 to 4,000 frames share 9 compiled shapes whatever their exact lengths."""
+
+
+def ladder(n: int, *, ratio: float = LADDER_RATIO, multiple: int = 64) -> int:
+    """The smallest rung >= n of the geometric ladder multiple, multiple * ratio, multiple * ratio^2, ...
+    (each rung rounded up to `multiple`).
+
+    Padded shapes taken from the ladder are few (about log(longest / shortest) / log(ratio)), so a
+    compiled function keyed on them is reused across runs, buckets and studies of similar lengths.
+    """
+    if n < 1:
+        raise ValueError(f"ladder: n must be >= 1, got {n}")
+    if ratio <= 1.0:
+        raise ValueError(f"ladder: ratio must be > 1, got {ratio}")
+    k = max(0, math.floor(math.log(n / multiple) / math.log(ratio))) if n > multiple else 0
+    while True:  # from just below n: float logs may land a rung low
+        rung = padded_length(math.ceil(multiple * ratio**k - 1e-9), multiple)
+        if rung >= n:
+            return rung
+        k += 1
+
+
+def bucket_by_ladder(
+    lengths: Sequence[int] | Int[np.ndarray, " R"], *, ratio: float = LADDER_RATIO, multiple: int = 64
+) -> list[np.ndarray]:
+    """Group run indices by their rung of `ladder`: one group per padded length, shortest first.
+
+    Returns:
+        Index arrays into `lengths`, each sorted ascending by length, covering every run exactly once;
+        group g pads to `ladder(max(lengths[g]))`.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    if lengths.size == 0:
+        return []
+    order = np.argsort(lengths, kind="stable")
+    rungs = np.array([ladder(int(n), ratio=ratio, multiple=multiple) for n in lengths[order]])
+    cuts = np.flatnonzero(np.diff(rungs)) + 1
+    return [g.astype(np.int64) for g in np.split(order, cuts)]
+
+
 def bucket_by_length(
     lengths: Sequence[int] | Int[np.ndarray, " R"], *, max_padding: float = 0.1, pad_multiple: int = 64
 ) -> list[np.ndarray]:
@@ -128,25 +170,30 @@ def take_runs(batch: LogBatch, index: np.ndarray | Array) -> LogBatch:
 
 
 def pad_runs(batch: LogBatch, n_runs: int) -> LogBatch:
-    """Append padding runs (valid False everywhere, run_index -1) up to `n_runs` runs."""
+    """Append padding runs (valid False everywhere, run_index -1) up to `n_runs` runs.
+
+    A batch of numpy leaves is padded in numpy (host-side chunking that compiles nothing); otherwise
+    in jax.numpy.
+    """
     extra = n_runs - batch.n_runs
     if extra < 0:
         raise ValueError(f"pad_runs: batch has {batch.n_runs} runs, more than n_runs={n_runs}")
     if extra == 0:
         return batch
+    xp = np if all(isinstance(x, np.ndarray) for x in jax.tree.leaves(batch)) else jnp
 
     def pad(x):
-        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+        return xp.concatenate([x, xp.repeat(x[-1:], extra, axis=0)], axis=0)
 
     padded = jax.tree.map(pad, batch)
-    keep = jnp.arange(n_runs) < batch.n_runs
+    keep = xp.arange(n_runs) < batch.n_runs
     return eqx.tree_at(
         lambda b: (b.valid, b.gt_valid, b.run_index),
         padded,
         (
             padded.valid & keep[:, None],
             padded.gt_valid & keep[:, None],
-            jnp.where(keep, padded.run_index, -1),
+            xp.where(keep, padded.run_index, -1),
         ),
     )
 
@@ -161,6 +208,17 @@ def iter_chunks(batch: LogBatch, runs_per_chunk: int) -> Iterator[tuple[slice, L
         stop = min(start + runs_per_chunk, batch.n_runs)
         chunk = jax.tree.map(lambda x, a=start, b=stop: x[a:b], batch)
         yield slice(start, stop), pad_runs(chunk, runs_per_chunk)
+
+
+def ladder_chunk_size(n_runs: int, cap: int, *, ratio: float = 2**0.5, multiple: int = 8) -> int:
+    """Runs per chunk for a bucket of `n_runs` runs with at most `cap` runs a chunk: the fewest chunks,
+    all of one size taken from a coarse ladder (8, 16, 24, 32, 48, 64, 96, 128, ...; `ladder`), so a
+    bucket compiles once and buckets of similar sizes share the shape. At most 41 % padding runs
+    beyond the rounding to `multiple`; `cap` itself where one chunk does not suffice."""
+    if n_runs < 1 or cap < 1:
+        raise ValueError(f"ladder_chunk_size: n_runs and cap must be >= 1, got {n_runs} and {cap}")
+    n_chunks = math.ceil(n_runs / cap)
+    return min(cap, ladder(math.ceil(n_runs / n_chunks), ratio=ratio, multiple=multiple))
 
 
 def runs_per_chunk_for(n_frames: int, *, bytes_budget: float = 4e9, bytes_per_frame: int = 600) -> int:

@@ -1,8 +1,10 @@
 """Evaluate a switching rule over logs: replay, align, score, and one row per run.
 
-`evaluate_batch` is the jit-compiled core (replay + trajectory error for one LogBatch); `evaluate`
-drives it over length buckets and fixed-size chunks of runs, with progress, and returns the per-run
-table that `jsve.evaluation._aggregate.aggregate` summarises.
+`evaluate_batch` is the jit-compiled core (features, replay and trajectory error for one LogBatch, one
+XLA computation); `evaluate` drives it over length buckets and fixed-size chunks of runs cut on the
+host, with progress, and returns the per-run table that `jsve.evaluation._aggregate.aggregate`
+summarises. Bucket lengths and chunk sizes come from ladders (jsve.core._batch), so a study compiles
+a handful of shapes, and JAX's persistent cache (jsve._jax_cache) keeps them for the next process.
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ import pandas as pd
 from jaxtyping import Array, Bool, Float
 from tqdm.auto import tqdm
 
-from jsve.core._batch import LogBatch, iter_chunks, runs_per_chunk_for
+from jsve.core._batch import LogBatch, iter_chunks, ladder_chunk_size, runs_per_chunk_for
 from jsve.core._machine import TIME_RECENTLY_LOST_S
-from jsve.core._replay import as_logged_mode, batch_features, replay
+from jsve.core._replay import as_logged_mode, replay
 from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import RunError, batched_run_error
@@ -116,7 +118,8 @@ def evaluate(
         buckets: from jsve.io._batching.buckets (or a single from_runs Bucket in a list).
         rule_name: value of the `rule` column.
         switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md); the `switch_model` column.
-        runs_per_chunk: runs evaluated per compiled call; default fits a 4 GB working set.
+        runs_per_chunk: at most this many runs per compiled call; default fits a 4 GB working set.
+            A bucket's chunks all have one size (`ladder_chunk_size`), so each bucket compiles once.
     Returns:
         One row per run: meta columns, `rule`, rmse ... count (metres), coverage, n_segments, failed,
         failure_reason (LOST_REASON and jsve.core._trajectory.FAILURE_CAUSES in words, '; '-joined;
@@ -127,13 +130,15 @@ def evaluate(
     total = sum(b.batch.n_runs for b in buckets)
     with tqdm(total=total, desc=f"evaluate {rule_name}", unit="run", disable=not progress) as bar:
         for bucket in buckets:
-            size = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames)
-            size = min(size, bucket.batch.n_runs)
+            cap = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames)
+            size = ladder_chunk_size(bucket.batch.n_runs, cap)
+            # Chunks are cut and padded on the host (numpy), so the only computation JAX compiles is
+            # evaluate_batch (features, replay and statistics together), once per chunk shape.
+            host = jax.tree.map(np.asarray, bucket.batch)
             parts = []
-            for runs, chunk in iter_chunks(bucket.batch, size):
-                ev = evaluate_batch(chunk, rule, batch_features(chunk), align=align, n_first=n_first,
-                                    segments=segments, min_coverage=min_coverage,
-                                    switch_model=switch_model)  # fmt: skip
+            for runs, chunk in iter_chunks(host, size):
+                ev = evaluate_batch(chunk, rule, align=align, n_first=n_first, segments=segments,
+                                    min_coverage=min_coverage, switch_model=switch_model)  # fmt: skip
                 n = runs.stop - runs.start
                 parts.append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], ev))
                 bar.update(n)

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from jsve.core._batch import LogBatch, bucket_by_length, padded_length
+from jsve.core._batch import LADDER_RATIO, LogBatch, bucket_by_ladder, ladder, padded_length
 from jsve.core._machine import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST
 from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
@@ -192,7 +192,12 @@ def from_runs(
     return Bucket(batch=batch, meta=run_meta_table(runs).reset_index(drop=True))
 
 
-def buckets(runs: Sequence[RunLog], *, max_padding: float = 0.1, dtype=jnp.float32) -> list[Bucket]:
-    """Split runs into length buckets (see `bucket_by_length`) and stack each into a Bucket."""
-    groups = bucket_by_length([len(r.frames) for r in runs], max_padding=max_padding)
-    return [from_runs([runs[i] for i in g], dtype=dtype) for g in groups]
+def buckets(runs: Sequence[RunLog], *, ratio: float = LADDER_RATIO, dtype=jnp.float32) -> list[Bucket]:
+    """Split runs into length buckets, one per rung of the padded-length ladder (`bucket_by_ladder`),
+    and stack each into a Bucket padded to its rung: a study has a handful of frame counts, and every
+    compiled evaluation is reused by all the buckets, and the studies, that share its rung."""
+    groups = bucket_by_ladder([len(r.frames) for r in runs], ratio=ratio)
+    return [
+        from_runs([runs[i] for i in g], n_frames=ladder(len(runs[g[-1]].frames), ratio=ratio), dtype=dtype)
+        for g in groups
+    ]
