@@ -157,6 +157,42 @@ def test_cli_evaluate_rule_file_round_trip(runs, log_dir, tmp_path):
     assert set(from_file["rule"]) == {"eq1"}
 
 
+def test_cli_evaluate_records_its_settings_and_rules_for_the_report(runs, log_dir, tmp_path):
+    """`jsve evaluate -o` writes evaluation.json: the penalty, support policy, alignment, switch model and
+    every rule it scored with (a rule file's parameters too), which `jsve report DIR` then scores and
+    names instead of jsve's defaults."""
+    from jsve.core._rules import rule_from_dict, rule_params
+    from jsve.evaluation import read_evaluation_record
+
+    rule = jsve.preset("sve-eq1")
+    path = tmp_path / "eq1.json"
+    path.write_text(json.dumps(jsve.rule_to_dict(rule)))
+    out = tmp_path / "o"
+    argv = ["evaluate", str(log_dir), "--rule", "orbslam3", "--rule", str(path), "-o", str(out),
+            "--no-progress", "--failure-penalty", "0.25", "--support", "exclude", "--align", "sim3",
+            "--switch-model", "imu-coast", "--min-coverage", "0.5", "--n-to-align", "40",
+            "--by", "disturbance,rule"]  # fmt: skip
+    assert jsve_main(argv) == 0
+    record = read_evaluation_record(out)
+    assert (record.failure_penalty, record.support, record.align, record.switch_model) == (
+        0.25, "exclude", "sim3", "imu-coast",
+    )  # fmt: skip
+    assert (record.min_coverage, record.n_to_align, record.by, record.logs) == (
+        0.5, 40, ("disturbance", "rule"), str(log_dir),
+    )  # fmt: skip
+    assert [(r.name, r.file) for r in record.rules] == [("orbslam3", None), ("eq1", str(path))]
+    back = rule_from_dict(record.rules[1].rule)
+    assert {k: float(v) for k, v in rule_params(back).items()} == pytest.approx(
+        {k: float(v) for k, v in rule_params(rule).items()}
+    )
+    assert back.combination.inputs == rule.combination.inputs == "authors-eq1"
+    assert jsve_main(["report", str(out)]) == 0
+    md = (out / "report.md").read_text()
+    assert "a failed run charged 0.25 m, a run out of the log's support left out" in md
+    assert "under the switch model `imu-coast` and Sim(3) alignment" in md
+    assert "| eq1 | " + str(path) + " | sve |" in md and "inputs authors-eq1" in md
+
+
 def test_cli_evaluate_errors(log_dir, tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text('{"kind": "sve",\n "thresholds": }')

@@ -586,3 +586,59 @@ def test_report_of_an_evaluate_folder(tmp_path):
     assert "| 50 | 25.0 (0 %) | 100.0 (100 %) | 51.5 (50.0 %) |" in _section(md, "Per level")
     assert (tmp_path / "figures" / "levels.png").is_file()
     assert not (tmp_path / "report.json").exists()  # no title given: none kept
+    # Without evaluation.json (a folder of an earlier jsve) the report says it assumes the defaults.
+    assert "This folder has no evaluation.json" in _section(md, "Method")
+
+
+def test_report_of_an_evaluate_folder_scores_as_evaluate_recorded(tmp_path):
+    """The settings `jsve evaluate -o` records in evaluation.json, not jsve's defaults, score the rules
+    and are shown: a penalty of 0.5 m reorders the rules, the alignment, switch model and support policy
+    are named, every rule is listed with where it came from and its parameters."""
+    from jsve.core._rules import preset, rule_to_dict
+    from jsve.evaluation import EvaluationRecord, RuleRecord, write_evaluation_record
+    from jsve.io import _atomic as atomic
+
+    atomic.write_table(_runs(), tmp_path / "runs.parquet")
+    fitted = {
+        "kind": "inliers",
+        "thresholds": {"imu_init": 7.5, "not_init": 30.0, "reloc": 30.0, "recovery": 5.0},
+    }
+    record = EvaluationRecord(
+        align="sim3",
+        switch_model="imu-coast",
+        failure_penalty=0.5,
+        support="penalise",
+        min_coverage=0.25,
+        logs="study.parquet",
+        rules=(
+            RuleRecord("fitted-sve", "fit/fitted_sve.json", fitted),
+            RuleRecord("orbslam3", None, rule_to_dict(preset("orbslam3"))),
+            RuleRecord("sve-option2", None, rule_to_dict(preset("sve-option2"))),
+        ),
+    )
+    write_evaluation_record(record, tmp_path)
+    md = write_report(tmp_path)["markdown"].read_text()
+    head = _section(md, "Headline")
+    # sve-option2: 0.02 x 4, 0.5 (the failed run), 0.03 x 3 -> 0.08375 m; fitted-sve keeps 0.135 m
+    assert "**Lowest objective: `sve-option2`**, 8.4 [" in head, head
+    assert "under the switch model `imu-coast` and Sim(3) alignment" in head
+    assert "charged 0.5 m" in head and "1 m" not in head
+    assert "| sve-option2 | 8 | 8.4 [" in _section(md, "All runs, per rule")
+    method = _section(md, "Method")
+    assert "after Sim(3) alignment, a failed run charged 0.5 m" in method
+    assert "fewer than 25.0 % of its frames with ground truth have an estimate" in method
+    assert "Switch model `imu-coast`" in method and "Support policy `penalise`" in method
+    assert (
+        "| fitted-sve | fit/fitted_sve.json | inliers | imu_init 7.5, not_init 30, reloc 30, recovery 5 | - |"
+        in method
+    )
+    assert "| orbslam3 | preset | inliers | imu_init 15, not_init 50, reloc 50, recovery 10 | - |" in method
+    assert "w_a 0.5, u_b 0.5, p 0, q 1, rho 0.25" in method
+    # "exclude" leaves sve-option2's run out of support out of its mean instead of charging it
+    write_evaluation_record(replace(record, support="exclude"), tmp_path)
+    md = write_report(tmp_path)["markdown"].read_text()
+    assert "a run out of the log's support left out of its rule's mean" in _section(md, "Headline")
+    assert "Support policy `exclude`" in _section(md, "Method")
+    (tmp_path / "evaluation.json").write_text('{"penalty": 2}')  # not a record: named, never misread
+    with pytest.raises(ValueError, match=r"evaluation.json: unknown keys \['penalty'\]"):
+        write_report(tmp_path)

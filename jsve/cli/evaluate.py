@@ -3,8 +3,9 @@
     jsve evaluate study.parquet --rule orbslam3 --rule sve-option2 --align se3 -o results/
 
 LOGS is a folder of format-v1 logs, a single log, or a Parquet file from `jsve ingest`. Writes
-runs.parquet / runs.csv (one row per run and rule) and summary.csv (aggregated by --by), and prints
-the summary and, per rule, how many runs failed for each failure_reason.
+runs.parquet / runs.csv (one row per run and rule), summary.csv (aggregated by --by) and
+evaluation.json (the settings and rules it scored with, jsve.evaluation.EvaluationRecord, which
+`jsve report` reads), and prints the summary and, per rule, how many runs failed for each failure_reason.
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ def register(subparsers) -> None:
     common.add_output_option(
         p,
         metavar="DIR",
-        help="write runs.parquet, runs.csv and summary.csv to this folder (default: print the summary only)",
+        help="write runs.parquet, runs.csv, summary.csv and evaluation.json (the settings and rules, for "
+        "`jsve report DIR`) to this folder (default: print the summary only)",
     )
     common.add_workers_option(p)
     common.add_progress_option(p)
@@ -93,6 +95,7 @@ def run(args) -> int:
     from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
     from jsve.evaluation._aggregate import aggregate, failure_counts
     from jsve.evaluation._evaluate import evaluate
+    from jsve.evaluation._record import write_evaluation_record
     from jsve.io import _atomic as atomic
     from jsve.io._batching import buckets
 
@@ -141,10 +144,11 @@ def run(args) -> int:
         return common.fail("evaluate", err)
     if args.output:
         out = Path(args.output)
-        with atomic.all_or_nothing():  # the three tables, or none
+        with atomic.all_or_nothing():  # the three tables and the record, or none
             atomic.write_table(per_run, out / "runs.parquet")
             atomic.write_table(per_run, out / "runs.csv")
             atomic.write_table(summary, out / "summary.csv")
+            write_evaluation_record(_record(args, rules, by, penalty), out)
     print(screen_summary(summary, by, penalty))
     failures = failure_counts(per_run, ["rule"])
     print()
@@ -158,6 +162,27 @@ def run(args) -> int:
         for rule, n_runs, reason in failures[["rule", "n_runs", "failure_reason"]].to_numpy():
             print(f"{rule!s:<{width}}  {n_runs:>6}  {reason}")
     return 0
+
+
+def _record(args, rules, by: list[str], penalty: float):
+    """What the folder records beside its tables (jsve.evaluation.EvaluationRecord): every setting the
+    runs were scored with, resolved to its value, and every rule, so that `jsve report DIR` scores and
+    describes them as this command did."""
+    from jsve.evaluation._record import EvaluationRecord, rule_records
+
+    return EvaluationRecord(
+        align=args.align,
+        n_to_align=args.n_to_align,
+        segments=args.segments,
+        min_coverage=args.min_coverage,
+        switch_model=args.switch_model or "orbslam3",
+        failure_penalty=penalty,
+        support=args.support or "penalise",
+        by=tuple(by),
+        float64=bool(args.x64),
+        logs=str(args.logs),
+        rules=rule_records(rules, args.rule),
+    )
 
 
 def screen_summary(summary, by: list[str], penalty: float) -> str:

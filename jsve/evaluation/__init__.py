@@ -16,3 +16,9 @@ from jsve.evaluation._evaluate import Evaluation as Evaluation
 from jsve.evaluation._evaluate import evaluate as evaluate
 from jsve.evaluation._evaluate import evaluate_batch as evaluate_batch
 from jsve.evaluation._identity import identity_table as identity_table
+from jsve.evaluation._record import EVALUATION_RECORD as EVALUATION_RECORD
+from jsve.evaluation._record import EvaluationRecord as EvaluationRecord
+from jsve.evaluation._record import RuleRecord as RuleRecord
+from jsve.evaluation._record import read_evaluation_record as read_evaluation_record
+from jsve.evaluation._record import rule_records as rule_records
+from jsve.evaluation._record import write_evaluation_record as write_evaluation_record

@@ -39,23 +39,15 @@ from jsve.report._format import (
 from jsve.report._tables import (
     OVERVIEW_TEXT,
     SUPPORT_TEXT,
-    SWITCH_MODEL_TEXT,
     has_levels,
     level_sections,
     overview_table,
     read_json,
     read_table,
     rule_file,
+    scoring_bullets,
 )
 
-ALIGN_TEXT = {
-    "se3": "SE(3)",
-    "sim3": "Sim(3)",
-    "posyaw": "position and yaw (4-DoF)",
-    "origin": "origin",
-    "none": "no",
-}
-"""The alignments (jsve.core._align.ALIGNERS) in words."""
 DESIGN_TEXT = {"sobol": "Sobol", "grid": "grid", "random": "random", "lhs": "Latin hypercube"}
 """Search designs (jsve.fitting._designs) in words."""
 GROUP_COLUMNS = ("sequence", "disturbance", "level")
@@ -295,26 +287,13 @@ def _parameter_view(table: pd.DataFrame, family: str) -> pd.DataFrame:
 def _method_bullets(study: dict, scoring: derive.Scoring) -> list[str]:
     cfg = study.get("config", {})
     fit = cfg.get("fit", {})
-    floor = cfg.get("min_coverage", 0.0) or 0.0
-    align = str(cfg.get("align", "se3"))
-    fails = "reaches LOST, its alignment is degenerate or fewer than 3 frames are evaluated"
-    if floor > 0:
-        fails += f", or fewer than {percent(floor)} of its frames with ground truth have an estimate"
-    items = [
-        f"Objective: the mean per-run ATE RMSE after {ALIGN_TEXT.get(align, align)} alignment, "
-        f"a failed run charged {metres(scoring.penalty)}. A run fails when it {fails}"
-        + ("; there is no coverage floor." if floor <= 0 else "."),
-        (
-            f"Runs weighted so that every ({', '.join(scoring.balance_by)}) group counts equally."
-            if scoring.balance_by
-            else "Every run weighs the same."
-        ),
-    ]
-    model = cfg.get("switch_model")
-    if model:
-        items.append(f"Switch model `{model}`: {SWITCH_MODEL_TEXT.get(model, '')} (docs/state-machine.md).")
-    if cfg.get("support"):
-        items.append(f"Support policy `{scoring.support}`: {SUPPORT_TEXT.get(scoring.support, '')}.")
+    items = scoring_bullets(
+        scoring,
+        align=str(cfg.get("align", "se3")),
+        min_coverage=cfg.get("min_coverage", 0.0) or 0.0,
+        switch_model=cfg.get("switch_model"),
+        support=scoring.support if cfg.get("support") else None,  # a study from before the setting: none
+    )
     if fit:
         design = DESIGN_TEXT.get(fit.get("design"), fit.get("design", ""))
         search = f"{number(fit.get('n_search'))} {design} settings per family plus the presets"

@@ -15,7 +15,7 @@ from jsve.core._rules import BASELINES
 from jsve.report import _derive as derive
 from jsve.report import _figures as figures
 from jsve.report._document import Details, Figure, Section, Sub, Table
-from jsve.report._format import SEVERITY_FALLS_WITH_LEVEL, cm, cm_ci, level_axis, number, percent
+from jsve.report._format import SEVERITY_FALLS_WITH_LEVEL, cm, cm_ci, level_axis, metres, number, percent
 
 SWITCH_MODEL_TEXT = {
     "orbslam3": "a tracked or RECENTLY_LOST frame keeps its logged (optimised) pose, as in ORB-SLAM3 v1.0",
@@ -27,6 +27,14 @@ SUPPORT_TEXT = {
     "exclude": "a run whose replay needs a recorded pose the log lacks is left out of that rule's objective",
 }
 """The support policies in words (jsve.core._objective)."""
+ALIGN_TEXT = {
+    "se3": "SE(3)",
+    "sim3": "Sim(3)",
+    "posyaw": "position and yaw (4-DoF)",
+    "origin": "origin",
+    "none": "no",
+}
+"""The alignments (jsve.core._align.ALIGNERS) in words."""
 
 
 def read_table(out: Path, name: str) -> pd.DataFrame | None:
@@ -179,3 +187,40 @@ def level_sections(levels: pd.DataFrame | None, fig_dir: Path) -> tuple[list, Se
 
 def has_levels(runs: pd.DataFrame) -> bool:
     return {"disturbance", "level"} <= set(runs.columns)
+
+
+def scoring_bullets(
+    scoring: derive.Scoring,
+    *,
+    align: str,
+    min_coverage: float,
+    switch_model: str | None,
+    support: str | None,
+) -> list[str]:
+    """How runs were scored, in sentences (the Method of both reports): the objective with its alignment,
+    penalty and what fails a run, the run weighting, the switch model and the support policy (each left
+    out where None: a folder written before the setting was recorded).
+
+    Arguments:
+        scoring: the penalty (metres) and weighting. align: jsve.core._align's method name.
+        min_coverage: the coverage floor, a share of frames (0: none).
+    """
+    fails = "reaches LOST, its alignment is degenerate or fewer than 3 frames are evaluated"
+    if min_coverage > 0:
+        fails += f", or fewer than {percent(min_coverage)} of its frames with ground truth have an estimate"
+    items = [
+        f"Objective: the mean per-run ATE RMSE after {ALIGN_TEXT.get(align, align)} alignment, "
+        f"a failed run charged {metres(scoring.penalty)}. A run fails when it {fails}"
+        + ("; there is no coverage floor." if min_coverage <= 0 else "."),
+        (
+            f"Runs weighted so that every ({', '.join(scoring.balance_by)}) group counts equally."
+            if scoring.balance_by
+            else "Every run weighs the same."
+        ),
+    ]
+    if switch_model:
+        model = SWITCH_MODEL_TEXT.get(switch_model, "")
+        items.append(f"Switch model `{switch_model}`: {model} (docs/state-machine.md).")
+    if support:
+        items.append(f"Support policy `{support}`: {SUPPORT_TEXT.get(support, '')}.")
+    return items
