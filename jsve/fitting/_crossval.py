@@ -2,7 +2,8 @@
 
 Folds are boolean masks of held-out runs: k-fold over runs, or leave-one-group-out over a metadata
 column (sequence, disturbance). For every fold each family is fitted on the other runs (jsve.fitting._fit.fit,
-reusing one batched search over all runs: a fold only reweights its per-run loss matrix) and scored on the
+reusing one batched search over all runs: a fold only reweights its per-run loss matrix; under the halving
+search each fold halves over its training runs on one shared cache of per-run results) and scored on the
 held-out runs; the presets are scored on every run. Every run is held out once per fold kind, so the
 held-out table compares fitted rules and presets on the same runs, run by run.
 
@@ -27,7 +28,8 @@ from tqdm.auto import tqdm
 from jsve.core._objective import run_losses
 from jsve.core._rules import BASELINES, PRESETS, preset
 from jsve.fitting._designs import sobol
-from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name, search_design
+from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fit_cache, fitted_rule_name, search_design
+from jsve.fitting._halving import RunLossCache
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
@@ -169,6 +171,7 @@ def cross_validate(
     *,
     presets: Sequence[str] = PRESETS,
     searches: Mapping[str, SearchResult] | None = None,
+    caches: Mapping[str, RunLossCache] | None = None,
     progress: bool = True,
 ) -> CrossValidation:
     """Fit every family on each fold's training runs and score it, and the presets, on its held-out runs.
@@ -177,13 +180,25 @@ def cross_validate(
         spaces: family name -> ParamSpace (e.g. {"sve": sve_space(), "inliers": inlier_space()}).
         folds: from `kfold` / `leave_one_out` (any mix of kinds).
         weights: [R] run weights (default 1); training uses them, the held-out table carries them.
-        searches: batched searches over all runs already done (by family name), reused.
+        searches: batched searches over all runs already done (by family name), reused by the
+            exhaustive search (config.search == "exhaustive").
+        caches: per-run results of the halving search already computed (by family name; FitResult.cache
+            of the fit on all runs, whose design is the folds'), reused and filled by the halving search.
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
     meta = data.meta.reset_index(drop=True)
     searches = dict(searches or {})
+    caches = dict(caches or {})
     for name, space in spaces.items():
-        if name not in searches:
+        if config.search == "halving":
+            # Each fold halves over its own training runs (the survivors on all runs were screened on
+            # held-out runs too); one cache of per-run results serves every fold, so a pair of (setting,
+            # run) is scored once whichever folds screen it.
+            if name not in caches and RunLossCache.fits(len(search_design(space, config)), data.n_runs):
+                caches[name] = fit_cache(data, space, config)
+            elif name not in caches:
+                log.info("cross-validation of %s: per-run results do not fit memory, folds halve alone", name)
+        elif name not in searches:
             searches[name] = search(
                 data.parts,
                 space,
@@ -202,7 +217,15 @@ def cross_validate(
             raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
         fitted = {}
         for name, space in spaces.items():
-            result = fit(data, space, train, config, search_result=searches[name], progress=False)
+            result = fit(
+                data,
+                space,
+                train,
+                config,
+                search_result=searches.get(name) if config.search == "exhaustive" else None,
+                cache=caches.get(name),
+                progress=False,
+            )
             fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
             params.append(
                 {

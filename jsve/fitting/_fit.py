@@ -35,6 +35,7 @@ from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.core._replay import batch_features
 from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
+from jsve.fitting._halving import RunLossCache, halving_search, rung_sizes, stratified_order
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
 from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
@@ -339,7 +340,11 @@ class FitConfig:
     """How `fit` searches and optimises.
 
     Attributes:
-        design: "sobol", "halton" or "random"; n_search: its number of settings; seed: its seed.
+        design: "sobol", "halton" or "random"; n_search: its number of settings; seed: its seed (and
+            the halving's order of runs).
+        search: "exhaustive" (every setting on every run) or "halving" (successive halving over runs,
+            jsve.fitting._halving: all settings on a stratified share `initial_fraction` of the runs,
+            the best 1/eta on eta times as many, ..., the last ones on all runs).
         include_presets: add the family's presets (and `starts`) to the design.
         n_starts: Nelder-Mead runs, from the best searched settings; nm_steps: their step limit;
             nm_step: initial simplex size in unconstrained coordinates.
@@ -350,6 +355,9 @@ class FitConfig:
     design: str = "sobol"
     n_search: int = 2048
     seed: int = 0
+    search: str = "exhaustive"
+    eta: float = 3.0
+    initial_fraction: float = 1 / 9
     include_presets: bool = True
     n_starts: int = 2
     nm_steps: int = 200
@@ -357,6 +365,15 @@ class FitConfig:
     relaxed: bool = False
     temperatures: tuple[float, ...] = DEFAULT_TEMPERATURES
     bfgs_steps: int = 40
+
+    def __post_init__(self):
+        if self.search not in SEARCH_METHODS:
+            raise ValueError(f"FitConfig.search must be one of {SEARCH_METHODS}, got {self.search!r}")
+        if self.search == "halving":
+            rung_sizes(1, 1, self.eta, self.initial_fraction)  # checks eta > 1, 0 < initial_fraction <= 1
+
+
+SEARCH_METHODS = ("exhaustive", "halving")
 
 
 @dataclass
@@ -372,6 +389,8 @@ class FitResult:
         unsupported_rate: weighted share of the fitting runs on which the fitted rule's replay leaves
             the log's support; n_unsupported: how many runs (of those with weight > 0).
         n_excluded: runs (with weight > 0) dropped from the objective (support="exclude"; else 0).
+        cache: under the halving search, the per-run results it computed (cross-validation folds reuse
+            them: jsve.fitting._crossval.cross_validate's `caches`); not saved with the study.
     """
 
     space: ParamSpace
@@ -384,6 +403,7 @@ class FitResult:
     unsupported_rate: float = 0.0
     n_unsupported: int = 0
     n_excluded: int = 0
+    cache: RunLossCache | None = None
 
     @property
     def rule(self):
@@ -406,6 +426,11 @@ def search_design(space: ParamSpace, config: FitConfig, starts: Sequence[np.ndar
     return values
 
 
+def fit_cache(data: FitData, space: ParamSpace, config: FitConfig) -> RunLossCache:
+    """An empty cache of per-run results of the fit's design (search_design) on `data`."""
+    return RunLossCache(data.parts, data.run_counts, space, search_design(space, config), data.config)
+
+
 def fit(
     data: FitData,
     space: ParamSpace,
@@ -413,6 +438,7 @@ def fit(
     config: FitConfig = FitConfig(),  # noqa: B008
     *,
     search_result: SearchResult | None = None,
+    cache: RunLossCache | None = None,
     progress: bool = True,
 ) -> FitResult:
     """Fit the free parameters of `space` to minimise the weighted hard objective over `data`.
@@ -420,13 +446,31 @@ def fit(
     Arguments:
         weights: [R] run weights (jsve.evaluation.group_weights; 0 excludes a run, e.g. a held-out fold).
         search_result: a search already run on these data (cross-validation reuses one for all folds).
+        cache: under config.search == "halving", per-run results of the fit's design computed so far
+            (cross-validation shares one between folds); default a new one.
     Returns:
         FitResult; its stages record the objective after the search, Nelder-Mead and the relaxed fit.
     """
     w = _default_weights(data, weights)
     stages = []
     t0 = time.perf_counter()
-    if search_result is None:
+    screening = {}
+    if search_result is None and config.search == "halving":
+        if cache is None:
+            cache = fit_cache(data, space, config)
+        elif not np.array_equal(cache.values, search_design(space, config)):
+            raise ValueError("fit: the cache holds another design than this fit's (search_design)")
+        halving = halving_search(
+            cache,
+            w,
+            eta=config.eta,
+            initial_fraction=config.initial_fraction,
+            order=stratified_order(data.meta, data.n_runs, seed=config.seed),
+            progress=progress,
+            desc=f"halving {space.kind}",
+        )
+        search_result, screening = halving.search, halving.as_dict()
+    elif search_result is None:
         search_result = search(
             data.parts,
             space,
@@ -446,6 +490,7 @@ def fit(
             "values": best_values.tolist(),
             "settings": int(len(obj)),
             "seconds": time.perf_counter() - t0,
+            **screening,
         }
     )
     log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
@@ -511,6 +556,7 @@ def fit(
         unsupported_rate=float(final.unsupported_rate(w)[0]),
         n_unsupported=n_unsupported,
         n_excluded=n_excluded,
+        cache=cache,
     )
 
 
@@ -524,5 +570,7 @@ __all__ = [
     "hard_objective",
     "relaxed_objective",
     "search_design",
+    "fit_cache",
+    "SEARCH_METHODS",
     "DEFAULT_TEMPERATURES",
 ]

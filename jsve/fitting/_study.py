@@ -453,11 +453,14 @@ def run_study(
     stages.run("evaluate_presets", evaluate_presets, [out / "runs_presets.parquet"])
 
     fits: dict[str, FitResult] = {}
+    caches = {}  # the halving's per-run results of fits run in this process, which the folds reuse
     for family, space in spaces.items():
         json_path, search_path = out / f"fitted_{family}.json", out / f"search_{family}.npz"
 
         def do_fit(family=family, space=space, json_path=json_path, search_path=search_path):
             result = fit(data, space, weights, config.fit, progress=progress)
+            if result.cache is not None:
+                caches[family] = result.cache
             _save_search(result.search, search_path)
             write_json(_fit_record(family, result), json_path)
             return {"objective": result.objective, "values": result.values.tolist()}
@@ -512,6 +515,7 @@ def run_study(
             weights,
             config.fit,
             searches={f: r.search for f, r in fits.items()},
+            caches=caches,
             progress=progress,
         )
         write_table(cv.heldout, out, "heldout")

@@ -1,0 +1,308 @@
+"""Multi-fidelity search: successive halving over runs, on a cache of per-run losses.
+
+The exhaustive search (jsve.fitting._search.search) scores every setting of a design on every run. Most
+settings are clearly worse than the best after a fraction of the runs, so successive halving (Jamieson &
+Talwalkar 2016, "Non-stochastic best arm identification and hyperparameter optimization") scores all
+settings on a stratified random subset of the runs, keeps the best 1/eta of them, scores those on eta
+times as many runs, and so on until the survivors are scored on every run:
+
+    rung k:  ceil(S / eta^k) settings  x  min(1, f0 eta^k) of the runs        (k = 0 .. K, the last: all)
+
+At f0 = 1/eta^K every rung costs about S R / eta^K setting-runs, so the search costs (K + 1) / eta^K of
+the exhaustive one (eta = 3, f0 = 1/9: a third). Every rung uses the fit's own objective: the same
+fused kernel (jsve.fitting._search.search, run on a sub-batch of the runs), the same run weights and
+the same included-run mean (SearchResult.objective: penalised losses, the support policy). With f0 = 1
+there is one rung over all runs and the result is the exhaustive search's, exactly.
+
+The subsets are prefixes of one seeded order of the runs, stratified by group (sequence, disturbance,
+level where the metadata has them): a random permutation within each group, then one run of every
+group in turn (groups in a random order), so every prefix is as balanced over the groups as its length
+allows. Nested prefixes mean a rung re-scores its survivors only on the runs the previous rung did not
+score them on.
+
+`RunLossCache` keeps every (setting, run) result computed so far ([S, R] arrays and a mask), so that
+cross-validation folds, each halving over its own training runs (in the same global order, held-out
+runs skipped), recompute only the pairs no fold has scored yet: the per-run losses are scored once,
+and each fold's objective is a weighted sum of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from jsve.core._objective import ObjectiveConfig
+from jsve.fitting._search import SearchBatch, SearchResult, search
+
+log = logging.getLogger(__name__)
+
+STRATA = ("sequence", "disturbance", "level")
+"""Metadata columns whose groups stratify the halving's subsets of runs (those the metadata has)."""
+
+MAX_CACHE_BYTES = 2 * 1024**3
+"""Largest per-run result cache (settings x runs x ~14 bytes) kept across folds; above it every fold
+halves on its own (the same results, recomputed)."""
+
+
+def stratified_order(meta: pd.DataFrame | None, n_runs: int, *, seed: int = 0, strata=STRATA) -> np.ndarray:
+    """A seeded order of the runs [R] whose every prefix is as balanced over the groups as it can be.
+
+    Arguments:
+        meta: one row per run (data order); its `strata` columns that exist define the groups (none:
+            one group, a plain permutation).
+        seed: numpy Generator seed.
+    Returns:
+        [R] run indices: within each group a random permutation, then one run of each group in turn
+        (the groups in a random order), groups that run out dropping out of the turn.
+    """
+    rng = np.random.default_rng(seed)
+    columns = [c for c in strata if meta is not None and c in meta.columns]
+    if columns:
+        keys = meta[columns].astype(str).agg("\x1f".join, axis=1).to_numpy()
+        _, group = np.unique(keys, return_inverse=True)
+    else:
+        group = np.zeros(n_runs, int)
+    if len(group) != n_runs:
+        raise ValueError(f"stratified_order: meta has {len(group)} rows but there are {n_runs} runs")
+    members = [rng.permutation(np.flatnonzero(group == g)) for g in range(group.max(initial=-1) + 1)]
+    turn = rng.permutation(len(members))
+    depth = max((len(m) for m in members), default=0)
+    return np.asarray([members[g][i] for i in range(depth) for g in turn if i < len(members[g])], np.int64)
+
+
+def subset_parts(
+    parts: Sequence[SearchBatch], run_counts: Sequence[int], runs: np.ndarray
+) -> tuple[list[SearchBatch], list[int], np.ndarray]:
+    """The kernel's inputs for a subset of the runs: per part, its selected runs gathered on the run axis
+    (the last of every SearchBatch leaf) and padded with copies of the first to a power of two, so that
+    few shapes compile. A part whose real runs are all selected is passed as it is.
+
+    Arguments:
+        runs: global run indices (data order, as FitData.meta), any order, no repeats.
+    Returns:
+        (parts, real runs per part, the global run index of each result column in order).
+    """
+    runs = np.asarray(runs, np.int64)
+    out, counts, columns, start = [], [], [], 0
+    chosen = np.zeros(sum(run_counts), bool)
+    chosen[runs] = True
+    for part, n in zip(parts, run_counts, strict=True):
+        local = np.flatnonzero(chosen[start : start + n])
+        if len(local) == n:
+            out.append(part)
+        elif len(local):
+            size = 2 ** math.ceil(math.log2(len(local)))
+            index = jnp.asarray(np.concatenate([local, np.repeat(local[:1], size - len(local))]))
+            out.append(jax.tree.map(lambda x, i=index: x[..., i], part))
+        if len(local):
+            counts.append(len(local))
+            columns.append(start + local)
+        start += n
+    return out, counts, np.concatenate(columns) if columns else np.zeros(0, np.int64)
+
+
+_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included")
+
+
+@dataclass
+class RunLossCache:
+    """Per-run results of a fixed design's settings, filled on demand by the search kernel.
+
+    Attributes:
+        values: [S, d] the design (free values of `space`).
+        known: [S, R] which pairs are computed; the SearchResult fields [S, R] hold them (undefined
+            elsewhere).
+        evaluations: setting-runs computed so far (the cost, in the kernel's unit).
+    """
+
+    parts: Sequence[SearchBatch]
+    run_counts: Sequence[int]
+    space: object
+    values: np.ndarray
+    config: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    arrays: dict = field(default_factory=dict)
+    known: np.ndarray | None = None
+    evaluations: int = 0
+
+    @property
+    def n_runs(self) -> int:
+        return int(sum(self.run_counts))
+
+    @staticmethod
+    def fits(n_settings: int, n_runs: int, max_bytes: int = MAX_CACHE_BYTES) -> bool:
+        """Whether a cache of n_settings x n_runs stays under max_bytes (float64 loss, rmse, coverage;
+        4 flags and the mask: 28 bytes a pair at most)."""
+        return n_settings * n_runs * 28 <= max_bytes
+
+    def fill(self, settings: np.ndarray, runs: np.ndarray, *, progress: bool = False, desc: str = "") -> None:
+        """Compute the pairs (settings x runs) not yet known; a pair already known is never recomputed
+        into the cache (so results never change once read).
+
+        The kernel scores rectangles (settings x runs), so the missing pairs are covered by at most two:
+        the settings that miss most of the runs (new survivors of another fold: all the runs), and the
+        settings that miss a few (runs another fold did not screen them on: the union of those runs).
+        Within a halving the missing pairs are one rectangle exactly (every survivor misses the rung's
+        new runs); between folds the split keeps the few-missing settings off the many-missing runs.
+        """
+        settings, runs = np.asarray(settings, np.int64), np.asarray(runs, np.int64)
+        if self.known is None:
+            self.known = np.zeros((len(self.values), self.n_runs), bool)
+        missing = ~self.known[np.ix_(settings, runs)]
+        n_missing = missing.sum(axis=1)
+        many = 2 * n_missing > len(runs)
+        for group in (many, ~many & (n_missing > 0)):
+            if group.any():
+                self._compute(settings[group], runs[missing[group].any(axis=0)], progress, desc)
+
+    def _compute(self, settings: np.ndarray, runs: np.ndarray, progress: bool, desc: str) -> None:
+        """Run the search kernel on settings x runs and store the pairs not known yet."""
+        if len(runs) == self.n_runs:
+            parts, counts, columns = list(self.parts), list(self.run_counts), np.arange(self.n_runs)
+        else:
+            parts, counts, columns = subset_parts(self.parts, self.run_counts, runs)
+        res = search(
+            parts,
+            self.space,
+            self.values[settings],
+            self.config,
+            run_counts=counts,
+            progress=progress,
+            desc=desc or "search",
+        )
+        self.evaluations += len(settings) * len(columns)
+        block = np.ix_(settings, columns)
+        new = ~self.known[block]
+        for name in _FIELDS:
+            x = getattr(res, name)
+            if name not in self.arrays:
+                self.arrays[name] = np.zeros((len(self.values), self.n_runs), x.dtype)
+            self.arrays[name][block] = np.where(new, x, self.arrays[name][block])
+        self.known[block] = True
+
+    def result(self, settings: np.ndarray, runs: np.ndarray | None = None) -> SearchResult:
+        """The SearchResult of the given settings on the given runs (default all; every pair known)."""
+        settings = np.asarray(settings, np.int64)
+        runs = np.arange(self.n_runs) if runs is None else np.asarray(runs, np.int64)
+        if self.known is None or not self.known[np.ix_(settings, runs)].all():
+            raise ValueError("RunLossCache.result: some pairs are not computed (fill them first)")
+        return SearchResult(
+            values=self.values[settings],
+            **{name: self.arrays[name][np.ix_(settings, runs)] for name in _FIELDS},
+        )
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One rung of a halving search: its settings and runs, and the best objective on them (metres)."""
+
+    settings: int
+    runs: int
+    best: float
+
+
+@dataclass(frozen=True)
+class HalvingResult:
+    """A halving search: `search` holds the final survivors on every run; `rungs` how they were found.
+
+    Attributes:
+        scored: per rung, the design indices of the settings it scored (the last: `search`'s settings).
+        evaluations: setting-runs the kernel computed for this search (pairs another search had already
+            put in the cache cost nothing).
+    """
+
+    search: SearchResult
+    rungs: tuple[Rung, ...]
+    evaluations: int
+    scored: tuple[np.ndarray, ...] = ()
+
+    def as_dict(self) -> dict:
+        return {"rungs": [dataclasses.asdict(r) for r in self.rungs], "evaluations": self.evaluations}
+
+
+def rung_sizes(n_settings: int, n_runs: int, eta: float, initial_fraction: float) -> list[tuple[int, int]]:
+    """(settings, runs) of each rung: ceil(S / eta^k) settings on ceil(f0 eta^k R) runs (at least 1, at
+    most R), the last rung (the first to reach it) on all R runs.
+
+    Arguments:
+        eta: > 1, the factor by which settings shrink and runs grow each rung.
+        initial_fraction: f0 in (0, 1], the first rung's share of the runs (1: one rung, exhaustive).
+    """
+    if not eta > 1:
+        raise ValueError(f"halving needs eta > 1, got {eta}")
+    if not 0 < initial_fraction <= 1:
+        raise ValueError(f"halving needs 0 < initial_fraction <= 1, got {initial_fraction}")
+    # K more rungs after the first, until f0 eta^K reaches 1 (the 1e-9 absorbs f0 = 1/eta^K in floats)
+    k_max = max(0, math.ceil(math.log(1 / initial_fraction) / math.log(eta) - 1e-9))
+    sizes = []
+    for k in range(k_max + 1):
+        runs = n_runs if k == k_max else min(n_runs, max(1, math.ceil(initial_fraction * eta**k * n_runs)))
+        sizes.append((max(1, math.ceil(n_settings / eta**k)), runs))
+        if runs == n_runs:  # rounding up reached every run early: this rung is the last
+            break
+    return sizes
+
+
+def halving_search(
+    cache: RunLossCache,
+    weights,
+    *,
+    eta: float = 3.0,
+    initial_fraction: float = 1 / 9,
+    order: np.ndarray | None = None,
+    progress: bool = False,
+    desc: str = "halving",
+) -> HalvingResult:
+    """Successive halving of the cache's design over the runs with weight > 0.
+
+    Arguments:
+        cache: RunLossCache of the design (shared between calls: pairs already computed are reused).
+        weights: [R] run weights; runs of weight 0 (a held-out fold) are never screened on, but the final
+            survivors are scored on every run, so `search` is a complete [S_final, R] SearchResult.
+        order: [R] the runs' order (stratified_order); the rungs take its prefixes of weighted runs.
+    Returns:
+        HalvingResult; ties keep the design's order (a stable sort).
+    """
+    w = np.asarray(weights, np.float64)
+    if w.shape != (cache.n_runs,):
+        raise ValueError(f"weights must have shape ({cache.n_runs},), got {w.shape}")
+    order = np.arange(cache.n_runs) if order is None else np.asarray(order, np.int64)
+    train = order[w[order] > 0]
+    if not len(train):
+        raise ValueError("halving_search: no run has a weight > 0")
+    before = cache.evaluations
+    alive = np.arange(len(cache.values))
+    rungs, scored = [], []
+    sizes = rung_sizes(len(alive), len(train), eta, initial_fraction)
+    for k, (_, n_runs) in enumerate(sizes):
+        last = k == len(sizes) - 1
+        runs = np.arange(cache.n_runs) if last else np.sort(train[:n_runs])
+        cache.fill(alive, runs, progress=progress, desc=f"{desc} rung {k + 1}/{len(sizes)}")
+        obj = cache.result(alive, runs).objective(w[runs])
+        rank = np.argsort(obj, kind="stable")
+        rungs.append(Rung(settings=len(alive), runs=int(np.sum(w[runs] > 0)), best=float(obj[rank[0]])))
+        scored.append(alive)
+        log.info(
+            "%s rung %d: %d settings on %d runs, best %.5f m", desc, k + 1, len(alive), n_runs, obj[rank[0]]
+        )
+        if not last:  # the best ceil(S / eta^(k+1)), back in the design's order
+            alive = np.sort(alive[rank[: sizes[k + 1][0]]])
+    return HalvingResult(cache.result(alive), tuple(rungs), cache.evaluations - before, tuple(scored))
+
+
+__all__ = [
+    "RunLossCache",
+    "HalvingResult",
+    "Rung",
+    "halving_search",
+    "rung_sizes",
+    "stratified_order",
+    "subset_parts",
+]
