@@ -217,8 +217,11 @@ def test_fitted_rule_files_work_with_evaluate_and_the_front_end(tiny_demo):
 
 
 @pytest.mark.slow
-def test_fit_on_the_demo_logs_reproduces_its_fit(tiny_demo):
-    """`jsve fit` on the demo's logs with the demo's study settings reproduces its fitted objective."""
+def test_fit_on_the_demo_logs_reproduces_its_fit(tiny_demo, capsys):
+    """`jsve fit` on the demo's logs with the demo's study settings reproduces its fitted objective, and
+    ends with the demo's closing lines (jsve.report._report.summary_lines)."""
+    from jsve.report._report import summary_lines
+
     root, out, _ = tiny_demo
     fit_out = root / "fit"
     (root / "study.toml").write_text(TINY.split("[demo]")[0])
@@ -234,6 +237,20 @@ def test_fit_on_the_demo_logs_reproduces_its_fit(tiny_demo):
     a = json.loads((out / "fitted_sve.json").read_text())
     b = json.loads((fit_out / "fitted_sve.json").read_text())
     assert a["objective"] == pytest.approx(b["objective"], rel=1e-6)
+    # It ends as the demo does: a header, then the headline in a few indented lines, not a bare path.
+    # (The rerun resumes every stage.)
+    capsys.readouterr()
+    assert main([*argv, "--no-progress"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert re.fullmatch(r"jsve fit: fitted and reported in \d+ s", lines[0]), lines
+    assert lines[1:] == [f"  {line}" for line in summary_lines(fit_out)]
+    assert re.fullmatch(r"  recommended: fitted-(sve|inliers) \(rule file .*/fitted_\1\.json, .*\)", lines[1])
+    assert any(line.startswith("    vs sve-option2: ") for line in lines)
+    assert lines[-1] == f"  report: {fit_out / 'report.html'}"
+    assert main([*argv, "--no-progress", "--no-report"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("jsve fit: fitted in ")
+    assert lines[-1] == f"  report: not written (`jsve report {fit_out}` writes it)"
 
 
 def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_path, capsys, monkeypatch):
@@ -264,7 +281,7 @@ def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_pat
     calls = []
     monkeypatch.setattr(_study, "run_study", lambda *a, **kw: calls.append(kw["force"]) or {})
     monkeypatch.setattr(_report, "write_report", lambda *a, **kw: None)
-    monkeypatch.setattr(_report, "summary_lines", lambda out: [f"report: {out}"])
+    monkeypatch.setattr(_report, "summary_lines", lambda out, **kw: [f"report: {out}"])
     assert main([*argv, "--force"]) == 0
     assert calls == [True]
     write_study(tmp_path / "fresh", seed=0, config=sim, **small)

@@ -407,6 +407,26 @@ def announce_size(
 
 
 # --------------------------------------------------------------------------------------------------
+# Closing lines
+
+
+def print_study_summary(header: str, out_dir: str | os.PathLike, *, report: bool = True) -> None:
+    """The few lines `jsve demo` and `jsve fit` end with, for a person to read: a header (`jsve demo:
+    done in 247 s`), then, indented, the study's headline (jsve.report._report.summary_lines: the
+    recommended rule and its file, its held-out objective and differences to the baselines, how often it
+    switches, where the report is).
+
+    Arguments:
+        report: whether the report was written (`jsve fit --no-report`: the last line says how to write it).
+    """
+    from jsve.report._report import summary_lines
+
+    print(header)
+    for line in summary_lines(out_dir, report=report):
+        print(f"  {line}")
+
+
+# --------------------------------------------------------------------------------------------------
 # Inputs
 
 

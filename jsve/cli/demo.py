@@ -77,11 +77,7 @@ def run(args) -> int:
     timings = run_demo(
         args.output, config, progress=not args.no_progress, workers=args.workers, force=args.force
     )
-    from jsve.report._report import summary_lines
-
-    print(f"jsve demo: done in {timings['total']:.0f} s")
-    for line in summary_lines(args.output):
-        print(f"  {line}")
+    common.print_study_summary(f"jsve demo: done in {timings['total']:.0f} s", args.output)
     if args.json:
         print(
             json.dumps(

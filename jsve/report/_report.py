@@ -91,18 +91,22 @@ def write_report(out_dir: str | os.PathLike, *, title: str | None = None) -> dic
     return written
 
 
-def summary_lines(out_dir: str | os.PathLike) -> list[str]:
-    """A study's headline in a few plain lines for a terminal: the recommended rule and its file, its
-    held-out objective and differences to the baselines with intervals (the first fold kind), how often
-    it switches, and where the report is.
+def summary_lines(out_dir: str | os.PathLike, *, report: bool = True) -> list[str]:
+    """A study's headline in a few plain lines for a terminal (`jsve demo` and `jsve fit` end with them):
+    the recommended rule and its file, its held-out objective and differences to the baselines with
+    intervals (the first fold kind), how often it switches, and where the report is.
 
+    Arguments:
+        out_dir: the study folder. report: whether its report has been written (else the last line says
+            how to write it).
     Raises:
         FileNotFoundError: the folder holds no finished study.
     """
     s = read_study(Path(out_dir))
     html = Path(out_dir) / "report.html"
+    where = f"report: {html}" if report else f"report: not written (`jsve report {out_dir}` writes it)"
     if s.rec is None or s.heldout_summary is None:
-        return [f"no held-out comparison in {out_dir}: nothing recommended", f"report: {html}"]
+        return [f"no held-out comparison in {out_dir}: nothing recommended", where]
     first = s.heldout_summary[s.heldout_summary["rule"] == s.rec.rule].iloc[0]
     objective = cm_ci(first["mean_loss"], first["ci_low"], first["ci_high"])
     lines = [
@@ -122,7 +126,7 @@ def summary_lines(out_dir: str | os.PathLike) -> list[str]:
             f"switches: {percent(o.loc[s.rec.rule, 'rejected'])} of frames rejected, "
             f"{percent(o.loc[s.rec.rule, 'reached_lost'])} of runs reach LOST (all runs)"
         )
-    lines.append(f"report: {html}")
+    lines.append(where)
     return lines
 
 
