@@ -115,6 +115,33 @@ def test_demo_ends_with_a_human_summary_and_reports(tiny_demo, capsys):
     assert timings["total"] > 0 and set(timings) >= {"simulate", "study", "report"}
 
 
+def _documented_keys(table: str) -> set[str]:
+    """The keys a Markdown table of docs/fitting.md documents: the `names` of each row's first cell."""
+    cells = re.findall(r"^\| ([^|]+) \|", table, re.MULTILINE)
+    return {key for cell in cells for key in re.findall(r"`(\w+)`", cell)}
+
+
+@pytest.mark.slow
+def test_fitted_rule_files_have_the_documented_layout(tiny_demo):
+    """docs/fitting.md documents every key of fitted_<family>.json and of its stages, and only keys the
+    files have (the rule's part tables: their parameters named in the rows' text)."""
+    _, out, _ = tiny_demo
+    doc = (ROOT / "docs" / "fitting.md").read_text()
+    section = doc.split("### The fitted rule files (fitted_<family>.json)\n")[1].split("\n## ")[0]
+    top, stages = section.split("Each entry of `stages`")
+    top_keys, stage_keys = _documented_keys(top), _documented_keys(stages)
+    for family in ("sve", "inliers"):
+        record = json.loads((out / f"fitted_{family}.json").read_text())
+        expected = top_keys - ({"combination"} if family == "inliers" else set())
+        assert set(record) == expected, (family, set(record) ^ expected)
+        assert set(record["space"]) == {"kind", "free", "fixed"}
+        for part in ("combination", "thresholds"):
+            row = re.search(rf"^\| `{part}` \|.*$", top, re.MULTILINE).group(0)
+            assert all(f"`{name}`" in row for name in record.get(part, {})), (part, row)
+        for stage in record["stages"]:
+            assert {"stage", "objective", "values", "seconds"} <= set(stage) <= stage_keys, stage
+
+
 @pytest.mark.slow
 def test_report_rerenders_the_demo_byte_for_byte(tiny_demo):
     """`jsve report DIR` without --title gives the demo's page byte for byte: the title is kept in the
