@@ -8,6 +8,7 @@ holding a demo of another configuration stops the command (one line, exit 2) unl
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -23,15 +24,30 @@ def register(subparsers) -> None:
         "demo",
         help=HELP,
         description="Simulate EuRoC-like flights under the seed paper's 31 disturbance settings, evaluate "
-        "the presets, fit SVE and ORB-SLAM3 thresholds, cross-validate, and write OUT/report.html.",
+        "the presets, fit SVE and ORB-SLAM3 thresholds, cross-validate, and write DIR/report.html.",
     )
     p.add_argument(
         "-o", "--output", default="jsve-demo", metavar="DIR", help="output folder (default: %(default)s)"
     )
-    p.add_argument("--config", metavar="TOML", help="demo and study settings (see sweeps/demo.toml)")
-    p.add_argument("--sequences", type=int, help="procedural flights (default 3)")
-    p.add_argument("--runs", type=int, help="runs per sequence and setting (default 2)")
-    p.add_argument("--seed", type=int, help="simulator seed (default 0)")
+    p.add_argument(
+        "--config",
+        metavar="TOML",
+        help="demo and study settings: top-level and [fit] keys for the study, [demo] for the simulation "
+        "(default: the built-in settings, which sweeps/demo.toml spells out)",
+    )
+    p.add_argument(
+        "--flights",
+        type=int,
+        metavar="N",
+        help="procedural EuRoC-like flights to simulate (default: --config's [demo] sequences, else 3)",
+    )
+    # The earlier spelling, hidden: elsewhere --sequences names sequences (simulate --sequences MH_01,V1_01),
+    # here it counted flights; old commands keep working.
+    p.add_argument("--sequences", type=int, dest="flights", help=argparse.SUPPRESS)
+    p.add_argument(
+        "--runs", type=int, metavar="N", help="runs per flight and setting (default: --config's, else 2)"
+    )
+    p.add_argument("--seed", type=int, metavar="N", help="simulator seed (default: --config's, else 0)")
     p.add_argument("--workers", type=int, metavar="N", help="simulator processes (default: all cores)")
     common.add_switch_model_option(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars (default: shown)")
@@ -66,7 +82,7 @@ def run(args) -> int:
                 raise ValueError(f"{args.config}: {err}") from None
         changes = {
             k: v
-            for k, v in (("sequences", args.sequences), ("runs", args.runs), ("seed", args.seed))
+            for k, v in (("sequences", args.flights), ("runs", args.runs), ("seed", args.seed))
             if v is not None
         }
         config = replace(config, **changes)
