@@ -532,10 +532,7 @@ WRITES_OUTPUT = {
     "jsve render": "the dataset",
     "jsve fit": "the study",
     "jsve demo": "the study and report",
-}
-KNOWN_OUTPUT_GAPS = {
-    # command -> why it takes no -o/--output yet (test_known_output_gaps_are_still_there checks the entry)
-    "jsve report": "writes into its positional study folder; jsve/cli/report.py belongs to the report work",
+    "jsve report": "the report (default: into the folder it reads)",
 }
 
 
@@ -551,14 +548,6 @@ def test_every_writer_takes_dash_o_and_output_and_no_other_spelling():
             action = parser._option_string_actions["-o"]
             assert parser._option_string_actions["--output"] is action, command
     assert seen == set(WRITES_OUTPUT), set(WRITES_OUTPUT) - seen
-
-
-def test_known_output_gaps_are_still_there():
-    spellings = {
-        " ".join(path): {s for a in options(parser) for s in a.option_strings} for path, parser in parsers()
-    }
-    for command in KNOWN_OUTPUT_GAPS:
-        assert "--output" not in spellings[command], f"fixed, remove {command} from KNOWN_OUTPUT_GAPS"
 
 
 def test_the_earlier_out_spelling_still_works():

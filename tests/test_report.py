@@ -14,6 +14,7 @@ import re
 import shutil
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import knownanswer as ka
 import numpy as np
@@ -542,6 +543,32 @@ def test_report_is_deterministic_and_keeps_its_title(tmp_path):
     write_report(tmp_path)  # no title: the kept one
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
     assert "<title>fake</title>" in page
+
+
+def test_jsve_report_dash_o_writes_the_same_page_elsewhere_and_only_reads_the_study(tmp_path, capsys):
+    """`jsve report DIR -o OUT` writes the report DIR would hold into OUT, byte for byte (figures linked
+    relative to OUT, the title DIR keeps), and leaves DIR as it was; a --title is kept in OUT."""
+    from jsve.cli import main
+
+    study, elsewhere = tmp_path / "study", tmp_path / "elsewhere"
+    _fake_study(study)
+    write_report(study, title="fake")
+    before = {p.relative_to(study): p.read_bytes() for p in study.rglob("*") if p.is_file()}
+    assert main(["report", str(study), "-o", str(elsewhere)]) == 0
+    assert capsys.readouterr().out == (
+        f"jsve report: {elsewhere / 'report.html'} (6 figures; Markdown: {elsewhere / 'report.md'})\n"
+    )
+    after = {p.relative_to(study): p.read_bytes() for p in study.rglob("*") if p.is_file()}
+    assert after == before  # the study folder is only read
+    report = {p.relative_to(elsewhere): p.read_bytes() for p in elsewhere.rglob("*") if p.is_file()}
+    assert set(report) == {
+        p for p in before if p.name.startswith("report.") or p.parent.name == "figures"
+    } - {Path("report.json")}
+    assert all(report[p] == before[p] for p in report)
+    assert main(["report", str(study), "--output", str(elsewhere), "--title", "other"]) == 0
+    assert json.loads((elsewhere / "report.json").read_text()) == {"title": "other"}
+    assert "<title>other</title>" in (elsewhere / "report.html").read_text()
+    assert json.loads((study / "report.json").read_text()) == {"title": "fake"}
 
 
 def test_report_of_an_older_study_without_support_columns(tmp_path):

@@ -15,17 +15,23 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "report",
         help=HELP,
-        description="Write DIR/report.md, DIR/report.html (figures embedded) and DIR/figures/*.png from the "
-        "folder's tables: a study's report (headline, figures, held-out comparison, fitted parameters) for "
+        description="Write report.md, report.html (figures embedded) and figures/*.png into DIR (or -o OUT) "
+        "from DIR's tables: a study's report (headline, figures, held-out comparison, fitted parameters) for "
         "a `jsve fit` or `jsve demo` folder, an evaluation's report for a `jsve evaluate -o` folder. "
         "Deterministic: the same tables give the same files.",
     )
-    p.add_argument("output", metavar="DIR", help="a study folder or a `jsve evaluate -o` folder")
+    p.add_argument("folder", metavar="DIR", help="a study folder or a `jsve evaluate -o` folder")
+    common.add_output_option(
+        p,
+        metavar="OUT",
+        help="folder to write report.md, report.html, report.json and figures/ to; DIR is only read "
+        "(default: DIR itself)",
+    )
     p.add_argument(
         "--title",
         default=None,
-        help="the page title, kept in DIR/report.json for later renders (default: the title stored there, "
-        "else 'jsve threshold report' or 'jsve evaluation report')",
+        help="the page title, kept in the output folder's report.json for later renders (default: the "
+        "title kept there, else DIR's, else 'jsve threshold report' or 'jsve evaluation report')",
     )
     p.set_defaults(func=run)
 
@@ -35,8 +41,9 @@ def run(args) -> int:
     from jsve.report._report import write_report
 
     try:
-        written = write_report(args.output, title=args.title)
+        written = write_report(args.folder, title=args.title, output=args.output)
     except (FileNotFoundError, ValueError) as err:
         return common.fail("report", err)
-    print(f"jsve report: {written['html']} ({len(written) - 2} figures; Markdown: {written['markdown']})")
+    figures = common.plural(len(written) - 2, "figure")
+    print(f"jsve report: {written['html']} ({figures}; Markdown: {written['markdown']})")
     return 0

@@ -36,13 +36,14 @@ STUDY_TITLE = "jsve threshold report"
 EVALUATION_TITLE = "jsve evaluation report"
 
 
-def _title(out: Path, title: str | None, default: str) -> str:
-    """The title given (then kept in report.json), else the one report.json keeps, else the default."""
-    path = out / "report.json"
+def _title(source: Path, out: Path, title: str | None, default: str) -> str:
+    """The title given (then kept in out/report.json), else the one the output folder keeps, else the one
+    the source folder keeps, else the default. The source folder is only read."""
+    kept = read_json(out / "report.json").get("title") or read_json(source / "report.json").get("title")
     if title is None:
-        return str(read_json(path).get("title", default))
-    if read_json(path).get("title") != title:
-        atomic.write_json(path, {"title": title})
+        return str(kept or default)
+    if read_json(out / "report.json").get("title") != title:
+        atomic.write_json(out / "report.json", {"title": title})
     return title
 
 
@@ -56,30 +57,36 @@ def _figure_paths(blocks) -> list[Path]:
     return paths
 
 
-def write_report(out_dir: str | os.PathLike, *, title: str | None = None) -> dict[str, Path]:
+def write_report(
+    out_dir: str | os.PathLike, *, title: str | None = None, output: str | os.PathLike | None = None
+) -> dict[str, Path]:
     """Render report.md, report.html and the figures of a study folder (`jsve fit`, `jsve demo`) or of an
     evaluation folder (`jsve evaluate -o`).
 
     Arguments:
-        out_dir: the folder; its tables are read, the report written into it.
+        out_dir: the folder whose tables are read.
         title: the page title; it is kept in report.json, and None takes the kept one (else
             "jsve threshold report" / "jsve evaluation report"), so a re-render keeps the title.
+        output: the folder the report (report.md, report.html, report.json, figures/) is written to;
+            None: out_dir itself. Figures are linked relative to it, so the page is the same bytes
+            wherever it is written.
     Returns:
         Paths of what was written, by name: "markdown", "html", and "figure <file name>" per figure.
     Raises:
         FileNotFoundError: the folder holds neither a study nor an evaluation.
     """
-    out = Path(out_dir)
+    source = Path(out_dir)
+    out = source if output is None else atomic.make_dir(output)
     fig_dir = out / "figures"
-    if (out / "study.json").is_file():
-        title = _title(out, title, STUDY_TITLE)
-        sections = study_sections(read_study(out), fig_dir)
-    elif (out / "runs.parquet").is_file():
-        title = _title(out, title, EVALUATION_TITLE)
-        sections = evaluation_sections(out, fig_dir)
+    if (source / "study.json").is_file():
+        title = _title(source, out, title, STUDY_TITLE)
+        sections = study_sections(read_study(source), fig_dir)
+    elif (source / "runs.parquet").is_file():
+        title = _title(source, out, title, EVALUATION_TITLE)
+        sections = evaluation_sections(source, fig_dir)
     else:
         raise FileNotFoundError(
-            f"{out}: no study.json (from `jsve fit` or `jsve demo`) and no runs.parquet (from "
+            f"{source}: no study.json (from `jsve fit` or `jsve demo`) and no runs.parquet (from "
             "`jsve evaluate -o`): nothing to report"
         )
     md, page = render(title, sections, out)
