@@ -557,8 +557,9 @@ def test_the_earlier_out_spelling_still_works():
     assert parser.parse_args(["simulate", "--out", "study"]).output == "study"
     argv = ["frontend", "build", "--orbslam3", "o", "--out", "b"]
     assert parser.parse_args(argv).output == "b"
-    argv = ["frontend", "vocabulary", "images", "--output", "voc.txt"]  # --out is its own spelling there
-    assert parser.parse_args(argv).out == "voc.txt"
+    for spelling in ("-o", "--output", "--out"):  # --out was vocabulary's own spelling
+        argv = ["frontend", "vocabulary", "images", spelling, "voc.txt"]
+        assert parser.parse_args(argv).output == "voc.txt"
 
 
 def test_sequences_names_sequences_everywhere():

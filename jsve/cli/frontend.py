@@ -107,18 +107,11 @@ def register(subparsers) -> None:
     common.add_progress_option(r)
     r.set_defaults(func=run_runs)
     v = sub.add_parser(
-        "vocabulary",
-        help="train a DBoW2 text vocabulary from images (ORB-SLAM3's ORB settings)",
-        description="Train a deterministic DBoW2 text-format vocabulary (TF-IDF, L1) from ORB features of "
-        "IMAGES (files or folders) with ORB-SLAM3's settings, for runs without ORB-SLAM3's ORBvoc.txt.",
+        "vocabulary", help="train a DBoW2 text vocabulary from images (ORB-SLAM3's ORB settings)"
     )
     from jsve.frontend._vocabulary import add_vocabulary_arguments, run_vocabulary
 
-    add_vocabulary_arguments(v)
-    # jsve.frontend._vocabulary spells its output -o/--out; every jsve command also takes --output.
-    out = v._option_string_actions["--out"]
-    out.option_strings.insert(1, "--output")
-    v._option_string_actions["--output"] = out
+    add_vocabulary_arguments(v)  # its options and description, defined once there
     v.set_defaults(func=run_vocabulary)
 
 

@@ -482,7 +482,8 @@ def image_files(inputs: Iterable[str | os.PathLike]) -> list[Path]:
 
 
 def add_vocabulary_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options of `jsve frontend vocabulary`."""
+    """The options of `jsve frontend vocabulary` (their one definition: jsve.cli.frontend mounts them as
+    they are)."""
     parser.description = (
         "Train a DBoW2 text vocabulary (ORBvoc.txt format: TF-IDF weights, L1 scoring) for ORB-SLAM3 on ORB "
         "features of your images, extracted with ORB-SLAM3's settings; deterministic under --seed. Use it "
@@ -491,7 +492,11 @@ def add_vocabulary_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "images", nargs="+", metavar="IMAGES", help="image files or folders (searched recursively)"
     )
-    parser.add_argument("-o", "--out", required=True, metavar="VOC.txt", help="vocabulary file to write")
+    # -o/--output, every jsve command's spelling of what it writes; the earlier --out still parses (a
+    # unique prefix of --output).
+    parser.add_argument(
+        "-o", "--output", dest="output", required=True, metavar="VOC.txt", help="vocabulary file to write"
+    )
     parser.add_argument(
         "--k", type=int, default=10, help="branching factor (default 10, as ORBvoc.txt; max 20)"
     )
@@ -519,14 +524,14 @@ def run_vocabulary(args: argparse.Namespace) -> int:
             files, k=args.k, levels=args.levels, n_features=args.features, seed=args.seed,
             progress=not args.no_progress,
         )  # fmt: skip
-        write_vocabulary(vocab, args.out)
+        write_vocabulary(vocab, args.output)
     except (ValueError, FileNotFoundError) as err:
         print(f"jsve frontend vocabulary: {err}", file=sys.stderr)
         return 2
     seconds = time.perf_counter() - start
     depth = math.log(max(vocab.n_words, 1), max(vocab.k, 2))
     print(
-        f"{args.out}: {vocab.n_words} words, {vocab.n_nodes} nodes (k={vocab.k}, L={vocab.levels}, "
+        f"{args.output}: {vocab.n_words} words, {vocab.n_nodes} nodes (k={vocab.k}, L={vocab.levels}, "
         f"~k^{depth:.1f} words) from {vocab.n_descriptors} descriptors of {vocab.n_images} images "
         f"in {seconds:.1f} s"
     )
