@@ -22,6 +22,7 @@ from jsve.fitting._fit import FitConfig, FitData, fit, fit_cache, search_design
 from jsve.fitting._halving import (
     RunLossCache,
     halving_search,
+    halving_searches,
     rung_sizes,
     stratified_order,
     subset_parts,
@@ -294,22 +295,27 @@ def test_fold_objectives_from_reused_losses_equal_the_kernel_per_fold(counts64, 
 
 
 def test_folds_share_the_cache_without_changing_results(counts64, x64):
-    """Folds halving on one shared cache (the full fit's first) select what each would on its own, with
-    the same results to 1e-12 m, and compute far fewer pairs."""
+    """Folds halving on one shared cache (the full fit's first), or in step (halving_searches), select
+    what each would on its own, with the same results to 1e-12 m, and compute far fewer pairs."""
     data, space = counts64, inlier_space()
     values = _design(space, 64, seed=5)
     order = stratified_order(data.meta, data.n_runs, seed=0)
     shared = _cache(data, space, values)
-    alone_cost = halving_search(shared, np.ones(data.n_runs), order=order).evaluations  # the full fit
-    for fold in kfold(data.n_runs, 3, seed=0):
-        w = (~fold.test).astype(float)
+    full_cost = halving_search(shared, np.ones(data.n_runs), order=order).evaluations  # the full fit
+    folds = [(~fold.test).astype(float) for fold in kfold(data.n_runs, 3, seed=0)]
+    in_step = halving_searches(_cache(data, space, values), folds, order=order)
+    folds_cost = 0
+    for w, joint in zip(folds, in_step, strict=True):
         with_shared = halving_search(shared, w, order=order)
         alone = halving_search(_cache(data, space, values), w, order=order)
-        alone_cost += alone.evaluations
-        for a, b in zip(with_shared.scored, alone.scored, strict=True):
+        folds_cost += alone.evaluations
+        for a, b, c in zip(with_shared.scored, alone.scored, joint.scored, strict=True):
             np.testing.assert_array_equal(a, b)
+            np.testing.assert_array_equal(c, b)
         np.testing.assert_allclose(with_shared.search.loss, alone.search.loss, rtol=0, atol=TOL)
-    assert shared.evaluations < 0.5 * alone_cost
+        np.testing.assert_allclose(joint.search.loss, alone.search.loss, rtol=0, atol=TOL)
+    assert shared.evaluations < 0.5 * (full_cost + folds_cost)
+    assert in_step[0].evaluations < 0.7 * folds_cost  # in step: each pair once for all folds
 
 
 def test_cross_validation_with_the_shared_cache_fits_as_without(counts64, x64, monkeypatch):

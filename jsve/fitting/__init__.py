@@ -12,6 +12,7 @@ from jsve.fitting._crossval import leave_one_out as leave_one_out
 from jsve.fitting._designs import design as design
 from jsve.fitting._designs import grid_design as grid_design
 from jsve.fitting._designs import sobol as sobol
+from jsve.fitting._fit import SEARCH_METHODS as SEARCH_METHODS
 from jsve.fitting._fit import FitConfig as FitConfig
 from jsve.fitting._fit import FitData as FitData
 from jsve.fitting._fit import FitResult as FitResult
@@ -19,6 +20,12 @@ from jsve.fitting._fit import fit as fit
 from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
 from jsve.fitting._fit import nelder_mead as nelder_mead
 from jsve.fitting._fit import relaxed_fit as relaxed_fit
+from jsve.fitting._halving import HalvingResult as HalvingResult
+from jsve.fitting._halving import RunLossCache as RunLossCache
+from jsve.fitting._halving import halving_search as halving_search
+from jsve.fitting._halving import halving_searches as halving_searches
+from jsve.fitting._halving import rung_sizes as rung_sizes
+from jsve.fitting._halving import stratified_order as stratified_order
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
 from jsve.fitting._space import ParamSpace as ParamSpace

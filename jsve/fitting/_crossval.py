@@ -29,7 +29,7 @@ from jsve.core._objective import run_losses
 from jsve.core._rules import BASELINES, PRESETS, preset
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fit_cache, fitted_rule_name, search_design
-from jsve.fitting._halving import RunLossCache
+from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
@@ -189,14 +189,26 @@ def cross_validate(
     meta = data.meta.reset_index(drop=True)
     searches = dict(searches or {})
     caches = dict(caches or {})
+    screened = {}  # family -> one halving result per fold
     for name, space in spaces.items():
         if config.search == "halving":
-            # Each fold halves over its own training runs (the survivors on all runs were screened on
-            # held-out runs too); one cache of per-run results serves every fold, so a pair of (setting,
-            # run) is scored once whichever folds screen it.
+            # Each fold halves over its own training runs (screening on held-out runs would leak them into
+            # the fit). The folds halve in step on one cache of per-run results (the full fit's where
+            # given): a (setting, run) pair is scored once whichever folds need it, and each rung's new
+            # pairs for all folds are one batch of kernel calls.
             if name not in caches and RunLossCache.fits(len(search_design(space, config)), data.n_runs):
                 caches[name] = fit_cache(data, space, config)
-            elif name not in caches:
+            if name in caches:
+                screened[name] = halving_searches(
+                    caches[name],
+                    [w * ~fold.test for fold in folds],
+                    eta=config.eta,
+                    initial_fraction=config.initial_fraction,
+                    order=stratified_order(data.meta, data.n_runs, seed=config.seed),
+                    progress=progress,
+                    desc=f"halving {name}, {len(folds)} folds",
+                )
+            else:
                 log.info("cross-validation of %s: per-run results do not fit memory, folds halve alone", name)
         elif name not in searches:
             searches[name] = search(
@@ -211,7 +223,7 @@ def cross_validate(
     per_rule = {name: preset_results(data, name) for name in presets}
 
     rows, params = [], []
-    for fold in tqdm(folds, desc="cross-validation", unit="fold", disable=not progress):
+    for k, fold in enumerate(tqdm(folds, desc="cross-validation", unit="fold", disable=not progress)):
         train = w * ~fold.test
         if not np.any(train > 0):
             raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
@@ -222,8 +234,7 @@ def cross_validate(
                 space,
                 train,
                 config,
-                search_result=searches.get(name) if config.search == "exhaustive" else None,
-                cache=caches.get(name),
+                search_result=_fold_search(name, k, screened, searches, config),
                 progress=False,
             )
             fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
@@ -247,6 +258,14 @@ def cross_validate(
             table["loss"] = table["loss"].where(table["included"])
             rows.append(table)
     return CrossValidation(heldout=pd.concat(rows, ignore_index=True), params=pd.DataFrame(params))
+
+
+def _fold_search(name: str, k: int, screened: dict, searches: dict, config: FitConfig) -> SearchResult | None:
+    """The search fold k's fit of family `name` starts from: its halving survivors, the exhaustive search
+    over all runs, or None (the fit halves alone; never a search whose survivors saw held-out runs)."""
+    if name in screened:
+        return screened[name][k].search
+    return searches.get(name) if config.search == "exhaustive" else None
 
 
 def _weighted_mean(values: pd.Series, weight: np.ndarray) -> float:

@@ -143,24 +143,32 @@ class RunLossCache:
         return n_settings * n_runs * 28 <= max_bytes
 
     def fill(self, settings: np.ndarray, runs: np.ndarray, *, progress: bool = False, desc: str = "") -> None:
-        """Compute the pairs (settings x runs) not yet known; a pair already known is never recomputed
-        into the cache (so results never change once read).
+        """Compute the pairs (settings x runs) not yet known (fill_pairs of that rectangle)."""
+        need = np.zeros((len(self.values), self.n_runs), bool)
+        need[np.ix_(np.asarray(settings, np.int64), np.asarray(runs, np.int64))] = True
+        self.fill_pairs(need, progress=progress, desc=desc)
+
+    def fill_pairs(self, need: np.ndarray, *, progress: bool = False, desc: str = "") -> None:
+        """Compute the pairs of the [S, R] mask `need` not yet known; a pair already known is never
+        overwritten (so a result never changes once read).
 
         The kernel scores rectangles (settings x runs), so the missing pairs are covered by at most two:
-        the settings that miss most of the runs (new survivors of another fold: all the runs), and the
-        settings that miss a few (runs another fold did not screen them on: the union of those runs).
-        Within a halving the missing pairs are one rectangle exactly (every survivor misses the rung's
-        new runs); between folds the split keeps the few-missing settings off the many-missing runs.
+        the settings that miss most of the missing runs (new survivors: all of them), and the settings
+        that miss a few (runs other searches did not screen them on: the union of those). Within one
+        halving the missing pairs are one rectangle exactly (every survivor misses the rung's new runs);
+        for folds halving together the split keeps the few-missing settings off the many-missing runs.
         """
-        settings, runs = np.asarray(settings, np.int64), np.asarray(runs, np.int64)
         if self.known is None:
             self.known = np.zeros((len(self.values), self.n_runs), bool)
-        missing = ~self.known[np.ix_(settings, runs)]
-        n_missing = missing.sum(axis=1)
-        many = 2 * n_missing > len(runs)
-        for group in (many, ~many & (n_missing > 0)):
-            if group.any():
-                self._compute(settings[group], runs[missing[group].any(axis=0)], progress, desc)
+        missing = np.asarray(need, bool) & ~self.known
+        rows = np.flatnonzero(missing.any(axis=1))
+        if not len(rows):
+            return
+        counts = missing[rows].sum(axis=1)
+        many = 2 * counts > missing[rows].any(axis=0).sum()
+        for group in (rows[many], rows[~many]):
+            if len(group):
+                self._compute(group, np.flatnonzero(missing[group].any(axis=0)), progress, desc)
 
     def _compute(self, settings: np.ndarray, runs: np.ndarray, progress: bool, desc: str) -> None:
         """Run the search kernel on settings x runs and store the pairs not known yet."""
@@ -270,31 +278,74 @@ def halving_search(
     Returns:
         HalvingResult; ties keep the design's order (a stable sort).
     """
-    w = np.asarray(weights, np.float64)
-    if w.shape != (cache.n_runs,):
-        raise ValueError(f"weights must have shape ({cache.n_runs},), got {w.shape}")
+    return halving_searches(
+        cache,
+        [weights],
+        eta=eta,
+        initial_fraction=initial_fraction,
+        order=order,
+        progress=progress,
+        desc=desc,
+    )[0]
+
+
+def halving_searches(
+    cache: RunLossCache,
+    weights: Sequence,
+    *,
+    eta: float = 3.0,
+    initial_fraction: float = 1 / 9,
+    order: np.ndarray | None = None,
+    progress: bool = False,
+    desc: str = "halving",
+) -> list[HalvingResult]:
+    """Several halving searches of one design in step (cross-validation folds): each is
+    `halving_search(cache, w)` for its weights w and selects exactly what it would alone, but every rung
+    fills the pairs all of them need at once (at most two rectangles of settings x runs per rung), so
+    the folds' nearly equal prefixes and survivors cost one batch of kernel calls, not one per fold.
+
+    Arguments:
+        weights: one [R] weight vector per search.
+    Returns:
+        One HalvingResult per search; `evaluations` is the setting-runs of the whole call (shared).
+    """
+    ws = [np.asarray(w, np.float64) for w in weights]
+    for w in ws:
+        if w.shape != (cache.n_runs,):
+            raise ValueError(f"weights must have shape ({cache.n_runs},), got {w.shape}")
     order = np.arange(cache.n_runs) if order is None else np.asarray(order, np.int64)
-    train = order[w[order] > 0]
-    if not len(train):
+    trains = [order[w[order] > 0] for w in ws]
+    if any(not len(t) for t in trains):
         raise ValueError("halving_search: no run has a weight > 0")
-    before = cache.evaluations
-    alive = np.arange(len(cache.values))
-    rungs, scored = [], []
-    sizes = rung_sizes(len(alive), len(train), eta, initial_fraction)
-    for k, (_, n_runs) in enumerate(sizes):
-        last = k == len(sizes) - 1
-        runs = np.arange(cache.n_runs) if last else np.sort(train[:n_runs])
-        cache.fill(alive, runs, progress=progress, desc=f"{desc} rung {k + 1}/{len(sizes)}")
-        obj = cache.result(alive, runs).objective(w[runs])
-        rank = np.argsort(obj, kind="stable")
-        rungs.append(Rung(settings=len(alive), runs=int(np.sum(w[runs] > 0)), best=float(obj[rank[0]])))
-        scored.append(alive)
+    n_settings, before = len(cache.values), cache.evaluations
+    sizes = [rung_sizes(n_settings, len(t), eta, initial_fraction) for t in trains]
+    alive = [np.arange(n_settings) for _ in ws]
+    rungs, scored = [[] for _ in ws], [[] for _ in ws]
+    for k in range(max(len(s) for s in sizes)):
+        active = [i for i in range(len(ws)) if k < len(sizes[i])]
+        runs = {
+            i: np.arange(cache.n_runs) if k == len(sizes[i]) - 1 else np.sort(trains[i][: sizes[i][k][1]])
+            for i in active
+        }
+        need = np.zeros((n_settings, cache.n_runs), bool)
+        for i in active:
+            need[np.ix_(alive[i], runs[i])] = True
+        cache.fill_pairs(need, progress=progress, desc=f"{desc} rung {k + 1}")
+        for i in active:
+            obj = cache.result(alive[i], runs[i]).objective(ws[i][runs[i]])
+            rank = np.argsort(obj, kind="stable")
+            best = float(obj[rank[0]])
+            rungs[i].append(Rung(settings=len(alive[i]), runs=int(np.sum(ws[i][runs[i]] > 0)), best=best))
+            scored[i].append(alive[i])
+            if k < len(sizes[i]) - 1:  # the best ceil(S / eta^(k+1)), back in the design's order
+                alive[i] = np.sort(alive[i][rank[: sizes[i][k + 1][0]]])
         log.info(
-            "%s rung %d: %d settings on %d runs, best %.5f m", desc, k + 1, len(alive), n_runs, obj[rank[0]]
+            "%s rung %d: %d searches, best %.5f m", desc, k + 1, len(active), min(r[-1].best for r in rungs)
         )
-        if not last:  # the best ceil(S / eta^(k+1)), back in the design's order
-            alive = np.sort(alive[rank[: sizes[k + 1][0]]])
-    return HalvingResult(cache.result(alive), tuple(rungs), cache.evaluations - before, tuple(scored))
+    cost = cache.evaluations - before
+    return [
+        HalvingResult(cache.result(alive[i]), tuple(rungs[i]), cost, tuple(scored[i])) for i in range(len(ws))
+    ]
 
 
 __all__ = [
@@ -302,6 +353,7 @@ __all__ = [
     "HalvingResult",
     "Rung",
     "halving_search",
+    "halving_searches",
     "rung_sizes",
     "stratified_order",
     "subset_parts",
