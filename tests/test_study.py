@@ -61,6 +61,35 @@ def test_support_policy_keys_the_study_and_reaches_the_objective():
         StudyConfig.from_dict({"support": "drop"})
 
 
+def test_search_method_from_the_config_file_and_the_command_line(tmp_path):
+    """[fit] search / eta / initial_fraction in the TOML config, `jsve fit --search --eta
+    --initial-fraction` over them; the study's key changes with them; wrong values are refused when the
+    study is configured (argparse for the method's name)."""
+    from jsve.cli import build_parser
+    from jsve.cli.fit import load_study_config
+    from jsve.fitting._fit import FitConfig
+    from jsve.fitting._study import fingerprint
+
+    toml = tmp_path / "fit.toml"
+    toml.write_text('[fit]\nsearch = "exhaustive"\neta = 2.0\n')
+    from_file = load_study_config(str(toml))
+    assert (from_file.fit.search, from_file.fit.eta) == ("exhaustive", 2.0)
+    both = load_study_config(str(toml), search="halving", initial_fraction=0.25, eta=None)
+    assert (both.fit.search, both.fit.eta, both.fit.initial_fraction) == ("halving", 2.0, 0.25)
+    assert StudyConfig.from_dict(both.to_dict()) == both
+    assert fingerprint(both.to_dict()) != fingerprint(from_file.to_dict())
+    assert load_study_config(None).fit == FitConfig()
+    argv = ["fit", "logs", "-o", "out", "--search", "exhaustive", "--eta", "4", "--initial-fraction", "0.5"]
+    args = build_parser().parse_args(argv)
+    assert (args.search, args.eta, args.initial_fraction) == ("exhaustive", 4.0, 0.5)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["fit", "logs", "-o", "out", "--search", "random"])
+    with pytest.raises(ValueError, match="initial_fraction"):
+        load_study_config(None, search="halving", initial_fraction=2.0)
+    with pytest.raises(ValueError, match="eta > 1"):
+        load_study_config(None, search="halving", eta=1.0)
+
+
 @pytest.fixture(scope="module")
 def data():
     return FitData.from_runs(ka.make_study("occlusion", range(6), n_frames=200))

@@ -59,6 +59,27 @@ def register(subparsers) -> None:
     common.add_support_option(p)
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument(
+        "--search",
+        choices=("halving", "exhaustive"),
+        help="how the design is searched: 'halving' screens every setting on a stratified share of the "
+        "runs and re-scores the best on more (about a third of the cost), 'exhaustive' scores every "
+        "setting on every run (default: --config's [fit] search, else exhaustive)",
+    )
+    p.add_argument(
+        "--eta",
+        type=float,
+        metavar="X",
+        help="halving: keep the best 1/X of the settings and score them on X times as many runs at each "
+        "rung (default: --config's, else 3)",
+    )
+    p.add_argument(
+        "--initial-fraction",
+        type=float,
+        metavar="F",
+        help="halving: share of the runs the first rung screens every setting on, in (0, 1] "
+        "(default: --config's, else 1/9; 1 is the exhaustive search)",
+    )
+    p.add_argument(
         "--seed",
         type=int,
         metavar="N",
@@ -70,6 +91,10 @@ def register(subparsers) -> None:
     p.add_argument("--no-report", action="store_true", help="write the tables only, not the report")
     common.add_force_option(p)
     p.set_defaults(func=run)
+
+
+FIT_OVERRIDES = ("search", "eta", "initial_fraction")
+"""Command-line options that set a key of the config's [fit] table (jsve.fitting.FitConfig)."""
 
 
 def load_study_config(path: str | None, **overrides):
@@ -93,6 +118,8 @@ def load_study_config(path: str | None, **overrides):
             continue
         if key == "relaxed":
             base["fit"]["relaxed"] = True
+        elif key in FIT_OVERRIDES:
+            base["fit"][key] = value
         elif key == "seed":
             base["seed"] = base["fit"]["seed"] = value
         else:
@@ -118,6 +145,9 @@ def run(args) -> int:
             support=args.support,
             relaxed=args.relaxed or None,
             seed=args.seed,
+            search=args.search,
+            eta=args.eta,
+            initial_fraction=args.initial_fraction,
         )
         runs = common.load_runs(
             "fit", args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress
