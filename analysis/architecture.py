@@ -33,6 +33,8 @@ ANYTHING = None
 LAYERS: dict[str, frozenset[str] | None] = {
     # Lowest first. The value lists the layers a layer may import, besides itself and `_version`.
     "_version": frozenset(),
+    # JAX's persistent compilation cache, switched on by the commands that compute (cli, _demo).
+    "_jax_cache": frozenset(),
     "core": frozenset(),
     "io": frozenset({"core"}),
     "evaluation": frozenset({"core", "io"}),

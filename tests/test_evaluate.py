@@ -234,3 +234,17 @@ def test_cli_sve_bad_log(tmp_path, capsys):
     path.write_text("")
     assert jsve_main(["sve", str(path)]) == 2
     assert str(path) in capsys.readouterr().err
+
+
+def test_evaluate_batch_checks_the_rule_on_the_host(runs):
+    # The compiled computation carries no traced check (it would keep it out of JAX's persistent cache),
+    # so a combination made undefined behind the constructor's back is refused before compiling.
+    import equinox as eqx
+
+    from jsve.evaluation._evaluate import evaluate_batch
+
+    batch = jsve.from_runs(runs[:2]).batch
+    bad = eqx.tree_at(lambda r: r.combination.p, jsve.preset("sve-option1"), jnp.asarray(0.5))
+    with pytest.raises(ValueError, match=r"needs p = 1, got 0\.5"):
+        evaluate_batch(batch, bad)
+    assert evaluate_batch(batch, jsve.preset("sve-option1")).failed.shape == (2,)

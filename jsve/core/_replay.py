@@ -228,6 +228,7 @@ def replay(
     switch_model: str = "orbslam3",
     logic=HardLogic(),
     time_recently_lost: float = TIME_RECENTLY_LOST_S,
+    checked: bool = True,
 ) -> ReplayResult:
     """Replay `rule` over every run of `batch` (jit it at the call site, or use `jsve.evaluation._evaluate`).
 
@@ -237,6 +238,8 @@ def replay(
         switch_model: "orbslam3" or "imu-coast" (jsve.core._machine.SWITCH_MODELS).
         logic: HardLogic() for the real machine, SoftLogic(temperature) for the differentiable relaxation.
         time_recently_lost: s before RECENTLY_LOST turns LOST (ORB-SLAM3: 5).
+        checked: False leaves the traced checks (host callbacks) out of the computation, so that JAX
+            can keep it in its persistent cache; only for a rule whose `check_defined` has passed.
     Returns:
         ReplayResult with [runs, frames] leaves, as the batch.
     """
@@ -244,7 +247,7 @@ def replay(
     if features is None:
         features = batch_features(batch)
     dtype = batch.t.dtype
-    score = rule.score(features).astype(dtype)
+    score = rule.score(features, checked=checked).astype(dtype)
     frames_major = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
     data = jax.tree.map(frames_major, frame_data(batch))
     logged = (batch.vis_p, batch.vis_q, batch.vis_v, batch.imu_dt, batch.imu_dp, batch.imu_dv, batch.imu_dq)

@@ -51,8 +51,11 @@ class InlierRule(eqx.Module):
 
     thresholds: Thresholds
 
-    def score(self, features: FrameFeatures) -> Float[Array, ...]:
+    def score(self, features: FrameFeatures, *, checked: bool = True) -> Float[Array, ...]:
         return features.n_inliers
+
+    def check_defined(self) -> None:
+        """Every inlier rule is defined (the counterpart of SVERule.check_defined)."""
 
 
 class SVERule(eqx.Module):
@@ -61,8 +64,13 @@ class SVERule(eqx.Module):
     combination: Combination
     thresholds: Thresholds
 
-    def score(self, features: FrameFeatures) -> Float[Array, ...]:
-        return self.combination.score(features)
+    def score(self, features: FrameFeatures, *, checked: bool = True) -> Float[Array, ...]:
+        """checked: see Combination.score (False only after `check_defined`)."""
+        return self.combination.score(features, checked=checked)
+
+    def check_defined(self) -> None:
+        """Refuse (ValueError) a combination that is not defined for its inputs (concrete leaves)."""
+        self.combination.check_defined()
 
 
 Rule = InlierRule | SVERule

@@ -224,15 +224,21 @@ class Combination(eqx.Module):
         self.q = jnp.asarray(q, float)
         self.rho = jnp.asarray(rho, float)
         self.inputs = inputs
-        if inputs != "jsve":
-            for name in ("p", "q"):
-                value = getattr(self, name)
-                if _is_concrete(value) and np.any(np.asarray(value) != 1.0):
-                    raise ValueError(
-                        f"Combination(inputs={inputs!r}) needs {name} = 1, got {np.asarray(value)}: "
-                        "its unclamped S_b and S_c can be negative, so only the linear mean (p = q = 1) "
-                        "is defined"
-                    )
+        self.check_defined()
+
+    def check_defined(self) -> None:
+        """Refuse exponents other than 1 with the authors' inputs, where they are concrete (ValueError);
+        traced ones are checked by `score`. Callers that score with checked=False call this first."""
+        if self.inputs == "jsve":
+            return
+        for name in ("p", "q"):
+            value = getattr(self, name)
+            if _is_concrete(value) and np.any(np.asarray(value) != 1.0):
+                raise ValueError(
+                    f"Combination(inputs={self.inputs!r}) needs {name} = 1, got {np.asarray(value)}: "
+                    "its unclamped S_b and S_c can be negative, so only the linear mean (p = q = 1) "
+                    "is defined"
+                )
 
     def __call__(self, ratio: ArrayLike, sb: ArrayLike, sc: ArrayLike) -> Float[Array, ...]:
         """SVE score from the inlier ratio (N_inliers / N_extracted), S_b and S_c (same shapes); the
@@ -245,8 +251,13 @@ class Combination(eqx.Module):
         ratio, sb, sc = (jnp.asarray(x, float) for x in (ratio, sb, sc))
         return combination_from_logs(self, *feature_logs(ratio, sb, sc))
 
-    def score(self, features: FrameFeatures) -> Float[Array, "*batch"]:
-        """SVE score of every frame of `features`, from the S_a, S_b, S_c variants `inputs` names."""
+    def score(self, features: FrameFeatures, *, checked: bool = True) -> Float[Array, "*batch"]:
+        """SVE score of every frame of `features`, from the S_a, S_b, S_c variants `inputs` names.
+
+        checked=False leaves out the traced check of p = q = 1 for the authors' inputs: that check is a
+        host callback, and a computation holding one is never kept in JAX's persistent compilation cache.
+        Pass it only for a rule `check_defined` has passed with concrete leaves.
+        """
         if self.inputs == "jsve":
             return self(features.inlier_ratio, features.s_b, features.s_c)
         if self.inputs == "authors-eq1":
@@ -257,6 +268,8 @@ class Combination(eqx.Module):
         # M_1([a, M_1([b, c]; u)]; w): the linear combination the authors' builds compute
         # (Tracking::TrackLocalMap, "visibility" of the Option 1 build)
         value = self.w_a * a + (1.0 - self.w_a) * (self.u_b * b + (1.0 - self.u_b) * c)
+        if not checked:
+            return value
         nonlinear = (self.p != 1.0) | (self.q != 1.0)
         return eqx.error_if(
             value, nonlinear, f"Combination(inputs={self.inputs!r}) is only defined for p = q = 1"

@@ -57,9 +57,6 @@ class Evaluation(eqx.Module):
     failed: Bool[Array, " R"]
 
 
-@functools.partial(
-    jax.jit, static_argnames=("align", "n_first", "segments", "time_recently_lost", "switch_model")
-)
 def evaluate_batch(
     batch: LogBatch,
     rule: Rule,
@@ -75,16 +72,34 @@ def evaluate_batch(
     """Replay `rule` over `batch` and score every run against its ground truth (one compiled call).
 
     Arguments:
-        batch: padded logs. rule: any jsve rule (array leaves; a new value does not recompile).
+        batch: padded logs. rule: any jsve rule (array leaves; a new value does not recompile). It is
+            checked here, on the host (Rule.check_defined), not inside the compiled call.
         features: the batch's FrameFeatures when already computed (sweeps share them).
         align, n_first, segments, min_coverage: see jsve.core._trajectory.run_error.
         switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md).
     """
-    result = replay(batch, rule, features, switch_model=switch_model, time_recently_lost=time_recently_lost)
+    rule.check_defined()
+    return _evaluate_compiled(batch, rule, features, align=align, n_first=n_first, segments=segments,
+                              min_coverage=min_coverage, time_recently_lost=time_recently_lost,
+                              switch_model=switch_model)  # fmt: skip
+
+
+@functools.partial(
+    jax.jit, static_argnames=("align", "n_first", "segments", "time_recently_lost", "switch_model")
+)
+def _evaluate_compiled(
+    batch, rule, features, *, align, n_first, segments, min_coverage, time_recently_lost, switch_model
+) -> Evaluation:
+    """evaluate_batch's computation, free of host callbacks so that JAX's persistent cache keeps it."""
+    # No traced checks (host callbacks): a computation holding one is never kept in JAX's persistent
+    # cache, and this is the one every evaluation compiles. The rule is checked on the host instead
+    # (`evaluate`), and the replay's segment ids lie in [0, T) by construction.
+    result = replay(batch, rule, features, switch_model=switch_model, time_recently_lost=time_recently_lost,
+                    checked=False)  # fmt: skip
     error = batched_run_error(
         result.position, result.quaternion, result.has_estimate, result.segment,
         batch.gt_p, batch.gt_q, batch.gt_valid, batch.valid,
-        align=align, n_first=n_first, segments=segments, min_coverage=min_coverage,
+        align=align, n_first=n_first, segments=segments, min_coverage=min_coverage, check_segments=False,
     )  # fmt: skip
     n_valid = jnp.maximum(jnp.sum(batch.valid, axis=-1), 1)
     share = lambda flags: jnp.sum(flags & batch.valid, axis=-1) / n_valid  # noqa: E731
