@@ -669,3 +669,52 @@ def test_report_of_an_evaluate_folder_scores_as_evaluate_recorded(tmp_path):
     (tmp_path / "evaluation.json").write_text('{"penalty": 2}')  # not a record: named, never misread
     with pytest.raises(ValueError, match=r"evaluation.json: unknown keys \['penalty'\]"):
         write_report(tmp_path)
+
+
+def _with_changed(out: Path, changed: float) -> None:
+    """The fake study with fitted-sve's replays changing `changed` of the recordings' decisions."""
+    _fake_study(out)
+    runs = pd.read_parquet(out / "runs.parquet")
+    runs.loc[runs["rule"] == "fitted-sve", "changed_fraction"] = changed
+    runs.to_parquet(out / "runs.parquet")
+
+
+def test_the_report_says_whether_the_fitted_rule_stays_where_replays_were_validated(tmp_path):
+    from jsve.evaluation import REPLAY_TRUSTED_CHANGED_SHARE
+    from jsve.report._report import trust_warnings
+
+    inside, outside = tmp_path / "inside", tmp_path / "outside"
+    _with_changed(inside, 0.0)
+    _with_changed(outside, 0.05)
+    assert trust_warnings(inside) == []
+    assert (
+        "changes 0 % of the recordings' decisions, within the 0.1 % up to which replays agreed"
+        in _section(write_report(inside)["markdown"].read_text(), "Headline")
+    )
+    (line,) = trust_warnings(outside)
+    assert line.startswith("`fitted-sve` changes 5.0 % of the recordings' decisions, more than the 0.1 %")
+    assert line in _section(write_report(outside)["markdown"].read_text(), "Headline")
+    # the threshold decides: 5 % is inside a region that reaches 10 %
+    assert trust_warnings(outside, threshold=0.1) == [] and REPLAY_TRUSTED_CHANGED_SHARE < 0.05
+
+
+@pytest.mark.parametrize("changed", [0.0, 0.05])
+def test_jsve_fit_warns_when_a_fitted_rule_leaves_the_trust_region(tmp_path, monkeypatch, capsys, changed):
+    """jsve fit's own path, with the study itself replaced by the hand-made one (the fit is not the test)."""
+    from logfactory import make_run
+
+    import jsve.fitting._study as study
+    from jsve.cli import main
+    from jsve.io import write_log
+
+    for k in range(2):
+        write_log(make_run(60, seed=k, sequence="S", run=k), tmp_path / "logs" / f"r{k}.csv")
+    monkeypatch.setattr(study, "run_study", lambda data, out, config, **kw: _with_changed(Path(out), changed))
+    out = tmp_path / "study"
+    assert main(["fit", str(tmp_path / "logs"), "-o", str(out), "--no-progress", "--no-report"]) == 0
+    warnings = [
+        line for line in capsys.readouterr().err.splitlines() if line.startswith("jsve fit: warning:")
+    ]
+    assert len(warnings) == (1 if changed > 0.001 else 0)
+    if warnings:
+        assert "`fitted-sve` changes 5.0 %" in warnings[0]

@@ -12,6 +12,7 @@ A study folder is resumed only for the same data content and configuration; anot
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 
 import tomllib
@@ -160,7 +161,7 @@ def run(args) -> int:
 
     from jsve.fitting._fit import FitData
     from jsve.fitting._study import run_study
-    from jsve.report._report import write_report
+    from jsve.report._report import trust_warnings, write_report
 
     started = time.perf_counter()
     try:
@@ -178,6 +179,8 @@ def run(args) -> int:
     )
     if not args.no_report:
         write_report(args.output)
+    for line in trust_warnings(args.output):  # beyond what the replay-vs-re-run validation supports
+        print(f"jsve fit: warning: {line}", file=sys.stderr)
     # The demo's closing lines (the headline in words), timed from the logs read to the report written.
     done = "fitted" if args.no_report else "fitted and reported"
     seconds = time.perf_counter() - started

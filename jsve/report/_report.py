@@ -24,6 +24,8 @@ import os
 from pathlib import Path
 
 from jsve.core._rules import BASELINES
+from jsve.evaluation import trust_region_warning
+from jsve.fitting import fitted_rule_name
 from jsve.io import _atomic as atomic
 from jsve.report import _derive as derive
 from jsve.report._document import Details, Figure, Section, render
@@ -137,4 +139,27 @@ def summary_lines(out_dir: str | os.PathLike, *, report: bool = True) -> list[st
     return lines
 
 
-__all__ = ["write_report", "summary_lines", "STUDY_TITLE", "EVALUATION_TITLE"]
+def trust_warnings(out_dir: str | os.PathLike, threshold: float | None = None) -> list[str]:
+    """One line per fitted rule of a study whose replays change more of the recordings' decisions than
+    replays were validated for (jsve.evaluation.trust_region_warning; `jsve fit` prints them).
+
+    Arguments:
+        out_dir: the study folder. threshold: the changed share trusted (default
+            jsve.evaluation.REPLAY_TRUSTED_CHANGED_SHARE).
+    Raises:
+        FileNotFoundError: the folder holds no finished study.
+    """
+    o = read_study(Path(out_dir)).overview
+    if "changed" not in o:
+        return []
+    fitted = [fitted_rule_name(f) for f in BASELINES]
+    kwargs = {} if threshold is None else {"threshold": threshold}
+    lines = [
+        trust_region_warning(r, c, **kwargs)
+        for r, c in zip(o["rule"], o["changed"], strict=True)
+        if r in fitted
+    ]
+    return [line for line in lines if line is not None]
+
+
+__all__ = ["write_report", "summary_lines", "trust_warnings", "STUDY_TITLE", "EVALUATION_TITLE"]
