@@ -196,7 +196,7 @@ def trust_tables(rows: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     beyond_in_band_ratio, beyond_bias in m): what is known past the region, bins pooled."""
     bins, shares = [], []
     for key, part in rows.groupby(GROUP, sort=True):
-        table = agreement_by_changed_share(part)
+        table = agreement_by_changed_share(part, cluster=KEYS)  # replays of a setting share its re-runs
         named = dict(zip(GROUP, key, strict=True))
         bins.append(pd.concat([pd.DataFrame([named] * len(table)), table], axis=1))
         trusted = trusted_changed_share(table)
@@ -276,8 +276,10 @@ def colours(names) -> dict:
 def metres_axis(ax, linthresh: float, ticks: tuple[float, ...]) -> None:
     """A symlog y axis in metres with plain tick labels at +-`ticks` and 0: linear within `linthresh`."""
     ax.set_yscale("symlog", linthresh=linthresh, linscale=1.0)
+    limits = ax.get_ylim()  # set_yticks widens the view to every tick: keep the data's
     values = sorted({0.0, *ticks, *(-t for t in ticks)})
     ax.set_yticks(values, [f"{t:g}" for t in values])
+    ax.set_ylim(limits)
     ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
 
 
@@ -308,7 +310,7 @@ def figure_bland_altman(rows: pd.DataFrame, path: Path) -> None:
                         arrowprops={"arrowstyle": "->", "lw": 0.7})  # fmt: skip
         ax.axhline(0, color="black", lw=0.6)
         ax.set_xscale("log")
-        metres_axis(ax, 0.01, (0.01, 0.1, 1, 3))
+        metres_axis(ax, 0.01, (0.01, 0.1, 1, 10))
         ax.set_title(f"switch model {model}", fontsize=10)
         ax.set_xlabel("mean of the replayed and the mean re-run loss (m)")
         ax.grid(alpha=0.3, lw=0.4)
@@ -394,7 +396,7 @@ def figure_trust(bins: pd.DataFrame, trusted: pd.DataFrame, path: Path) -> None:
     for sign in (-1, 1):
         middle.axhline(sign * MAX_ABS_BIAS_M, color="black", ls="--", lw=0.8)
     middle.axhline(0, color="grey", lw=0.6)
-    metres_axis(middle, 0.1, (0.05, 0.1, 0.3, 1, 3))
+    metres_axis(middle, 0.1, (0.05, 0.1, 1, 10))
     middle.set_ylabel("bias +- 1.96 se (m):\nreplayed - re-run loss")
     bottom.set_yscale("log")
     bottom.axhline(MIN_REPLAYS_PER_BIN, color="black", ls="--", lw=0.8)
@@ -431,7 +433,7 @@ def figure_deploy(per_level: pd.DataFrame, pooled: pd.DataFrame, fitted: str, pa
             ax.errorbar(x, d, yerr=err, fmt="o", ms=4, capsize=2, color=colour, label=f"{fitted} - {base}")
         ax.axhline(0, color="black", lw=0.6)
         ax.axvline(len(names) - 1.5, color="grey", lw=0.6)
-        metres_axis(ax, 0.01, (0.01, 0.1, 1))
+        metres_axis(ax, 0.01, (0.01, 0.1, 1, 10))
         ax.set_xticks(range(len(names)), names, rotation=40, ha="right", fontsize=8)
         ax.set_title(f"switch model {model}", fontsize=10)
         ax.grid(alpha=0.3, lw=0.4)

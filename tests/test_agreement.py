@@ -276,3 +276,15 @@ def test_rules_the_replay_ties_for_first_share_the_pick():
     draws = bootstrap_ranking(replayed.assign(source="rec0"), reruns, LEVEL, n_boot=20)
     assert draws.table["replay_best"].iloc[0] == "a=b"
     assert draws.table["regret_at_1"].iloc[0] == pytest.approx(0.1)
+
+
+def test_replays_sharing_their_reruns_count_as_one_cluster_in_the_bias_error():
+    # two settings, ten replays each: one setting's 15 cm above the 15 cm mean, the other's 15 cm below;
+    # a setting's replays share one re-run mean, so the bias's error is that of 2 draws, not of 20
+    rows = _rows([0.0] * 20, [True] * 20, [0.3] * 10 + [0.0] * 10).assign(setting=[0] * 10 + [1] * 10)
+    plain = agreement_by_changed_share(rows).iloc[0]
+    clustered = agreement_by_changed_share(rows, cluster=["setting"]).iloc[0]
+    assert plain["bias_se"] == pytest.approx(np.std(rows["d"], ddof=1) / np.sqrt(20))
+    # sqrt(G / (G - 1) * sum of squared cluster sums of deviations) / n = sqrt(2 * 2 * 1.5**2) / 20
+    assert clustered["bias_se"] == pytest.approx(0.15)
+    assert plain["evidence"] == "disagrees" and clustered["evidence"] == "agrees"

@@ -78,10 +78,12 @@ recording's) up to which replays agreed with re-runs of the real ORB-SLAM3 (`tru
 Measured by the replay-vs-re-run validation study (issue 11, docs/validation.md: rendered V1_01 and
 V2_01, blur 0-40 and occlusion 200/350, `record`-mode recordings under switch model `orbslam3`, 5
 re-runs per setting). Provisional: computed from the data in on 2026-11-24, the recordings and the
-re-runs of the `orbslam3` preset and most of `sve-option2`'s, both under switch model `orbslam3`;
-95 replays changed nothing and agreed, the 18 that changed anything spread over 8 bins, none with
-the 10 replays a verdict needs (together: bias +63 cm, replays failing where re-runs recovered). To
-be recomputed (`python analysis/replay_vs_rerun.py`, verdict.csv) when every rule's re-runs are in.
+re-runs of the `orbslam3` and `sve-option2` presets and part of `sve-option1`'s, all under switch
+model `orbslam3`. The 155 replays that changed no decision agreed (in the band 1.36 times as often as
+another re-run, bias -12 cm +- 14 cm cluster-robust); the 22 that changed any spread over 7 bins, none
+with the 10 replays a bin needs (together: in the band 0.61 times as often, bias +120 cm: replays
+failing where the re-runs recovered). To be recomputed (`python analysis/replay_vs_rerun.py`,
+verdict.csv) when every rule's re-runs are in.
 `jsve fit` warns, and its report says, when a fitted rule changes more than this.
 """
 
@@ -516,6 +518,7 @@ def agreement_by_changed_share(
     min_in_band_ratio: float = MIN_IN_BAND_RATIO,
     max_abs_bias: float = MAX_ABS_BIAS_M,
     min_replays: int = MIN_REPLAYS_PER_BIN,
+    cluster: Sequence[str] = (),
 ) -> pd.DataFrame:
     """Agreement of replays with re-runs per bin of the replay's changed share.
 
@@ -523,13 +526,15 @@ def agreement_by_changed_share(
         rows: `replay_rows` with `changed_fraction` (share of frames whose replayed state differs from the
             recording's).
         edges: bin edges in [0, 1]; bins are (low, high], the first also holds `low`.
+        cluster: columns whose values group replays that share their re-runs (setting, rule, switch
+            model): their differences share one re-run mean, so the bias's standard error is
+            cluster-robust over these groups; () counts every replay as its own.
 
     Returns:
         One row per bin: changed_low, changed_high, replays, in_band, expected_in_band,
-        in_band_ratio (in_band / expected_in_band), bias and its standard error bias_se (m, over the
-        bin's replays), and evidence: "agrees" (in_band_ratio >= min_in_band_ratio and
-        |bias| - 1.96 bias_se <= max_abs_bias), "disagrees", or "too few" (fewer than min_replays
-        replays).
+        in_band_ratio (in_band / expected_in_band), bias and its standard error bias_se (m), and
+        evidence: "agrees" (in_band_ratio >= min_in_band_ratio and |bias| - 1.96 bias_se <=
+        max_abs_bias), "disagrees", or "too few" (fewer than min_replays replays).
     """
     edges = np.asarray(edges, dtype=np.float64)
     bins = pd.cut(rows["changed_fraction"].astype(float), edges, include_lowest=True)
@@ -540,7 +545,7 @@ def agreement_by_changed_share(
         in_band = float(part["inside"].mean()) if n else float("nan")
         expected = float(part["expected_in_band"].mean()) if n else float("nan")
         bias = float(part["d"].mean()) if n else float("nan")
-        se = float(np.std(part["d"], ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
+        se = _cluster_se(part, list(cluster)) if n > 1 else float("nan")
         ratio = in_band / expected if n and expected > 0 else float("nan")
         if n < min_replays:
             evidence = "too few"
@@ -554,6 +559,19 @@ def agreement_by_changed_share(
              "evidence": evidence}
         )  # fmt: skip
     return pd.DataFrame(out)
+
+
+def _cluster_se(rows: pd.DataFrame, cluster: list[str]) -> float:
+    """Cluster-robust standard error of the mean of `d` (m): sqrt(G / (G - 1) sum_g e_g^2) / n, e_g the
+    sum of a cluster's deviations from the mean (Liang & Zeger 1986, with the small-sample factor); with
+    every row its own cluster, the usual sd / sqrt(n)."""
+    dev = rows["d"].to_numpy(np.float64) - rows["d"].mean()
+    groups = rows.groupby(cluster, dropna=False).ngroup().to_numpy() if cluster else np.arange(len(rows))
+    sums = np.bincount(groups, weights=dev)
+    g = len(sums)
+    if g < 2:
+        return float("nan")
+    return float(np.sqrt(g / (g - 1) * np.sum(sums**2)) / len(rows))
 
 
 def trusted_changed_share(bins: pd.DataFrame) -> float:
