@@ -172,3 +172,29 @@ def test_settings_give_the_feature_count_and_the_camera_in_the_body():
                          [-0.0257744366974, 0.00375618835797, 0.999660727178]])  # fmt: skip
     np.testing.assert_allclose(rot, expected, atol=2e-6)  # EuRoC's matrix is orthonormal to ~1e-6
     np.testing.assert_allclose(pose[4:], [-0.0216401454975, -0.064676986768, 0.00981073058949], rtol=1e-6)
+
+
+def test_a_finished_failed_attempt_is_kept_a_killed_one_is_run_again(tmp_path):
+    # A crash of a non-deterministic front-end is an outcome: re-running it until it succeeds would
+    # bias the failure rate. An attempt without a summary was killed, not finished: it runs again.
+    build = make_build(tmp_path / "build")
+    ds = make_dataset(tmp_path / "ds", manifest={"trajectory": "V101_GT.txt"})
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    kw = dict(runs=3, out=tmp_path / "logs", vocabulary=voc, settings=settings)
+    todo, _ = plan(build, [ds], **kw)
+    key = todo[0].meta["generator"]
+    crashed, killed, legacy = (j.log for j in todo)
+    crashed.with_suffix(".summary.json").write_text(json.dumps({"exit_code": -11, "generator": key}))
+    killed.with_name(killed.name + ".partial").write_text("# jsve-log v2 " + json.dumps({"generator": key}))
+    # A summary written before summaries carried the key: the partial log's header names it.
+    legacy.with_name(legacy.name + ".partial").write_text("# jsve-log v2 " + json.dumps({"generator": key}))
+    legacy.with_suffix(".summary.json").write_text(json.dumps({"exit_code": 1}))
+    todo, done = plan(build, [ds], **kw)
+    assert [j.log for j in todo] == [killed] and done == [crashed, legacy]
+    todo, done = plan(build, [ds], retry_failed=True, **kw)
+    assert [j.log for j in todo] == [crashed, killed, legacy] and done == []
+    # A failed attempt under another key (new inputs) is no outcome of this run.
+    crashed.with_suffix(".summary.json").write_text(json.dumps({"exit_code": -11, "generator": "other"}))
+    todo, _ = plan(build, [ds], **kw)
+    assert [j.log for j in todo] == [crashed, killed]

@@ -64,7 +64,8 @@ def register(subparsers) -> None:
         description="Run the driver of BUILD (IMU_MONOCULAR) over each DATASET (a EuRoC-format folder, e.g. "
         "from `jsve render` or `jsve disturb`) --runs times, writing OUT/<sequence>/<disturbance>-<level>/"
         "run_<k>.csv (format-v2 log), run_<k>.orbslam3.txt (ORB-SLAM3's trajectory), run_<k>.summary.json "
-        "and run_<k>.console.txt. Resumable: complete logs of the same inputs are kept; "
+        "and run_<k>.console.txt. Resumable: complete logs of the same inputs are kept, and so are runs "
+        "that crashed or timed out (an outcome; --retry-failed runs them again); "
         "logs of other inputs stop the command unless --force. A downsampled dataset gets ORB-SLAM3 "
         "settings scaled to its image size.",
     )
@@ -98,6 +99,12 @@ def register(subparsers) -> None:
         "--timeout", type=float, metavar="S", help="seconds before a run is stopped (default: no limit)"
     )
     r.add_argument("--force", action="store_true", help="redo runs whose logs came from other inputs")
+    r.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="run again the runs whose attempt crashed or timed out (default: keep them: a crash is an "
+        "outcome of a non-deterministic system, and re-running until success biases the failure rate)",
+    )
     r.add_argument(
         "--no-wait",
         action="store_true",
@@ -160,13 +167,18 @@ def run_runs(args: argparse.Namespace) -> int:
         todo, done = plan(
             build, [Path(d) for d in args.datasets], runs=args.runs, out=out,
             vocabulary=Path(args.vocabulary), settings=Path(args.settings), rule=rule,
-            switch_model=args.switch_model, force=args.force,
+            switch_model=args.switch_model, force=args.force, retry_failed=args.retry_failed,
         )  # fmt: skip
     except (ValueError, OSError) as err:
         return common.fail("frontend run", err)
     except StaleOutputError as err:
         return common.fail("frontend run", f"{err}; --force redoes them")
-    print(f"jsve frontend run: {len(done)} runs complete already, {len(todo)} to run", file=sys.stderr)
+    kept_failed = sum(not log.is_file() for log in done)
+    print(
+        f"jsve frontend run: {len(done)} runs done already ({kept_failed} of them failed: kept, "
+        f"--retry-failed runs them again), {len(todo)} to run",
+        file=sys.stderr,
+    )
     results = run_all(build, todo, Path(args.vocabulary), workers=args.workers, timeout_s=args.timeout,
                       wait=not args.no_wait, progress=not args.no_progress)  # fmt: skip
     failed = [r for r in results if r.get("exit_code") != 0]

@@ -13,7 +13,10 @@ OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
 Runs are resumable: a complete log whose metadata `generator` equals the run's key (driver build, hook,
 dataset, settings and vocabulary content) is kept; a log of another key stops the command unless
 `force`. ORB-SLAM3 is not deterministic (threads, RANSAC): N runs of one dataset differ, which is the
-point of running N.
+point of running N. For the same reason a run that ended in a crash or a timeout is an outcome, not a
+gap: its attempt (a summary with a non-zero exit_code, made under the same key) is kept and not run
+again unless `retry_failed`, since re-running crashes until they succeed would bias the failure rate
+towards zero. Only an attempt that never finished (the process killed: no summary) is run again.
 """
 
 from __future__ import annotations
@@ -204,6 +207,9 @@ def run_one(
         "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path),
         *_meta_args(job.meta), *job.rule_args,
     ] + ([] if wait else ["--no-wait"])  # fmt: skip
+    # A summary on disk says an attempt finished (resume keeps a failed one): a stale one must not
+    # speak for this attempt if it is killed.
+    summary_path.unlink(missing_ok=True)
     start = time.monotonic()
     with open(f"{stem}.console.txt", "w") as out:
         try:
@@ -214,7 +220,8 @@ def run_one(
     if trajectory.is_file():
         write_euroc_trajectory(trajectory, Path(f"{stem}.orbslam3-euroc.txt"))
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    summary.update(exit_code=code, wall_seconds=round(time.monotonic() - start, 2), log=str(job.log))
+    summary.update(exit_code=code, wall_seconds=round(time.monotonic() - start, 2), log=str(job.log),
+                   generator=job.meta["generator"])  # fmt: skip
     summary_path.write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -248,6 +255,27 @@ def _recorded_generator(log: Path) -> str | None:
         return None
 
 
+def failed_attempt(log: Path, key: str) -> dict | None:
+    """The summary of a finished, failed attempt at `log` under `key`, or None.
+
+    A failed attempt leaves `<log>.partial` (or no log, when the driver died before its first frame)
+    and a summary whose exit_code is not 0. Its key is the summary's `generator`; summaries written
+    before they carried one are matched by the generator in the partial log's first line.
+    """
+    summary_path = log.with_suffix(".summary.json")
+    if log.is_file() or not summary_path.is_file():
+        return None
+    try:
+        summary = json.loads(summary_path.read_text())
+    except json.JSONDecodeError:
+        return None  # a summary cut short: the attempt did not finish
+    if summary.get("exit_code", 0) == 0:
+        return None
+    partial = log.with_name(log.name + ".partial")
+    recorded = summary.get("generator") or (_recorded_generator(partial) if partial.is_file() else None)
+    return summary if recorded == key else None
+
+
 def plan(
     build: Path,
     datasets: Sequence[Path],
@@ -259,8 +287,11 @@ def plan(
     rule: tuple[str, object] | None = None,
     switch_model: str = "orbslam3",
     force: bool = False,
+    retry_failed: bool = False,
 ) -> tuple[list[RunJob], list[Path]]:
-    """The runs still to do and the logs already complete under the same key.
+    """The runs still to do and the runs already done under the same key: complete logs, and the logs
+    of attempts that ended in a crash or a timeout (`failed_attempt`; their `.csv` path, which does not
+    exist), which are outcomes and run again only with `retry_failed`.
 
     `rule`: (name, jsve Rule) run in the loop (default: ORB-SLAM3's own); `switch_model` "orbslam3" or
     "imu-coast" (a failed frame keeps the pose TrackLocalMap started from). Logs go under
@@ -325,6 +356,9 @@ def plan(
                     raise StaleOutputError(
                         folder, differences({"generator": recorded}, {"generator": key}) + f" in {log.name}"
                     )
+            elif not retry_failed and failed_attempt(log, key) is not None:
+                done.append(log)
+                continue
             meta = {
                 "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": "imu_monocular",
                 "n_features": n_features, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
