@@ -1,6 +1,7 @@
 """`jsve disturb DATASET... -o OUT`: write disturbed copies of EuRoC datasets, one per (disturbance, level).
 
-A thin layer over jsve.image._datasets.disturb_datasets: parallel, with a progress bar, resumable (finished
+A thin layer over jsve.image._datasets.disturb_datasets: parallel (--scheduler: an embedded Dask cluster,
+a process pool or a running Dask cluster, docs/scaling.md), with a progress bar, resumable (finished
 datasets made from the same source content, parameters and seed are skipped, stale `.partial` folders
 redone; a finished dataset of another seed, source or parameters stops the command, exit 2, unless
 --force rewrites it). `--list` shows the registered disturbances. `--disturbances blur=5,15,occlusion`
@@ -14,6 +15,7 @@ import argparse
 from pathlib import Path
 
 from jsve.cli import _common as common
+from jsve.cli._scheduler import add_scheduler_option
 
 HELP = "write disturbed copies of EuRoC datasets (blur, downsample, occlusion, noise, ...)"
 
@@ -70,6 +72,7 @@ def register(subparsers) -> None:
         "--seed", type=int, default=0, metavar="N", help="base seed of the random disturbances"
     )
     common.add_workers_option(parser, "processes writing datasets")
+    add_scheduler_option(parser, "the DATASETs and OUT")
     common.add_progress_option(parser)
     parser.add_argument(
         "--list", action="store_true", help="list the disturbances and their levels, and exit"
@@ -152,6 +155,7 @@ def _parse_params(items: list[str]) -> dict[str, dict[str, object]]:
 def run(args: argparse.Namespace) -> int:
     from jsve.image._datasets import DatasetError, disturb_datasets, format_level, make_jobs
     from jsve.image._disturb import DISTURBANCES
+    from jsve.io._scheduler import check_scheduler
 
     if args.list:
         for name, (_, levels, unit, doc) in DISTURBANCES.items():
@@ -160,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.datasets or not args.output:
         return common.fail("disturb", "need DATASET(s) and -o OUT (or --list)")
     try:
+        check_scheduler(args.scheduler)  # before the size is announced: a wrong value writes nothing
         names, levels = _disturbances(args, list(DISTURBANCES))
         params = _parse_params(args.param)
         if args.downsample_mode != "rescale" and "downsample" in names:
@@ -179,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.no_progress,
             force=args.force,
+            scheduler=args.scheduler,
         )
     except (ValueError, DatasetError) as error:
         return common.fail("disturb", error)

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from jsve.cli import _common as common
+from jsve.cli._scheduler import add_scheduler_option
 
 HELP = "build and run ORB-SLAM3 v1.0 with jsve's logging hook"
 
@@ -95,6 +96,13 @@ def register(subparsers) -> None:
     r.add_argument("--runs", type=int, default=1, metavar="N", help="runs per dataset")
     common.add_output_option(r, metavar="LOGDIR", required=True, help="output folder")
     common.add_workers_option(r, "drivers at once (each runs 3 threads)", default=1)
+    add_scheduler_option(
+        r,
+        "BUILD, --vocabulary, --settings, the DATASETs and LOGDIR",
+        local="--workers drivers started from this process (each driver is its own process: a Dask "
+        "cluster on this machine would add only idle processes)",
+        processes="the same as local",
+    )
     r.add_argument(
         "--timeout", type=float, metavar="S", help="seconds before a run is stopped (default: no limit)"
     )
@@ -146,6 +154,7 @@ def run_build(args: argparse.Namespace) -> int:
 def run_runs(args: argparse.Namespace) -> int:
     from jsve.frontend._run import plan, run_all
     from jsve.io._resume import StaleOutputError
+    from jsve.io._scheduler import SchedulerError, check_scheduler
 
     build, out = Path(args.build), Path(args.output)
     for flag, value in (
@@ -156,6 +165,7 @@ def run_runs(args: argparse.Namespace) -> int:
         if not Path(value).is_file():
             return common.fail("frontend run", f"{flag}: {value}: no such file")
     try:
+        check_scheduler(args.scheduler)  # before planning: a wrong value starts nothing
         if args.rule == "record":
             from jsve.frontend._run import record_rule
 
@@ -179,8 +189,12 @@ def run_runs(args: argparse.Namespace) -> int:
         f"--retry-failed runs them again), {len(todo)} to run",
         file=sys.stderr,
     )
-    results = run_all(build, todo, Path(args.vocabulary), workers=args.workers, timeout_s=args.timeout,
-                      wait=not args.no_wait, progress=not args.no_progress)  # fmt: skip
+    try:
+        results = run_all(build, todo, Path(args.vocabulary), workers=args.workers, timeout_s=args.timeout,
+                          wait=not args.no_wait, progress=not args.no_progress,
+                          scheduler=args.scheduler)  # fmt: skip
+    except SchedulerError as err:
+        return common.fail("frontend run", err)
     failed = [r for r in results if r.get("exit_code") != 0]
     for r in failed:
         print(f"{r['log']}: driver exit {r.get('exit_code')} (see its .console.txt)", file=sys.stderr)

@@ -3,7 +3,8 @@
     jsve render --trajectory GT/V101_GT.txt --timestamps TS/V101.txt --imu IMU/V101.txt \\
                 --texture V1_01_first95/mav0/cam0/data -o rendered/V1_01
 
-A thin layer over jsve.render.render_sequence (docs/render.md).
+A thin layer over jsve.render.render_sequence (docs/render.md); --scheduler runs the frames on an
+embedded Dask cluster (default), a process pool or a running Dask cluster (docs/scaling.md).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 
 from jsve.cli import _common as common
+from jsve.cli._scheduler import add_scheduler_option
 
 HELP = "render a EuRoC-format image + IMU + ground-truth sequence along a real trajectory (for ORB-SLAM3)"
 
@@ -88,6 +90,7 @@ def register(subparsers) -> None:
         help="render only frames A to B-1 of those kept, e.g. 0:600 (default: every frame)",
     )
     common.add_workers_option(p, "processes rendering frames", default=2)
+    add_scheduler_option(p, "--trajectory, --texture and OUT")
     p.add_argument(
         "--exposure-ms", type=float, default=8.0, metavar="MS", help="exposure time for motion blur, ms"
     )
@@ -101,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from jsve.io._resume import StaleOutputError
+    from jsve.io._scheduler import check_scheduler
     from jsve.render import RenderConfig, render_sequence
     from jsve.render._sequence import sequence_size
 
@@ -118,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         config, sensor=dataclasses.replace(config.sensor, exposure_s=args.exposure_ms / 1000.0)
     )
     try:
+        check_scheduler(args.scheduler)  # before the size is announced: a wrong value writes nothing
         n_frames, images, side = sequence_size(args.trajectory, args.timestamps, args.frames)
         detail = (
             f"{common.plural(n_frames, 'frame')} x ~{common.format_bytes(images / n_frames)} and "
@@ -137,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.no_progress,
             force=args.force,
+            scheduler=args.scheduler,
         )
     except (ValueError, FileNotFoundError, StaleOutputError) as err:
         return common.fail("render", err)

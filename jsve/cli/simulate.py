@@ -5,7 +5,8 @@
     jsve simulate -o study/ --procedural 3 --disturbances blur=0,25,50,occlusion --runs 5 --parquet
 
 A thin layer over jsve.sim._simulate.write_study: one log per sequence x setting x run under
-OUT/<sequence>/<disturbance>-<level>/run_<k>.csv, in parallel processes; a re-run skips logs that
+OUT/<sequence>/<disturbance>-<level>/run_<k>.csv, in parallel processes (an embedded Dask cluster, a
+process pool or a running Dask cluster: --scheduler, docs/scaling.md); a re-run skips logs that
 are already complete and were simulated under the same seed, --imu, configuration and input files
 (their `generator` metadata); a folder holding logs of another key stops the command (exit 2) unless
 --force discards them. docs/simulator.md describes the model.
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 
 from jsve.cli import _common as common
+from jsve.cli._scheduler import add_scheduler_option
 
 HELP = "write simulated tracking logs (sequences x disturbances x levels x runs)"
 
@@ -57,6 +59,7 @@ def register(subparsers) -> None:
     p.add_argument("--runs", type=int, default=10, metavar="N", help="runs per setting")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="study seed")
     common.add_workers_option(p, "processes simulating sequences")
+    add_scheduler_option(p, "OUTDIR and --euroc-gt")
     p.add_argument(
         "--imu",
         choices=("synthetic", "real"),
@@ -72,6 +75,7 @@ def register(subparsers) -> None:
 
 @common.guarded("simulate")
 def run(args: argparse.Namespace) -> int:
+    from jsve.io._scheduler import check_scheduler
     from jsve.sim._simulate import LOG_BYTES_PER_FRAME, SimConfig, settings, study_size, write_study
 
     if args.sequences and not args.euroc_gt:
@@ -79,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if args.runs < 1:
         return common.fail("simulate", "--runs must be >= 1")
     try:
+        check_scheduler(args.scheduler)  # before the size is announced: a wrong value writes nothing
         grid = settings(args.disturbances)
         logs, frames, total = study_size(
             args.sequences,
@@ -104,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             parquet=args.parquet,
             force=args.force,
+            scheduler=args.scheduler,
         )
     except (ValueError, FileNotFoundError) as err:
         return common.fail("simulate", err)

@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import json
 import subprocess
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from jsve.io import _scheduler
 from jsve.io._resume import StaleOutputError, differences, file_digest, fingerprint
 
 FRONTEND = "ORB-SLAM3 v1.0 + jsve hook"
@@ -380,20 +382,40 @@ def run_all(
     timeout_s: float | None = None,
     wait: bool = True,
     progress: bool = True,
+    scheduler: str | None = None,
 ) -> list[dict]:
-    """Run `jobs` with `workers` drivers at once (each ORB-SLAM3 runs three threads); summaries in order."""
+    """Run `jobs` with `workers` drivers at once (each ORB-SLAM3 runs three threads); summaries in order.
+
+    `scheduler` (jsve.io._scheduler): "local" (the default) and "processes" start the drivers from
+    threads of this process (each driver is its own process, so a LocalCluster would add only idle
+    Python processes); a Dask scheduler's address runs each driver on a worker of that cluster, which
+    must see BUILD, the vocabulary, the datasets and the output folder under the same absolute paths.
+    """
     from tqdm.auto import tqdm
 
+    scheduler = _scheduler.check_scheduler(scheduler)
     driver = build / "bin" / "jsve_orbslam3"
     if not driver.is_file():
         raise FileNotFoundError(f"{driver}: no driver; run `jsve frontend build -o {build}` first")
+    tasks = list(jobs)
+    if _scheduler.is_cluster(scheduler):  # a worker does not share this process's working folder
+        driver, vocabulary = driver.absolute(), vocabulary.absolute()
+        tasks = [
+            dataclasses.replace(
+                job,
+                dataset=dataclasses.replace(job.dataset, path=job.dataset.path.absolute()),
+                log=job.log.absolute(),
+                settings=job.settings.absolute(),
+            )
+            for job in jobs
+        ]
     results: list[dict] = [{} for _ in jobs]
-    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        futures = {
-            pool.submit(run_one, driver, vocabulary, job, timeout_s, wait): i for i, job in enumerate(jobs)
-        }
+    with _scheduler.executor(max(1, workers), scheduler, threads=True) as pool:
+        run = functools.partial(run_one, driver, vocabulary, timeout_s=timeout_s, wait=wait)
+        futures = {pool.submit(run, job): i for i, job in enumerate(tasks)}
         with tqdm(total=len(jobs), desc="frontend runs", unit="run", disable=not progress) as bar:
             for future in concurrent.futures.as_completed(futures):
-                results[futures[future]] = future.result()
+                i = futures[future]
+                results[i] = {**future.result(), "log": str(jobs[i].log)}
                 bar.update()
     return results

@@ -19,7 +19,6 @@ import functools
 import hashlib
 import json
 import logging
-import multiprocessing
 import os
 import re
 import shutil
@@ -38,8 +37,8 @@ from jsve.image._disturb import (
     scale_intrinsics,
 )
 from jsve.io import _atomic as atomic
+from jsve.io import _scheduler
 from jsve.io._resume import StaleOutputError, differences, stop_if_stale
-from jsve.io._workers import process_pool
 
 # The name users configure for the disturbance tools' messages (jsve disturb).
 logger = logging.getLogger(__name__)
@@ -410,23 +409,24 @@ def _init_worker() -> None:
     cv2.setNumThreads(1)  # one process per core; OpenCV's own threads would oversubscribe
 
 
-def run_parallel(function: Callable, items: Sequence, workers: int, progress: bool, desc: str) -> list:
-    """function(item) for every item, in `workers` processes (in this one when workers <= 1), in order.
-
-    Uses the spawn start method (no fork of a process that may hold JAX or OpenCV threads) and a tqdm
-    progress bar over finished items.
+def run_parallel(
+    function: Callable, items: Sequence, workers: int, progress: bool, desc: str, scheduler: str | None = None
+) -> list:
+    """function(item) for every item, in order, run where `scheduler` says (jsve.io._scheduler: "local",
+    the default, an embedded Dask LocalCluster of `workers` processes; "processes", a process pool of
+    the spawn start method, no fork of a process that may hold JAX or OpenCV threads; or a Dask
+    scheduler's address), in this process when workers <= 1; a tqdm progress bar counts finished items.
     """
     from tqdm.auto import tqdm
 
     results: list = [None] * len(items)
     with tqdm(total=len(items), desc=desc, disable=not progress, unit="job") as bar:
-        if workers <= 1 or len(items) <= 1:
+        if _scheduler.in_process(workers, scheduler, len(items)):
             for index, item in enumerate(items):
                 results[index] = function(item)
                 bar.update()
             return results
-        context = multiprocessing.get_context("spawn")
-        with process_pool(workers, context, initializer=_init_worker) as pool:
+        with _scheduler.executor(min(workers, len(items)), scheduler, initializer=_init_worker) as pool:
             futures = {pool.submit(function, item): index for index, item in enumerate(items)}
             for future in concurrent.futures.as_completed(futures):
                 results[futures[future]] = future.result()
@@ -445,11 +445,14 @@ def disturb_datasets(
     workers: int = 1,
     progress: bool = True,
     force: bool = False,
+    scheduler: str | None = None,
 ) -> list[JobResult]:
     """Write every (source, disturbance, level) dataset, in parallel, skipping finished ones.
 
-    See make_jobs for the arguments; `workers` processes write datasets side by side and a tqdm bar
-    counts finished datasets. A finished dataset is kept only when made under the job's key (see
+    See make_jobs for the arguments; `workers` processes write datasets side by side, where `scheduler`
+    says (run_parallel; a Dask cluster's workers must see the sources and out_dir under the same
+    absolute paths), and a tqdm bar counts finished datasets. A finished dataset is kept only when
+    made under the job's key (see
     disturb_dataset; each source's content is hashed once per call); any made under another raises
     StaleOutputError before anything is written, unless force=True (then they are written again).
 
@@ -458,7 +461,9 @@ def disturb_datasets(
 
     Raises:
         StaleOutputError, OutputError, DatasetError: as disturb_dataset.
+        SchedulerError: `scheduler` names no scheduler, or its workers run another jsve.
     """
+    scheduler = _scheduler.check_scheduler(scheduler)  # a wrong value fails before any work
     jobs = make_jobs(sources, out_dir, disturbances, levels, parameters, seed)
     hashes = {source: content_hash(source)[0] for source in {job.source for job in jobs}}
     jobs = [replace(job, source_hash=hashes[job.source]) for job in jobs]
@@ -471,4 +476,14 @@ def disturb_datasets(
     atomic.check_writable(out_dir)
     for job in jobs:
         atomic.make_dir(job.target.parent)
-    return run_parallel(functools.partial(disturb_dataset, force=force), jobs, workers, progress, "disturb")
+    # Absolute paths: a cluster's worker does not share this process's working folder.
+    absolute = [
+        replace(
+            job, source=Path(_scheduler.absolute(job.source)), target=Path(_scheduler.absolute(job.target))
+        )
+        for job in jobs
+    ]
+    results = run_parallel(
+        functools.partial(disturb_dataset, force=force), absolute, workers, progress, "disturb", scheduler
+    )
+    return [replace(result, target=job.target) for job, result in zip(jobs, results, strict=True)]

@@ -1,6 +1,7 @@
 """Worker processes that die with the process that started them.
 
-jsve's process pools (simulate, disturb, measure, reading many logs) use `process_pool`, whose workers
+jsve's process pools (reading many logs, measure, and simulate, disturb and render under `--scheduler
+processes`: jsve.io._scheduler decides where a sweep's tasks run) use `process_pool`, whose workers
 end when their parent ends, however it ends: a parent killed with SIGKILL runs no clean-up, and
 concurrent.futures' workers would otherwise go on with their jobs (writing files for seconds) and
 then wait forever, idle, holding their memory.

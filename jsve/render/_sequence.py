@@ -27,7 +27,6 @@ import dataclasses
 import json
 import logging
 import math
-import multiprocessing
 import os
 import shutil
 import sys
@@ -39,9 +38,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from jsve.io import write_bytes, write_json, write_text
+from jsve.io import _scheduler, write_bytes, write_json, write_text
 from jsve.io._resume import StaleOutputError, differences, file_digest
-from jsve.io._workers import process_pool
 from jsve.render._raster import EUROC_CAM0, CameraRays, SensorModel, render_frame, vignetting_map
 from jsve.render._scene import Scene, SceneConfig, image_files, layout, load_texture_images, make_scene
 from jsve.sim import ImuNoise, load_euroc_trajectory, read_imu_stream, synthesize_imu
@@ -459,6 +457,7 @@ def render_sequence(
     progress: bool = True,
     force: bool = False,
     chunk: int = 8,
+    scheduler: str | None = None,
 ) -> RenderResult:
     """Render a EuRoC-format sequence along a ground-truth trajectory (module docstring).
 
@@ -469,11 +468,15 @@ def render_sequence(
         imu: a real EuRoC imu0 CSV to copy (it must cover the frames); None synthesises one.
         texture: a folder of photographs for the mosaic texture; None: a procedural texture.
         frames: 'A:B', a slice of the frames kept after dropping those outside the trajectory.
-        workers: processes rendering frames. force: replace an OUT made under another configuration.
+        workers: processes rendering frames, where `scheduler` says (jsve.io._scheduler: "local", the
+            default, an embedded Dask LocalCluster; "processes", a process pool; or a Dask scheduler's
+            address, whose workers must see the inputs and OUT under the same absolute paths); one
+            worker renders in this process. force: replace an OUT made under another configuration.
     Returns:
         RenderResult. Raises StaleOutputError when OUT holds another configuration's dataset (and not force).
     """
     start_time = time.perf_counter()
+    scheduler = _scheduler.check_scheduler(scheduler)  # a wrong value fails before any work
     trajectory, timestamps = os.fspath(trajectory), os.fspath(timestamps)
     imu_path = os.fspath(imu) if imu else None
     texture_dir = os.fspath(texture) if texture else None
@@ -512,7 +515,7 @@ def render_sequence(
     kept = len(selected) - len(todo)
     setup = _Setup(trajectory, texture_dir, config)
     render_start = time.perf_counter()
-    _run(setup, todo, workers, progress, chunk)
+    _run(setup, todo, workers, progress, chunk, scheduler)
     render_s = time.perf_counter() - render_start
 
     facts = _write_side_files(partial, traj, selected, imu_path, config)
@@ -538,19 +541,25 @@ def render_sequence(
     return RenderResult(out, status, len(todo), kept, time.perf_counter() - start_time, manifest)
 
 
-def _run(setup: _Setup, todo: list, workers: int, progress: bool, chunk: int) -> None:
+def _run(setup: _Setup, todo: list, workers: int, progress: bool, chunk: int, scheduler: str) -> None:
     from tqdm.auto import tqdm
 
     chunks = [todo[i : i + chunk] for i in range(0, len(todo), chunk)]
     with tqdm(total=len(todo), desc="render", unit="frame", disable=not progress) as bar:
-        if workers <= 1 or len(chunks) <= 1:
+        if _scheduler.in_process(workers, scheduler, len(chunks)):
             if _STATE.get("setup") != setup:
                 _init_worker(setup)
             for c in chunks:
                 bar.update(_render_chunk(c))
             return
-        context = multiprocessing.get_context("spawn")
-        with process_pool(workers, context, initializer=_init_worker, initargs=(setup,)) as pool:
+        # Absolute paths: a cluster's worker does not share this process's working folder.
+        absolute = _scheduler.absolute
+        texture = absolute(setup.texture) if setup.texture else None
+        setup = dataclasses.replace(setup, trajectory=absolute(setup.trajectory), texture=texture)
+        chunks = [[(t_ns, gain, absolute(path)) for t_ns, gain, path in c] for c in chunks]
+        with _scheduler.executor(
+            min(workers, len(chunks)), scheduler, initializer=_init_worker, initargs=(setup,)
+        ) as pool:
             futures = [pool.submit(_render_chunk, c) for c in chunks]
             for future in concurrent.futures.as_completed(futures):
                 bar.update(future.result())

@@ -22,11 +22,11 @@ its calibration against real frames and its limits.
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import functools
 import json
 import logging
 import math
-import multiprocessing
 import os
 import time
 import zlib
@@ -38,10 +38,10 @@ import numpy as np
 import pandas as pd
 
 from jsve.core._levels import LEVELS, SEED_DISTURBANCES, parse_disturbances
+from jsve.io import _scheduler
 from jsve.io import _schema as schema
 from jsve.io._resume import differences, file_digest, fingerprint, stop_if_stale
 from jsve.io._schema import RunLog
-from jsve.io._workers import process_pool
 from jsve.sim._motion import (
     EUROC_CAM0_T_BS,
     EUROC_SEQUENCES,
@@ -761,7 +761,8 @@ def _is_complete(path: Path) -> bool:
 
 
 def _run_job(job: _Job) -> tuple[int, float, float, list[str]]:
-    """All pending logs of one sequence: its recording is built once, in one process."""
+    """All pending logs of one sequence: its recording is built once, in one process. Returns (logs
+    written, seconds simulating, seconds writing, the logs' paths relative to job.out_dir)."""
     from jsve.io._logs import write_log
 
     simulate_s = write_s = 0.0
@@ -776,7 +777,7 @@ def _run_job(job: _Job) -> tuple[int, float, float, list[str]]:
         for run in logs:
             path = log_path(job.out_dir, job.spec.name, setting, run.meta["run"])
             write_log(run, path)
-            paths.append(str(path))
+            paths.append(str(path.relative_to(job.out_dir)))
         simulate_s += simulated - started
         write_s += time.perf_counter() - simulated
     return len(paths), simulate_s, write_s, paths
@@ -873,6 +874,7 @@ def write_study(
     progress: bool = True,
     parquet: bool = False,
     force: bool = False,
+    scheduler: str | None = None,
 ) -> StudyResult:
     """Simulate a study and write one format-v2 log per run under out_dir (see log_path).
 
@@ -883,19 +885,24 @@ def write_study(
     configuration or ground truth; or a log written before the key existed) is never mixed with new
     logs: StaleOutputError, unless force=True, which deletes those logs (and out_dir/study.parquet)
     and simulates them again where the study includes them.
-    Parallel: one job per sequence (its recording built once) in `workers` processes (default: all
-    cores), longest first; the progress bar advances as sequences finish. parquet=True then consolidates
+    Parallel: one task per sequence (its recording built once), longest first, run where `scheduler`
+    says (jsve.io._scheduler: "local", the default, an embedded Dask LocalCluster of `workers` processes,
+    default all cores; "processes", a process pool; or a Dask scheduler's address, whose workers must
+    see out_dir and the ground truth under the same absolute paths); one worker or one sequence runs
+    in this process. The progress bar advances as sequences finish. parquet=True then consolidates
     all logs into out_dir/study.parquet with jsve.io._logs.ingest.
 
     Raises:
         StaleOutputError: out_dir holds logs of another generator key (and force is False).
         OutputError: out_dir or a log cannot be written.
+        SchedulerError: `scheduler` names no scheduler, or its workers run another jsve.
     """
     from tqdm.auto import tqdm
 
     from jsve.io import _atomic as atomic
 
     started = time.perf_counter()
+    scheduler = _scheduler.check_scheduler(scheduler)  # a wrong value fails before any work
     out_dir = Path(out_dir)
     specs = _as_specs(sequences, euroc_gt, procedural)
     grid = settings(disturbances)
@@ -916,7 +923,10 @@ def write_study(
             if runs_left:
                 todo.append((setting, runs_left))
         if todo:
-            jobs.append(_Job(spec, tuple(todo), str(out_dir), int(seed), config))
+            # Absolute paths: a cluster's worker does not share this process's working folder.
+            folders = {f: getattr(spec, f) for f in ("euroc_gt", "timestamps", "imu") if getattr(spec, f)}
+            worker_spec = dataclasses.replace(spec, **{f: _scheduler.absolute(v) for f, v in folders.items()})
+            jobs.append(_Job(worker_spec, tuple(todo), _scheduler.absolute(out_dir), int(seed), config))
     partials = list(out_dir.rglob("*.partial")) if out_dir.is_dir() else []
     if jobs or stale or partials or parquet:
         atomic.check_writable(out_dir)  # before any work: a folder that cannot take the logs fails now
@@ -933,17 +943,15 @@ def write_study(
     jobs.sort(key=lambda j: -sum(len(r) for _, r in j.todo) * _sequence_size(j.spec))
     workers = workers or os.cpu_count() or 1
     total = sum(len(r) for j in jobs for _, r in j.todo)
+    outcomes = []
     with tqdm(total=total, desc="simulate", unit="log", disable=not progress) as bar:
-        if workers <= 1 or len(jobs) <= 1:
-            outcomes = []
+        if _scheduler.in_process(workers, scheduler, len(jobs)):
             for job in jobs:
                 outcomes.append(_run_job(job))
                 bar.update(outcomes[-1][0])
         else:
-            context = multiprocessing.get_context("spawn")
-            with process_pool(workers, context, initializer=_init_worker) as pool:
+            with _scheduler.executor(min(workers, len(jobs)), scheduler, initializer=_init_worker) as pool:
                 futures = [pool.submit(_run_job, job) for job in jobs]
-                outcomes = []
                 for future in concurrent.futures.as_completed(futures):
                     outcomes.append(future.result())
                     bar.update(outcomes[-1][0])
@@ -951,7 +959,7 @@ def write_study(
         result.written += n
         result.simulate_s += sim_s
         result.write_s += write_s
-        result.paths.extend(Path(p) for p in paths)
+        result.paths.extend(out_dir / p for p in paths)
     if parquet:
         from jsve.io._ingest import ingest
 
