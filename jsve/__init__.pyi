@@ -70,6 +70,7 @@ from .evaluation import aggregate as aggregate
 from .evaluation import bootstrap_ci as bootstrap_ci
 from .evaluation import evaluate as evaluate
 from .evaluation import evaluate_batch as evaluate_batch
+from .evaluation import evaluate_rules as evaluate_rules
 from .evaluation import failure_counts as failure_counts
 from .evaluation import per_run_table as per_run_table
 from .fitting import FitConfig as FitConfig
@@ -91,12 +92,15 @@ from .io import GroundTruth as GroundTruth
 from .io import KeypointLog as KeypointLog
 from .io import LogFormatError as LogFormatError
 from .io import LogIncompleteError as LogIncompleteError
+from .io import ParquetStudy as ParquetStudy
 from .io import ReadResult as ReadResult
 from .io import RunLog as RunLog
 from .io import associate_ground_truth as associate_ground_truth
 from .io import buckets as buckets
 from .io import from_runs as from_runs
 from .io import ingest as ingest
+from .io import iter_buckets as iter_buckets
+from .io import open_study as open_study
 from .io import read_haggart_sve as read_haggart_sve
 from .io import read_keypoints as read_keypoints
 from .io import read_log as read_log

@@ -90,11 +90,10 @@ def run(args) -> int:
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
-    import pandas as pd
 
     from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
     from jsve.evaluation._aggregate import aggregate, failure_counts
-    from jsve.evaluation._evaluate import evaluate
+    from jsve.evaluation._evaluate import evaluate_rules
     from jsve.evaluation._record import write_evaluation_record
     from jsve.io import _atomic as atomic
     from jsve.io._batching import buckets
@@ -102,36 +101,49 @@ def run(args) -> int:
     progress = not args.no_progress
     if args.output:
         atomic.check_writable(args.output)  # before the replay: an unwritable folder fails at once
+    dtype = jnp.float64 if args.x64 else jnp.float32
+    options = dict(
+        align=args.align,
+        n_first=args.n_to_align,
+        segments=args.segments,
+        min_coverage=args.min_coverage,
+        switch_model=args.switch_model or "orbslam3",
+        progress=progress,
+    )
     try:
         from jsve.io import load_rules
 
         rules = load_rules(args.rule)
-        runs = common.load_runs(
-            "evaluate", args.logs, on_error=args.on_error, workers=args.workers, progress=progress
-        )
+        if Path(args.logs).name.endswith(".parquet"):
+            # Streamed: Arrow record batches become chunks of padded arrays, scored under every rule
+            # while in memory, so the peak follows the chunk size, not the study (jsve.io._stream).
+            from jsve.io._stream import iter_buckets, open_study
+
+            study = open_study(args.logs)
+            missing_gt = [e["source"] for e in study.entries if not e["has_ground_truth"]]
+            if study.n_runs and not missing_gt:
+                per_run = evaluate_rules(
+                    iter_buckets(study, dtype=dtype), rules, n_runs=study.n_runs, **options
+                )
+                per_run = in_file_order(per_run, study.file_order(per_run["run_id"]))
+        else:
+            runs = common.load_runs(
+                "evaluate", args.logs, on_error=args.on_error, workers=args.workers, progress=progress
+            )
+            study = None
+            missing_gt = [r.source for r in runs if not r.has_ground_truth]
+            if runs and not missing_gt:
+                per_run = evaluate_rules(buckets(runs, dtype=dtype), rules, **options)
     except (ValueError, OSError) as err:  # LogFormatError is a ValueError
         return common.fail("evaluate", err)
-    if not runs:
+    if (study.n_runs if study is not None else len(runs)) == 0:
         return common.fail("evaluate", f"no valid logs in {args.logs}")
-    missing_gt = [r.source for r in runs if not r.has_ground_truth]
     if missing_gt:
         return common.fail(
             "evaluate",
             f"{len(missing_gt)} logs have no ground truth (first: {missing_gt[0]}); "
             "associate it with `jsve ingest --gt`",
         )
-    groups = buckets(runs, dtype=jnp.float64 if args.x64 else jnp.float32)
-    options = dict(
-        align=args.align,
-        n_first=args.n_to_align,
-        segments=args.segments,
-        switch_model=args.switch_model or "orbslam3",
-    )
-    tables = [
-        evaluate(groups, rule, rule_name=name, min_coverage=args.min_coverage, progress=progress, **options)
-        for name, rule in rules
-    ]
-    per_run = pd.concat(tables, ignore_index=True)
     by = [k for k in args.by.split(",") if k]
     unknown = [k for k in by if k not in per_run.columns]
     if unknown:
@@ -162,6 +174,16 @@ def run(args) -> int:
         for rule, n_runs, reason in failures[["rule", "n_runs", "failure_reason"]].to_numpy():
             print(f"{rule!s:<{width}}  {n_runs:>6}  {reason}")
     return 0
+
+
+def in_file_order(per_run, position):
+    """Rows rule by rule (as evaluated), each rule's runs in the file's order (`position`), whatever
+    order the chunks came in."""
+    import numpy as np
+
+    rule_rank = {name: k for k, name in enumerate(dict.fromkeys(per_run["rule"]))}
+    order = np.lexsort((np.asarray(position), per_run["rule"].map(rule_rank).to_numpy()))
+    return per_run.iloc[order].reset_index(drop=True)
 
 
 def _record(args, rules, by: list[str], penalty: float):

@@ -10,7 +10,7 @@ a handful of shapes, and JAX's persistent cache (jsve._jax_cache) keeps them for
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import equinox as eqx
 import jax
@@ -115,7 +115,7 @@ def _evaluate_compiled(
 
 
 def evaluate(
-    buckets: Sequence[Bucket],
+    buckets: Iterable[Bucket],
     rule: Rule,
     *,
     rule_name: str = "rule",
@@ -126,49 +126,83 @@ def evaluate(
     switch_model: str = "orbslam3",
     runs_per_chunk: int | None = None,
     progress: bool = True,
+    n_runs: int | None = None,
 ) -> pd.DataFrame:
     """Per-run table of `rule` over every run of every bucket (metadata + errors + decisions).
 
     Arguments:
-        buckets: from jsve.io._batching.buckets (or a single from_runs Bucket in a list).
+        buckets: from jsve.io._batching.buckets (or a single from_runs Bucket in a list), or streamed
+            from Parquet (jsve.io._stream.iter_buckets: chunk-sized buckets, read as they are needed).
         rule_name: value of the `rule` column.
         switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md); the `switch_model` column.
         runs_per_chunk: at most this many runs per compiled call; default fits a 4 GB working set.
             A bucket's chunks all have one size (`ladder_chunk_size`), so each bucket compiles once.
+        n_runs: runs in all buckets, for the progress bar's total when `buckets` is an iterator.
     Returns:
         One row per run: meta columns, `rule`, rmse ... count (metres), coverage, n_segments, failed,
         failure_reason (LOST_REASON and jsve.core._trajectory.FAILURE_CAUSES in words, '; '-joined;
         '' when not failed), accepted_fraction, coasting_fraction, changed_fraction,
         unsupported_fraction, lost_any.
     """
-    tables = []
-    total = sum(b.batch.n_runs for b in buckets)
-    with tqdm(total=total, desc=f"evaluate {rule_name}", unit="run", disable=not progress) as bar:
+    return evaluate_rules(buckets, [(rule_name, rule)], align=align, n_first=n_first, segments=segments,
+                          min_coverage=min_coverage, switch_model=switch_model, runs_per_chunk=runs_per_chunk,
+                          progress=progress, n_runs=n_runs)  # fmt: skip
+
+
+def evaluate_rules(
+    buckets: Iterable[Bucket],
+    rules: Sequence[tuple[str, Rule]],
+    *,
+    align: str = "se3",
+    n_first: int | None = None,
+    segments: str = "largest",
+    min_coverage: float = 0.0,
+    switch_model: str = "orbslam3",
+    runs_per_chunk: int | None = None,
+    progress: bool = True,
+    n_runs: int | None = None,
+) -> pd.DataFrame:
+    """`evaluate` of several (name, rule) pairs in one pass over the buckets: each chunk is scored
+    under every rule while it is in memory, so a streamed study is read once. Rows come rule by rule
+    (the order of `rules`), each rule's runs in bucket order."""
+    if n_runs is None and isinstance(buckets, Sequence):
+        n_runs = sum(len(b.meta) for b in buckets)
+    tables: list[list[pd.DataFrame]] = [[] for _ in rules]
+    total = None if n_runs is None else n_runs * len(rules)
+    with tqdm(total=total, desc="evaluate " + ", ".join(n for n, _ in rules), unit="run",
+              disable=not progress) as bar:  # fmt: skip
         for bucket in buckets:
             cap = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames)
             size = ladder_chunk_size(bucket.batch.n_runs, cap)
             # Chunks are cut and padded on the host (numpy), so the only computation JAX compiles is
             # evaluate_batch (features, replay and statistics together), once per chunk shape.
             host = jax.tree.map(np.asarray, bucket.batch)
-            parts = []
+            parts: list[list[Evaluation]] = [[] for _ in rules]
             for runs, chunk in iter_chunks(host, size):
-                ev = evaluate_batch(chunk, rule, align=align, n_first=n_first, segments=segments,
-                                    min_coverage=min_coverage, switch_model=switch_model)  # fmt: skip
-                n = runs.stop - runs.start
-                parts.append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], ev))
-                bar.update(n)
-            ev = jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
-            table = per_run_table(ev.error, bucket.meta)
-            table.insert(len(bucket.meta.columns), "rule", rule_name)
-            table.insert(len(bucket.meta.columns) + 1, "switch_model", switch_model)
-            table["failed"] = np.asarray(ev.failed)
-            lost = np.asarray(ev.lost_any)
-            table["failure_reason"] = [
-                "; ".join(filter(None, (LOST_REASON if lost_k else "", reason)))
-                for lost_k, reason in zip(lost, table["failure_reason"], strict=True)
-            ]
-            for column in ("accepted", "coasting", "changed", "unsupported"):
-                table[f"{column}_fraction"] = np.asarray(getattr(ev, f"{column}_fraction"))
-            table["lost_any"] = np.asarray(ev.lost_any)
-            tables.append(table)
-    return pd.concat(tables, ignore_index=True)
+                n = max(0, min(runs.stop, len(bucket.meta)) - runs.start)  # streamed chunks end in padding
+                for k, (_, rule) in enumerate(rules):
+                    ev = evaluate_batch(chunk, rule, align=align, n_first=n_first, segments=segments,
+                                        min_coverage=min_coverage, switch_model=switch_model)  # fmt: skip
+                    parts[k].append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], ev))
+                    bar.update(n)
+            for k, (name, _) in enumerate(rules):
+                ev = jax.tree.map(lambda *xs: np.concatenate(xs), *parts[k])
+                tables[k].append(_run_table(ev, bucket.meta, name, switch_model))
+    return pd.concat([t for per_rule in tables for t in per_rule], ignore_index=True)
+
+
+def _run_table(ev: Evaluation, meta: pd.DataFrame, rule_name: str, switch_model: str) -> pd.DataFrame:
+    """One row per run of `meta`: its metadata, the rule, the errors and the decisions."""
+    table = per_run_table(ev.error, meta)
+    table.insert(len(meta.columns), "rule", rule_name)
+    table.insert(len(meta.columns) + 1, "switch_model", switch_model)
+    table["failed"] = np.asarray(ev.failed)
+    lost = np.asarray(ev.lost_any)
+    table["failure_reason"] = [
+        "; ".join(filter(None, (LOST_REASON if lost_k else "", reason)))
+        for lost_k, reason in zip(lost, table["failure_reason"], strict=True)
+    ]
+    for column in ("accepted", "coasting", "changed", "unsupported"):
+        table[f"{column}_fraction"] = np.asarray(getattr(ev, f"{column}_fraction"))
+    table["lost_any"] = np.asarray(ev.lost_any)
+    return table

@@ -7,7 +7,7 @@ fills it from parsed runs (pandas frames) and keeps per-run metadata in a DataFr
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import jax.numpy as jnp
@@ -45,11 +45,19 @@ RECORDED_KEYS = {"rule": "recorded_rule", "switch_model": "recorded_switch_model
 
 def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
     """One row per run: run_id, source, n_frames, t0_ns and every metadata key (missing -> NA)."""
+    return meta_table(
+        (r.run_id, r.source, len(r.frames), int(r.frames["t_ns"].iloc[0]) if len(r.frames) else 0, r.meta)
+        for r in runs
+    )
+
+
+def meta_table(records: Iterable[tuple[str, str, int, int, dict]]) -> pd.DataFrame:
+    """`run_meta_table` of (run_id, source, n_frames, t0_ns, meta) records, as the Parquet stream
+    (jsve.io._stream) has them without parsed runs."""
     rows = []
-    for run in runs:
-        row = {"run_id": run.run_id, "source": run.source, "n_frames": len(run.frames)}
-        row["t0_ns"] = int(run.frames["t_ns"].iloc[0]) if len(run.frames) else 0
-        for key, value in run.meta.items():
+    for run_id, source, n_frames, t0_ns, meta in records:
+        row = {"run_id": run_id, "source": source, "n_frames": n_frames, "t0_ns": t0_ns}
+        for key, value in meta.items():
             # The rule the recorded run ran is not the rule a table row replays: it keeps its own name.
             key = RECORDED_KEYS.get(key, key)
             row[key] = json.dumps(value, sort_keys=True) if isinstance(value, dict) else json_cell(value)

@@ -45,6 +45,7 @@ from jsve.io._logs import (
     with_v1_defaults,
 )
 from jsve.io._schema import RunLog
+from jsve.io._stream import PARQUET_FORMAT_KEY, PARQUET_RUNS_KEY, check_run_rows, open_study
 from jsve.io._workers import process_pool
 
 # The log reader's logger: read_log's warnings in worker processes are collected from it (_read_chunk)
@@ -53,13 +54,6 @@ logger = logging.getLogger(__name__)
 
 QUARANTINE_COLUMNS = ("path", "line", "column", "reason", "message", "incomplete")
 """Columns of the quarantine report (`ReadResult.report()`, `write_quarantine_report`)."""
-
-PARQUET_RUNS_KEY = b"jsve.runs"
-"""Parquet key-value metadata key: a JSON list of {run_id, source, meta, n_frames, has_ground_truth}."""
-
-PARQUET_FORMAT_KEY = b"jsve.format"
-"""Parquet key-value metadata key: the log format version of its columns, "2" (files written before v2
-say "1" and have no map_id / imu_ba2: read_parquet fills v1 defaults)."""
 
 _V1_SHOWN = 3  # v1 logs named in the summary warning of a batch
 
@@ -641,60 +635,17 @@ def read_parquet(path: str | os.PathLike) -> list[RunLog]:
 
 
 def _read_parquet(path: str | os.PathLike, *, stacklevel: int) -> list[RunLog]:
-    source = os.fspath(path)
-    pf = pq.ParquetFile(source)
-    kv = pf.metadata.metadata or {}
-    if PARQUET_RUNS_KEY not in kv:
-        raise LogFormatError(
-            source, None, f"not a jsve Parquet file: no {PARQUET_RUNS_KEY.decode()!r} metadata"
-        )
-    version_text = kv.get(PARQUET_FORMAT_KEY, b"").decode("utf-8", errors="replace")
-    if version_text not in {str(v) for v in schema.READ_VERSIONS}:
-        raise LogFormatError(
-            source,
-            None,
-            f"unsupported jsve Parquet format {version_text!r} in its {PARQUET_FORMAT_KEY.decode()!r} "
-            f"metadata (this reader reads {' and '.join(map(str, schema.READ_VERSIONS))})",
-        )
-    version = int(version_text)
-    entries = json.loads(kv[PARQUET_RUNS_KEY])
-    table = pf.read()
-    lengths = np.array([e["n_frames"] for e in entries], dtype=np.int64)
-    if table.num_rows != lengths.sum():
-        raise LogFormatError(
-            source, None, f"has {table.num_rows} rows but its run list accounts for {int(lengths.sum())}"
-        )
-    index = {e["run_id"]: i for i, e in enumerate(entries)}
-    ids = []
-    for chunk in table.column("run_id").chunks:
-        lut = np.array([index.get(s, -1) for s in chunk.dictionary.to_pylist()] or [-1], dtype=np.int64)
-        ids.append(lut[chunk.indices.to_numpy(zero_copy_only=False)])
-    ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-    offsets = np.concatenate([[0], np.cumsum(lengths)])
-    expected_frame = np.arange(table.num_rows) - np.repeat(offsets[:-1], lengths)
-    frame = table.column("frame").to_numpy()
-    if not (
-        np.array_equal(ids, np.repeat(np.arange(len(entries)), lengths))
-        and np.array_equal(frame, expected_frame)
-    ):
-        raise LogFormatError(source, None, "rows are not grouped by run in the order of its run list")
+    study = open_study(path)
+    source, version, entries = study.path, study.version, study.entries
+    table = pq.ParquetFile(source).read()
+    check_run_rows(study, table, first_run=0, stop_run=study.n_runs)
+    offsets = np.concatenate([[0], np.cumsum(study.lengths)])
     required = schema.required_columns(version)
-    lacking = [c for c in required + schema.GT_COLUMNS if c not in table.column_names]
-    if lacking:
-        raise LogFormatError(
-            source, None, f"a format-{version} jsve Parquet file without the column(s) {', '.join(lacking)}"
-        )
     world = [c for c in schema.WORLD_COLUMNS if c in table.column_names]
     columns = {c: table.column(c).to_numpy() for c in required + schema.GT_COLUMNS + tuple(world)}
     runs = []
     for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
         has_world = bool(e.get("has_world_frame", False))
-        if has_world and len(world) < len(schema.WORLD_COLUMNS):
-            raise LogFormatError(
-                source,
-                None,
-                f"run {e['run_id']!r} has world_* columns in its run list but the file lacks them",
-            )
         names = schema.column_order(version, e["has_ground_truth"], has_world)
         frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
         if version == 1:

@@ -31,7 +31,9 @@ from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
 
 
-def segment_last_frame(posed: np.ndarray, map_id: np.ndarray) -> np.ndarray:
+def segment_last_frame(
+    posed: np.ndarray, map_id: np.ndarray, run_start: np.ndarray | None = None
+) -> np.ndarray:
     """For every frame, the index of the last posed frame of its recorded segment; -1 where not posed.
 
     A segment is a run of posed frames in one map: it starts at a posed frame after a frame without a
@@ -40,6 +42,8 @@ def segment_last_frame(posed: np.ndarray, map_id: np.ndarray) -> np.ndarray:
     Arguments:
         posed: [F] bool, the frame has a pose.
         map_id: [F] int, the recorded map of each frame.
+        run_start: [F] bool, the frame starts a run, where frames of several runs lie end to end (a
+            segment never crosses a run); None: one run.
     """
     posed = np.asarray(posed, bool)
     map_id = np.asarray(map_id)
@@ -47,6 +51,8 @@ def segment_last_frame(posed: np.ndarray, map_id: np.ndarray) -> np.ndarray:
     prev_posed = np.concatenate([[False], posed[:-1]])
     prev_map = np.concatenate([map_id[:1], map_id[:-1]])
     start = posed & (~prev_posed | (map_id != prev_map))
+    if run_start is not None:
+        start |= posed & np.asarray(run_start, bool)
     segment = np.cumsum(start) - 1
     last = np.full(n, -1, np.int64)
     if not posed.any():
@@ -76,7 +82,8 @@ def to_last_world_frame(
             its frame's world frame.
         world_q, world_t, world_s: [F, 4], [F, 3], [F]: the similarity W_k of each frame's world frame.
         last: [F] the frame whose world frame each one goes to (segment_last_frame); -1 leaves it as is.
-        camera_in_body: [7] T_bc as [qw, qx, qy, qz, tx, ty, tz]; None: the camera is the body.
+        camera_in_body: [7] T_bc as [qw, qx, qy, qz, tx, ty, tz], or [F, 7] one per frame (frames of
+            several runs end to end); None: the camera is the body.
 
     Returns:
         (p', q', v') in the target world frames, float64.
@@ -87,7 +94,7 @@ def to_last_world_frame(
     s = world_s[target] / world_s
     r = quat_mul(world_q[target], quat_conj(world_q, xp=np), xp=np)  # R_L R_k^T
     t = world_t[target] - s[:, None] * quat_rotate(r, world_t, xp=np)
-    t_bc = np.zeros(3) if camera_in_body is None else np.asarray(camera_in_body, np.float64)[4:]
+    t_bc = np.zeros(3) if camera_in_body is None else np.asarray(camera_in_body, np.float64)[..., 4:]
     q2 = quat_mul(r, q, xp=np)
     lever = (s - 1.0)[:, None] * quat_rotate(q2, np.broadcast_to(t_bc, p.shape), xp=np)
     p2 = s[:, None] * quat_rotate(r, p, xp=np) + t + lever
