@@ -165,6 +165,8 @@ def evaluate_rules(
     """`evaluate` of several (name, rule) pairs in one pass over the buckets: each chunk is scored
     under every rule while it is in memory, so a streamed study is read once. Rows come rule by rule
     (the order of `rules`), each rule's runs in bucket order."""
+    if not rules:
+        raise ValueError("evaluate_rules: no rules given")
     if n_runs is None and isinstance(buckets, Sequence):
         n_runs = sum(len(b.meta) for b in buckets)
     tables: list[list[pd.DataFrame]] = [[] for _ in rules]

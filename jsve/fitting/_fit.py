@@ -17,9 +17,10 @@ Three stages, all on the same replay (docs/fitting.md):
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -40,6 +41,7 @@ from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, sea
 from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog
+from jsve.io._stream import ParquetStudy, iter_buckets, open_study
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +78,11 @@ class FitData:
         meta: one row per real run, in part order (the order of every [R] array of this module).
         config: how runs are scored.
         buckets: the full buckets (with keypoint bins) the data came from, for
-            jsve.evaluation._evaluate; their runs, concatenated, are the runs of `meta`.
+            jsve.evaluation._evaluate; their runs, concatenated, are the runs of `meta`. Empty for
+            data streamed from Parquet (`from_parquet`), whose buckets `full_buckets` streams again.
+        source: the Parquet study the data was streamed from, or None.
+        content_digest: sha256 (hex) of every leaf of the full chunks as they streamed, or None
+            (jsve.fitting._study.data_fingerprint hashes `buckets` then).
     """
 
     batches: list[LogBatch]
@@ -86,6 +92,8 @@ class FitData:
     meta: pd.DataFrame
     config: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     buckets: list[Bucket] = field(default_factory=list)
+    source: ParquetStudy | None = None
+    content_digest: str | None = None
 
     @property
     def n_runs(self) -> int:
@@ -102,11 +110,52 @@ class FitData:
     ) -> FitData:
         """FitData of length buckets (jsve.io._batching.buckets); buckets with more than `runs_per_part` runs
         are cut into parts of that many runs (the last padded)."""
+        data = cls._from_chunks(groups, config, runs_per_part=runs_per_part)
+        data.buckets = list(groups)
+        return data
+
+    @classmethod
+    def from_parquet(
+        cls, path, config: ObjectiveConfig | None = None, *, dtype=jnp.float32, runs_per_part: int = 4096
+    ) -> FitData:
+        """FitData of a Parquet study, streamed chunk by chunk (jsve.io._stream.iter_buckets): only the
+        compact per-frame columns the search needs stay in memory, never the keypoint bins or a parsed
+        run; `full_buckets` streams the file again where whole runs are needed."""
+        study = open_study(path)
+        if study.n_runs == 0:
+            raise ValueError("FitData.from_parquet: no runs")
+        missing = [e["source"] for e in study.entries if not e["has_ground_truth"]]
+        if missing:
+            raise ValueError(
+                f"FitData.from_parquet: {len(missing)} runs have no ground truth (first: {missing[0]})"
+            )
+        digest = hashlib.sha256()
+
+        def hashed(chunks):
+            for bucket in chunks:
+                for leaf in jax.tree_util.tree_leaves(bucket.batch):
+                    array = np.ascontiguousarray(leaf)
+                    digest.update(f"{array.dtype.str}{array.shape}".encode())
+                    digest.update(array.reshape(-1).view(np.uint8).data)
+                yield bucket
+
+        data = cls._from_chunks(hashed(iter_buckets(study, dtype=dtype)), config, runs_per_part=runs_per_part)
+        data.source, data.content_digest = study, digest.hexdigest()
+        return data
+
+    @classmethod
+    def _from_chunks(cls, groups, config, *, runs_per_part: int) -> FitData:
+        """Features, slim batches and search layouts of buckets (in memory or streamed: a bucket's
+        meta may hold fewer runs than its batch, whose last runs are then padding)."""
         batches, features, parts, counts, metas = [], [], [], [], []
         for bucket in groups:
-            n = bucket.batch.n_runs
-            size = min(n, runs_per_part)
+            n_real = len(bucket.meta)
+            size = min(bucket.batch.n_runs, runs_per_part)
             for runs, chunk in iter_chunks(bucket.batch, size):
+                real = max(0, min(runs.stop, n_real) - runs.start)
+                if real == 0:
+                    continue
+                chunk = jax.tree.map(jnp.asarray, chunk)
                 feats = batch_features(chunk)
                 slim = eqx.tree_at(
                     lambda b: b.bins, chunk, jnp.zeros((chunk.n_runs, 1, 64), chunk.bins.dtype)
@@ -114,10 +163,17 @@ class FitData:
                 batches.append(slim)
                 features.append(feats)
                 parts.append(prepare(slim, feats))
-                counts.append(runs.stop - runs.start)
-                metas.append(bucket.meta.iloc[runs.start : runs.stop])
+                counts.append(real)
+                metas.append(bucket.meta.iloc[runs.start : runs.start + real])
         meta = pd.concat(metas, ignore_index=True)
-        return cls(batches, features, parts, counts, meta, config or ObjectiveConfig(), list(groups))
+        return cls(batches, features, parts, counts, meta, config or ObjectiveConfig())
+
+    def full_buckets(self) -> Iterable[Bucket]:
+        """The runs with everything (keypoint bins included) for jsve.evaluation.evaluate, in the order
+        of `meta`: the buckets held, or the Parquet study streamed again."""
+        if self.source is None:
+            return self.buckets
+        return iter_buckets(self.source, dtype=self.batches[0].t.dtype)
 
     @classmethod
     def from_runs(

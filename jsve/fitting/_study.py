@@ -33,7 +33,7 @@ from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination, feature_metrics
 from jsve.evaluation._aggregate import aggregate, group_weights
-from jsve.evaluation._evaluate import evaluate
+from jsve.evaluation._evaluate import evaluate_rules
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
@@ -169,6 +169,10 @@ def data_fingerprint(data: FitData) -> str:
     counts, or the input files' sizes and modification times, would not be enough: other logs can have
     the same). It costs one pass over the arrays (sha256 at about 1 GB/s), small next to any stage.
     """
+    if data.content_digest is not None:  # streamed: its chunks were hashed as they went by
+        total = hashlib.sha256(data.content_digest.encode())
+        total.update(data.meta.to_csv(index=False).encode())
+        return total.hexdigest()[:16]
     total = hashlib.sha256()
     batches = [b.batch for b in data.buckets] if data.buckets else list(data.batches)
     for batch in batches:
@@ -447,8 +451,10 @@ def run_study(
     )
 
     def evaluate_presets():
-        tables = [evaluate(data.buckets, preset(name), rule_name=name, **eval_kwargs) for name in PRESETS]
-        write_table(pd.concat(tables, ignore_index=True), out, "runs_presets")
+        # All presets in one pass over the runs (one stream of a Parquet study).
+        rules = [(name, preset(name)) for name in PRESETS]
+        table = evaluate_rules(data.full_buckets(), rules, n_runs=data.n_runs, **eval_kwargs)
+        write_table(table, out, "runs_presets")
 
     stages.run("evaluate_presets", evaluate_presets, [out / "runs_presets.parquet"])
 
@@ -481,11 +487,11 @@ def run_study(
         )
 
     def evaluate_fitted():
-        tables = [
-            evaluate(data.buckets, r.rule, rule_name=fitted_rule_name(f), **eval_kwargs)
-            for f, r in fits.items()
-        ]
-        per_run = pd.concat([read_table(out, "runs_presets")] + tables, ignore_index=True)
+        rules = [(fitted_rule_name(f), r.rule) for f, r in fits.items()]
+        tables = [read_table(out, "runs_presets")]
+        if rules:
+            tables.append(evaluate_rules(data.full_buckets(), rules, n_runs=data.n_runs, **eval_kwargs))
+        per_run = pd.concat(tables, ignore_index=True)
         write_table(per_run, out, "runs")
         group = [c for c in ("disturbance", "level") if c in per_run.columns]
         write_table(
