@@ -272,3 +272,67 @@ def test_disturb_on_a_cluster_writes_what_the_process_pool_writes(cluster, tmp_p
     files = ["jsve_manifest.json", "mav0/cam0/data.csv", *frames, "mav0/imu0/data.csv"]
     assert sorted(pool) == [f"SEQ/{d}/{f}" for d in ("haze-1", "noise-5") for f in files]
     assert _files(tmp_path / "cluster") == pool
+
+
+FAKE_DRIVER = """#!/bin/sh
+# A stand-in for jsve_orbslam3: reads the dataset it is given, writes a log, a trajectory and a summary.
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --sequence) sequence=$2; shift ;;
+    --log) log=$2; shift ;;
+    --trajectory) trajectory=$2; shift ;;
+    --summary) summary=$2; shift ;;
+  esac
+  shift
+done
+frames=$(($(wc -l < "$sequence/mav0/cam0/data.csv") - 1)) || exit 3
+echo "# jsve-log v2 {}" > "$log"
+echo "1403715273.262143 0.5 0 0 0 0 0 1" > "$trajectory"
+echo "{\\"frames\\": $frames}" > "$summary"
+echo "ran $(basename "$log")"
+"""
+
+SETTINGS = "%YAML:1.0\nCamera.width: 752\nCamera.height: 480\nCamera.fps: 20\n"
+
+
+def _without_timing(files: dict[str, bytes]) -> dict[str, bytes]:
+    """The files with each summary's wall time and log path (absolute on a cluster) left out."""
+    import json
+
+    out = {}
+    for name, data in files.items():
+        if name.endswith(".summary.json"):
+            summary = json.loads(data)
+            summary.pop("wall_seconds")
+            assert Path(summary.pop("log")).name == Path(name).name.replace(".summary.json", ".csv")
+            data = json.dumps(summary, sort_keys=True).encode()
+        out[name] = data
+    return out
+
+
+@pytest.mark.slow
+def test_frontend_run_on_a_cluster_writes_what_local_threads_write(cluster, tmp_path, monkeypatch):
+    """`jsve frontend run` through the cluster's address, with a stand-in driver and every path relative
+    to a working folder the workers do not share: the same files as the local run, the same summaries."""
+    from jsve.frontend._run import plan, run_all
+
+    monkeypatch.chdir(tmp_path)  # the cluster's workers started elsewhere
+    build = Path("build")
+    (build / "bin").mkdir(parents=True)
+    (build / "build.json").write_text('{"hook_sha256": "' + "ab" * 32 + '"}')
+    driver = build / "bin" / "jsve_orbslam3"
+    driver.write_text(FAKE_DRIVER)
+    driver.chmod(0o755)
+    _dataset(Path("SEQ"), n_frames=2)
+    Path("voc.txt").write_text("10 6 0 0")
+    Path("settings.yaml").write_text(SETTINGS)
+    results = {}
+    for name, scheduler in (("local", "local"), ("cluster", cluster.scheduler_address)):
+        todo, _ = plan(build, [Path("SEQ")], runs=3, out=Path(name), vocabulary=Path("voc.txt"),
+                       settings=Path("settings.yaml"))  # fmt: skip
+        results[name] = run_all(build, todo, Path("voc.txt"), workers=2, progress=False, scheduler=scheduler)
+        assert [r["exit_code"] for r in results[name]] == [0, 0, 0]
+        assert [r["log"] for r in results[name]] == [str(job.log) for job in todo]  # as planned: relative
+    assert _tasks_run(cluster).get("jsve_run_one") == 3
+    local, on_cluster = _files(Path("local")), _files(Path("cluster"))
+    assert len(local) == 3 * 5 and _without_timing(on_cluster) == _without_timing(local)
