@@ -86,7 +86,6 @@ def run_demo(
     """
     from jsve.fitting._fit import FitData
     from jsve.fitting._study import run_study
-    from jsve.io._ingest import read_parquet
     from jsve.report._report import write_report
     from jsve.sim._motion import FlightProfile
     from jsve.sim._simulate import SimConfig, write_study
@@ -111,11 +110,10 @@ def run_demo(
         parquet=True,
         force=force,
     )
-    runs = read_parquet(study.parquet)
     timings["simulate"] = time.perf_counter() - started
 
     t = time.perf_counter()
-    data = FitData.from_runs(runs, config.study.objective())
+    data = FitData.from_parquet(study.parquet, config.study.objective())
     description = {
         "source": "jsve simulator (procedural EuRoC-like flights)",
         "sequences": config.sequences,

@@ -89,6 +89,14 @@ def register(subparsers) -> None:
     common.add_on_error_option(p)
     common.add_workers_option(p)
     common.add_progress_option(p)
+    p.add_argument(
+        "--no-estimate",
+        action="store_true",
+        help="skip the timing probe and the expected wall time printed before the fit (without it "
+        "`jsve fit` times a few settings of each stage's computation on the data, after compiling them, "
+        "and states on stderr how long the study should take, then the actual time beside it; "
+        "see docs/fitting.md) (default: off)",
+    )
     p.add_argument("--no-report", action="store_true", help="write the tables only, not the report")
     common.add_force_option(p)
     p.set_defaults(func=run)
@@ -150,12 +158,15 @@ def run(args) -> int:
             eta=args.eta,
             initial_fraction=args.initial_fraction,
         )
-        runs = common.load_runs(
+        # A Parquet study is streamed into FitData (jsve.fitting._fit.FitData.from_parquet): no parsed
+        # runs are held; logs on disk are parsed first.
+        streamed = Path(args.logs).name.endswith(".parquet")
+        runs = [] if streamed else common.load_runs(
             "fit", args.logs, on_error=args.on_error, workers=args.workers, progress=not args.no_progress
-        )
+        )  # fmt: skip
     except (ValueError, OSError) as err:  # LogFormatError is a ValueError
         return common.fail("fit", err)
-    if not runs:
+    if not streamed and not runs:
         return common.fail("fit", f"no valid logs in {args.logs}")
     import time
 
@@ -165,24 +176,64 @@ def run(args) -> int:
 
     started = time.perf_counter()
     try:
-        data = FitData.from_runs(runs, config.objective())
-    except ValueError as err:
+        if streamed:
+            data = FitData.from_parquet(args.logs, config.objective())
+        else:
+            data = FitData.from_runs(runs, config.objective())
+    except (ValueError, OSError) as err:  # LogFormatError is a ValueError
         return common.fail("fit", err)
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
+    description = {"source": str(args.logs)}
+    expected = None
+    if not args.no_estimate:
+        expected = _estimate(data, config, args, description)
+    from_estimate = time.perf_counter()
     run_study(
         data,
         args.output,
         config,
         progress=not args.no_progress,
-        data_description={"source": str(args.logs)},
+        data_description=description,
         force=args.force,
     )
     if not args.no_report:
         write_report(args.output)
     for line in trust_warnings(args.output):  # beyond what the replay-vs-re-run validation supports
         print(f"jsve fit: warning: {line}", file=sys.stderr)
+    if expected is not None:
+        _report_timing(args.output, expected, time.perf_counter() - from_estimate)
     # The demo's closing lines (the headline in words), timed from the logs read to the report written.
     done = "fitted" if args.no_report else "fitted and reported"
     seconds = time.perf_counter() - started
     common.print_study_summary(f"jsve fit: {done} in {seconds:.0f} s", args.output, report=not args.no_report)
     return 0
+
+
+def _estimate(data, config, args, description: dict):
+    """The expected wall time of the study (jsve.fitting._estimate), stated on stderr in one line before
+    the study starts; None where every stage is done already (nothing to time). A folder of another
+    study stops here (StaleOutputError), before the probe, as run_study would."""
+    from jsve.fitting._estimate import estimate
+    from jsve.fitting._study import finished_stages
+
+    done = finished_stages(args.output, config, data, data_description=description, force=args.force)
+    expected = estimate(data, config, done=done, progress=not args.no_progress)
+    if expected is None:
+        return None
+    resumed = f" ({len(done)} stages done already)" if done else ""
+    print(f"jsve fit: {expected.line()}{resumed}", file=sys.stderr, flush=True)
+    return expected
+
+
+def _report_timing(out, expected, actual: float) -> None:
+    """The estimate against the measured wall time, on stderr and in study.json's "timing"."""
+    from jsve.fitting._estimate import duration
+    from jsve.fitting._study import record_timing
+
+    ratio = actual / expected.total if expected.total > 0 else float("inf")
+    print(
+        f"jsve fit: took {duration(actual)}, expected {duration(expected.total)} "
+        f"(actual / expected {ratio:.2f})",
+        file=sys.stderr,
+    )
+    record_timing(out, {**expected.as_dict(), "actual_s": actual, "actual_over_expected": ratio})

@@ -221,7 +221,15 @@ def ladder_chunk_size(n_runs: int, cap: int, *, ratio: float = 2**0.5, multiple:
     return min(cap, ladder(math.ceil(n_runs / n_chunks), ratio=ratio, multiple=multiple))
 
 
-def runs_per_chunk_for(n_frames: int, *, bytes_budget: float = 4e9, bytes_per_frame: int = 600) -> int:
+DEVICE_BUDGET_BYTES = 1.5e9
+"""Working set of one compiled evaluation (inputs, replay outputs, temporaries): 1.5 GB keeps `jsve
+evaluate` of any study under 3 GB with the host's chunk being read beside it, while chunks stay
+hundreds of runs long (600 runs of 4,096 frames), past which a larger chunk is not faster."""
+
+
+def runs_per_chunk_for(
+    n_frames: int, *, bytes_budget: float = DEVICE_BUDGET_BYTES, bytes_per_frame: int = 600
+) -> int:
     """How many runs of `n_frames` fit a device-memory budget, counting inputs, replay outputs and
     temporaries at about `bytes_per_frame` (float32; measured by analysis/bench_replay.py)."""
     return max(1, int(bytes_budget // (bytes_per_frame * max(n_frames, 1))))

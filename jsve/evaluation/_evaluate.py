@@ -169,10 +169,20 @@ def evaluate_rules(
         raise ValueError("evaluate_rules: no rules given")
     if n_runs is None and isinstance(buckets, Sequence):
         n_runs = sum(len(b.meta) for b in buckets)
-    tables: list[list[pd.DataFrame]] = [[] for _ in rules]
     total = None if n_runs is None else n_runs * len(rules)
+    done: list[tuple[pd.DataFrame, list[list[Evaluation]]]] = []  # per bucket: meta, parts per rule
+    in_flight: list[tuple[list[Evaluation], Evaluation, int]] = []
     with tqdm(total=total, desc="evaluate " + ", ".join(n for n, _ in rules), unit="run",
               disable=not progress) as bar:  # fmt: skip
+
+        def collect():
+            # Results to the host one chunk late: JAX dispatches asynchronously, so the next chunk is
+            # read and cut on the host while this one is computed.
+            for parts, ev, n in in_flight:
+                parts.append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], ev))
+                bar.update(n)
+            in_flight.clear()
+
         for bucket in buckets:
             cap = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames)
             size = ladder_chunk_size(bucket.batch.n_runs, cap)
@@ -180,17 +190,23 @@ def evaluate_rules(
             # evaluate_batch (features, replay and statistics together), once per chunk shape.
             host = jax.tree.map(np.asarray, bucket.batch)
             parts: list[list[Evaluation]] = [[] for _ in rules]
+            done.append((bucket.meta, parts))
             for runs, chunk in iter_chunks(host, size):
                 n = max(0, min(runs.stop, len(bucket.meta)) - runs.start)  # streamed chunks end in padding
-                for k, (_, rule) in enumerate(rules):
-                    ev = evaluate_batch(chunk, rule, align=align, n_first=n_first, segments=segments,
-                                        min_coverage=min_coverage, switch_model=switch_model)  # fmt: skip
-                    parts[k].append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], ev))
-                    bar.update(n)
-            for k, (name, _) in enumerate(rules):
-                ev = jax.tree.map(lambda *xs: np.concatenate(xs), *parts[k])
-                tables[k].append(_run_table(ev, bucket.meta, name, switch_model))
-    return pd.concat([t for per_rule in tables for t in per_rule], ignore_index=True)
+                dispatched = [
+                    (parts[k], evaluate_batch(chunk, rule, align=align, n_first=n_first, segments=segments,
+                                              min_coverage=min_coverage, switch_model=switch_model), n)
+                    for k, (_, rule) in enumerate(rules)
+                ]  # fmt: skip
+                collect()
+                in_flight.extend(dispatched)
+        collect()
+    tables = [
+        _run_table(jax.tree.map(lambda *xs: np.concatenate(xs), *parts[k]), meta, name, switch_model)
+        for k, (name, _) in enumerate(rules)
+        for meta, parts in done
+    ]
+    return pd.concat(tables, ignore_index=True)
 
 
 def _run_table(ev: Evaluation, meta: pd.DataFrame, rule_name: str, switch_model: str) -> pd.DataFrame:
