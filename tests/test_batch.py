@@ -12,7 +12,14 @@ from hypothesis import strategies as st
 from logfactory import make_run
 
 from jsve.core import bucket_by_length, iter_chunks, pad_runs, preset, replay, take_runs
-from jsve.core._batch import LADDER_RATIO, bucket_by_ladder, ladder, ladder_chunk_size, runs_per_chunk_for
+from jsve.core._batch import (
+    DEVICE_BUDGET_BYTES,
+    LADDER_RATIO,
+    bucket_by_ladder,
+    ladder,
+    ladder_chunk_size,
+    runs_per_chunk_for,
+)
 from jsve.io import from_runs
 
 # ------------------------------------------------------------------------------------------------
@@ -110,7 +117,8 @@ def test_iter_chunks():
 
 
 def test_runs_per_chunk_for():
-    assert runs_per_chunk_for(3600) == int(4e9 // (600 * 3600))
+    assert runs_per_chunk_for(3600) == int(DEVICE_BUDGET_BYTES // (600 * 3600))
+    assert runs_per_chunk_for(3600, bytes_budget=4e9) == int(4e9 // (600 * 3600))
     assert runs_per_chunk_for(10**9) == 1  # never zero
     assert runs_per_chunk_for(100) > runs_per_chunk_for(1000)
 
