@@ -488,22 +488,22 @@ def _runs_to_table(runs: list[RunLog]) -> pa.Table:
         pa.array([r.run_id for r in runs], pa.string()),
     )
     frame = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
+    # One 2-D block per run and dtype (a pandas selection per block, not per column: ~100x fewer).
+    ints = np.concatenate([r.frames[list(schema.INT_COLUMNS)].to_numpy(np.int64) for r in runs])
+    floats = np.concatenate([r.frames[list(schema.FLOAT_COLUMNS)].to_numpy(np.float64) for r in runs])
     arrays = [run_ids, pa.array(frame)]
-    for c in schema.REQUIRED_COLUMNS:
-        arrays.append(pa.array(np.concatenate([r.frames[c].to_numpy() for r in runs])))
-    no_gt = np.repeat([not r.has_ground_truth for r in runs], lengths)
-    for c in schema.GT_COLUMNS:
-        values = np.concatenate(
-            [r.frames[c].to_numpy() if r.has_ground_truth else np.full(len(r.frames), np.nan) for r in runs]
-        )
-        # NaN stays NaN (a frame without ground truth); null marks a run without gt columns.
-        arrays.append(pa.array(values, mask=no_gt if no_gt.any() else None))
-    no_world = np.repeat([not r.has_world_frame for r in runs], lengths)
-    for c in schema.WORLD_COLUMNS:
-        values = np.concatenate(
-            [r.frames[c].to_numpy() if r.has_world_frame else np.full(len(r.frames), np.nan) for r in runs]
-        )
-        arrays.append(pa.array(values, mask=no_world if no_world.any() else None))
+    arrays += [pa.array(column) for column in np.ascontiguousarray(ints.T)]
+    arrays += [pa.array(column) for column in np.ascontiguousarray(floats.T)]
+    for names, has in ((schema.GT_COLUMNS, "has_ground_truth"), (schema.WORLD_COLUMNS, "has_world_frame")):
+        # NaN stays NaN (a frame without ground truth); null marks a run without the columns.
+        nan = np.full((1, len(names)), np.nan)
+        block = np.concatenate([
+            r.frames[list(names)].to_numpy(np.float64) if getattr(r, has) else nan.repeat(len(r.frames), 0)
+            for r in runs
+        ])  # fmt: skip
+        missing = np.repeat([not getattr(r, has) for r in runs], lengths)
+        mask = missing if missing.any() else None
+        arrays += [pa.array(column, mask=mask) for column in np.ascontiguousarray(block.T)]
     return pa.Table.from_arrays(arrays, schema=PARQUET_SCHEMA)
 
 
