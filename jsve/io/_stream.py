@@ -50,7 +50,7 @@ HOST_BYTES_PER_FRAME = 263
 """Bytes a frame takes in a float32 LogBatch on the host: 64 uint16 bins (128), 28 float32 pose, IMU
 and ground-truth values (112), 4 int32 counts and map rank (16), t (4) and 6 flags."""
 
-DEFAULT_HOST_BUDGET = 1e9
+DEFAULT_HOST_BUDGET = 0.6e9
 """Bytes of partly filled chunks held at once, shared by the buckets (`iter_buckets`)."""
 
 
