@@ -220,43 +220,55 @@ def cross_validate(
                 progress=progress,
                 desc=f"search {name}",
             )
-    per_rule = {name: preset_results(data, name) for name in presets}
+    per_rule = {
+        name: preset_results(data, name)
+        for name in tqdm(presets, desc="cross-validation presets", unit="rule", disable=not progress)
+    }
 
     rows, params = [], []
-    for k, fold in enumerate(tqdm(folds, desc="cross-validation", unit="fold", disable=not progress)):
-        train = w * ~fold.test
-        if not np.any(train > 0):
-            raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
-        fitted = {}
-        for name, space in spaces.items():
-            result = fit(
-                data,
-                space,
-                train,
-                config,
-                search_result=_fold_search(name, k, screened, searches, config),
-                progress=False,
-            )
-            fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
-            params.append(
-                {
-                    "fold_kind": fold.kind,
-                    "fold": fold.name,
-                    "family": name,
-                    "train_objective": result.objective,
-                    **result.params(),
-                }
-            )
-        for rule, res in {**fitted, **per_rule}.items():
-            held = np.flatnonzero(fold.test)
-            table = meta.iloc[held].copy()
-            table.insert(0, "run_index", held)
-            table["fold_kind"], table["fold"], table["rule"] = fold.kind, fold.name, rule
-            table["weight"] = w[held]
-            for key in ("loss", "rmse", "failed", "coverage", "unsupported", "included"):
-                table[key] = getattr(res, key)[0, held]
-            table["loss"] = table["loss"].where(table["included"])
-            rows.append(table)
+    # One step per fit (fold x family): a fold's fits take minutes (Nelder-Mead), so a bar over folds
+    # alone would move too seldom to give an ETA early.
+    with tqdm(
+        total=len(folds) * len(spaces),
+        desc=f"cross-validation, {len(folds)} folds x {len(spaces)} families",
+        unit="fit",
+        disable=not progress,
+    ) as bar:
+        for k, fold in enumerate(folds):
+            train = w * ~fold.test
+            if not np.any(train > 0):
+                raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
+            fitted = {}
+            for name, space in spaces.items():
+                result = fit(
+                    data,
+                    space,
+                    train,
+                    config,
+                    search_result=_fold_search(name, k, screened, searches, config),
+                    progress=False,
+                )
+                fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
+                bar.update(1)
+                params.append(
+                    {
+                        "fold_kind": fold.kind,
+                        "fold": fold.name,
+                        "family": name,
+                        "train_objective": result.objective,
+                        **result.params(),
+                    }
+                )
+            for rule, res in {**fitted, **per_rule}.items():
+                held = np.flatnonzero(fold.test)
+                table = meta.iloc[held].copy()
+                table.insert(0, "run_index", held)
+                table["fold_kind"], table["fold"], table["rule"] = fold.kind, fold.name, rule
+                table["weight"] = w[held]
+                for key in ("loss", "rmse", "failed", "coverage", "unsupported", "included"):
+                    table[key] = getattr(res, key)[0, held]
+                table["loss"] = table["loss"].where(table["included"])
+                rows.append(table)
     return CrossValidation(heldout=pd.concat(rows, ignore_index=True), params=pd.DataFrame(params))
 
 

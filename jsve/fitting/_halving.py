@@ -90,23 +90,46 @@ def subset_parts(
     Returns:
         (parts, real runs per part, the global run index of each result column in order).
     """
-    runs = np.asarray(runs, np.int64)
-    out, counts, columns, start = [], [], [], 0
-    chosen = np.zeros(sum(run_counts), bool)
-    chosen[runs] = True
-    for part, n in zip(parts, run_counts, strict=True):
-        local = np.flatnonzero(chosen[start : start + n])
-        if len(local) == n:
+    out, counts, columns = [], [], []
+    for part, (local, start, real) in zip(parts, _selected(run_counts, runs), strict=True):
+        n = len(local)
+        if n == real:
             out.append(part)
-        elif len(local):
-            size = 2 ** math.ceil(math.log2(len(local)))
-            index = jnp.asarray(np.concatenate([local, np.repeat(local[:1], size - len(local))]))
+        elif n:
+            size = padded_subset(n)
+            index = jnp.asarray(np.concatenate([local, np.repeat(local[:1], size - n)]))
             out.append(jax.tree.map(lambda x, i=index: x[..., i], part))
-        if len(local):
-            counts.append(len(local))
+        if n:
+            counts.append(n)
             columns.append(start + local)
-        start += n
     return out, counts, np.concatenate(columns) if columns else np.zeros(0, np.int64)
+
+
+def padded_subset(n: int) -> int:
+    """Runs of the sub-batch `subset_parts` gathers for n selected runs of a part: the power of 2 at or
+    above n."""
+    return 2 ** math.ceil(math.log2(n))
+
+
+def _selected(run_counts: Sequence[int], runs: np.ndarray) -> list[tuple[np.ndarray, int, int]]:
+    """Per part: (its selected runs as local indices, the part's first global run, its real runs)."""
+    chosen = np.zeros(sum(run_counts), bool)
+    chosen[np.asarray(runs, np.int64)] = True
+    out, start = [], 0
+    for n in run_counts:
+        out.append((np.flatnonzero(chosen[start : start + n]), start, n))
+        start += n
+    return out
+
+
+def subset_runs(run_counts: Sequence[int], part_runs: Sequence[int], runs: np.ndarray) -> list[int | None]:
+    """Per part, the runs of the sub-batch `subset_parts` scores for `runs` (global indices): the part as
+    it is (part_runs, padding included) where all its real runs are selected, else the selected count
+    padded to a power of 2; None where none is selected. Shapes only: what a cost model needs."""
+    sizes: list[int | None] = []
+    for (local, _, n), whole in zip(_selected(run_counts, runs), part_runs, strict=True):
+        sizes.append(None if not len(local) else whole if len(local) == n else padded_subset(len(local)))
+    return sizes
 
 
 _FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included")
@@ -321,7 +344,8 @@ def halving_searches(
     sizes = [rung_sizes(n_settings, len(t), eta, initial_fraction) for t in trains]
     alive = [np.arange(n_settings) for _ in ws]
     rungs, scored = [[] for _ in ws], [[] for _ in ws]
-    for k in range(max(len(s) for s in sizes)):
+    n_rungs = max(len(s) for s in sizes)
+    for k in range(n_rungs):
         active = [i for i in range(len(ws)) if k < len(sizes[i])]
         runs = {
             i: np.arange(cache.n_runs) if k == len(sizes[i]) - 1 else np.sort(trains[i][: sizes[i][k][1]])
@@ -330,7 +354,7 @@ def halving_searches(
         need = np.zeros((n_settings, cache.n_runs), bool)
         for i in active:
             need[np.ix_(alive[i], runs[i])] = True
-        cache.fill_pairs(need, progress=progress, desc=f"{desc} rung {k + 1}")
+        cache.fill_pairs(need, progress=progress, desc=f"{desc} rung {k + 1}/{n_rungs}")
         for i in active:
             obj = cache.result(alive[i], runs[i]).objective(ws[i][runs[i]])
             rank = np.argsort(obj, kind="stable")
@@ -357,4 +381,6 @@ __all__ = [
     "rung_sizes",
     "stratified_order",
     "subset_parts",
+    "subset_runs",
+    "padded_subset",
 ]

@@ -533,6 +533,14 @@ carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (measured best of
 analysis/bench_search.py)."""
 
 
+def call_size(n_runs: int, n_settings: int, settings_per_call: int | None = None) -> int:
+    """Settings per compiled call of `search` on a part of n_runs runs (padding runs included): the
+    given settings_per_call, else the power of 2 that fills LANES_PER_CALL lanes, at most the power of 2
+    at or above n_settings. One size per part and search, so one compilation serves all its calls."""
+    size = settings_per_call or 2 ** int(math.log2(max(1, LANES_PER_CALL // n_runs)))
+    return min(size, 2 ** math.ceil(math.log2(max(n_settings, 1))))
+
+
 def _settings_chunks(n: int, size: int) -> Iterator[slice]:
     for start in range(0, n, size):
         yield slice(start, min(start + size, n))
@@ -555,8 +563,9 @@ def search(
         parts: SearchBatches (from `prepare`), each a chunk of runs; results are concatenated in order.
         space: jsve.fitting._space.ParamSpace of the values.
         run_counts: real runs of each part (the rest is padding and is dropped); default all.
-        settings_per_call: settings per compiled call (default: ~32k lanes / runs per part, a power of 2,
-            fixed so one compilation serves every call; the last call is padded).
+        settings_per_call: settings per compiled call (default: `call_size`, LANES_PER_CALL lanes / runs
+            per part as a power of 2, fixed so one compilation serves every call; the last call is padded).
+        progress: a bar over the setting-runs (settings x real runs) on stderr.
     Returns:
         SearchResult with [S, R_total] matrices.
     """
@@ -575,24 +584,27 @@ def search(
     # time, a waiting SVD leaves the other workers free. They cost ~1 % of a scan.
     devices = jax.local_devices()
     pending = []
-    for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
-        size = settings_per_call or 2 ** int(math.log2(max(1, LANES_PER_CALL // part.n_runs)))
-        size = min(size, 2 ** math.ceil(math.log2(n_settings)))
-        copies = [part] if len(devices) == 1 else [jax.device_put(part, d) for d in devices]
-        for i, sl in enumerate(_settings_chunks(n_settings, size)):
-            chunk = values[sl]
-            if len(chunk) < size:
-                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)])
-            k = i % len(copies)
-            rules = space.rule(jnp.asarray(chunk, part.t.dtype))
-            if len(copies) > 1:
-                rules = jax.device_put(rules, devices[k])
-            exact = _exact_from_start(copies[k], config)
-            sums = _scan_sums(copies[k], rules, config, exact=exact)
-            pending.append((p, sl, n_real, copies[k], rules, exact, sums))
     per_part: list[list] = [[] for _ in parts]
     total = n_settings * sum(run_counts)
-    with tqdm(total=total, desc=desc, unit="run-setting", unit_scale=True, disable=not progress) as bar:
+    # The bar opens before the calls are dispatched: a call of a new shape compiles (seconds to a minute)
+    # while the bar stands at 0; then the rate and the ETA follow the results.
+    with tqdm(total=total, desc=desc, unit="setting-run", unit_scale=True, disable=not progress) as bar:
+        for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
+            size = call_size(part.n_runs, n_settings, settings_per_call)
+            # a copy of the part on each device that gets a call (one call: the part where it is)
+            n_calls = math.ceil(n_settings / size)
+            copies = [part] if n_calls == 1 else [jax.device_put(part, d) for d in devices[:n_calls]]
+            for i, sl in enumerate(_settings_chunks(n_settings, size)):
+                chunk = values[sl]
+                if len(chunk) < size:
+                    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)])
+                k = i % len(copies)
+                rules = space.rule(jnp.asarray(chunk, part.t.dtype))
+                if len(copies) > 1:
+                    rules = jax.device_put(rules, devices[k])
+                exact = _exact_from_start(copies[k], config)
+                sums = _scan_sums(copies[k], rules, config, exact=exact)
+                pending.append((p, sl, n_real, copies[k], rules, exact, sums))
         for p, sl, n_real, part, rules, exact, sums in pending:
             if not exact and _needs_corrections(sums):
                 sums = _scan_sums(part, rules, config, exact=True)
@@ -635,4 +647,6 @@ __all__ = [
     "score_columns",
     "feature_logs",
     "use_all_cores",
+    "call_size",
+    "LANES_PER_CALL",
 ]

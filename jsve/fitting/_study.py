@@ -317,8 +317,11 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
     return pd.DataFrame(rows)
 
 
-def heatmap_table(data: FitData, space: ParamSpace, values, weights, x: str, y: str, n: int) -> pd.DataFrame:
-    """The objective over a grid of two free parameters (the others at `values`), with failure rate."""
+def heatmap_table(
+    data: FitData, space: ParamSpace, values, weights, x: str, y: str, n: int, *, progress: bool = False
+) -> pd.DataFrame:
+    """The objective over a grid of two free parameters (the others at `values`), with failure rate;
+    `progress`: the search's bar."""
     if x not in space.names or y not in space.names:
         raise ValueError(f"heat map axes {x!r}, {y!r} must be free parameters of {space.names}")
     ix, iy = space.names.index(x), space.names.index(y)
@@ -326,7 +329,15 @@ def heatmap_table(data: FitData, space: ParamSpace, values, weights, x: str, y: 
     grid = np.repeat(np.asarray(values, np.float64)[None], len(unit), axis=0)
     grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
     grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
-    res = search(data.parts, space, grid, data.config, run_counts=data.run_counts, progress=False)
+    res = search(
+        data.parts,
+        space,
+        grid,
+        data.config,
+        run_counts=data.run_counts,
+        progress=progress,
+        desc=f"heat map {space.kind}",
+    )
     return pd.DataFrame(
         {
             "family": space.kind,
@@ -371,7 +382,9 @@ def _load_search(path: Path) -> SearchResult:
         return SearchResult(**{k.name: z[k.name] for k in fields(SearchResult)})
 
 
-def _folds(meta: pd.DataFrame, config: StudyConfig):
+def study_folds(meta: pd.DataFrame, config: StudyConfig) -> list:
+    """The cross-validation's folds of a study: config.kfold folds over runs (seeded), then one fold per
+    value of each leave_one_out column (a column with fewer than 2 values is skipped)."""
     folds = []
     if config.kfold:
         folds += kfold(len(meta), min(config.kfold, len(meta)), seed=config.seed)
@@ -381,6 +394,68 @@ def _folds(meta: pd.DataFrame, config: StudyConfig):
         else:
             log.info("leave-one-%s-out skipped: fewer than 2 values", column)
     return folds
+
+
+def finished_stages(
+    out_dir: str | os.PathLike,
+    config: StudyConfig,
+    data: FitData,
+    *,
+    data_description: dict | None = None,
+    force: bool = False,
+) -> set[str]:
+    """The stages a rerun of run_study(data, out_dir, config) skips: those recorded in stages.json under
+    this study's key (configuration and data fingerprints); none for a folder without stages.json.
+    Costs a data_fingerprint only where stages.json exists. data_description: as run_study's (its
+    source names the data in the error below).
+
+    Raises:
+        StaleOutputError: the folder holds a study of another key (as run_study would, before it
+            writes anything); with force, none is finished instead (run_study deletes them).
+    """
+    out = Path(out_dir)
+    if not (out / "stages.json").is_file():
+        return set()
+    if data.config != config.objective():
+        data = replace(data, config=config.objective())
+    try:
+        stages, _ = _open_stages(out, config, data, data_description, force=False)
+    except StaleOutputError:
+        if force:
+            return set()
+        raise
+    return set(stages.done)
+
+
+def _open_stages(
+    out: Path, config: StudyConfig, data: FitData, data_description: dict | None, *, force: bool
+) -> tuple[Stages, dict]:
+    """The study folder's stage records under this study's key (configuration and data fingerprints),
+    and the data's summary (fingerprint, runs, frames, source) as study.json records it."""
+    summary = {
+        "fingerprint": data_fingerprint(data),
+        "n_runs": data.n_runs,
+        "n_frames": data.n_frames,
+        "source": (data_description or {}).get("source"),
+    }
+    config_json = json.loads(json.dumps(config.to_dict(), default=str))
+    stages = Stages(
+        out,
+        fingerprint(config.to_dict()),
+        summary["fingerprint"],
+        force=force,
+        describe=_describe_change(out, config_json, summary),
+    )
+    return stages, summary
+
+
+def record_timing(out_dir: str | os.PathLike, timing: dict) -> None:
+    """Add `timing` (JSON-ready: the wall time expected before the study and the one measured) to the
+    study's study.json under "timing", replacing an earlier run's."""
+    path = Path(out_dir) / "study.json"
+    study = json.loads(path.read_text())
+    study["timing"] = timing
+    write_json(study, path)
 
 
 def run_study(
@@ -414,20 +489,8 @@ def run_study(
     if data.config != config.objective():
         data = replace(data, config=config.objective())
     meta = data.meta
-    data_fp = data_fingerprint(data)
-    summary = {
-        "fingerprint": data_fp,
-        "n_runs": data.n_runs,
-        "n_frames": data.n_frames,
-        "source": (data_description or {}).get("source"),
-    }
-    stages = Stages(
-        out,
-        fingerprint(config.to_dict()),
-        data_fp,
-        force=force,
-        describe=_describe_change(out, json.loads(json.dumps(config.to_dict(), default=str)), summary),
-    )
+    stages, summary = _open_stages(out, config, data, data_description, force=force)
+    data_fp = summary["fingerprint"]
     atomic.check_writable(out)
     by = [c for c in config.balance_by if c in meta.columns]
     weights = group_weights(meta, by)
@@ -511,7 +574,7 @@ def run_study(
     stages.run("evaluate_fitted", evaluate_fitted, [out / "runs.parquet", out / "summary.parquet"])
 
     def crossvalidate():
-        folds = _folds(meta, config)
+        folds = study_folds(meta, config)
         if not folds:
             return {"folds": 0}
         cv = cross_validate(
@@ -558,7 +621,7 @@ def run_study(
     def heatmap():
         x, y, n = config.heatmap
         tables = [
-            heatmap_table(data, spaces[f], r.values, weights, x, y, int(n))
+            heatmap_table(data, spaces[f], r.values, weights, x, y, int(n), progress=progress)
             for f, r in fits.items()
             if x in spaces[f].names and y in spaces[f].names
         ]
@@ -583,6 +646,9 @@ __all__ = [
     "run_study",
     "data_fingerprint",
     "STUDY_FILES",
+    "finished_stages",
+    "record_timing",
+    "study_folds",
     "sve_level_table",
     "heatmap_table",
     "write_table",

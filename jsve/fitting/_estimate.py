@@ -1,0 +1,660 @@
+"""How long a fitting study will take: its work counted in the units of a few compiled computations (the
+cost model), priced by a short timing probe of those computations on the study's own data.
+
+    size = study_size(data, config)       # shapes, designs, folds: no computation
+    work = plan(size, config)             # the cost model: arithmetic on the sizes
+    rates = probe(data, config)           # the real computations on a few settings, compiled first
+    estimate = price(work, rates)         # seconds of computing, and of compiling apart
+    print(estimate.line())
+
+The cost model (`plan`). Every long stage of `jsve.fitting.run_study` is a number of calls of five
+computations, each costing time in proportion to the frames it scans:
+
+- **search** (the batched kernel, jsve.fitting._search.search): one call scans the F frames of a part of
+  R runs (padding included) for `size` settings at once (`call_size`: about LANES_PER_CALL = size x R
+  lanes), and the calls of a part are spread over the D devices, so S settings on a part cost
+  ceil(ceil(S / size) / D) x size x F x R lane-frames per device. Unit: lane-frames per device.
+  - the fit's search, exhaustive: the family's design (n_search + its presets) on every part;
+  - halving (jsve.fitting._halving): rung k scores its ceil(S / eta^k) settings on the runs new to
+    it (the prefix of the stratified order, `rung_sizes`), gathered per part and padded to a power of
+    2 (`subset_runs`); the cross-validation folds add, per rung, those settings on the runs of the
+    folds' prefixes that no earlier rung scored (assuming the folds keep the full fit's survivors,
+    which they mostly do; on a resumed study without the fit's cache, all their pairs);
+  - the parameter bootstrap's local design (n_local + 1 settings) and the heat map's grid (n^2
+    settings), on every part.
+- **objective**: the hard objective of one setting on every run (`_fit._hard_jit`, Nelder-Mead's
+  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x nm_steps + d + 2 evaluations: it runs to its
+  step limit (measured: every fit of the studies in docs/fitting.md), and each step evaluates twice
+  (reflection, then expansion or contraction) plus a simplex of d + 1 points on a shrink. A fit runs
+  n_starts of them, the full fit and each cross-validation fold, per family.
+- **setting**: one setting's per-run results (a search of one setting): after each fit, per fold and
+  family the held-out scoring, and the presets that are points of a family's space.
+- **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
+  presets, the fitted rules, and in the cross-validation the presets outside the fitted families'
+  spaces (their replay objective, or a search of a family the probe does not time, counted alike).
+- **relaxed** (`[fit] relaxed = true`): the relaxed objective of one setting on every run; a BFGS step
+  costs BFGS_EVALS_PER_STEP of them (value and gradient), up to bfgs_steps per temperature.
+- **flops**: the parameter bootstrap's resample weights times the per-run losses, 2 x n_boot x R x S.
+
+Seconds = sum over (stage, kind) of units x the probe's seconds per unit. Compilation is counted apart:
+every distinct computation the study compiles (per family: the search kernel per part shape, call size
+and device; the objective; Nelder-Mead, NELDER_MEAD_COMPILE x the objective's compile time; per rule
+structure and chunk shape, evaluate) costs what the probe's compile of its kind took; what the probe
+compiled is already paid. With JAX's persistent cache warm (a second `jsve fit` of the same shapes) the
+probe's compilations are cache loads, and so the estimate's. Left out: loading the logs and preparing
+FitData (done before the probe), tables, summaries and the report (seconds).
+
+The probe (`probe`) runs, after compiling each, the same calls the study makes first: per family one
+round of search calls on the first part (one per device, the search's call size), a one-setting search
+and one objective evaluation over all runs; one evaluate chunk of the first bucket; a matrix product.
+Each is timed twice, the first call's extra time being its compilation; results are discarded, so the
+study's results do not change, and the compiled computations are those the study then reuses.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+NM_EVALS_PER_STEP = 2.3
+"""Objective evaluations per Nelder-Mead step: 2 (optimistix's step scans the reflection and one more
+point) plus the shrinks' simplexes. Measured on a 186-run simulated study (jsve simulate --procedural 3
+--runs 2): 0.36 s a step against 0.15 s an evaluation (SVE), 0.17 s against 0.08 s (inliers)."""
+
+NELDER_MEAD_COMPILE = 3.3
+"""Compile time of a family's Nelder-Mead (optimistix.minimise over the objective, traced twice: the
+step's two points, the shrink's vmapped simplex) over that of its objective: measured 3.5 (SVE, 76 s
+against 22 s) and 3.1 (inliers, 31 s against 10 s) on the same study."""
+
+BFGS_EVALS_PER_STEP = 4.0
+"""Relaxed-objective evaluations per BFGS step (value and gradient by reverse mode, about 3 values, and
+the line search's trial); not measured, the relaxed stage being off by default."""
+
+BFGS_COMPILE = 4.0
+"""Compile time of a family's annealed BFGS over that of its relaxed objective (the gradient through
+the scan); not measured, as BFGS_EVALS_PER_STEP."""
+
+STAGES = (
+    "evaluate_presets",
+    "fit",
+    "evaluate_fitted",
+    "cross_validation",
+    "parameter_bootstrap",
+    "heatmap",
+    "sve_levels",
+)
+"""The study's stages in order (jsve.fitting._study.run_study; "fit" stands for fit_<family>)."""
+
+UNITS = {
+    "search": "lane-frames per device",
+    "objective": "evaluations",
+    "setting": "one-setting searches",
+    "evaluate": "run-frames",
+    "relaxed": "evaluations",
+    "flops": "flops",
+}
+"""The unit of each kind of work."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# The study's size
+
+
+@dataclass(frozen=True)
+class StudySize:
+    """What the cost model needs to know about the data and the configuration, read without computing.
+
+    Attributes:
+        n_runs, n_frames: real runs; valid frames.
+        run_counts: real runs per part (FitData.run_counts).
+        parts: (frames, runs with padding) per part: the search kernel's shapes.
+        chunks: per bucket, jsve.evaluation.evaluate's (chunks, runs per chunk, frames).
+        n_devices: local JAX devices (the search spreads its calls over them).
+        designs: family -> settings of its search design (n_search + presets).
+        dims: family -> free parameters.
+        heatmap: family -> whether the heat map's two axes are free parameters of its space.
+        presets: (name, rule structure, family whose space holds it or "") per preset.
+        structures: family -> the rule structure of its fitted rule.
+        folds: held-out masks ([R] bool) of the cross-validation's folds.
+        order: [R] the halving's stratified order of the runs.
+    """
+
+    n_runs: int
+    n_frames: int
+    run_counts: tuple[int, ...]
+    parts: tuple[tuple[int, int], ...]
+    chunks: tuple[tuple[int, int, int], ...]
+    n_devices: int
+    designs: dict[str, int]
+    dims: dict[str, int]
+    heatmap: dict[str, bool] = field(default_factory=dict)
+    presets: tuple[tuple[str, str, str], ...] = ()
+    structures: dict[str, str] = field(default_factory=dict)
+    folds: tuple[np.ndarray, ...] = ()
+    order: np.ndarray | None = None
+
+
+def study_size(data, config) -> StudySize:
+    """The StudySize of FitData `data` under StudyConfig `config` (shapes and counts only)."""
+    import jax
+
+    from jsve.core._batch import ladder_chunk_size, runs_per_chunk_for
+    from jsve.core._rules import PRESETS, preset
+    from jsve.fitting._fit import search_design
+    from jsve.fitting._halving import stratified_order
+    from jsve.fitting._space import is_space_point, preset_point
+    from jsve.fitting._study import study_folds
+
+    chunks = []
+    for bucket in data.buckets:
+        n, frames = bucket.batch.n_runs, bucket.batch.n_frames
+        size = ladder_chunk_size(n, runs_per_chunk_for(frames))
+        chunks.append((math.ceil(n / size), size, frames))
+    spaces = {f: config.space(f) for f in config.families}
+    x, y = config.heatmap[:2] if config.heatmap else (None, None)
+    presets = []
+    for name in PRESETS:
+        rule = preset(name)
+        family = preset_point(name)[0].kind if is_space_point(rule) else ""
+        presets.append((name, str(jax.tree_util.tree_structure(rule)), family))
+    structures = {}
+    for family, space in spaces.items():
+        unit = np.full(space.dim, 0.5)
+        structures[family] = str(jax.tree_util.tree_structure(space.rule(space.values_from_unit(unit))))
+    return StudySize(
+        n_runs=data.n_runs,
+        n_frames=data.n_frames,
+        run_counts=tuple(int(n) for n in data.run_counts),
+        parts=tuple((p.n_frames, p.n_runs) for p in data.parts),
+        chunks=tuple(chunks),
+        n_devices=len(jax.local_devices()),
+        designs={f: len(search_design(s, config.fit)) for f, s in spaces.items()},
+        dims={f: s.dim for f, s in spaces.items()},
+        heatmap={f: x in s.names and y in s.names for f, s in spaces.items()},
+        presets=tuple(presets),
+        structures=structures,
+        folds=tuple(fold.test for fold in study_folds(data.meta, config)),
+        order=stratified_order(data.meta, data.n_runs, seed=config.fit.seed),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# The cost model
+
+
+@dataclass(frozen=True)
+class Work:
+    """Work of one kind in one stage: `units` of UNITS[kind] for `family` ("" when shared)."""
+
+    stage: str
+    kind: str
+    family: str
+    units: float
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A study's work, and the computations it compiles: (kind, family) -> keys of distinct
+    computations (kinds "search", "objective", "nelder_mead", "evaluate", "relaxed", "bfgs")."""
+
+    work: tuple[Work, ...]
+    compiles: dict[tuple[str, str], frozenset]
+
+    def units(self, kind: str, family: str = "", stage: str | None = None) -> float:
+        """Total units of a kind (and family, stage) of work."""
+        return sum(
+            w.units
+            for w in self.work
+            if w.kind == kind and w.family == family and (stage is None or w.stage == stage)
+        )
+
+
+def search_cost(
+    size: StudySize, n_settings: int, runs: np.ndarray | None = None, *, family: str = ""
+) -> tuple[int, set]:
+    """Lane-frames per device of `search` scoring n_settings settings on `runs` (global indices; None:
+    all), and the keys of the computations it compiles: (frames, runs, call size, device).
+
+    ceil(S / size) calls per part, ceil(calls / D) rounds on the D devices, each scanning
+    size x runs x frames lane-frames.
+    """
+    from jsve.fitting._halving import subset_runs
+    from jsve.fitting._search import call_size
+
+    part_runs = [r for _, r in size.parts]
+    if runs is None:
+        sub: list[int | None] = list(part_runs)
+    else:
+        sub = subset_runs(size.run_counts, part_runs, runs)
+    units, keys = 0, set()
+    for (frames, _), r in zip(size.parts, sub, strict=True):
+        if r is None or n_settings < 1:
+            continue
+        per_call = call_size(r, n_settings)
+        calls = math.ceil(n_settings / per_call)
+        units += math.ceil(calls / size.n_devices) * per_call * r * frames
+        keys |= {(frames, r, per_call, d) for d in range(min(calls, size.n_devices))}
+    return units, keys
+
+
+def halving_rectangles(
+    size: StudySize, family: str, eta: float, initial_fraction: float, *, cached: bool = True
+) -> tuple[list[tuple[int, np.ndarray]], list[tuple[int, np.ndarray]]]:
+    """The (settings, runs) rectangles halving scores: the fit on all runs, and what the folds add.
+
+    Arguments:
+        cached: the folds halve on the full fit's cache (run_study in one process); False: on a new one
+            (a resumed study whose fit stage is done), so every pair they need is scored again.
+    Returns:
+        (the full fit's rectangles, the folds' rectangles), runs as global indices.
+    """
+    from jsve.fitting._halving import rung_sizes
+
+    n_settings, n_runs = size.designs[family], size.n_runs
+    order = np.arange(n_runs) if size.order is None else np.asarray(size.order)
+    everything = np.arange(n_runs)
+
+    def prefixes(train: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        rungs = rung_sizes(n_settings, len(train), eta, initial_fraction)
+        last = len(rungs) - 1
+        return [(s, everything if k == last else np.sort(train[:r])) for k, (s, r) in enumerate(rungs)]
+
+    fit_rungs = prefixes(order)
+    fit_rects, seen = [], np.zeros(n_runs, bool)
+    for n, runs in fit_rungs:
+        new = runs[~seen[runs]]
+        fit_rects.append((n, new))
+        seen[runs] = True
+    fold_rungs = [prefixes(order[~np.asarray(test)[order]]) for test in size.folds]
+    fold_rects = []
+    known = np.zeros(n_runs, bool)  # runs the rung's settings are known on (the full fit's, earlier rungs')
+    for k in range(max((len(r) for r in fold_rungs), default=0)):
+        union = np.zeros(n_runs, bool)
+        for rungs in fold_rungs:
+            if k < len(rungs):
+                union[rungs[k][1]] = True
+        if cached:
+            if k < len(fit_rungs):
+                known[fit_rungs[k][1]] = True
+            if k >= len(fit_rungs) - 1:  # the full fit's survivors are known on every run
+                known[:] = True
+        n = fit_rungs[min(k, len(fit_rungs) - 1)][0]
+        new = np.flatnonzero(union & ~known)
+        if len(new):
+            fold_rects.append((n, new))
+        known |= union
+    return fit_rects, fold_rects
+
+
+def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
+    """The study's work (cost model, module docstring) under StudyConfig `config`, leaving out the
+    stages in `done` (names of jsve.fitting._study's stages: fit_<family> for the fits)."""
+    fit = config.fit
+    work: dict[tuple[str, str, str], float] = {}  # (stage, kind, family) -> units, in order of first use
+    compiles: dict[tuple[str, str], set] = {}
+
+    def add(stage: str, kind: str, family: str, units: float) -> None:
+        if units:
+            work[stage, kind, family] = work.get((stage, kind, family), 0.0) + float(units)
+
+    def compile_(kind: str, family: str, keys) -> None:
+        compiles.setdefault((kind, family), set()).update(keys)
+
+    def search(stage: str, family: str, n_settings: int, runs=None) -> None:
+        units, keys = search_cost(size, n_settings, runs, family=family)
+        add(stage, "search", family, units)
+        compile_("search", family, keys)
+
+    def one_setting(stage: str, family: str, count: int) -> None:
+        add(stage, "setting", family, count)
+        compile_("search", family, {(f, r, 1, 0) for f, r in size.parts})
+
+    def fit_stages(stage: str, family: str, folds: int) -> None:
+        """Nelder-Mead, the relaxed fit and the fitted setting's results, `folds` times."""
+        if fit.n_starts > 0:
+            per_start = NM_EVALS_PER_STEP * fit.nm_steps + size.dims[family] + 2
+            add(stage, "objective", family, folds * fit.n_starts * per_start)
+            compile_("objective", family, {family})
+            compile_("nelder_mead", family, {family})
+        if fit.relaxed:
+            temps = len(fit.temperatures)
+            add(stage, "relaxed", family, folds * temps * (BFGS_EVALS_PER_STEP * fit.bfgs_steps + 1))
+            add(stage, "objective", family, folds * temps)
+            compile_("relaxed", family, {family})
+            compile_("bfgs", family, {family})
+            compile_("objective", family, {family})
+        one_setting(stage, family, folds)  # the fitted setting's per-run results (FitResult)
+
+    def evaluate(stage: str, structures: Sequence[str]) -> None:
+        units = sum(n * runs * frames for n, runs, frames in size.chunks)
+        add(stage, "evaluate", "", units * len(structures))
+        compile_("evaluate", "", {(s, runs, frames) for s in structures for _, runs, frames in size.chunks})
+
+    families = list(config.families)
+    if "evaluate_presets" not in done:
+        evaluate("evaluate_presets", [s for _, s, _ in size.presets])
+    halving = fit.search == "halving"
+    for family in families:
+        if f"fit_{family}" in done:
+            continue
+        if halving:
+            for n, runs in halving_rectangles(size, family, fit.eta, fit.initial_fraction)[0]:
+                search("fit", family, n, runs)
+        else:
+            search("fit", family, size.designs[family])
+        fit_stages("fit", family, 1)
+    if "evaluate_fitted" not in done:
+        evaluate("evaluate_fitted", [size.structures[f] for f in families])
+    if "cross_validation" not in done and size.folds:
+        stage, n_folds = "cross_validation", len(size.folds)
+        for _, structure, family in size.presets:
+            if family in families:
+                one_setting(stage, family, 1)
+            else:  # the replay objective, or a search of a family the probe does not time: as a replay
+                add(stage, "evaluate", "", sum(f * r for f, r in size.parts))
+                compile_("evaluate", "", {("preset", structure, f, r) for f, r in size.parts})
+        for family in families:
+            if halving:
+                cached = f"fit_{family}" not in done
+                rects = halving_rectangles(size, family, fit.eta, fit.initial_fraction, cached=cached)[1]
+                for n, runs in rects:
+                    search(stage, family, n, runs)
+            fit_stages(stage, family, n_folds)
+            one_setting(stage, family, n_folds)  # the fold's fitted rule on its held-out runs
+    if "parameter_bootstrap" not in done:
+        for family in families:
+            search("parameter_bootstrap", family, config.n_local + 1)
+            if halving:  # the survivors of the last rung
+                kept = halving_rectangles(size, family, fit.eta, fit.initial_fraction)[0][-1][0]
+            else:
+                kept = size.designs[family]
+            flops = 2 * config.n_boot * size.n_runs * (kept + config.n_local + 1)
+            add("parameter_bootstrap", "flops", "", flops)
+    if "heatmap" not in done and config.heatmap:
+        n = int(config.heatmap[2])
+        for family in families:
+            if size.heatmap.get(family):
+                search("heatmap", family, n * n)
+    return Plan(
+        work=tuple(Work(*key, units) for key, units in work.items()),
+        compiles={k: frozenset(v) for k, v in compiles.items()},
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Pricing
+
+
+@dataclass(frozen=True)
+class Rates:
+    """What the probe measured.
+
+    Attributes:
+        seconds: (kind, family) -> seconds per unit of work (UNITS).
+        compile: (kind, family) -> seconds to compile one computation of that kind.
+        compiled: (kind, family) -> keys of the computations the probe compiled (already paid).
+        probe_seconds: the probe's wall time, compile_seconds: the part of it spent compiling.
+    """
+
+    seconds: dict[tuple[str, str], float]
+    compile: dict[tuple[str, str], float]
+    compiled: dict[tuple[str, str], frozenset] = field(default_factory=dict)
+    probe_seconds: float = 0.0
+    compile_seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Expected seconds of a study: per stage, compiling apart.
+
+    Attributes:
+        stages: stage -> seconds of computing (STAGES' names, "fit" for the fits).
+        compile: seconds of compiling still to come.
+        probe_seconds, probe_compile: the probe's wall time and its compilation (already spent).
+        basis: the study's size in words.
+    """
+
+    stages: dict[str, float]
+    compile: float
+    probe_seconds: float = 0.0
+    probe_compile: float = 0.0
+    basis: str = ""
+
+    @property
+    def compute(self) -> float:
+        return float(sum(self.stages.values()))
+
+    @property
+    def total(self) -> float:
+        """Expected wall time from the estimate on: computing and compiling."""
+        return self.compute + self.compile
+
+    def line(self) -> str:
+        """One line for people: the expected wall time, what it is made of, and its basis."""
+        parts = ", ".join(f"{k} {duration(v)}" for k, v in self.stages.items() if v >= 0.5)
+        probe = duration(self.probe_seconds - self.probe_compile)
+        return (
+            f"expected wall time {duration(self.total)} ({duration(self.compute)} computing"
+            f"{': ' + parts if parts else ''}; "
+            f"{duration(self.compile)} compiling) for {self.basis}; from a probe of {probe} after "
+            f"{duration(self.probe_compile)} compiling"
+        )
+
+    def as_dict(self) -> dict:
+        return {
+            "expected_s": self.total,
+            "compute_s": self.compute,
+            "compile_s": self.compile,
+            "stages_s": dict(self.stages),
+            "probe_s": self.probe_seconds,
+            "probe_compile_s": self.probe_compile,
+            "basis": self.basis,
+        }
+
+
+def price(work: Plan, rates: Rates, *, basis: str = "") -> Estimate:
+    """Seconds of a Plan at the probe's Rates: units x seconds per unit per stage, and the compilations
+    the plan needs and the probe did not do, each at its kind's compile time. A kind the probe did not
+    time (a family it skipped) costs nothing."""
+    stages: dict[str, float] = {}
+    for w in work.work:
+        stages[w.stage] = stages.get(w.stage, 0.0) + w.units * rates.seconds.get((w.kind, w.family), 0.0)
+    compile_s = 0.0
+    for (kind, family), keys in work.compiles.items():
+        left = keys - rates.compiled.get((kind, family), frozenset())
+        compile_s += len(left) * compile_rate(rates, kind, family)
+    return Estimate(
+        stages={s: stages[s] for s in STAGES if s in stages},
+        compile=compile_s,
+        probe_seconds=rates.probe_seconds,
+        probe_compile=rates.compile_seconds,
+        basis=basis,
+    )
+
+
+def compile_rate(rates: Rates, kind: str, family: str) -> float:
+    """Seconds to compile one computation of a kind: measured, or a measured kind times its factor."""
+    if kind == "nelder_mead":
+        return NELDER_MEAD_COMPILE * rates.compile.get(("objective", family), 0.0)
+    if kind == "bfgs":
+        return BFGS_COMPILE * rates.compile.get(("relaxed", family), 0.0)
+    return rates.compile.get((kind, family), 0.0)
+
+
+def describe(size: StudySize, config) -> str:
+    """The study's size in words, the basis of an estimate: runs, frames, settings, search, folds."""
+    fit = config.fit
+    settings = " + ".join(f"{f} {size.designs[f]:,}" for f in config.families)
+    words = [
+        f"{size.n_runs:,} runs",
+        f"{size.n_frames:,} frames",
+        f"{settings} settings ({fit.search})",
+        f"{len(size.folds)} folds",
+        f"Nelder-Mead {fit.n_starts} x {fit.nm_steps} steps a fit",
+    ]
+    if fit.relaxed:
+        words.append(f"relaxed BFGS {len(fit.temperatures)} x {fit.bfgs_steps} steps")
+    return ", ".join(words)
+
+
+def duration(seconds: float) -> str:
+    """A duration for people: 40 s, 3.5 min, 1.2 h."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+# ---------------------------------------------------------------------------------------------------
+# The probe
+
+
+def _timed(fn) -> float:
+    import jax
+
+    started = time.perf_counter()
+    jax.block_until_ready(fn())
+    return time.perf_counter() - started
+
+
+def _twice(fn, spent: list[float]) -> tuple[float, float]:
+    """(compile seconds, run seconds) of a computation: its first call less its second, its second; the
+    compile seconds are appended to `spent`."""
+    first = _timed(fn)
+    second = _timed(fn)
+    spent.append(max(first - second, 0.0))
+    return spent[-1], second
+
+
+def probe(data, config, *, progress: bool = False) -> Rates:
+    """Time the study's computations on its own data (module docstring): per family a round of search
+    calls, a one-setting search and an objective evaluation (and the relaxed objective where the fit
+    runs it); an evaluate chunk; a matrix product.
+
+    Arguments:
+        data: FitData; config: StudyConfig (its objective must be data's).
+        progress: a bar over the probe's steps on stderr.
+    Returns:
+        Rates, with what the probe compiled.
+    """
+    import jax
+    import jax.numpy as jnp
+    from tqdm.auto import tqdm
+
+    from jsve.core._batch import iter_chunks, ladder_chunk_size, runs_per_chunk_for
+    from jsve.core._rules import BASELINES, preset
+    from jsve.evaluation._evaluate import evaluate_batch
+    from jsve.fitting._fit import _hard_jit, _relaxed_jit, search_design
+    from jsve.fitting._search import call_size, search
+
+    n_devices = len(jax.local_devices())
+    seconds: dict[tuple[str, str], float] = {}
+    compile_s: dict[tuple[str, str], float] = {}
+    compiled: dict[tuple[str, str], set] = {}
+    started, spent = time.perf_counter(), []
+    families = list(config.families)
+    steps = (4 if config.fit.relaxed else 3) * len(families) + 2
+    weights = data.split_weights(np.ones(data.n_runs))
+    part, n_real = data.parts[0], data.run_counts[0]
+    with tqdm(total=steps, desc="timing probe", unit="step", disable=not progress) as bar:
+        for family in families:
+            space = config.space(family)
+            values = search_design(space, config.fit)
+            # a round of the search's calls on the first part: one per device, at the search's call size
+            per_call = call_size(part.n_runs, len(values))
+            calls = min(n_devices, math.ceil(len(values) / per_call))
+            run = functools.partial(
+                search, [part], space, values[: calls * per_call], data.config, run_counts=[n_real],
+                settings_per_call=per_call, progress=False,
+            )  # fmt: skip
+            c, s = _twice(run, spent)
+            keys = {(part.n_frames, part.n_runs, per_call, d) for d in range(calls)}
+            seconds["search", family] = s / (per_call * part.n_runs * part.n_frames)
+            compile_s["search", family] = c / len(keys)
+            compiled["search", family] = keys
+            bar.update(1)
+
+            run = functools.partial(
+                search, data.parts, space, values[:1], data.config, run_counts=data.run_counts, progress=False
+            )
+            seconds["setting", family] = _twice(run, spent)[1]
+            compiled["search", family] |= {(p.n_frames, p.n_runs, 1, 0) for p in data.parts}
+            bar.update(1)
+
+            z = space.z_from_values(jnp.asarray(values[0], part.t.dtype))
+            run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
+            compile_s["objective", family], seconds["objective", family] = _twice(run, spent)
+            compiled["objective", family] = {family}
+            bar.update(1)
+
+            if config.fit.relaxed:
+                tau = jnp.asarray(config.fit.temperatures[0], z.dtype)
+                run = functools.partial(
+                    _relaxed_jit, z, data.batches, data.features, weights, tau, space, data.config
+                )
+                compile_s["relaxed", family], seconds["relaxed", family] = _twice(run, spent)
+                compiled["relaxed", family] = {family}
+                bar.update(1)
+
+        if data.buckets:  # evaluate's first chunk, as jsve.evaluation.evaluate cuts it
+            batch = data.buckets[0].batch
+            per_chunk = ladder_chunk_size(batch.n_runs, runs_per_chunk_for(batch.n_frames))
+            _, chunk = next(iter(iter_chunks(jax.tree.map(np.asarray, batch), per_chunk)))
+            rule = preset(BASELINES.get("sve", "orbslam3"))
+            run = functools.partial(
+                evaluate_batch, chunk, rule, align=config.align, min_coverage=config.min_coverage,
+                switch_model=config.switch_model,
+            )  # fmt: skip
+            compile_s["evaluate", ""], s = _twice(run, spent)
+            seconds["evaluate", ""] = s / (per_chunk * batch.n_frames)
+            compiled["evaluate", ""] = {(str(jax.tree_util.tree_structure(rule)), per_chunk, batch.n_frames)}
+        bar.update(1)
+
+        a, b = np.ones((256, data.n_runs)), np.ones((data.n_runs, 512))
+        seconds["flops", ""] = _timed(functools.partial(np.matmul, a, b)) / (2 * a.size * b.shape[1])
+        bar.update(1)
+    return Rates(
+        seconds=seconds,
+        compile=compile_s,
+        compiled={k: frozenset(v) for k, v in compiled.items()},
+        probe_seconds=time.perf_counter() - started,
+        compile_seconds=float(sum(spent)),
+    )
+
+
+def estimate(data, config, *, done: Collection[str] = (), progress: bool = False) -> Estimate | None:
+    """The expected wall time of run_study(data, out, config) from here, by the cost model priced by the
+    probe; `done`: stages already finished (a resumed study), left out. None when nothing is left to
+    do (no probe is run)."""
+    size = study_size(data, config)
+    work = plan(size, config, done)
+    if not work.work:
+        return None
+    rates = probe(data, config, progress=progress)
+    return price(work, rates, basis=describe(size, config))
+
+
+__all__ = [
+    "StudySize",
+    "study_size",
+    "Work",
+    "Plan",
+    "plan",
+    "search_cost",
+    "halving_rectangles",
+    "Rates",
+    "Estimate",
+    "price",
+    "probe",
+    "estimate",
+    "describe",
+    "duration",
+    "NM_EVALS_PER_STEP",
+    "NELDER_MEAD_COMPILE",
+]
