@@ -23,10 +23,14 @@ computations, each costing time in proportion to the frames it scans:
   - the parameter bootstrap's local design (n_local + 1 settings) and the heat map's grid (n^2
     settings), on every part.
 - **objective**: the hard objective of one setting on every run (`_fit._hard_jit`, Nelder-Mead's
-  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x nm_steps + d + 2 evaluations: it runs to its
+  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x nm_steps + d + 2 evaluations (the last: its
+  value on every run): it runs to its
   step limit (measured: every fit of the studies in docs/fitting.md), and each step evaluates twice
   (reflection, then expansion or contraction) plus a simplex of d + 1 points on a shrink. A fit runs
   n_starts of them, the full fit and each cross-validation fold, per family.
+- **polish**: the hard objective of one setting on the packed subset of `polish_runs` runs
+  (jsve.fitting._polish) that Nelder-Mead moves on in a fit of more training runs; each polish then
+  costs one **objective** evaluation on every run (its verdict).
 - **setting**: one setting's per-run results (a search of one setting): after each fit, per fold and
   family the held-out scoring, and the presets that are points of a family's space.
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
@@ -93,6 +97,7 @@ STAGES = (
 UNITS = {
     "search": "lane-frames per device",
     "objective": "evaluations",
+    "polish": "evaluations",
     "setting": "one-setting searches",
     "evaluate": "run-frames",
     "relaxed": "evaluations",
@@ -314,13 +319,23 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         add(stage, "setting", family, count)
         compile_("search", family, {(f, r, 1, 0) for f, r in size.parts})
 
-    def fit_stages(stage: str, family: str, folds: int) -> None:
-        """Nelder-Mead, the relaxed fit and the fitted setting's results, `folds` times."""
+    def fit_stages(stage: str, family: str, train_runs: Sequence[int]) -> None:
+        """Nelder-Mead, the relaxed fit and the fitted setting's results, once per fit of `train_runs`
+        training runs; a fit of more than polish_runs polishes on a packed subset (jsve.fitting._polish)
+        and judges each polish on every run."""
+        folds = len(train_runs)
+        polished = sum(1 for n in train_runs if 0 < fit.polish_runs < n)
         if fit.n_starts > 0:
-            per_start = NM_EVALS_PER_STEP * fit.nm_steps + size.dims[family] + 2
-            add(stage, "objective", family, folds * fit.n_starts * per_start)
+            per_start = NM_EVALS_PER_STEP * fit.nm_steps + size.dims[family] + 1
+            add(stage, "objective", family, (folds - polished) * fit.n_starts * per_start)
+            add(stage, "polish", family, polished * fit.n_starts * per_start)
+            add(stage, "objective", family, folds * fit.n_starts)  # the verdict on every run
             compile_("objective", family, {family})
-            compile_("nelder_mead", family, {family})
+            if polished < folds:
+                compile_("nelder_mead", family, {family})
+            if polished:
+                compile_("polish", family, {family})
+                compile_("nelder_mead_polish", family, {family})
         if fit.relaxed:
             temps = len(fit.temperatures)
             add(stage, "relaxed", family, folds * temps * (BFGS_EVALS_PER_STEP * fit.bfgs_steps + 1))
@@ -347,7 +362,7 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
                 search("fit", family, n, runs)
         else:
             search("fit", family, size.designs[family])
-        fit_stages("fit", family, 1)
+        fit_stages("fit", family, [size.n_runs])
     if "evaluate_fitted" not in done:
         evaluate("evaluate_fitted", [size.structures[f] for f in families])
     if "cross_validation" not in done and size.folds:
@@ -364,7 +379,7 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
                 rects = halving_rectangles(size, family, fit.eta, fit.initial_fraction, cached=cached)[1]
                 for n, runs in rects:
                     search(stage, family, n, runs)
-            fit_stages(stage, family, n_folds)
+            fit_stages(stage, family, [size.n_runs - int(np.sum(f)) for f in size.folds])
             one_setting(stage, family, n_folds)  # the fold's fitted rule on its held-out runs
     if "parameter_bootstrap" not in done:
         for family in families:
@@ -481,6 +496,8 @@ def compile_rate(rates: Rates, kind: str, family: str) -> float:
     """Seconds to compile one computation of a kind: measured, or a measured kind times its factor."""
     if kind == "nelder_mead":
         return NELDER_MEAD_COMPILE * rates.compile.get(("objective", family), 0.0)
+    if kind == "nelder_mead_polish":
+        return NELDER_MEAD_COMPILE * rates.compile.get(("polish", family), 0.0)
     if kind == "bfgs":
         return BFGS_COMPILE * rates.compile.get(("relaxed", family), 0.0)
     return rates.compile.get((kind, family), 0.0)
@@ -495,7 +512,8 @@ def describe(size: StudySize, config) -> str:
         f"{size.n_frames:,} frames",
         f"{settings} settings ({fit.search})",
         f"{len(size.folds)} folds",
-        f"Nelder-Mead {fit.n_starts} x {fit.nm_steps} steps a fit",
+        f"Nelder-Mead {fit.n_starts} x {fit.nm_steps} steps a fit"
+        + (f" on {fit.polish_runs:,} of the runs" if 0 < fit.polish_runs < size.n_runs else ""),
     ]
     if fit.relaxed:
         words.append(f"relaxed BFGS {len(fit.temperatures)} x {fit.bfgs_steps} steps")
@@ -551,6 +569,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     from jsve.core._rules import BASELINES, preset
     from jsve.evaluation._evaluate import evaluate_batch
     from jsve.fitting._fit import _hard_jit, _relaxed_jit, search_design
+    from jsve.fitting._polish import pack_runs, polish_runs
     from jsve.fitting._search import call_size, search
 
     n_devices = len(jax.local_devices())
@@ -562,6 +581,10 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     steps = (4 if config.fit.relaxed else 3) * len(families) + 2
     weights = data.split_weights(np.ones(data.n_runs))
     part, n_real = data.parts[0], data.run_counts[0]
+    subset = polish_runs(data.meta, np.ones(data.n_runs), config.fit.polish_runs, seed=config.fit.seed)
+    if subset is not None:
+        packed = [pack_runs(data.batches, data.features, data.run_counts, subset)]
+        packed_weights = [jnp.ones(len(subset), packed[0].t.dtype)]
     with tqdm(total=steps, desc="timing probe", unit="step", disable=not progress) as bar:
         for family in families:
             space = config.space(family)
@@ -591,6 +614,10 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
             compile_s["objective", family], seconds["objective", family] = _twice(run, spent)
             compiled["objective", family] = {family}
+            if subset is not None:  # Nelder-Mead's objective on the packed subset (jsve.fitting._polish)
+                run = functools.partial(_hard_jit, z, packed, packed_weights, space, data.config)
+                compile_s["polish", family], seconds["polish", family] = _twice(run, spent)
+                compiled["polish", family] = {family}
             bar.update(1)
 
             if config.fit.relaxed:

@@ -37,6 +37,7 @@ from jsve.core._replay import batch_features
 from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
 from jsve.fitting._halving import RunLossCache, halving_search, rung_sizes, stratified_order
+from jsve.fitting._polish import pack_runs, polish_runs
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
 from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
@@ -322,23 +323,36 @@ def nelder_mead(
     step: float = 0.5,
     rtol: float = 1e-4,
     atol: float = 1e-4,
+    on_runs: int = 0,
+    seed: int = 0,
 ) -> tuple[np.ndarray, float, int]:
     """optimistix Nelder-Mead on the hard objective from `start` (free values).
+
+    on_runs: where more runs have weight, the simplex moves on the first on_runs of them in the study's
+    stratified order (seeded by `seed`), packed into one part (jsve.fitting._polish); 0: on every run.
 
     The simplex starts at the start's unconstrained coordinates z plus `step` along each axis (a step
     of 0.5 in z moves a value at mid-box by ~12 % of its box). The hard objective is piecewise constant
     in the thresholds (finitely many frames), which a simplex method handles where gradients cannot.
 
     Returns:
-        (values [d], hard objective at them, steps taken).
+        (values [d], hard objective at them over every run with weight, steps taken).
     """
-    w = data.split_weights(_default_weights(data, weights))
+    w = _default_weights(data, weights)
+    subset = polish_runs(data.meta, w, on_runs, seed=seed)
+    if subset is None:
+        parts, part_w = data.parts, data.split_weights(w)
+    else:
+        parts = [pack_runs(data.batches, data.features, data.run_counts, subset)]
+        part_w = [jnp.asarray(w[subset], parts[0].t.dtype)]
     z0 = space.z_from_values(jnp.asarray(start, data.parts[0].t.dtype))
     z, steps = _nelder_mead(
-        z0, data.parts, w, space, data.config, int(max_steps), float(step), float(rtol), float(atol)
+        z0, parts, part_w, space, data.config, int(max_steps), float(step), float(rtol), float(atol)
     )
     values = np.asarray(space.values_from_z(z), np.float64)
-    return values, float(_hard_jit(z, data.parts, w, space, data.config)), int(steps)
+    # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
+    value = float(_hard_jit(z, data.parts, data.split_weights(w), space, data.config))
+    return values, value, int(steps)
 
 
 def relaxed_fit(
@@ -403,7 +417,9 @@ class FitConfig:
             the best 1/eta on eta times as many, ..., the last ones on all runs).
         include_presets: add the family's presets (and `starts`) to the design.
         n_starts: Nelder-Mead runs, from the best searched settings; nm_steps: their step limit;
-            nm_step: initial simplex size in unconstrained coordinates.
+            nm_step: initial simplex size in unconstrained coordinates; polish_runs: where more runs
+            have weight, Nelder-Mead moves on that many of them (a stratified subset packed into one
+            part, jsve.fitting._polish) and its result is judged on all; 0: on every run.
         relaxed: also run the annealed BFGS on the relaxed objective from the best point so far.
         temperatures, bfgs_steps: its schedule (SVE units) and step limit per temperature.
     """
@@ -418,6 +434,7 @@ class FitConfig:
     n_starts: int = 2
     nm_steps: int = 200
     nm_step: float = 0.5
+    polish_runs: int = 256
     relaxed: bool = False
     temperatures: tuple[float, ...] = DEFAULT_TEMPERATURES
     bfgs_steps: int = 40
@@ -555,14 +572,23 @@ def fit(
     for i, start in enumerate(starts):
         t1 = time.perf_counter()
         values, value, steps = nelder_mead(
-            data, space, start, w, max_steps=config.nm_steps, step=config.nm_step
+            data,
+            space,
+            start,
+            w,
+            max_steps=config.nm_steps,
+            step=config.nm_step,
+            on_runs=config.polish_runs,
+            seed=config.seed,
         )
+        subset = polish_runs(data.meta, w, config.polish_runs, seed=config.seed)
         stages.append(
             {
                 "stage": f"nelder_mead_{i}",
                 "objective": value,
                 "values": values.tolist(),
                 "steps": steps,
+                "polish_runs": int(np.sum(w > 0)) if subset is None else len(subset),
                 "seconds": time.perf_counter() - t1,
             }
         )

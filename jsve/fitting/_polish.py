@@ -1,0 +1,93 @@
+"""Where Nelder-Mead polishes: on every run, or on a stratified subset of the runs packed into one part.
+
+Nelder-Mead evaluates the hard objective of one setting at a time, about 460 times a polish (200 steps),
+and a study polishes twice per family for the full fit and every cross-validation fold: on a large study
+this is almost all of `jsve fit`'s time (jsve.fitting._estimate: 90 % of the 3,410-log study's
+estimate), and each evaluation scans every run of every part (27 length buckets there, each its own scan,
+all compiled into the objective).
+
+With `FitConfig.polish_runs = N` and more than N training runs, the polish runs on the first N training
+runs of the study's stratified order (jsve.fitting._halving.stratified_order, as balanced over sequence,
+disturbance and level as N runs can be), gathered from their parts into one part padded to the longest
+part's frames: one scan of N runs per evaluation, one compilation per study (its shape is fixed), a cost
+that no longer grows with the study. The search that picks the starts has seen every training run, and
+`fit` keeps a polished setting only if its objective on every training run beats the search's best: the
+subset moves the optimiser, never the verdict. This is the multi-fidelity idea of the halving search
+(screen on few runs, decide on all) applied to the local optimiser.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jsve.core._batch import LogBatch
+from jsve.core._sve import FrameFeatures
+from jsve.fitting._halving import stratified_order
+from jsve.fitting._search import SearchBatch, prepare
+
+
+def _take_runs(tree, runs: np.ndarray, n_frames: int, frames: int):
+    """Runs `runs` of a [R, F, ...] / [R, ...] pytree, frame leaves ([R, frames, ...]) extended to
+    n_frames by repeating their last frame (the caller marks the extension invalid)."""
+    index = jnp.asarray(runs)
+
+    def take(x):
+        x = x[index]
+        if x.ndim >= 2 and x.shape[1] == frames and n_frames > frames:
+            pad = [(0, 0), (0, n_frames - frames)] + [(0, 0)] * (x.ndim - 2)
+            x = jnp.pad(x, pad, mode="edge")
+        return x
+
+    return jax.tree.map(take, tree)
+
+
+def pack_runs(
+    batches: Sequence[LogBatch], features: Sequence[FrameFeatures], run_counts: Sequence[int], runs
+) -> SearchBatch:
+    """One SearchBatch of the runs `runs` (global indices into FitData.meta, taken in increasing order)
+    gathered from the parts (slim batches and their features, the first run_counts[p] runs of part p
+    real), every run padded to the longest part's frames: added frames are invalid, without ground
+    truth or pose, as the padding of a shorter run in a length bucket is."""
+    runs = np.unique(np.asarray(runs, np.int64))
+    n_frames = max(b.t.shape[1] for b in batches)
+    picked_batches, picked_features, start = [], [], 0
+    for batch, feats, n in zip(batches, features, run_counts, strict=True):
+        local = runs[(runs >= start) & (runs < start + n)] - start
+        start += n
+        if not len(local):
+            continue
+        frames = batch.t.shape[1]
+        b = _take_runs(batch, local, n_frames, frames)
+        real = jnp.arange(n_frames) < frames
+        b = eqx.tree_at(
+            lambda x: (x.valid, x.gt_valid, x.has_pose),
+            b,
+            (b.valid & real, b.gt_valid & real, b.has_pose & real),
+        )
+        picked_batches.append(b)
+        picked_features.append(_take_runs(feats, local, n_frames, frames))
+    if not picked_batches:
+        raise ValueError("pack_runs: no run selected")
+    concat = lambda *xs: jnp.concatenate(xs, axis=0)  # noqa: E731
+    batch = jax.tree.map(concat, *picked_batches)
+    feats = jax.tree.map(concat, *picked_features)
+    return prepare(batch, feats)
+
+
+def polish_runs(meta, weights: np.ndarray, n: int, *, seed: int = 0) -> np.ndarray | None:
+    """The runs Nelder-Mead polishes on: the first n runs with weight > 0 in the stratified order of the
+    study (sorted), or None where n is 0 or there are at most n such runs (polish on every run)."""
+    weights = np.asarray(weights)
+    train = weights > 0
+    if n <= 0 or int(train.sum()) <= n:
+        return None
+    order = stratified_order(meta, len(weights), seed=seed)
+    return np.sort(order[train[order]][:n])
+
+
+__all__ = ["pack_runs", "polish_runs"]
