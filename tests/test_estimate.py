@@ -202,3 +202,10 @@ def test_jsve_fit_states_its_expected_time_and_meets_it(tmp_path, capsys):
     # A rerun resumes every stage: nothing to time, no probe, no line.
     assert main([*argv, "-o", str(tmp_path / "a")]) == 0
     assert "expected wall time" not in capsys.readouterr().err
+    # --estimate-only: the line, then nothing written (a fresh folder stays empty); on a finished study
+    # it says there is nothing left.
+    assert main([*argv, "-o", str(tmp_path / "c"), "--estimate-only"]) == 0
+    assert "jsve fit: expected wall time" in capsys.readouterr().err
+    assert not list((tmp_path / "c").iterdir())
+    assert main([*argv, "-o", str(tmp_path / "a"), "--estimate-only"]) == 0
+    assert "nothing to estimate" in capsys.readouterr().err

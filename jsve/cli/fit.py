@@ -97,6 +97,12 @@ def register(subparsers) -> None:
         "and states on stderr how long the study should take, then the actual time beside it; "
         "see docs/fitting.md) (default: off)",
     )
+    p.add_argument(
+        "--estimate-only",
+        action="store_true",
+        help="state the expected wall time (the timing probe and the cost model) and stop: nothing is "
+        "written to DIR (default: off)",
+    )
     p.add_argument("--no-report", action="store_true", help="write the tables only, not the report")
     common.add_force_option(p)
     p.set_defaults(func=run)
@@ -185,8 +191,14 @@ def run(args) -> int:
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
     description = {"source": str(args.logs)}
     expected = None
+    if args.estimate_only and args.no_estimate:
+        return common.fail("fit", "--estimate-only and --no-estimate exclude each other")
     if not args.no_estimate:
         expected = _estimate(data, config, args, description)
+    if args.estimate_only:
+        if expected is None:
+            print("jsve fit: every stage is done already: nothing to estimate", file=sys.stderr)
+        return 0
     from_estimate = time.perf_counter()
     run_study(
         data,
