@@ -11,12 +11,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt
+
+if TYPE_CHECKING:
+    Leaf = Array  # what the compiled functions that read a LogBatch see: traced arrays
+else:
+    Leaf = Array | np.ndarray
+"""A LogBatch leaf at run time (the shape checks): a device array, or a numpy array in a host-side
+chunk (jsve.io._stream builds chunks in numpy, `pad_runs` and `iter_chunks` keep them there) that goes
+to the device when a compiled function is called on it."""
 
 
 class LogBatch(eqx.Module):
@@ -46,34 +55,34 @@ class LogBatch(eqx.Module):
         run_index: [R] row of the run in the host metadata table; -1 for padding runs.
     """
 
-    t: Float[Array, "R F"]
-    valid: Bool[Array, "R F"]
-    state: Int[Array, "R F"]
-    imu_init: Bool[Array, "R F"]
-    imu_ba2: Bool[Array, "R F"]
-    map_id: Int[Array, "R F"]
-    has_pose: Bool[Array, "R F"]
-    n_extracted: Int[Array, "R F"]
-    n_inliers: Int[Array, "R F"]
-    n_frustum: Int[Array, "R F"]
-    bins: UInt[Array, "R F 64"]
-    vis_p: Float[Array, "R F 3"]
-    vis_q: Float[Array, "R F 4"]
-    vis_v: Float[Array, "R F 3"]
-    imu_dt: Float[Array, "R F"]
-    imu_dp: Float[Array, "R F 3"]
-    imu_dv: Float[Array, "R F 3"]
-    imu_dq: Float[Array, "R F 4"]
-    gt_p: Float[Array, "R F 3"]
-    gt_q: Float[Array, "R F 4"]
-    gt_valid: Bool[Array, "R F"]
-    fps: Float[Array, " R"]
-    gravity: Float[Array, "R 3"]
-    imu_init_delay: Float[Array, " R"]
-    ba2_delay: Float[Array, " R"]
-    n_features: Float[Array, " R"]
-    stereo: Bool[Array, " R"]
-    run_index: Int[Array, " R"]
+    t: Float[Leaf, "R F"]
+    valid: Bool[Leaf, "R F"]
+    state: Int[Leaf, "R F"]
+    imu_init: Bool[Leaf, "R F"]
+    imu_ba2: Bool[Leaf, "R F"]
+    map_id: Int[Leaf, "R F"]
+    has_pose: Bool[Leaf, "R F"]
+    n_extracted: Int[Leaf, "R F"]
+    n_inliers: Int[Leaf, "R F"]
+    n_frustum: Int[Leaf, "R F"]
+    bins: UInt[Leaf, "R F 64"]
+    vis_p: Float[Leaf, "R F 3"]
+    vis_q: Float[Leaf, "R F 4"]
+    vis_v: Float[Leaf, "R F 3"]
+    imu_dt: Float[Leaf, "R F"]
+    imu_dp: Float[Leaf, "R F 3"]
+    imu_dv: Float[Leaf, "R F 3"]
+    imu_dq: Float[Leaf, "R F 4"]
+    gt_p: Float[Leaf, "R F 3"]
+    gt_q: Float[Leaf, "R F 4"]
+    gt_valid: Bool[Leaf, "R F"]
+    fps: Float[Leaf, " R"]
+    gravity: Float[Leaf, "R 3"]
+    imu_init_delay: Float[Leaf, " R"]
+    ba2_delay: Float[Leaf, " R"]
+    n_features: Float[Leaf, " R"]
+    stereo: Bool[Leaf, " R"]
+    run_index: Int[Leaf, " R"]
 
     @property
     def n_runs(self) -> int:
