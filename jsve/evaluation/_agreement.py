@@ -77,13 +77,11 @@ recording's) up to which replays agreed with re-runs of the real ORB-SLAM3 (`tru
 
 Measured by the replay-vs-re-run validation study (issue 11, docs/validation.md: rendered V1_01 and
 V2_01, blur 0-40 and occlusion 200/350, `record`-mode recordings under switch model `orbslam3`, 5
-re-runs per setting). Provisional: computed from the data in on 2026-11-24, the recordings and the
-re-runs of the `orbslam3` and `sve-option2` presets and part of `sve-option1`'s, all under switch
-model `orbslam3`. The 155 replays that changed no decision agreed (in the band 1.36 times as often as
-another re-run, bias -12 cm +- 14 cm cluster-robust); the 22 that changed any spread over 7 bins, none
-with the 10 replays a bin needs (together: in the band 0.61 times as often, bias +120 cm: replays
-failing where the re-runs recovered). To be recomputed (`python analysis/replay_vs_rerun.py`,
-verdict.csv) when every rule's re-runs are in.
+re-runs per setting). Measured on the whole study (2026-11-24: 140 recordings, 560 re-runs of 4
+rules under 2 switch models, docs/data/validation_trust.csv): under `orbslam3` the replays agree up to
+0-0.1 % (the 34 `record-orbslam3` replays beyond it: in the band 0.74 times as often as another re-run,
+bias +133 cm); under `imu-coast` with its own recordings up to 1 % (not used here: the default switch
+model is `orbslam3`, and this one value is the stricter of the two).
 `jsve fit` warns, and its report says, when a fitted rule changes more than this.
 """
 
@@ -609,6 +607,6 @@ def trust_region_warning(
     return (
         f"`{rule}` changes {100 * changed_share:.1f} % of the recordings' decisions, more than the "
         f"{100 * threshold:.1f} % up to which replays agreed with re-runs of the real ORB-SLAM3 "
-        "(provisional, docs/validation.md): its replayed scores are extrapolated; re-run it in the "
+        "(docs/validation.md): its replayed scores are extrapolated; re-run it in the "
         "front-end before trusting them"
     )

@@ -422,7 +422,7 @@ def trust_sentence(rule: str, changed: float) -> str:
     return (
         f"`{rule}` changes {percent(changed)} of the recordings' decisions, within the "
         f"{percent(REPLAY_TRUSTED_CHANGED_SHARE)} up to which replays agreed with re-runs of the real "
-        "ORB-SLAM3 (provisional, docs/validation.md)."
+        "ORB-SLAM3 (docs/validation.md)."
     )
 
 
