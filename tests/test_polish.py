@@ -82,3 +82,9 @@ def test_a_fit_polished_on_a_subset_is_judged_on_every_run(data):
     on_all = fit(data, space, config=config, progress=False)
     (polish_all,) = [s for s in on_all.stages if s["stage"].startswith("nelder_mead")]
     assert polish_all["polish_runs"] == data.n_runs
+
+
+@pytest.mark.parametrize("bad", [-1, 2.5, "all"])
+def test_a_wrong_polish_runs_is_refused(bad):
+    with pytest.raises(ValueError, match="polish_runs must be a count"):
+        FitConfig(polish_runs=bad)

@@ -442,6 +442,10 @@ class FitConfig:
     def __post_init__(self):
         if self.search not in SEARCH_METHODS:
             raise ValueError(f"FitConfig.search must be one of {SEARCH_METHODS}, got {self.search!r}")
+        if not (isinstance(self.polish_runs, int) and self.polish_runs >= 0):
+            raise ValueError(
+                f"FitConfig.polish_runs must be a count >= 0 (0: every run), got {self.polish_runs!r}"
+            )
         if self.search == "halving":
             rung_sizes(1, 1, self.eta, self.initial_fraction)  # checks eta > 1, 0 < initial_fraction <= 1
 
