@@ -203,11 +203,14 @@ def test_every_rung_keeps_the_best_by_the_exhaustive_matrix(kind, counts64, occl
     w[[1, 5, 8]] = 0.0
     order = stratified_order(data.meta, data.n_runs, seed=9)
     halving = halving_search(_cache(data, space, values), w, eta=2, initial_fraction=0.25, order=order)
-    train = order[w[order] > 0]
-    sizes = rung_sizes(len(values), len(train), 2, 0.25)
-    assert [(r.settings, r.runs) for r in halving.rungs] == sizes == [(60, 3), (30, 5), (15, 9)]
-    for k, (_, n_runs) in enumerate(sizes[:-1]):
-        runs = np.sort(train[:n_runs])
+    # rung k: the study's rung-k prefix of the order (sizes over all 12 runs) less the held-out runs
+    sizes = rung_sizes(len(values), data.n_runs, 2, 0.25)
+    assert sizes == [(60, 3), (30, 6), (15, 12)]
+    prefixes = [np.sort(order[:n])[w[np.sort(order[:n])] > 0] for _, n in sizes]
+    expected = [(s, len(p)) for (s, _), p in zip(sizes, prefixes, strict=True)]
+    assert [(r.settings, r.runs) for r in halving.rungs] == expected
+    for k in range(len(sizes) - 1):
+        runs = prefixes[k]
         rows = halving.scored[k]
         kept = np.isin(rows, halving.scored[k + 1])
         obj = exhaustive.objective(np.where(np.isin(np.arange(data.n_runs), runs), w, 0.0))[rows]
@@ -220,8 +223,10 @@ def test_every_rung_keeps_the_best_by_the_exhaustive_matrix(kind, counts64, occl
     np.testing.assert_allclose(halving.search.loss, exhaustive.loss[final], rtol=0, atol=TOL)
     for name in ("failed", "unsupported", "included"):
         np.testing.assert_array_equal(getattr(halving.search, name), getattr(exhaustive, name)[final])
-    # each pair once: all 60 on 3 runs, then the survivors on the runs new to them (held-out ones last)
-    assert halving.evaluations == 60 * 3 + 30 * 2 + 15 * (data.n_runs - 5)
+    # each pair once: all 60 on rung 0's runs, then the survivors on the runs new to them (held-out
+    # ones last)
+    first, second = len(prefixes[0]), len(prefixes[1])
+    assert halving.evaluations == 60 * first + 30 * (second - first) + 15 * (data.n_runs - second)
 
 
 def _accepting_all(space, n: int, seed: int) -> np.ndarray:

@@ -148,3 +148,29 @@ def test_heatmap_table_is_the_search_over_a_grid(data):
     assert cell["objective"] == pytest.approx(float(res.objective(weights)[0]), rel=1e-5)
     with pytest.raises(ValueError, match="heat map axes"):
         heatmap_table(data, space, values, weights, "imu_init", "rho", 3)
+    assert set(table["n_runs"]) == set(table["n_weighted"]) == {data.n_runs}
+
+
+def test_a_heatmap_on_a_subset_is_the_objective_of_those_runs(data):
+    """heatmap_runs: every cell is the objective over the subset's runs alone (the full search with the
+    other runs' weights set to 0), and the table says how many runs it scored of how many."""
+    from jsve.fitting._polish import polish_runs
+
+    space = inlier_space()
+    values = space.values_of(preset("orbslam3"))
+    weights = np.linspace(0.5, 2.0, data.n_runs)
+    m = data.n_runs // 2
+    table = heatmap_table(data, space, values, weights, "imu_init", "recovery", 3, runs=m, seed=4)
+    assert set(table["n_runs"]) == {m} and set(table["n_weighted"]) == {data.n_runs}
+    subset = polish_runs(data.meta, weights, m, seed=4)
+    only = np.zeros(data.n_runs)
+    only[subset] = weights[subset]
+    grid = np.repeat(np.asarray(values, np.float64)[None], len(table), axis=0)
+    grid[:, space.names.index("imu_init")] = table["x"]
+    grid[:, space.names.index("recovery")] = table["y"]
+    res = search(data.parts, space, grid, data.config, run_counts=data.run_counts, progress=False)
+    np.testing.assert_allclose(table["objective"], res.objective(only), rtol=1e-5)
+    assert np.abs(res.objective(only) - res.objective(weights)).max() > 1e-3  # the subset matters here
+    np.testing.assert_allclose(table["failure_rate"], res.failure_rate(only), rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="heatmap_runs"):
+        StudyConfig(heatmap_runs=-1)

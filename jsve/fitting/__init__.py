@@ -28,6 +28,7 @@ from jsve.fitting._halving import rung_sizes as rung_sizes
 from jsve.fitting._halving import stratified_order as stratified_order
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
+from jsve.fitting._simplex import StallingNelderMead as StallingNelderMead
 from jsve.fitting._space import ParamSpace as ParamSpace
 from jsve.fitting._space import inlier_space as inlier_space
 from jsve.fitting._space import space_from_dict as space_from_dict

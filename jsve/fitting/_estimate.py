@@ -17,16 +17,17 @@ computations, each costing time in proportion to the frames it scans:
   - the fit's search, exhaustive: the family's design (n_search + its presets) on every part;
   - halving (jsve.fitting._halving): rung k scores its ceil(S / eta^k) settings on the runs new to
     it (the prefix of the stratified order, `rung_sizes`), gathered per part and padded to a power of
-    2 (`subset_runs`); the cross-validation folds add, per rung, those settings on the runs of the
-    folds' prefixes that no earlier rung scored (assuming the folds keep the full fit's survivors,
-    which they mostly do; on a resumed study without the fit's cache, all their pairs);
-  - the parameter bootstrap's local design (n_local + 1 settings) and the heat map's grid (n^2
-    settings), on every part.
+    2 (`subset_runs`); a cross-validation fold's rungs are the same prefixes less its held-out runs, so
+    on the full fit's cache they add nothing (assuming the folds keep the full fit's survivors, which
+    they mostly do); on a resumed study without the fit's cache, all their pairs;
+  - the parameter bootstrap's local design (n_local + 1 settings), on every part, and the heat map's
+    grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
 - **objective**: the hard objective of one setting on every run (`_fit._hard_jit`, Nelder-Mead's
-  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x nm_steps + d + 2 evaluations (the last: its
-  value on every run): it runs to its
-  step limit (measured: every fit of the studies in docs/fitting.md), and each step evaluates twice
-  (reflection, then expansion or contraction) plus a simplex of d + 1 points on a shrink. A fit runs
+  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x steps + d + 2 evaluations (the last: its
+  value on every run), each step evaluating twice (reflection, then expansion or contraction) plus a
+  simplex of d + 1 points on a shrink. Without the stall test (nm_window = 0) it runs to its step
+  limit nm_steps (measured: every fit of the studies in docs/fitting.md); with it, to
+  `nm_expected_steps` (the stall test's typical stop, NM_STALL_WINDOWS windows, measured). A fit runs
   n_starts of them, the full fit and each cross-validation fold, per family.
 - **polish**: the hard objective of one setting on the packed subset of `polish_runs` runs
   (jsve.fitting._polish) that Nelder-Mead moves on in a fit of more training runs; each polish then
@@ -64,6 +65,20 @@ from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
+NM_STALL_WINDOWS = 2
+"""Windows a Nelder-Mead run with the stall test typically takes (jsve.fitting._simplex): the first
+checkpoint sets the mark, the second finds no progress. Measured on the 3,410-log study (sve, polish on
+256 runs, nm_window 25): FILLED IN BELOW."""
+
+
+def nm_expected_steps(fit) -> float:
+    """Steps the cost model expects a Nelder-Mead run of FitConfig `fit` to take: its step limit without
+    the stall test, else NM_STALL_WINDOWS windows (at most the limit)."""
+    if fit.nm_window <= 0:
+        return float(fit.nm_steps)
+    return float(min(fit.nm_steps, NM_STALL_WINDOWS * fit.nm_window))
+
 
 NM_EVALS_PER_STEP = 2.3
 """Objective evaluations per Nelder-Mead step: 2 (optimistix's step scans the reflection and one more
@@ -220,10 +235,12 @@ class Plan:
 
 
 def search_cost(
-    size: StudySize, n_settings: int, runs: np.ndarray | None = None, *, family: str = ""
+    size: StudySize, n_settings: int, runs: np.ndarray | None = None, *, family: str = "", packed: int = 0
 ) -> tuple[int, set]:
     """Lane-frames per device of `search` scoring n_settings settings on `runs` (global indices; None:
     all), and the keys of the computations it compiles: (frames, runs, call size, device).
+    packed: > 0 for `packed` runs gathered into one part of the longest part's frames
+    (jsve.fitting._polish.pack_runs, the heat map's subset); `runs` is then ignored.
 
     ceil(S / size) calls per part, ceil(calls / D) rounds on the D devices, each scanning
     size x runs x frames lane-frames.
@@ -231,13 +248,17 @@ def search_cost(
     from jsve.fitting._halving import subset_runs
     from jsve.fitting._search import call_size
 
-    part_runs = [r for _, r in size.parts]
-    if runs is None:
-        sub: list[int | None] = list(part_runs)
+    parts = list(size.parts)
+    part_runs = [r for _, r in parts]
+    if packed > 0:
+        parts = [(max(f for f, _ in size.parts), packed)]
+        sub: list[int | None] = [packed]
+    elif runs is None:
+        sub = list(part_runs)
     else:
         sub = subset_runs(size.run_counts, part_runs, runs)
     units, keys = 0, set()
-    for (frames, _), r in zip(size.parts, sub, strict=True):
+    for (frames, _), r in zip(parts, sub, strict=True):
         if r is None or n_settings < 1:
             continue
         per_call = call_size(r, n_settings)
@@ -264,10 +285,15 @@ def halving_rectangles(
     order = np.arange(n_runs) if size.order is None else np.asarray(size.order)
     everything = np.arange(n_runs)
 
+    rungs = rung_sizes(n_settings, n_runs, eta, initial_fraction)
+
     def prefixes(train: np.ndarray) -> list[tuple[int, np.ndarray]]:
-        rungs = rung_sizes(n_settings, len(train), eta, initial_fraction)
+        """A search's rungs: the full study's prefixes of `order`, less the runs outside `train`."""
         last = len(rungs) - 1
-        return [(s, everything if k == last else np.sort(train[:r])) for k, (s, r) in enumerate(rungs)]
+        return [
+            (s, everything if k == last else np.sort(np.intersect1d(order[:r], train)))
+            for k, (s, r) in enumerate(rungs)
+        ]
 
     fit_rungs = prefixes(order)
     fit_rects, seen = [], np.zeros(n_runs, bool)
@@ -310,8 +336,8 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
     def compile_(kind: str, family: str, keys) -> None:
         compiles.setdefault((kind, family), set()).update(keys)
 
-    def search(stage: str, family: str, n_settings: int, runs=None) -> None:
-        units, keys = search_cost(size, n_settings, runs, family=family)
+    def search(stage: str, family: str, n_settings: int, runs=None, packed: int = 0) -> None:
+        units, keys = search_cost(size, n_settings, runs, family=family, packed=packed)
         add(stage, "search", family, units)
         compile_("search", family, keys)
 
@@ -326,7 +352,7 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         folds = len(train_runs)
         polished = sum(1 for n in train_runs if 0 < fit.polish_runs < n)
         if fit.n_starts > 0:
-            per_start = NM_EVALS_PER_STEP * fit.nm_steps + size.dims[family] + 1
+            per_start = NM_EVALS_PER_STEP * nm_expected_steps(fit) + size.dims[family] + 1
             add(stage, "objective", family, (folds - polished) * fit.n_starts * per_start)
             add(stage, "polish", family, polished * fit.n_starts * per_start)
             add(stage, "objective", family, folds * fit.n_starts)  # the verdict on every run
@@ -392,9 +418,10 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
             add("parameter_bootstrap", "flops", "", flops)
     if "heatmap" not in done and config.heatmap:
         n = int(config.heatmap[2])
+        packed = config.heatmap_runs if 0 < config.heatmap_runs < size.n_runs else 0
         for family in families:
             if size.heatmap.get(family):
-                search("heatmap", family, n * n)
+                search("heatmap", family, n * n, packed=packed)
     return Plan(
         work=tuple(Work(*key, units) for key, units in work.items()),
         compiles={k: frozenset(v) for k, v in compiles.items()},
@@ -512,7 +539,7 @@ def describe(size: StudySize, config) -> str:
         f"{size.n_frames:,} frames",
         f"{settings} settings ({fit.search})",
         f"{len(size.folds)} folds",
-        f"Nelder-Mead {fit.n_starts} x {fit.nm_steps} steps a fit"
+        f"Nelder-Mead {fit.n_starts} x {nm_expected_steps(fit):.0f} steps a fit"
         + (f" on {fit.polish_runs:,} of the runs" if 0 < fit.polish_runs < size.n_runs else ""),
     ]
     if fit.relaxed:
@@ -683,5 +710,7 @@ __all__ = [
     "describe",
     "duration",
     "NM_EVALS_PER_STEP",
+    "NM_STALL_WINDOWS",
+    "nm_expected_steps",
     "NELDER_MEAD_COMPILE",
 ]

@@ -39,6 +39,7 @@ from jsve.fitting._designs import design
 from jsve.fitting._halving import RunLossCache, halving_search, rung_sizes, stratified_order
 from jsve.fitting._polish import pack_runs, polish_runs
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
+from jsve.fitting._simplex import StallingNelderMead
 from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog
@@ -292,11 +293,10 @@ _relaxed_grad = eqx.filter_jit(jax.value_and_grad(_relaxed_value))
 
 
 @eqx.filter_jit
-def _nelder_mead(z0, parts, weights, space, config, max_steps, adelta, rtol, atol):
+def _nelder_mead(z0, parts, weights, space, config, max_steps, solver):
     def fn(z, args):
         return _hard_value(z, args[0], args[1], space, config)
 
-    solver = optx.NelderMead(rtol=rtol, atol=atol, rdelta=0.0, adelta=adelta)
     sol = optx.minimise(fn, solver, z0, args=(parts, weights), max_steps=max_steps, throw=False)
     return sol.value, sol.stats["num_steps"]
 
@@ -323,6 +323,8 @@ def nelder_mead(
     step: float = 0.5,
     rtol: float = 1e-4,
     atol: float = 1e-4,
+    window: int = 0,
+    ftol: float = 1e-4,
     on_runs: int = 0,
     seed: int = 0,
 ) -> tuple[np.ndarray, float, int]:
@@ -334,6 +336,8 @@ def nelder_mead(
     The simplex starts at the start's unconstrained coordinates z plus `step` along each axis (a step
     of 0.5 in z moves a value at mid-box by ~12 % of its box). The hard objective is piecewise constant
     in the thresholds (finitely many frames), which a simplex method handles where gradients cannot.
+    window, ftol: stop once `window` steps improve the best value by at most `ftol` metres
+    (jsve.fitting._simplex.StallingNelderMead); window 0: run to optimistix's test or max_steps.
 
     Returns:
         (values [d], hard objective at them over every run with weight, steps taken).
@@ -346,9 +350,10 @@ def nelder_mead(
         parts = [pack_runs(data.batches, data.features, data.run_counts, subset)]
         part_w = [jnp.asarray(w[subset], parts[0].t.dtype)]
     z0 = space.z_from_values(jnp.asarray(start, data.parts[0].t.dtype))
-    z, steps = _nelder_mead(
-        z0, parts, part_w, space, data.config, int(max_steps), float(step), float(rtol), float(atol)
+    solver = StallingNelderMead(
+        rtol=float(rtol), atol=float(atol), adelta=float(step), window=int(window), ftol=float(ftol)
     )
+    z, steps = _nelder_mead(z0, parts, part_w, space, data.config, int(max_steps), solver)
     values = np.asarray(space.values_from_z(z), np.float64)
     # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
     value = float(_hard_jit(z, data.parts, data.split_weights(w), space, data.config))
@@ -417,7 +422,9 @@ class FitConfig:
             the best 1/eta on eta times as many, ..., the last ones on all runs).
         include_presets: add the family's presets (and `starts`) to the design.
         n_starts: Nelder-Mead runs, from the best searched settings; nm_steps: their step limit;
-            nm_step: initial simplex size in unconstrained coordinates; polish_runs: where more runs
+            nm_step: initial simplex size in unconstrained coordinates; nm_window, nm_ftol: a run stops
+            once nm_window steps improve its best value by at most nm_ftol metres (0: no stall test;
+            jsve.fitting._simplex); polish_runs: where more runs
             have weight, Nelder-Mead moves on that many of them (a stratified subset packed into one
             part, jsve.fitting._polish) and its result is judged on all; 0: on every run.
         relaxed: also run the annealed BFGS on the relaxed objective from the best point so far.
@@ -434,6 +441,8 @@ class FitConfig:
     n_starts: int = 2
     nm_steps: int = 200
     nm_step: float = 0.5
+    nm_window: int = 25
+    nm_ftol: float = 1e-4
     polish_runs: int = 256
     relaxed: bool = False
     temperatures: tuple[float, ...] = DEFAULT_TEMPERATURES
@@ -446,6 +455,12 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.polish_runs must be a count >= 0 (0: every run), got {self.polish_runs!r}"
             )
+        if not (isinstance(self.nm_window, int) and self.nm_window >= 0):
+            raise ValueError(
+                f"FitConfig.nm_window must be a step count >= 0 (0: no stall test), got {self.nm_window!r}"
+            )
+        if not self.nm_ftol >= 0:
+            raise ValueError(f"FitConfig.nm_ftol must be >= 0 metres, got {self.nm_ftol!r}")
         if self.search == "halving":
             rung_sizes(1, 1, self.eta, self.initial_fraction)  # checks eta > 1, 0 < initial_fraction <= 1
 
@@ -582,6 +597,8 @@ def fit(
             w,
             max_steps=config.nm_steps,
             step=config.nm_step,
+            window=config.nm_window,
+            ftol=config.nm_ftol,
             on_runs=config.polish_runs,
             seed=config.seed,
         )

@@ -337,20 +337,20 @@ def halving_searches(
         if w.shape != (cache.n_runs,):
             raise ValueError(f"weights must have shape ({cache.n_runs},), got {w.shape}")
     order = np.arange(cache.n_runs) if order is None else np.asarray(order, np.int64)
-    trains = [order[w[order] > 0] for w in ws]
-    if any(not len(t) for t in trains):
+    if any(not np.any(w > 0) for w in ws):
         raise ValueError("halving_search: no run has a weight > 0")
     n_settings, before = len(cache.values), cache.evaluations
-    sizes = [rung_sizes(n_settings, len(t), eta, initial_fraction) for t in trains]
+    # Every search's rung k screens on the same prefix of `order` (the search over all runs' rung k),
+    # less its runs of weight 0: a fold's rungs are then subsets of the full fit's, whose pairs the
+    # cache holds, instead of prefixes reaching past them (new pairs for every setting of the design).
+    sizes = rung_sizes(n_settings, cache.n_runs, eta, initial_fraction)
     alive = [np.arange(n_settings) for _ in ws]
     rungs, scored = [[] for _ in ws], [[] for _ in ws]
-    n_rungs = max(len(s) for s in sizes)
+    n_rungs = len(sizes)
     for k in range(n_rungs):
-        active = [i for i in range(len(ws)) if k < len(sizes[i])]
-        runs = {
-            i: np.arange(cache.n_runs) if k == len(sizes[i]) - 1 else np.sort(trains[i][: sizes[i][k][1]])
-            for i in active
-        }
+        active = list(range(len(ws)))
+        prefix = np.sort(order[: sizes[k][1]])
+        runs = {i: np.arange(cache.n_runs) if k == n_rungs - 1 else prefix[ws[i][prefix] > 0] for i in active}
         need = np.zeros((n_settings, cache.n_runs), bool)
         for i in active:
             need[np.ix_(alive[i], runs[i])] = True
@@ -361,8 +361,8 @@ def halving_searches(
             best = float(obj[rank[0]])
             rungs[i].append(Rung(settings=len(alive[i]), runs=int(np.sum(ws[i][runs[i]] > 0)), best=best))
             scored[i].append(alive[i])
-            if k < len(sizes[i]) - 1:  # the best ceil(S / eta^(k+1)), back in the design's order
-                alive[i] = np.sort(alive[i][rank[: sizes[i][k + 1][0]]])
+            if k < n_rungs - 1:  # the best ceil(S / eta^(k+1)), back in the design's order
+                alive[i] = np.sort(alive[i][rank[: sizes[k + 1][0]]])
         log.info(
             "%s rung %d: %d searches, best %.5f m", desc, k + 1, len(active), min(r[-1].best for r in rungs)
         )

@@ -37,6 +37,7 @@ from jsve.evaluation._evaluate import evaluate_rules
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
+from jsve.fitting._polish import pack_runs, polish_runs
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, space_from_dict
 from jsve.io import _atomic as atomic
@@ -91,6 +92,8 @@ class StudyConfig:
         n_boot: bootstrap resamples for every CI; level: their confidence level.
         n_local, local_fraction: the local design of the parameter bootstrap.
         heatmap: (x, y, n): the two thresholds of the heat map and its points per axis.
+        heatmap_runs: the heat map scores its n^2 settings on the first heatmap_runs weighted runs of
+            the study's stratified order, packed into one part (jsve.fitting._polish); 0: on every run.
         seed: seeds folds and bootstraps.
     """
 
@@ -110,10 +113,15 @@ class StudyConfig:
     n_local: int = 1024
     local_fraction: float = 0.15
     heatmap: tuple = ("imu_init", "recovery", 25)
+    heatmap_runs: int = 512
     seed: int = 0
 
     def __post_init__(self):
         self.objective()  # the objective's settings are checked when the study is configured
+        if not (isinstance(self.heatmap_runs, int) and self.heatmap_runs >= 0):
+            raise ValueError(
+                f"StudyConfig.heatmap_runs must be a count >= 0 (0: every run), got {self.heatmap_runs!r}"
+            )
 
     def objective(self) -> ObjectiveConfig:
         return ObjectiveConfig(
@@ -318,25 +326,46 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
 
 
 def heatmap_table(
-    data: FitData, space: ParamSpace, values, weights, x: str, y: str, n: int, *, progress: bool = False
+    data: FitData,
+    space: ParamSpace,
+    values,
+    weights,
+    x: str,
+    y: str,
+    n: int,
+    *,
+    runs: int = 0,
+    seed: int = 0,
+    progress: bool = False,
 ) -> pd.DataFrame:
-    """The objective over a grid of two free parameters (the others at `values`), with failure rate;
-    `progress`: the search's bar."""
+    """The objective over a grid of two free parameters (the others at `values`), with failure rate.
+
+    Arguments:
+        weights: [R] run weights (None: 1).
+        runs: score the grid on the first `runs` weighted runs of the study's stratified order (seeded
+            by `seed`), packed into one part (jsve.fitting._polish): a picture of the surface whose cost
+            stops growing with the study. 0, or no more weighted runs than that: on every run.
+        progress: the search's bar.
+    Returns:
+        One row per grid point: family, x_name, y_name, x, y, objective (metres), failure_rate,
+        n_runs (weighted runs scored) and n_weighted (weighted runs of the study).
+    """
     if x not in space.names or y not in space.names:
         raise ValueError(f"heat map axes {x!r}, {y!r} must be free parameters of {space.names}")
+    w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
     ix, iy = space.names.index(x), space.names.index(y)
     unit = grid_design([n, n])
     grid = np.repeat(np.asarray(values, np.float64)[None], len(unit), axis=0)
     grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
     grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
+    subset = polish_runs(data.meta, w, runs, seed=seed)
+    if subset is None:
+        parts, counts, scored_w = data.parts, data.run_counts, w
+    else:
+        parts = [pack_runs(data.batches, data.features, data.run_counts, subset)]
+        counts, scored_w = [len(subset)], w[subset]
     res = search(
-        data.parts,
-        space,
-        grid,
-        data.config,
-        run_counts=data.run_counts,
-        progress=progress,
-        desc=f"heat map {space.kind}",
+        parts, space, grid, data.config, run_counts=counts, progress=progress, desc=f"heat map {space.kind}"
     )
     return pd.DataFrame(
         {
@@ -345,8 +374,10 @@ def heatmap_table(
             "y_name": y,
             "x": grid[:, ix],
             "y": grid[:, iy],
-            "objective": res.objective(weights),
-            "failure_rate": res.failure_rate(weights),
+            "objective": res.objective(scored_w),
+            "failure_rate": res.failure_rate(scored_w),
+            "n_runs": int(np.sum(scored_w > 0)),
+            "n_weighted": int(np.sum(w > 0)),
         }
     )
 
@@ -621,7 +652,18 @@ def run_study(
     def heatmap():
         x, y, n = config.heatmap
         tables = [
-            heatmap_table(data, spaces[f], r.values, weights, x, y, int(n), progress=progress)
+            heatmap_table(
+                data,
+                spaces[f],
+                r.values,
+                weights,
+                x,
+                y,
+                int(n),
+                runs=config.heatmap_runs,
+                seed=config.fit.seed,
+                progress=progress,
+            )
             for f, r in fits.items()
             if x in spaces[f].names and y in spaces[f].names
         ]

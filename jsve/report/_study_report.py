@@ -190,6 +190,22 @@ def _differs(name: str, family: str, fitted: dict, skip: tuple[str, str]) -> str
     return ", ".join(f"{k} {number(own[k], 3)}" for k in other)
 
 
+def _heatmap_subset_note(g: pd.DataFrame) -> str:
+    """A sentence where the heat map was scored on a subset of the runs (StudyConfig.heatmap_runs), so
+    that nobody reads its cells as the objective the fit and the presets are scored on."""
+    if "n_runs" not in g or "n_weighted" not in g:  # a study written before heatmap_runs
+        return ""
+    scored, weighted = int(g["n_runs"].iloc[0]), int(g["n_weighted"].iloc[0])
+    if scored >= weighted:
+        return ""
+    return (
+        f" The surface is scored on {number(scored)} of the {number(weighted)} runs (the first of the "
+        "study's stratified order, `heatmap_runs`), so a cell is an estimate of the objective and can "
+        "differ from the fit's and the presets' scores, which are over every run, by the subset's "
+        "sampling error."
+    )
+
+
 def _heatmap_blocks(heat, fitted, overview, fig_dir) -> list:
     blocks: list = []
     if heat is None:
@@ -228,6 +244,7 @@ def _heatmap_blocks(heat, fitted, overview, fig_dir) -> list:
             )
         else:
             text += f" It spans {cm(info.low)} to {cm(info.high)} cm."
+        text += _heatmap_subset_note(g)
         for name, (_, _, score, differs) in presets.items():
             text += (
                 f" `{name}` is drawn at its thresholds with its own score, {cm(score)} cm ({differs}): the "
