@@ -367,3 +367,30 @@ def test_halving_is_deterministic_under_the_seed(counts_data):
     for x, y in zip(_fields(a.search), _fields(b.search), strict=True):
         np.testing.assert_array_equal(x, y)
     assert not np.array_equal(run(12)[0], o1)
+
+
+@pytest.mark.parametrize(
+    ("n_runs", "eta", "want"),
+    [
+        (50, 3.0, ("exhaustive", None)),
+        (299, 3.0, ("exhaustive", None)),
+        (300, 3.0, ("halving", 1 / 3)),
+        (3410, 3.0, ("halving", 1 / 27)),
+        (10_000, 3.0, ("halving", 1 / 81)),
+        (3410, 2.0, ("halving", 1 / 32)),
+    ],
+)
+def test_auto_search_halves_with_a_first_rung_of_at_least_100_runs(n_runs, eta, want):
+    from jsve.fitting._fit import AUTO_FIRST_RUNG_RUNS, resolve_search
+
+    resolved = resolve_search(FitConfig(search="auto", eta=eta), n_runs)
+    method, f0 = want
+    assert resolved.search == method
+    if f0 is None:
+        return
+    assert resolved.initial_fraction == pytest.approx(f0)
+    first = rung_sizes(2051, n_runs, eta, resolved.initial_fraction)[0][1]
+    assert AUTO_FIRST_RUNG_RUNS <= first < AUTO_FIRST_RUNG_RUNS * eta  # the smallest such fraction
+    for given in ("halving", "exhaustive"):
+        config = FitConfig(search=given, initial_fraction=0.5)
+        assert resolve_search(config, n_runs) == config

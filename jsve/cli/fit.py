@@ -61,10 +61,11 @@ def register(subparsers) -> None:
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument(
         "--search",
-        choices=("halving", "exhaustive"),
+        choices=("auto", "halving", "exhaustive"),
         help="how the design is searched: 'halving' screens every setting on a stratified share of the "
         "runs and re-scores the best on more (about a third of the cost), 'exhaustive' scores every "
-        "setting on every run (default: --config's [fit] search, else exhaustive)",
+        "setting on every run, 'auto' is exhaustive below 300 runs and halving above, its first rung "
+        "on at least 100 runs (default: --config's [fit] search, else auto)",
     )
     p.add_argument(
         "--eta",
@@ -78,7 +79,7 @@ def register(subparsers) -> None:
         type=float,
         metavar="F",
         help="halving: share of the runs the first rung screens every setting on, in (0, 1] "
-        "(default: --config's, else 1/9; 1 is the exhaustive search)",
+        "(default: --config's, else 1/9; 1 is the exhaustive search; --search auto sets its own)",
     )
     p.add_argument(
         "--seed",

@@ -28,7 +28,16 @@ from tqdm.auto import tqdm
 from jsve.core._objective import run_losses
 from jsve.core._rules import BASELINES, PRESETS, preset
 from jsve.fitting._designs import sobol
-from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fit_cache, fitted_rule_name, search_design
+from jsve.fitting._fit import (
+    FitConfig,
+    FitData,
+    FitResult,
+    fit,
+    fit_cache,
+    fitted_rule_name,
+    resolve_search,
+    search_design,
+)
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
@@ -186,6 +195,7 @@ def cross_validate(
             of the fit on all runs, whose design is the folds'), reused and filled by the halving search.
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
+    config = resolve_search(config, data.n_runs)  # the full fit's rungs, which the folds' caches hold
     meta = data.meta.reset_index(drop=True)
     searches = dict(searches or {})
     caches = dict(caches or {})
