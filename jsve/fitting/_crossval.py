@@ -39,6 +39,7 @@ from jsve.fitting._fit import (
     search_design,
 )
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
+from jsve.fitting._polish import pack_runs, polish_runs
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
@@ -372,6 +373,43 @@ def local_design(space: ParamSpace, center, n: int, *, fraction: float = 0.15, s
     return a + (b - a) * sobol(n, space.dim, seed=seed)
 
 
+def plausible_winners(
+    loss: np.ndarray, weights: np.ndarray, n_eff_full: float, *, z: float = 4.0
+) -> np.ndarray:
+    """Which settings could win a bootstrap resample of the whole study, judged on a subset of its runs.
+
+    A setting s beats the fit (row -1) on a resample of the study only where its paired mean difference
+    d_s = loss_s - loss_fit comes out below 0; over resamples that difference has a spread of about
+    sd_s / sqrt(n_eff_full). Its mean is estimated on the subset to within sd_s / sqrt(n_eff_subset).
+    A setting is kept unless even the optimistic end of its subset estimate is more than z resampling
+    spreads above 0:  mean_s - z sd_s / sqrt(n_subset) <= z sd_s / sqrt(n_full).  With z = 4 a
+    setting that is dropped wins a resample with a chance of the order of 1e-5 (normal tails),
+    the screen of a race (Maron & Moore 1994, "Hoeffding races").
+
+    Arguments:
+        loss: [S, m] per-run losses on the subset's runs, the fit in the last row.
+        weights: [m] the subset's run weights (> 0).
+        n_eff_full: the effective number of runs of the whole study, (sum w)^2 / sum w^2.
+        z: the screen's width in standard errors.
+    Returns:
+        [S] bool, the fit's row always True.
+    """
+    w = np.asarray(weights, np.float64) / np.sum(weights)
+    d = np.asarray(loss, np.float64) - np.asarray(loss, np.float64)[-1]
+    mean = d @ w
+    sd = np.sqrt(np.maximum(((d - mean[:, None]) ** 2) @ w, 0.0))
+    n_eff_subset = 1.0 / np.sum(w**2)
+    keep = mean - z * sd / np.sqrt(n_eff_subset) <= z * sd / np.sqrt(n_eff_full)
+    keep[-1] = True
+    return keep
+
+
+def effective_runs(weights: np.ndarray) -> float:
+    """Kish's effective number of runs of a weighting: (sum w)^2 / sum w^2."""
+    w = np.asarray(weights, np.float64)
+    return float(np.sum(w) ** 2 / np.sum(w**2))
+
+
 def parameter_bootstrap(
     data: FitData,
     space: ParamSpace,
@@ -383,6 +421,7 @@ def parameter_bootstrap(
     n_boot: int = 500,
     level: float = 0.95,
     seed: int = 0,
+    screen_runs: int = 0,
     progress: bool = True,
 ) -> pd.DataFrame:
     """Bootstrap confidence intervals of the fitted parameters.
@@ -392,14 +431,38 @@ def parameter_bootstrap(
     the fit itself: a refit that costs a matrix-vector product. Its resolution is the local design's
     (n_local points in a box of +-fraction of each range).
 
+    screen_runs: where more runs have weight, the local design is first scored on that many runs (the
+    study's stratified order, packed into one part) and only the settings that could still win a
+    resample of the whole study (`plausible_winners`) are scored on every run; 0: every setting on
+    every run. The bootstrap itself is always over every run.
+
     Returns:
-        One row per free parameter: parameter, value (the fit), ci_low, ci_high, boot_std, plus the same for
-        the derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
+        One row per free parameter: parameter, value (the fit), ci_low, ci_high, boot_std, n_boot,
+        local (settings of the local design, the fit included) and local_scored (those scored on every
+        run), plus the same for the derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
     local = np.concatenate(
         [local_design(space, result.values, n_local, fraction=fraction, seed=seed), result.values[None]]
     )
+    n_local_design = len(local)
+    subset = polish_runs(data.meta, w, screen_runs, seed=seed)
+    if subset is not None:
+        part = pack_runs(data.batches, data.features, data.run_counts, subset)
+        screened = search(
+            [part],
+            space,
+            local,
+            data.config,
+            run_counts=[len(subset)],
+            progress=progress,
+            desc=f"bootstrap screen {space.kind}",
+        )
+        keep = plausible_winners(screened.loss, w[subset], effective_runs(w[w > 0]))
+        log.info(
+            "bootstrap %s: %d of %d local settings could win a resample", space.kind, keep.sum(), len(keep)
+        )
+        local = local[keep]
     res = search(
         data.parts,
         space,
@@ -435,6 +498,8 @@ def parameter_bootstrap(
             "ci_high": high,
             "boot_std": picks.std(axis=0),
             "n_boot": n_boot,
+            "local": n_local_design,
+            "local_scored": len(local),
         }
     )
 
@@ -449,5 +514,7 @@ __all__ = [
     "compare",
     "local_design",
     "parameter_bootstrap",
+    "plausible_winners",
+    "effective_runs",
     "rule_results",
 ]

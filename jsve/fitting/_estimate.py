@@ -20,8 +20,9 @@ computations, each costing time in proportion to the frames it scans:
     2 (`subset_runs`); a cross-validation fold's rungs are the same prefixes less its held-out runs, so
     on the full fit's cache they add nothing (assuming the folds keep the full fit's survivors, which
     they mostly do); on a resumed study without the fit's cache, all their pairs;
-  - the parameter bootstrap's local design (n_local + 1 settings), on every part, and the heat map's
-    grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
+  - the parameter bootstrap's local design (n_local + 1 settings): on every part, or screened on
+    `bootstrap_screen_runs` runs packed into one part and BOOTSTRAP_KEPT_SHARE of it on every part;
+    the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
 - **objective**: the hard objective of one setting on every run (`_fit._hard_jit`, Nelder-Mead's
   function). A Nelder-Mead run costs NM_EVALS_PER_STEP x steps + d + 2 evaluations (the last: its
   value on every run), each step evaluating twice (reflection, then expansion or contraction) plus a
@@ -80,6 +81,10 @@ def nm_expected_steps(fit) -> float:
         return float(fit.nm_steps)
     return float(min(fit.nm_steps, NM_STALL_WINDOWS * fit.nm_window))
 
+
+BOOTSTRAP_KEPT_SHARE = 0.5
+"""Share of the parameter bootstrap's local design that its screen keeps (jsve.fitting._crossval.
+plausible_winners, on bootstrap_screen_runs runs). PROVISIONAL: to be measured on the 3,410-log study."""
 
 NM_EVALS_PER_STEP = 2.3
 """Objective evaluations per Nelder-Mead step: 2 (optimistix's step scans the reflection and one more
@@ -411,8 +416,13 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
             fit_stages(stage, family, [size.n_runs - int(np.sum(f)) for f in size.folds])
             one_setting(stage, family, n_folds)  # the fold's fitted rule on its held-out runs
     if "parameter_bootstrap" not in done:
+        screen = config.bootstrap_screen_runs if 0 < config.bootstrap_screen_runs < size.n_runs else 0
         for family in families:
-            search("parameter_bootstrap", family, config.n_local + 1)
+            if screen:  # the screen on a packed subset, then the settings it keeps on every run
+                search("parameter_bootstrap", family, config.n_local + 1, packed=screen)
+                search("parameter_bootstrap", family, math.ceil(BOOTSTRAP_KEPT_SHARE * (config.n_local + 1)))
+            else:
+                search("parameter_bootstrap", family, config.n_local + 1)
             if halving:  # the survivors of the last rung
                 kept = halving_rectangles(size, family, fit.eta, fit.initial_fraction)[0][-1][0]
             else:

@@ -90,7 +90,9 @@ class StudyConfig:
         kfold: folds of the k-fold cross-validation (0: none); leave_one_out: metadata columns to leave
             out one value at a time (skipped when a column has a single value).
         n_boot: bootstrap resamples for every CI; level: their confidence level.
-        n_local, local_fraction: the local design of the parameter bootstrap.
+        n_local, local_fraction: the local design of the parameter bootstrap; bootstrap_screen_runs:
+            its settings are screened on that many runs first and only those that could win a
+            resample are scored on every run (jsve.fitting._crossval.parameter_bootstrap; 0: all).
         heatmap: (x, y, n): the two thresholds of the heat map and its points per axis.
         heatmap_runs: the heat map scores its n^2 settings on the first heatmap_runs weighted runs of
             the study's stratified order, packed into one part (jsve.fitting._polish); 0: on every run.
@@ -112,16 +114,17 @@ class StudyConfig:
     level: float = 0.95
     n_local: int = 1024
     local_fraction: float = 0.15
+    bootstrap_screen_runs: int = 512
     heatmap: tuple = ("imu_init", "recovery", 25)
     heatmap_runs: int = 512
     seed: int = 0
 
     def __post_init__(self):
         self.objective()  # the objective's settings are checked when the study is configured
-        if not (isinstance(self.heatmap_runs, int) and self.heatmap_runs >= 0):
-            raise ValueError(
-                f"StudyConfig.heatmap_runs must be a count >= 0 (0: every run), got {self.heatmap_runs!r}"
-            )
+        for name in ("heatmap_runs", "bootstrap_screen_runs"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 0):
+                raise ValueError(f"StudyConfig.{name} must be a count >= 0 (0: every run), got {value!r}")
 
     def objective(self) -> ObjectiveConfig:
         return ObjectiveConfig(
@@ -641,6 +644,7 @@ def run_study(
                 n_boot=config.n_boot,
                 level=config.level,
                 seed=config.seed,
+                screen_runs=config.bootstrap_screen_runs,
                 progress=progress,
             )
             for f, r in fits.items()
