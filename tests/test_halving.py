@@ -187,6 +187,10 @@ def test_one_rung_over_all_runs_is_the_exhaustive_search(counts_data):
     by_search = fit(counts_data, space, None, FitConfig(**config))
     np.testing.assert_array_equal(by_halving.values, by_search.values)
     assert by_halving.objective == by_search.objective
+    # the search stage records the method that ran ("auto" resolves to exhaustive below 300 runs)
+    assert by_halving.stages[0]["method"] == "halving" and by_search.stages[0]["method"] == "exhaustive"
+    given = fit(counts_data, space, None, FitConfig(**config), search_result=by_search.search)
+    assert given.stages[0]["method"] == "given"
 
 
 @pytest.mark.parametrize("kind", ["counts", "occlusion"])

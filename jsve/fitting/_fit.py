@@ -571,6 +571,7 @@ def fit(
     """
     w = _default_weights(data, weights)
     config = resolve_search(config, data.n_runs)
+    method = "given" if search_result is not None else config.search  # before halving sets it
     stages = []
     t0 = time.perf_counter()
     screening = {}
@@ -608,7 +609,7 @@ def fit(
             "objective": best,
             "values": best_values.tolist(),
             "settings": int(len(obj)),
-            "method": "given" if search_result is not None else config.search,
+            "method": method,
             "seconds": time.perf_counter() - t0,
             **screening,
         }
