@@ -84,7 +84,8 @@ def nm_expected_steps(fit) -> float:
 
 BOOTSTRAP_KEPT_SHARE = 0.5
 """Share of the parameter bootstrap's local design that its screen keeps (jsve.fitting._crossval.
-plausible_winners, on bootstrap_screen_runs runs). PROVISIONAL: to be measured on the 3,410-log study."""
+plausible_winners, on bootstrap_screen_runs runs). Measured on the 3,410-log study (n_local 1024,
+screen on 512 runs): 531 of 1025 settings kept (sve), 428 (inliers)."""
 
 NM_EVALS_PER_STEP = 2.3
 """Objective evaluations per Nelder-Mead step: 2 (optimistix's step scans the reflection and one more

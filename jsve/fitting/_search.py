@@ -583,35 +583,51 @@ def search(
     # worker to run those tasks and the process hung (jaxlib 0.10.2, 2 devices on 2 cores). One at a
     # time, a waiting SVD leaves the other workers free. They cost ~1 % of a scan.
     devices = jax.local_devices()
-    pending = []
     per_part: list[list] = [[] for _ in parts]
     total = n_settings * sum(run_counts)
-    # The bar opens before the calls are dispatched: a call of a new shape compiles (seconds to a minute)
-    # while the bar stands at 0; then the rate and the ETA follow the results.
-    with tqdm(total=total, desc=desc, unit="setting-run", unit_scale=True, disable=not progress) as bar:
-        for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
-            size = call_size(part.n_runs, n_settings, settings_per_call)
-            # a copy of the part on each device that gets a call (one call: the part where it is)
-            n_calls = math.ceil(n_settings / size)
-            copies = [part] if n_calls == 1 else [jax.device_put(part, d) for d in devices[:n_calls]]
-            for i, sl in enumerate(_settings_chunks(n_settings, size)):
-                chunk = values[sl]
-                if len(chunk) < size:
-                    chunk = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)])
-                k = i % len(copies)
-                rules = space.rule(jnp.asarray(chunk, part.t.dtype))
-                if len(copies) > 1:
-                    rules = jax.device_put(rules, devices[k])
-                exact = _exact_from_start(copies[k], config)
-                sums = _scan_sums(copies[k], rules, config, exact=exact)
-                pending.append((p, sl, n_real, copies[k], rules, exact, sums))
-        for p, sl, n_real, part, rules, exact, sums in pending:
+
+    def dispatch(p: int, part: SearchBatch, n_real: int) -> list:
+        """Start every call of part p (JAX dispatches asynchronously) and return what collecting needs."""
+        size = call_size(part.n_runs, n_settings, settings_per_call)
+        # a copy of the part on each device that gets a call (one call: the part where it is)
+        n_calls = math.ceil(n_settings / size)
+        copies = [part] if n_calls == 1 else [jax.device_put(part, d) for d in devices[:n_calls]]
+        calls = []
+        for i, sl in enumerate(_settings_chunks(n_settings, size)):
+            chunk = values[sl]
+            if len(chunk) < size:
+                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)])
+            k = i % len(copies)
+            rules = space.rule(jnp.asarray(chunk, part.t.dtype))
+            if len(copies) > 1:
+                rules = jax.device_put(rules, devices[k])
+            exact = _exact_from_start(copies[k], config)
+            sums = _scan_sums(copies[k], rules, config, exact=exact)
+            calls.append((p, sl, n_real, copies[k], rules, exact, sums))
+        return calls
+
+    def collect(calls: list, bar) -> None:
+        for p, sl, n_real, part, rules, exact, sums in calls:
             if not exact and _needs_corrections(sums):
                 sums = _scan_sums(part, rules, config, exact=True)
             res = jax.block_until_ready(_chunk_result(part, sums, config))
             n = sl.stop - sl.start
             per_part[p].append(jax.tree.map(lambda x, n=n, r=n_real: np.asarray(x)[:n, :r], res))
             bar.update(n * n_real)
+
+    # The bar opens before the calls are dispatched: a call of a new shape compiles (seconds to a minute)
+    # while the bar stands at 0; then the rate and the ETA follow the results. At most two parts are in
+    # flight: the next part's calls run while this one's results are collected, and a part's copies
+    # on the other devices and its scan sums are freed once collected. (Dispatching every part first
+    # kept all of them alive at once: +3 GB on the 3,410-log study, 18.7 GB at its peak.)
+    with tqdm(total=total, desc=desc, unit="setting-run", unit_scale=True, disable=not progress) as bar:
+        in_flight: list[list] = []
+        for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
+            in_flight.append(dispatch(p, part, n_real))
+            if len(in_flight) > 1:
+                collect(in_flight.pop(0), bar)
+        for calls in in_flight:
+            collect(calls, bar)
     merged = [jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *chunks) for chunks in per_part]
     merged = jax.tree.map(lambda *xs: np.concatenate(xs, axis=1), *merged)
     return SearchResult(
