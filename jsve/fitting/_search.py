@@ -583,7 +583,7 @@ def search(
     # worker to run those tasks and the process hung (jaxlib 0.10.2, 2 devices on 2 cores). One at a
     # time, a waiting SVD leaves the other workers free. They cost ~1 % of a scan.
     devices = jax.local_devices()
-    per_part: list[list] = [[] for _ in parts]
+    per_part: list[list] = [[] for _ in range(len(parts))]
     total = n_settings * sum(run_counts)
 
     def dispatch(p: int, part: SearchBatch, n_real: int) -> list:
