@@ -718,3 +718,16 @@ def test_jsve_fit_warns_when_a_fitted_rule_leaves_the_trust_region(tmp_path, mon
     assert len(warnings) == (1 if changed > 0.001 else 0)
     if warnings:
         assert "`fitted-sve` changes 5.0 %" in warnings[0]
+
+
+def test_a_heatmap_on_a_subset_of_the_runs_says_so():
+    """StudyConfig.heatmap_runs: a surface scored on fewer runs than the study's is named as such."""
+    from jsve.report._study_report import _heatmap_subset_note
+
+    def table(scored, weighted):
+        return pd.DataFrame({"objective": [0.1, 0.2], "n_runs": scored, "n_weighted": weighted})
+
+    note = _heatmap_subset_note(table(512, 3410))
+    assert "512 of the 3,410 runs" in note and "estimate" in note
+    assert _heatmap_subset_note(table(40, 40)) == ""
+    assert _heatmap_subset_note(pd.DataFrame({"objective": [0.1]})) == ""  # written before heatmap_runs
