@@ -39,7 +39,7 @@ from jsve.fitting._fit import (
     search_design,
 )
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
-from jsve.fitting._polish import pack_runs, polish_runs
+from jsve.fitting._polish import packed_subset
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
@@ -446,9 +446,9 @@ def parameter_bootstrap(
         [local_design(space, result.values, n_local, fraction=fraction, seed=seed), result.values[None]]
     )
     n_local_design = len(local)
-    subset = polish_runs(data.meta, w, screen_runs, seed=seed)
-    if subset is not None:
-        part = pack_runs(data.batches, data.features, data.run_counts, subset)
+    packed = packed_subset(data, w, screen_runs, seed=seed)
+    if packed is not None:
+        part, subset = packed
         screened = search(
             [part],
             space,

@@ -614,7 +614,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     from jsve.core._rules import BASELINES, preset
     from jsve.evaluation._evaluate import evaluate_batch
     from jsve.fitting._fit import _hard_jit, _relaxed_jit, search_design
-    from jsve.fitting._polish import pack_runs, polish_runs
+    from jsve.fitting._polish import packed_subset
     from jsve.fitting._search import call_size, search
 
     n_devices = len(jax.local_devices())
@@ -626,9 +626,10 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     steps = (4 if config.fit.relaxed else 3) * len(families) + 2
     weights = data.split_weights(np.ones(data.n_runs))
     part, n_real = data.parts[0], data.run_counts[0]
-    subset = polish_runs(data.meta, np.ones(data.n_runs), config.fit.polish_runs, seed=config.fit.seed)
-    if subset is not None:
-        packed = [pack_runs(data.batches, data.features, data.run_counts, subset)]
+    polish = packed_subset(data, np.ones(data.n_runs), config.fit.polish_runs, seed=config.fit.seed)
+    if polish is not None:
+        part_packed, subset = polish
+        packed = [part_packed]
         packed_weights = [jnp.ones(len(subset), packed[0].t.dtype)]
     with tqdm(total=steps, desc="timing probe", unit="step", disable=not progress) as bar:
         for family in families:
@@ -659,7 +660,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
             compile_s["objective", family], seconds["objective", family] = _twice(run, spent)
             compiled["objective", family] = {family}
-            if subset is not None:  # Nelder-Mead's objective on the packed subset (jsve.fitting._polish)
+            if polish is not None:  # Nelder-Mead's objective on the packed subset (jsve.fitting._polish)
                 run = functools.partial(_hard_jit, z, packed, packed_weights, space, data.config)
                 compile_s["polish", family], seconds["polish", family] = _twice(run, spent)
                 compiled["polish", family] = {family}

@@ -38,7 +38,7 @@ from jsve.core._replay import batch_features
 from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
 from jsve.fitting._halving import RunLossCache, halving_search, rung_sizes, stratified_order
-from jsve.fitting._polish import pack_runs, polish_runs
+from jsve.fitting._polish import packed_subset, polish_runs
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
 from jsve.fitting._simplex import StallingNelderMead
 from jsve.fitting._space import ParamSpace, preset_values
@@ -344,12 +344,12 @@ def nelder_mead(
         (values [d], hard objective at them over every run with weight, steps taken).
     """
     w = _default_weights(data, weights)
-    subset = polish_runs(data.meta, w, on_runs, seed=seed)
-    if subset is None:
+    packed = packed_subset(data, w, on_runs, seed=seed)
+    if packed is None:
         parts, part_w = data.parts, data.split_weights(w)
     else:
-        parts = [pack_runs(data.batches, data.features, data.run_counts, subset)]
-        part_w = [jnp.asarray(w[subset], parts[0].t.dtype)]
+        part, subset = packed
+        parts, part_w = [part], [jnp.asarray(w[subset], part.t.dtype)]
     z0 = space.z_from_values(jnp.asarray(start, data.parts[0].t.dtype))
     solver = StallingNelderMead(
         rtol=float(rtol), atol=float(atol), adelta=float(step), window=int(window), ftol=float(ftol)

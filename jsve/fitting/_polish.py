@@ -90,4 +90,16 @@ def polish_runs(meta, weights: np.ndarray, n: int, *, seed: int = 0) -> np.ndarr
     return np.sort(order[train[order]][:n])
 
 
-__all__ = ["pack_runs", "polish_runs"]
+def packed_subset(
+    data, weights: np.ndarray, n: int, *, seed: int = 0
+) -> tuple[SearchBatch, np.ndarray] | None:
+    """The first n weighted runs of FitData `data`'s stratified order (`polish_runs`) packed into one part
+    (`pack_runs`), and their indices: how Nelder-Mead, the heat map and the bootstrap's screen score a
+    large study on a subset. None where `polish_runs` is (n is 0 or at most n runs have weight)."""
+    subset = polish_runs(data.meta, weights, n, seed=seed)
+    if subset is None:
+        return None
+    return pack_runs(data.batches, data.features, data.run_counts, subset), subset
+
+
+__all__ = ["pack_runs", "polish_runs", "packed_subset"]

@@ -37,7 +37,7 @@ from jsve.evaluation._evaluate import evaluate_rules
 from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
-from jsve.fitting._polish import pack_runs, polish_runs
+from jsve.fitting._polish import packed_subset
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, space_from_dict
 from jsve.io import _atomic as atomic
@@ -361,12 +361,12 @@ def heatmap_table(
     grid = np.repeat(np.asarray(values, np.float64)[None], len(unit), axis=0)
     grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
     grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
-    subset = polish_runs(data.meta, w, runs, seed=seed)
-    if subset is None:
+    packed = packed_subset(data, w, runs, seed=seed)
+    if packed is None:
         parts, counts, scored_w = data.parts, data.run_counts, w
     else:
-        parts = [pack_runs(data.batches, data.features, data.run_counts, subset)]
-        counts, scored_w = [len(subset)], w[subset]
+        part, subset = packed
+        parts, counts, scored_w = [part], [len(subset)], w[subset]
     res = search(
         parts, space, grid, data.config, run_counts=counts, progress=progress, desc=f"heat map {space.kind}"
     )
