@@ -62,3 +62,44 @@ def test_the_fingerprint_is_that_of_the_content(both, tmp_path):
     seen = [r for b in streamed.full_buckets() for r in b.meta["run_id"]]
     assert sorted(seen) == sorted(streamed.meta["run_id"]) and seen == list(streamed.meta["run_id"])
     assert np.isfinite(hard_objective(streamed, sve_space(), sve_space().values_of(preset("sve-option2"))))
+
+
+def _by_run(meta, result):
+    """A [1, R] SearchResult's losses and failures keyed by run id (FitData orders runs by bucket)."""
+    return {rid: (float(result.loss[0, i]), bool(result.failed[0, i])) for i, rid in enumerate(meta["run_id"])}
+
+
+def test_streamed_data_holds_only_the_search_layout_and_streams_the_rest_again(both):
+    """from_parquet keeps no slim batches (about the search layout's size again: 1.7 GB at 3,410 logs);
+    what needs them (replaying presets outside the search's spaces, the SVE level table, the relaxed
+    fit) streams the same parts again, with the same values as the parsed runs' held ones."""
+    from jsve.fitting._crossval import preset_results
+    from jsve.fitting._study import sve_level_table
+
+    parsed, streamed, path = both
+    assert streamed.batches == [] and streamed.features == [] and parsed.batches
+    again = list(streamed.iter_slim())
+    assert [n for _, _, n in again] == streamed.run_counts
+    assert [b.t.shape for b, _, _ in again] == [(p.n_runs, p.n_frames) for p in streamed.parts]
+    assert streamed.batches == []  # iterating holds nothing
+
+    names = ["sve-eq1", "sve-option1", "orbslam3"]  # the first two are replayed, not searched
+    a, b = preset_results(parsed, names), preset_results(streamed, names)
+    assert list(b) == names
+    for name in names:
+        left, right = _by_run(parsed.meta, a[name]), _by_run(streamed.meta, b[name])
+        assert left.keys() == right.keys()
+        for rid, (loss, failed) in left.items():
+            assert right[rid][1] == failed and right[rid][0] == pytest.approx(loss, rel=1e-5, abs=1e-7)
+
+    combos = {"option1": preset("sve-option1").combination}
+    pd_testing = pytest.importorskip("pandas.testing")
+    pd_testing.assert_frame_equal(
+        sve_level_table(streamed, combos), sve_level_table(parsed, combos), rtol=1e-6, atol=1e-9
+    )
+
+    held = FitData.from_parquet(path, COAST, keep_slim=True)
+    batches, features = held.slim()
+    assert batches is held.batches and len(batches) == len(held.parts)
+    fresh = FitData.from_parquet(path, COAST)
+    assert len(fresh.slim()[0]) == len(fresh.parts) and fresh.batches  # streamed once, then held

@@ -44,7 +44,7 @@ def test_a_packed_part_scores_each_run_as_its_own_bucket(data):
     values = np.asarray(space.values_from_unit(unit), np.float64)
     runs = np.array([0, 3, 7, 8, 12, 17])
     whole = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
-    packed = pack_runs(data.batches, data.features, data.run_counts, runs)
+    packed = pack_runs(data.parts, data.run_counts, runs)
     assert packed.n_runs == len(runs) and packed.n_frames == max(p.n_frames for p in data.parts)
     part = search([packed], space, values, data.config, progress=False)
     for key in ("loss", "rmse", "coverage", "failed", "included"):

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
+from jsve._memory import release_memory
 from jsve.core._objective import run_losses
 from jsve.core._rules import BASELINES, PRESETS, preset
 from jsve.fitting._designs import sobol
@@ -154,22 +155,30 @@ def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
 _run_losses = eqx.filter_jit(run_losses)
 
 
-def preset_results(data: FitData, name: str) -> SearchResult:
-    """Per-run results of a preset: by the search kernel where the preset is a point of its family's
-    space, else by the replay objective (jsve.core._objective.run_losses), which scores any rule."""
-    rule = preset(name)
-    if is_space_point(rule):
-        return rule_results(data, *preset_point(name))
-    parts = [
-        jax.tree.map(lambda x, n=n: np.asarray(x)[:n], _run_losses(batch, rule, features, data.config))
-        for batch, features, n in zip(data.batches, data.features, data.run_counts, strict=True)
-    ]
-    losses = jax.tree.map(lambda *xs: np.concatenate(xs)[None], *parts)
-    return SearchResult(
-        values=np.zeros((1, 0)), loss=losses.loss, failed=losses.failed,
-        rmse=np.where(losses.failed, np.nan, losses.rmse), coverage=losses.coverage,
-        unsupported=losses.unsupported, included=losses.included > 0.5,
-    )  # fmt: skip
+def preset_results(data: FitData, names: Sequence[str], *, progress: bool = False) -> dict[str, SearchResult]:
+    """Per-run results of presets by name: by the search kernel where a preset is a point of its family's
+    space, else by the replay objective (jsve.core._objective.run_losses), which scores any rule, on one
+    pass over the parts' slim batches (FitData.iter_slim: streamed again where they were not kept)."""
+    out = {name: rule_results(data, *preset_point(name)) for name in names if is_space_point(preset(name))}
+    others = [name for name in names if name not in out]
+    per_part = {name: [] for name in others}
+    if others:
+        parts = tqdm(
+            data.iter_slim(), total=len(data.parts), desc=f"replay {', '.join(others)}", unit="part",
+            disable=not progress,
+        )  # fmt: skip
+        for batch, features, n in parts:
+            for name in others:
+                losses = _run_losses(batch, preset(name), features, data.config)
+                per_part[name].append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], losses))
+    for name in others:
+        losses = jax.tree.map(lambda *xs: np.concatenate(xs)[None], *per_part[name])
+        out[name] = SearchResult(
+            values=np.zeros((1, 0)), loss=losses.loss, failed=losses.failed,
+            rmse=np.where(losses.failed, np.nan, losses.rmse), coverage=losses.coverage,
+            unsupported=losses.unsupported, included=losses.included > 0.5,
+        )  # fmt: skip
+    return {name: out[name] for name in names}
 
 
 def cross_validate(
@@ -231,10 +240,7 @@ def cross_validate(
                 progress=progress,
                 desc=f"search {name}",
             )
-    per_rule = {
-        name: preset_results(data, name)
-        for name in tqdm(presets, desc="cross-validation presets", unit="rule", disable=not progress)
-    }
+    per_rule = preset_results(data, presets, progress=progress)
 
     rows, params = [], []
     # One step per fit (fold x family): a fold's fits take minutes (Nelder-Mead), so a bar over folds
@@ -260,6 +266,7 @@ def cross_validate(
                     progress=False,
                 )
                 fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
+                release_memory()  # each fold's search and polish leave executables behind (jsve._memory)
                 bar.update(1)
                 params.append(
                     {

@@ -668,9 +668,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
 
             if config.fit.relaxed:
                 tau = jnp.asarray(config.fit.temperatures[0], z.dtype)
-                run = functools.partial(
-                    _relaxed_jit, z, data.batches, data.features, weights, tau, space, data.config
-                )
+                run = functools.partial(_relaxed_jit, z, *data.slim(), weights, tau, space, data.config)
                 compile_s["relaxed", family], seconds["relaxed", family] = _twice(run, spent)
                 compiled["relaxed", family] = {family}
                 bar.update(1)

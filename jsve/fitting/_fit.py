@@ -21,7 +21,7 @@ import hashlib
 import logging
 import math
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import equinox as eqx
@@ -31,6 +31,7 @@ import numpy as np
 import optimistix as optx
 import pandas as pd
 
+from jsve._memory import release_memory
 from jsve.core._batch import LogBatch, bucket_by_length, iter_chunks
 from jsve.core._machine import SoftLogic
 from jsve.core._objective import ObjectiveConfig, run_losses
@@ -74,9 +75,11 @@ class FitData:
     """Logs prepared once for fitting: batches, features and the search kernel's layout.
 
     Attributes:
-        batches: LogBatch per part of runs (keypoint bins dropped: the features hold what rules need).
-        features: FrameFeatures per part.
-        parts: SearchBatch per part (jsve.fitting._search.prepare).
+        batches: LogBatch per part of runs (keypoint bins dropped: the features hold what rules need),
+            or empty where they were not kept (`from_parquet`): `iter_slim` and `slim` stream them again.
+        features: FrameFeatures per part (empty with `batches`).
+        parts: SearchBatch per part (jsve.fitting._search.prepare): what the search, Nelder-Mead and
+            every per-run score read.
         run_counts: real runs per part (parts may end in padding runs).
         meta: one row per real run, in part order (the order of every [R] array of this module).
         config: how runs are scored.
@@ -86,6 +89,7 @@ class FitData:
         source: the Parquet study the data was streamed from, or None.
         content_digest: sha256 (hex) of every leaf of the full chunks as they streamed, or None
             (jsve.fitting._study.data_fingerprint hashes `buckets` then).
+        runs_per_part: the most runs of a part (how the buckets were cut into parts).
     """
 
     batches: list[LogBatch]
@@ -97,6 +101,7 @@ class FitData:
     buckets: list[Bucket] = field(default_factory=list)
     source: ParquetStudy | None = None
     content_digest: str | None = None
+    runs_per_part: int = 4096
 
     @property
     def n_runs(self) -> int:
@@ -105,7 +110,29 @@ class FitData:
     @property
     def n_frames(self) -> int:
         """Valid frames over all runs."""
-        return int(sum(float(jnp.sum(b.valid)) for b in self.batches))
+        pairs = zip(self.parts, self.run_counts, strict=True)
+        return int(sum(np.sum(np.asarray(p.valid)[:, :n]) for p, n in pairs))
+
+    def iter_slim(self) -> Iterator[tuple[LogBatch, FrameFeatures, int]]:
+        """(slim batch, its features, its real runs) per part in part order: those held, or the Parquet
+        study streamed again and cut as it was (about the loading's time: 30 s at 3,410 logs) where
+        they were not kept, one part in memory at a time."""
+        if self.batches:
+            yield from zip(self.batches, self.features, self.run_counts, strict=True)
+            return
+        if self.source is None:
+            raise ValueError("FitData holds neither slim batches nor a Parquet study to stream them from")
+        chunks = _slim_chunks(iter_buckets(self.source, dtype=self.parts[0].t.dtype), self.runs_per_part)
+        for slim, feats, real, _ in chunks:
+            yield slim, feats, real
+
+    def slim(self) -> tuple[list[LogBatch], list[FrameFeatures]]:
+        """Every part's slim batch and features at once (the relaxed fit differentiates through all of
+        them): those held, else streamed again and held from now on (at 3,410 logs, 1.7 GB)."""
+        if not self.batches:
+            held = list(self.iter_slim())
+            self.batches, self.features = [b for b, _, _ in held], [f for _, f, _ in held]
+        return self.batches, self.features
 
     @classmethod
     def from_buckets(
@@ -119,11 +146,18 @@ class FitData:
 
     @classmethod
     def from_parquet(
-        cls, path, config: ObjectiveConfig | None = None, *, dtype=jnp.float32, runs_per_part: int = 4096
+        cls,
+        path,
+        config: ObjectiveConfig | None = None,
+        *,
+        dtype=jnp.float32,
+        runs_per_part: int = 4096,
+        keep_slim: bool = False,
     ) -> FitData:
         """FitData of a Parquet study, streamed chunk by chunk (jsve.io._stream.iter_buckets): only the
-        compact per-frame columns the search needs stay in memory, never the keypoint bins or a parsed
-        run; `full_buckets` streams the file again where whole runs are needed."""
+        search's layout of each part stays in memory, never the keypoint bins or a parsed run;
+        `full_buckets` streams the file again where whole runs are needed, `iter_slim` where slim batches
+        are (keep_slim: hold those too, at about the search layout's size again)."""
         study = open_study(path)
         if study.n_runs == 0:
             raise ValueError("FitData.from_parquet: no runs")
@@ -142,41 +176,35 @@ class FitData:
                     digest.update(array.reshape(-1).view(np.uint8).data)
                 yield bucket
 
-        data = cls._from_chunks(hashed(iter_buckets(study, dtype=dtype)), config, runs_per_part=runs_per_part)
+        data = cls._from_chunks(
+            hashed(iter_buckets(study, dtype=dtype)), config, runs_per_part=runs_per_part, keep_slim=keep_slim
+        )
         data.source, data.content_digest = study, digest.hexdigest()
         return data
 
     @classmethod
-    def _from_chunks(cls, groups, config, *, runs_per_part: int) -> FitData:
-        """Features, slim batches and search layouts of buckets (in memory or streamed: a bucket's
-        meta may hold fewer runs than its batch, whose last runs are then padding)."""
+    def _from_chunks(cls, groups, config, *, runs_per_part: int, keep_slim: bool = True) -> FitData:
+        """Search layouts of buckets (in memory or streamed), and their slim batches and features where
+        keep_slim."""
         batches, features, parts, counts, metas = [], [], [], [], []
-        for bucket in groups:
-            n_real = len(bucket.meta)
-            size = min(bucket.batch.n_runs, runs_per_part)
-            for runs, chunk in iter_chunks(bucket.batch, size):
-                real = max(0, min(runs.stop, n_real) - runs.start)
-                if real == 0:
-                    continue
-                chunk = jax.tree.map(jnp.asarray, chunk)
-                feats = batch_features(chunk)
-                slim = eqx.tree_at(
-                    lambda b: b.bins, chunk, jnp.zeros((chunk.n_runs, 1, 64), chunk.bins.dtype)
-                )
+        for slim, feats, real, meta in _slim_chunks(groups, runs_per_part):
+            if keep_slim:
                 batches.append(slim)
                 features.append(feats)
-                parts.append(prepare(slim, feats))
-                counts.append(real)
-                metas.append(bucket.meta.iloc[runs.start : runs.start + real])
+            parts.append(prepare(slim, feats))
+            counts.append(real)
+            metas.append(meta)
         meta = pd.concat(metas, ignore_index=True)
-        return cls(batches, features, parts, counts, meta, config or ObjectiveConfig())
+        return cls(
+            batches, features, parts, counts, meta, config or ObjectiveConfig(), runs_per_part=runs_per_part
+        )
 
     def full_buckets(self) -> Iterable[Bucket]:
         """The runs with everything (keypoint bins included) for jsve.evaluation.evaluate, in the order
         of `meta`: the buckets held, or the Parquet study streamed again."""
         if self.source is None:
             return self.buckets
-        return iter_buckets(self.source, dtype=self.batches[0].t.dtype)
+        return iter_buckets(self.source, dtype=self.parts[0].t.dtype)
 
     @classmethod
     def from_runs(
@@ -219,6 +247,24 @@ class FitData:
             out.append(jnp.asarray(chunk, part.t.dtype))
             start += n
         return out
+
+
+def _slim_chunks(groups: Iterable[Bucket], runs_per_part: int):
+    """(slim batch, features, real runs, their meta rows) per part of buckets: a bucket cut into parts
+    of at most runs_per_part runs (its meta may hold fewer runs than its batch, whose last runs are then
+    padding; a part of padding alone is skipped), the keypoint bins dropped once the features hold
+    what rules need of them."""
+    for bucket in groups:
+        n_real = len(bucket.meta)
+        size = min(bucket.batch.n_runs, runs_per_part)
+        for runs, chunk in iter_chunks(bucket.batch, size):
+            real = max(0, min(runs.stop, n_real) - runs.start)
+            if real == 0:
+                continue
+            chunk = jax.tree.map(jnp.asarray, chunk)
+            feats = batch_features(chunk)
+            slim = eqx.tree_at(lambda b: b.bins, chunk, jnp.zeros((chunk.n_runs, 1, 64), chunk.bins.dtype))
+            yield slim, feats, real, bucket.meta.iloc[runs.start : runs.start + real]
 
 
 def _padded(n: int, multiple: int = 64) -> int:
@@ -278,10 +324,9 @@ def hard_objective(data: FitData, space: ParamSpace, values, weights=None) -> fl
 def relaxed_objective(data: FitData, space: ParamSpace, values, temperature: float, weights=None) -> float:
     """The relaxed objective (metres) of one setting at a temperature in SVE units."""
     w = data.split_weights(_default_weights(data, weights))
-    z = space.z_from_values(jnp.asarray(values, data.batches[0].t.dtype))
-    return float(
-        _relaxed_jit(z, data.batches, data.features, w, jnp.asarray(temperature, z.dtype), space, data.config)
-    )
+    batches, features = data.slim()
+    z = space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype))
+    return float(_relaxed_jit(z, batches, features, w, jnp.asarray(temperature, z.dtype), space, data.config))
 
 
 _hard_jit = eqx.filter_jit(_hard_value)
@@ -379,15 +424,16 @@ def relaxed_fit(
         hard value, steps).
     """
     w = data.split_weights(_default_weights(data, weights))
-    dtype = data.batches[0].t.dtype
+    batches, features = data.slim()
+    dtype = data.parts[0].t.dtype
     z = space.z_from_values(jnp.asarray(start, dtype))
     history = []
     for temperature in temperatures:
         tau = jnp.asarray(temperature, dtype)
         z, steps = _bfgs(
             z,
-            data.batches,
-            data.features,
+            batches,
+            features,
             w,
             tau,
             space,
@@ -396,7 +442,7 @@ def relaxed_fit(
             float(rtol),
             float(atol),
         )
-        relaxed = float(_relaxed_jit(z, data.batches, data.features, w, tau, space, data.config))
+        relaxed = float(_relaxed_jit(z, batches, features, w, tau, space, data.config))
         hard = float(_hard_jit(z, data.parts, w, space, data.config))
         history.append(
             {"temperature": float(temperature), "relaxed": relaxed, "hard": hard, "steps": int(steps)}
@@ -616,6 +662,7 @@ def fit(
     )
     log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
 
+    release_memory()  # the search's executables (one per part and rung shape) are not needed again
     starts = [search_result.values[i] for i in order[: max(config.n_starts, 0)]]
     for i, start in enumerate(starts):
         t1 = time.perf_counter()

@@ -29,6 +29,7 @@ import jax
 import numpy as np
 import pandas as pd
 
+from jsve._memory import peak_resident_bytes, release_memory
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination, feature_metrics
@@ -185,7 +186,7 @@ def data_fingerprint(data: FitData) -> str:
         total.update(data.meta.to_csv(index=False).encode())
         return total.hexdigest()[:16]
     total = hashlib.sha256()
-    batches = [b.batch for b in data.buckets] if data.buckets else list(data.batches)
+    batches = [b.batch for b in data.buckets] if data.buckets else [b for b, _, _ in data.iter_slim()]
     for batch in batches:
         for leaf in jax.tree_util.tree_leaves(batch):
             array = np.ascontiguousarray(np.asarray(leaf))
@@ -258,6 +259,11 @@ class Stages:
         started = time.perf_counter()
         info = fn() or {}
         info["seconds"] = time.perf_counter() - started
+        # the process's peak so far (the stage's own where memory grew in it), then what it left behind
+        peak = peak_resident_bytes()
+        if peak is not None:
+            info["peak_rss_gb"] = round(peak / 1e9, 2)
+        release_memory()
         self.done[name] = info
         write_json({"key": self.key, "done": self.done}, self.path)
         return info
@@ -299,10 +305,10 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
     Figs 4-6)."""
     rows = []
     meta = data.meta
-    for name, combo in combinations.items():
-        sums = []
-        for feats, batch, n_real in zip(data.features, data.batches, data.run_counts, strict=True):
-            valid = np.asarray(batch.valid[:n_real], np.float64)
+    sums = {name: [] for name in combinations}
+    for batch, feats, n_real in data.iter_slim():  # one pass: the parts may be streamed again
+        valid = np.asarray(batch.valid[:n_real], np.float64)
+        for name, combo in combinations.items():
             values = {
                 "sve": combo.score(feats),
                 **feature_metrics(feats, combo.rho),
@@ -312,8 +318,9 @@ def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.D
                 x = np.asarray(v[:n_real], np.float64)
                 part[f"{key}_sum"] = (x * valid).sum(1)
                 part[f"{key}_sq"] = (x * x * valid).sum(1)
-            sums.append(pd.DataFrame(part))
-        per_run = pd.concat(sums, ignore_index=True)
+            sums[name].append(pd.DataFrame(part))
+    for name in combinations:
+        per_run = pd.concat(sums[name], ignore_index=True)
         per_run["disturbance"] = meta["disturbance"].to_numpy()
         per_run["level"] = meta["level"].to_numpy()
         grouped = per_run.groupby(["disturbance", "level"], sort=True).sum(numeric_only=True)

@@ -1,0 +1,84 @@
+"""Giving memory back between the stages of a long computation.
+
+Measured on the 3,410-log study (8.2 M frames): after loading, live JAX arrays held 3.4 GB and stayed
+so to the end, yet the process grew by about 1 GB a minute through the fit's search, its Nelder-Mead
+polishes and the cross-validation folds, to 16-19 GB. What grew was not data but what finished work
+leaves behind: JAX's compiled executables (each length bucket, each subset of a halving rung, each
+packed polish is its own shape; clearing them after the search gave back 1.9 GB) and glibc's freed heap
+pages, which stay with the process until trimmed (0.5-1 GB after each stage). `release_memory` drops
+both. JAX then compiles a shape seen before again, which the commands' persistent compilation cache
+(jsve._jax_cache) turns into a read from disk.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import logging
+import os
+import sys
+
+log = logging.getLogger(__name__)
+
+RELEASE_ABOVE_BYTES = 3 * 1024**3
+"""`release_memory` drops JAX's compiled executables only when the process holds more than this
+(resident): below it they are worth keeping (recompiling costs time), above it a long job would grow
+past a 24 GB machine's memory."""
+
+
+def resident_bytes() -> int | None:
+    """The process's resident set size in bytes (Linux /proc), or None where it cannot be read."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE")
+
+
+def peak_resident_bytes() -> int | None:
+    """The most the process has held resident so far, in bytes (getrusage; None where unavailable)."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak if sys.platform == "darwin" else peak * 1024  # macOS counts bytes, Linux KiB
+
+
+def _trim_heap() -> bool:
+    """glibc's malloc_trim(0): free heap pages back to the system; False where there is no glibc."""
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        return bool(libc.malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
+
+
+def release_memory(*, above_bytes: int | None = RELEASE_ABOVE_BYTES) -> dict:
+    """Collect Python's garbage, drop JAX's compiled executables where the process holds more than
+    `above_bytes` (None: always), and trim the heap. Results never change: only what is recomputed.
+
+    Returns:
+        {"before": resident bytes or None, "after": ..., "cleared": whether executables were dropped}.
+    """
+    import jax
+
+    gc.collect()
+    before = resident_bytes()
+    cleared = above_bytes is None or (before is not None and before > above_bytes)
+    if cleared:
+        jax.clear_caches()
+        gc.collect()
+    _trim_heap()
+    after = resident_bytes()
+    if before is not None and after is not None:
+        log.debug("memory: %.2f -> %.2f GB (executables dropped: %s)", before / 1e9, after / 1e9, cleared)
+    return {"before": before, "after": after, "cleared": cleared}
+
+
+__all__ = ["release_memory", "resident_bytes", "peak_resident_bytes", "RELEASE_ABOVE_BYTES"]
