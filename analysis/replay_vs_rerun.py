@@ -564,8 +564,10 @@ def write_markdown(out: Path, parts: dict) -> None:
         f"{MIN_IN_BAND_RATIO:g} times as often as another re-run would and their bias is within "
         f"{100 * MAX_ABS_BIAS_M:g} cm or not significantly beyond it (|bias| - 1.96 se); bins of fewer than "
         f"{MIN_REPLAYS_PER_BIN} replays are no evidence. The replay is trusted up to the last agreeing bin "
-        "before the first disagreeing one. jsve.evaluation.REPLAY_TRUSTED_CHANGED_SHARE is now "
-        f"{100 * REPLAY_TRUSTED_CHANGED_SHARE:g} % (`record-orbslam3` recordings, switch model `orbslam3`).",
+        "before the first disagreeing one. jsve.evaluation.REPLAY_TRUSTED_CHANGED_SHARE holds, per switch "
+        "model: "
+        + ", ".join(f"`{m}` {100 * v:g} %" for m, v in REPLAY_TRUSTED_CHANGED_SHARE.items())
+        + " (recordings in `record` mode under that model).",
         "",
         markdown_table(trust_markdown(parts["trusted"])),
         "",

@@ -25,6 +25,7 @@ from jsve.evaluation import (
     run_loss,
     trust_region_warning,
     trusted_changed_share,
+    trusted_share,
     unmatched,
 )
 
@@ -241,7 +242,22 @@ def test_trust_region_warning_fires_above_the_threshold_only():
     assert trust_region_warning("fitted-sve", 0.03, threshold=0.02).startswith("`fitted-sve` changes 3.0 %")
     assert trust_region_warning("fitted-sve", 0.02, threshold=0.02) is None
     assert trust_region_warning("fitted-sve", 0.01, threshold=0.02) is None
-    assert trust_region_warning("x", REPLAY_TRUSTED_CHANGED_SHARE * 1.01) is not None
+    limit = REPLAY_TRUSTED_CHANGED_SHARE["orbslam3"]
+    assert trust_region_warning("x", limit * 1.01) is not None  # the default model: stock ORB-SLAM3
+
+
+def test_each_switch_model_has_its_own_measured_trust_region():
+    """docs/data/validation_trust.csv: replays under `orbslam3` agreed up to 0.1 % of changed decisions,
+    under `imu-coast` on its own recordings up to 1 %; a model the study did not cover has none."""
+    assert REPLAY_TRUSTED_CHANGED_SHARE == {"orbslam3": 0.001, "imu-coast": 0.01}
+    assert trusted_share("imu-coast") == 0.01
+    assert trust_region_warning("fitted-sve", 0.005, switch_model="imu-coast") is None
+    assert trust_region_warning("fitted-sve", 0.005, switch_model="orbslam3") is not None
+    line = trust_region_warning("fitted-sve", 0.02, switch_model="imu-coast")
+    assert line is not None
+    assert "more than the 1.0 % up to which replays under switch model `imu-coast`" in line
+    with pytest.raises(ValueError, match="no validated trust region for switch model 'other'"):
+        trust_region_warning("fitted-sve", 0.5, switch_model="other")
 
 
 def test_deploy_difference_equals_a_hand_computation():

@@ -688,14 +688,32 @@ def test_the_report_says_whether_the_fitted_rule_stays_where_replays_were_valida
     _with_changed(outside, 0.05)
     assert trust_warnings(inside) == []
     assert (
-        "changes 0 % of the recordings' decisions, within the 0.1 % up to which replays agreed"
-        in _section(write_report(inside)["markdown"].read_text(), "Headline")
+        "changes 0 % of the recordings' decisions, within the 0.1 % up to which replays under switch "
+        "model `orbslam3` agreed" in _section(write_report(inside)["markdown"].read_text(), "Headline")
     )
     (line,) = trust_warnings(outside)
     assert line.startswith("`fitted-sve` changes 5.0 % of the recordings' decisions, more than the 0.1 %")
     assert line in _section(write_report(outside)["markdown"].read_text(), "Headline")
     # the threshold decides: 5 % is inside a region that reaches 10 %
-    assert trust_warnings(outside, threshold=0.1) == [] and REPLAY_TRUSTED_CHANGED_SHARE < 0.05
+    assert trust_warnings(outside, threshold=0.1) == [] and REPLAY_TRUSTED_CHANGED_SHARE["orbslam3"] < 0.05
+
+
+def test_the_trust_region_is_that_of_the_study_switch_model(tmp_path):
+    """A study replayed under `imu-coast` is judged by that model's region (1 %), not stock ORB-SLAM3's."""
+    import json
+
+    from jsve.report._report import trust_warnings
+
+    out = tmp_path / "coast"
+    _with_changed(out, 0.005)
+    assert len(trust_warnings(out)) == 1  # beyond `orbslam3`'s 0.1 %
+    study = json.loads((out / "study.json").read_text())
+    study["config"]["switch_model"] = "imu-coast"
+    (out / "study.json").write_text(json.dumps(study))
+    assert trust_warnings(out) == []
+    assert "within the 1.0 % up to which replays under switch model `imu-coast` agreed" in _section(
+        write_report(out)["markdown"].read_text(), "Headline"
+    )
 
 
 @pytest.mark.parametrize("changed", [0.0, 0.05])

@@ -31,6 +31,7 @@ from jsve.evaluation._agreement import replay_rows as replay_rows
 from jsve.evaluation._agreement import rerun_summary as rerun_summary
 from jsve.evaluation._agreement import trust_region_warning as trust_region_warning
 from jsve.evaluation._agreement import trusted_changed_share as trusted_changed_share
+from jsve.evaluation._agreement import trusted_share as trusted_share
 from jsve.evaluation._agreement import unmatched as unmatched
 from jsve.evaluation._evaluate import Evaluation as Evaluation
 from jsve.evaluation._evaluate import evaluate as evaluate

@@ -70,20 +70,35 @@ CHANGED_SHARE_EDGES = (0.0, 0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
 """Bin edges of the replay's changed share (the first bin, 0 to 0.1 %, holds the replays that change
 no decision of a 700-frame run): fine where the presets' replays lie (0-5 % of the frames)."""
 
-REPLAY_TRUSTED_CHANGED_SHARE = 0.001
-"""Largest share of changed decisions (`changed_fraction`: frames whose replayed state differs from the
-recording's) up to which replays agreed with re-runs of the real ORB-SLAM3 (`trusted_changed_share`):
-0.1 %, less than one frame of a 700-frame run, so in effect only a replay that changes no decision.
+REPLAY_TRUSTED_CHANGED_SHARE = {"orbslam3": 0.001, "imu-coast": 0.01}
+"""Per switch model (jsve.core's SWITCH_MODELS): the largest share of changed decisions
+(`changed_fraction`: frames whose replayed state differs from the recording's) up to which replays
+agreed with re-runs of the real ORB-SLAM3 (`trusted_changed_share`), with recordings made in `record`
+mode under that switch model.
 
 Measured by the replay-vs-re-run validation study (issue 11, docs/validation.md: rendered V1_01 and
-V2_01, blur 0-40 and occlusion 200/350, `record`-mode recordings under switch model `orbslam3`, 5
-re-runs per setting). Measured on the whole study (2026-11-24: 140 recordings, 560 re-runs of 4
-rules under 2 switch models, docs/data/validation_trust.csv): under `orbslam3` the replays agree up to
-0-0.1 % (the 34 `record-orbslam3` replays beyond it: in the band 0.74 times as often as another re-run,
-bias +133 cm); under `imu-coast` with its own recordings up to 1 % (not used here: the default switch
-model is `orbslam3`, and this one value is the stricter of the two).
-`jsve fit` warns, and its report says, when a fitted rule changes more than this.
+V2_01, blur 0-40 and occlusion 200/350, 5 re-runs per setting; 2026-11-24: 140 recordings, 560 re-runs
+of 4 rules under 2 switch models, docs/data/validation_trust.csv):
+- `orbslam3` (stock ORB-SLAM3 v1.0, the default): 0.1 %, less than one frame of a 700-frame run, so in
+  effect only a replay that changes no decision. Beyond it the 34 `record-orbslam3` replays landed in
+  the re-runs' band 0.74 times as often as another re-run, bias +133 cm.
+- `imu-coast` (the hooked front-end that coasts on the IMU): 1 % on its own recordings
+  (`record-imu-coast`; 0.1-1 % agreed, bins beyond it held too few replays to extend the region).
+`jsve fit` warns, and its report says, when a fitted rule changes more than its switch model's share
+(`trusted_share`).
 """
+
+
+def trusted_share(switch_model: str) -> float:
+    """REPLAY_TRUSTED_CHANGED_SHARE of a switch model; a ValueError naming the known ones otherwise
+    (a model the validation did not cover has no trust region)."""
+    try:
+        return REPLAY_TRUSTED_CHANGED_SHARE[switch_model]
+    except KeyError:
+        raise ValueError(
+            f"no validated trust region for switch model {switch_model!r}; "
+            f"measured: {', '.join(REPLAY_TRUSTED_CHANGED_SHARE)}"
+        ) from None
 
 
 def rerun_summary(
@@ -593,20 +608,22 @@ def trusted_changed_share(bins: pd.DataFrame) -> float:
 
 
 def trust_region_warning(
-    rule: str, changed_share: float, threshold: float = REPLAY_TRUSTED_CHANGED_SHARE
+    rule: str, changed_share: float, *, switch_model: str = "orbslam3", threshold: float | None = None
 ) -> str | None:
     """The sentence `jsve fit` warns with and its report's caveats carry when a rule's replays change more
-    decisions than the replay was validated for; None inside the region.
+    decisions than the replay was validated for under its switch model; None inside the region.
 
     Arguments:
         rule: the rule's name. changed_share: its mean share of frames whose replayed state differs from
-            the recording's (`changed_fraction`). threshold: REPLAY_TRUSTED_CHANGED_SHARE.
+            the recording's (`changed_fraction`). switch_model: the replay's. threshold: the share
+            trusted (default `trusted_share(switch_model)`).
     """
-    if not changed_share > threshold:
+    limit = trusted_share(switch_model) if threshold is None else threshold
+    if not changed_share > limit:
         return None
     return (
         f"`{rule}` changes {100 * changed_share:.1f} % of the recordings' decisions, more than the "
-        f"{100 * threshold:.1f} % up to which replays agreed with re-runs of the real ORB-SLAM3 "
-        "(docs/validation.md): its replayed scores are extrapolated; re-run it in the "
-        "front-end before trusting them"
+        f"{100 * limit:.1f} % up to which replays under switch model `{switch_model}` agreed with "
+        "re-runs of the real ORB-SLAM3 (docs/validation.md): its replayed scores are extrapolated; "
+        "re-run it in the front-end before trusting them"
     )

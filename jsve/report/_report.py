@@ -141,21 +141,23 @@ def summary_lines(out_dir: str | os.PathLike, *, report: bool = True) -> list[st
 
 def trust_warnings(out_dir: str | os.PathLike, threshold: float | None = None) -> list[str]:
     """One line per fitted rule of a study whose replays change more of the recordings' decisions than
-    replays were validated for (jsve.evaluation.trust_region_warning; `jsve fit` prints them).
+    replays under the study's switch model were validated for (jsve.evaluation.trust_region_warning;
+    `jsve fit` prints them).
 
     Arguments:
         out_dir: the study folder. threshold: the changed share trusted (default
-            jsve.evaluation.REPLAY_TRUSTED_CHANGED_SHARE).
+            jsve.evaluation.trusted_share of the study's switch model).
     Raises:
         FileNotFoundError: the folder holds no finished study.
     """
-    o = read_study(Path(out_dir)).overview
+    s = read_study(Path(out_dir))
+    o = s.overview
     if "changed" not in o:
         return []
+    model = s.study.get("config", {}).get("switch_model", "orbslam3")
     fitted = [fitted_rule_name(f) for f in BASELINES]
-    kwargs = {} if threshold is None else {"threshold": threshold}
     lines = [
-        trust_region_warning(r, c, **kwargs)
+        trust_region_warning(r, c, switch_model=model, threshold=threshold)
         for r, c in zip(o["rule"], o["changed"], strict=True)
         if r in fitted
     ]

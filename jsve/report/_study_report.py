@@ -21,7 +21,7 @@ import pandas as pd
 
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
 from jsve.core._rules import BASELINES, param_names, preset, rule_params
-from jsve.evaluation import REPLAY_TRUSTED_CHANGED_SHARE, trust_region_warning
+from jsve.evaluation import trust_region_warning, trusted_share
 from jsve.report import _derive as derive
 from jsve.report import _figures as figures
 from jsve.report._document import Bullets, Details, Figure, Section, Sub, Table
@@ -430,16 +430,16 @@ def _capital(text: str) -> str:
     return text[:1].upper() + text[1:]
 
 
-def trust_sentence(rule: str, changed: float) -> str:
-    """Whether `rule`'s replays stay where replays agreed with re-runs of the real front-end
-    (jsve.evaluation.REPLAY_TRUSTED_CHANGED_SHARE): the warning `jsve fit` prints, or that it stays."""
-    warning = trust_region_warning(rule, changed)
+def trust_sentence(rule: str, changed: float, switch_model: str = "orbslam3") -> str:
+    """Whether `rule`'s replays stay where replays under `switch_model` agreed with re-runs of the real
+    front-end (jsve.evaluation.trusted_share): the warning `jsve fit` prints, or that it stays."""
+    warning = trust_region_warning(rule, changed, switch_model=switch_model)
     if warning is not None:
         return warning + "."
     return (
         f"`{rule}` changes {percent(changed)} of the recordings' decisions, within the "
-        f"{percent(REPLAY_TRUSTED_CHANGED_SHARE)} up to which replays agreed with re-runs of the real "
-        "ORB-SLAM3 (docs/validation.md)."
+        f"{percent(trusted_share(switch_model))} up to which replays under switch model `{switch_model}` "
+        "agreed with re-runs of the real ORB-SLAM3 (docs/validation.md)."
     )
 
 
@@ -467,7 +467,8 @@ def _caveats(s: StudyFolder, rec: derive.Recommendation, heldout_summary: pd.Dat
             "frame helps only where the IMU beats the logged visual pose."
         )
     if overview is not None and "changed" in overview and rec.rule in set(overview["rule"]):
-        items.append(trust_sentence(rec.rule, float(overview.set_index("rule").loc[rec.rule, "changed"])))
+        changed = float(overview.set_index("rule").loc[rec.rule, "changed"])
+        items.append(trust_sentence(rec.rule, changed, model))
     if overview is not None and "rejected" in overview:
         o = overview.set_index("rule")
         if rec.rule in o.index and o.loc[rec.rule, "rejected"] < RARELY_SWITCHES:
