@@ -88,7 +88,18 @@ def register(subparsers) -> None:
         help="seed of designs, folds and bootstraps (default: --config's, else 0)",
     )
     common.add_on_error_option(p)
-    common.add_workers_option(p)
+    common.add_workers_option(p, "processes reading the logs, and Dask workers of --scheduler local")
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="local|processes|ADDRESS",
+        help="run the searches over rule settings as Dask tasks, settings sharded across workers that each "
+        "stream the Parquet study (LOGS must be a .parquet file): local, an embedded Dask cluster of "
+        "--workers processes; processes, a process pool; or a running Dask cluster's scheduler address "
+        "(tcp://host:8786) or scheduler file, whose workers must have the same jsve and see LOGS under the "
+        "same absolute path (docs/scaling.md). Each worker holds the study's search layout (1.7 GB at "
+        "3,410 logs). Default: in this process, on every core",
+    )
     common.add_progress_option(p)
     p.add_argument(
         "--no-estimate",
@@ -150,6 +161,13 @@ def run(args) -> int:
     from jsve.io._atomic import check_writable
 
     check_writable(args.output)  # before reading the logs: an unwritable folder fails at once
+    if args.scheduler is not None:  # a wrong value fails before the logs are read
+        from jsve.io._scheduler import SchedulerError, check_scheduler
+
+        try:
+            check_scheduler(args.scheduler)
+        except SchedulerError as err:
+            return common.fail("fit", err)
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
     enable_compilation_cache()  # a second run compiles nothing
     try:
@@ -189,6 +207,12 @@ def run(args) -> int:
             data = FitData.from_runs(runs, config.objective())
     except (ValueError, OSError) as err:  # LogFormatError is a ValueError
         return common.fail("fit", err)
+    if args.scheduler is not None:
+        from jsve.fitting._distributed import ShardedSearch
+
+        if not streamed:
+            return common.fail("fit", "--scheduler needs a Parquet study (`jsve ingest` the logs first)")
+        data.searcher = ShardedSearch.of(data, args.scheduler, args.workers)
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
     description = {"source": str(args.logs)}
     expected = None
@@ -201,14 +225,19 @@ def run(args) -> int:
             print("jsve fit: every stage is done already: nothing to estimate", file=sys.stderr)
         return 0
     from_estimate = time.perf_counter()
-    run_study(
-        data,
-        args.output,
-        config,
-        progress=not args.no_progress,
-        data_description=description,
-        force=args.force,
-    )
+    try:
+        run_study(
+            data,
+            args.output,
+            config,
+            progress=not args.no_progress,
+            data_description=description,
+            force=args.force,
+        )
+    finally:
+        close = getattr(data.searcher, "close", None)
+        if close is not None:
+            close()  # a local cluster's or pool's workers
     if not args.no_report:
         write_report(args.output)
     for line in trust_warnings(args.output):  # beyond what the replay-vs-re-run validation supports

@@ -37,6 +37,7 @@ from jsve.fitting._fit import (
     fit_cache,
     fitted_rule_name,
     resolve_search,
+    search_all,
     search_design,
 )
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
@@ -231,14 +232,8 @@ def cross_validate(
             else:
                 log.info("cross-validation of %s: per-run results do not fit memory, folds halve alone", name)
         elif name not in searches:
-            searches[name] = search(
-                data.parts,
-                space,
-                search_design(space, config),
-                data.config,
-                run_counts=data.run_counts,
-                progress=progress,
-                desc=f"search {name}",
+            searches[name] = search_all(
+                data, space, search_design(space, config), progress=progress, desc=f"search {name}"
             )
     per_rule = preset_results(data, presets, progress=progress)
 

@@ -21,7 +21,7 @@ import hashlib
 import logging
 import math
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import equinox as eqx
@@ -90,6 +90,9 @@ class FitData:
         content_digest: sha256 (hex) of every leaf of the full chunks as they streamed, or None
             (jsve.fitting._study.data_fingerprint hashes `buckets` then).
         runs_per_part: the most runs of a part (how the buckets were cut into parts).
+        searcher: where the fit's searches run: None in this process, else a callable (space, values,
+            runs, progress=, desc=) -> SearchResult (jsve.fitting._distributed.ShardedSearch: Dask
+            workers). Not part of the data: results are the same either way.
     """
 
     batches: list[LogBatch]
@@ -102,6 +105,7 @@ class FitData:
     source: ParquetStudy | None = None
     content_digest: str | None = None
     runs_per_part: int = 4096
+    searcher: Callable | None = None
 
     @property
     def n_runs(self) -> int:
@@ -592,7 +596,19 @@ def search_design(space: ParamSpace, config: FitConfig, starts: Sequence[np.ndar
 
 def fit_cache(data: FitData, space: ParamSpace, config: FitConfig) -> RunLossCache:
     """An empty cache of per-run results of the fit's design (search_design) on `data`."""
-    return RunLossCache(data.parts, data.run_counts, space, search_design(space, config), data.config)
+    return RunLossCache(
+        data.parts, data.run_counts, space, search_design(space, config), data.config, searcher=data.searcher
+    )
+
+
+def search_all(data: FitData, space: ParamSpace, values, *, progress: bool = True, desc: str = "search"):
+    """`search` of every setting of `values` on every run of `data`, where data.searcher says (in this
+    process by default)."""
+    if data.searcher is not None:
+        return data.searcher(space, values, None, progress=progress, desc=desc)
+    return search(
+        data.parts, space, values, data.config, run_counts=data.run_counts, progress=progress, desc=desc
+    )
 
 
 def fit(
@@ -637,14 +653,8 @@ def fit(
         )
         search_result, screening = halving.search, halving.as_dict()
     elif search_result is None:
-        search_result = search(
-            data.parts,
-            space,
-            search_design(space, config),
-            data.config,
-            run_counts=data.run_counts,
-            progress=progress,
-            desc=f"search {space.kind}",
+        search_result = search_all(
+            data, space, search_design(space, config), progress=progress, desc=f"search {space.kind}"
         )
     obj = search_result.objective(w)
     order = np.argsort(obj, kind="stable")
@@ -750,6 +760,7 @@ __all__ = [
     "relaxed_objective",
     "search_design",
     "fit_cache",
+    "search_all",
     "SEARCH_METHODS",
     "AUTO_FIRST_RUNG_RUNS",
     "resolve_search",

@@ -31,7 +31,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import jax
@@ -168,6 +168,8 @@ class RunLossCache:
         known: [S, R] which pairs are computed; the SearchResult fields [S, R] hold them (undefined
             elsewhere).
         evaluations: setting-runs computed so far (the cost, in the kernel's unit).
+        searcher: where the kernel runs: None in this process, else a callable (space, values, runs,
+            progress=, desc=) -> SearchResult on those global runs (jsve.fitting._distributed.ShardedSearch).
     """
 
     parts: Sequence[SearchBatch]
@@ -178,6 +180,7 @@ class RunLossCache:
     arrays: dict = field(default_factory=dict)
     known: np.ndarray | None = None
     evaluations: int = 0
+    searcher: Callable | None = None
 
     @property
     def n_runs(self) -> int:
@@ -219,19 +222,26 @@ class RunLossCache:
 
     def _compute(self, settings: np.ndarray, runs: np.ndarray, progress: bool, desc: str) -> None:
         """Run the search kernel on settings x runs and store the pairs not known yet."""
-        if len(runs) == self.n_runs:
-            parts, counts, columns = list(self.parts), list(self.run_counts), np.arange(self.n_runs)
+        every = len(runs) == self.n_runs
+        if self.searcher is not None:
+            columns = np.arange(self.n_runs) if every else np.unique(np.asarray(runs, np.int64))
+            res = self.searcher(
+                self.space, self.values[settings], None if every else columns, progress=progress, desc=desc
+            )
         else:
-            parts, counts, columns = lazy_subset_parts(self.parts, self.run_counts, runs)
-        res = search(
-            parts,
-            self.space,
-            self.values[settings],
-            self.config,
-            run_counts=counts,
-            progress=progress,
-            desc=desc or "search",
-        )
+            if every:
+                parts, counts, columns = list(self.parts), list(self.run_counts), np.arange(self.n_runs)
+            else:
+                parts, counts, columns = lazy_subset_parts(self.parts, self.run_counts, runs)
+            res = search(
+                parts,
+                self.space,
+                self.values[settings],
+                self.config,
+                run_counts=counts,
+                progress=progress,
+                desc=desc or "search",
+            )
         self.evaluations += len(settings) * len(columns)
         block = np.ix_(settings, columns)
         new = ~self.known[block]
