@@ -35,6 +35,8 @@ LAYERS: dict[str, frozenset[str] | None] = {
     "_version": frozenset(),
     # JAX's persistent compilation cache, switched on by the commands that compute (cli, _demo).
     "_jax_cache": frozenset(),
+    # Giving memory back between the stages of a long job (JAX's executables, the heap): fitting's stages.
+    "_memory": frozenset(),
     "core": frozenset(),
     "io": frozenset({"core"}),
     "evaluation": frozenset({"core", "io"}),
@@ -45,7 +47,7 @@ LAYERS: dict[str, frozenset[str] | None] = {
     # The simulator writes format-v1 logs through io, decides frames with core's state machine, and masks
     # the driving sequences with Algorithm 1 (sim/_driving.py); it needs nothing from image.
     "sim": frozenset({"core", "io", "masks"}),
-    "fitting": frozenset({"core", "io", "evaluation"}),
+    "fitting": frozenset({"_memory", "core", "io", "evaluation"}),
     "report": frozenset({"core", "io", "evaluation", "fitting"}),
     "_demo": ANYTHING,
     "cli": ANYTHING,

@@ -12,6 +12,7 @@ from jsve.fitting._crossval import leave_one_out as leave_one_out
 from jsve.fitting._designs import design as design
 from jsve.fitting._designs import grid_design as grid_design
 from jsve.fitting._designs import sobol as sobol
+from jsve.fitting._distributed import ShardedSearch as ShardedSearch
 from jsve.fitting._fit import SEARCH_METHODS as SEARCH_METHODS
 from jsve.fitting._fit import FitConfig as FitConfig
 from jsve.fitting._fit import FitData as FitData
@@ -20,6 +21,7 @@ from jsve.fitting._fit import fit as fit
 from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
 from jsve.fitting._fit import nelder_mead as nelder_mead
 from jsve.fitting._fit import relaxed_fit as relaxed_fit
+from jsve.fitting._fit import search_all as search_all
 from jsve.fitting._halving import HalvingResult as HalvingResult
 from jsve.fitting._halving import RunLossCache as RunLossCache
 from jsve.fitting._halving import halving_search as halving_search
