@@ -66,7 +66,8 @@ def test_the_fingerprint_is_that_of_the_content(both, tmp_path):
 
 def _by_run(meta, result):
     """A [1, R] SearchResult's losses and failures keyed by run id (FitData orders runs by bucket)."""
-    return {rid: (float(result.loss[0, i]), bool(result.failed[0, i])) for i, rid in enumerate(meta["run_id"])}
+    ids = enumerate(meta["run_id"])
+    return {rid: (float(result.loss[0, i]), bool(result.failed[0, i])) for i, rid in ids}
 
 
 def test_streamed_data_holds_only_the_search_layout_and_streams_the_rest_again(both):
