@@ -213,6 +213,9 @@ def run(args) -> int:
         if not streamed:
             return common.fail("fit", "--scheduler needs a Parquet study (`jsve ingest` the logs first)")
         data.searcher = ShardedSearch.of(data, args.scheduler, args.workers)
+    from jsve._memory import release_memory
+
+    release_memory()  # loading leaves each bucket shape's executables and freed heap behind (jsve._memory)
     logging.getLogger(__name__).info("fitting over %d runs, %d frames", data.n_runs, data.n_frames)
     description = {"source": str(args.logs)}
     expected = None
