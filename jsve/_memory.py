@@ -7,8 +7,8 @@ leaves behind: JAX's compiled executables (each length bucket, each subset of a 
 packed polish is its own shape; clearing them after the search gave back 1.9 GB) and glibc's freed heap
 pages, which stay with the process until trimmed (0.5-1 GB after each stage). Loading alone left 4.7 GB
 resident for 1.7 GB of data, and `jsve fit`'s timing probe took it to 6.9 GB; a release then gave back
-4.5 GB (to 2.4 GB). `release_memory` drops both. JAX then compiles a shape seen before again, which the commands' persistent compilation cache
-(jsve._jax_cache) turns into a read from disk.
+4.5 GB (to 2.4 GB). `release_memory` drops both. JAX then compiles a shape seen before again, which
+the commands' persistent compilation cache (jsve._jax_cache) turns into a read from disk.
 """
 
 from __future__ import annotations
