@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from jsve._memory import release_memory
 from jsve.core._objective import ObjectiveConfig
 from jsve.fitting._search import SearchBatch, SearchResult, search
 
@@ -389,6 +390,7 @@ def halving_searches(
         for i in active:
             need[np.ix_(alive[i], runs[i])] = True
         cache.fill_pairs(need, progress=progress, desc=f"{desc} rung {k + 1}/{n_rungs}")
+        release_memory()  # the rung's subsets were shapes of their own, not compiled again (jsve._memory)
         for i in active:
             obj = cache.result(alive[i], runs[i]).objective(ws[i][runs[i]])
             rank = np.argsort(obj, kind="stable")
