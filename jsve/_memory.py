@@ -60,13 +60,21 @@ def _trim_heap() -> bool:
         return False
 
 
+ENV = "JSVE_RELEASE_MEMORY"
+"""JSVE_RELEASE_MEMORY=0 (or off, false, no) turns `release_memory` off: a machine with memory to spare
+keeps every executable (no compiling a shape twice); analysis/bench_fit_memory.py compares both."""
+
+
 def release_memory(*, above_bytes: int | None = RELEASE_ABOVE_BYTES) -> dict:
     """Collect Python's garbage, drop JAX's compiled executables where the process holds more than
     `above_bytes` (None: always), and trim the heap. Results never change: only what is recomputed.
+    Nothing is done where $JSVE_RELEASE_MEMORY turns it off.
 
     Returns:
         {"before": resident bytes or None, "after": ..., "cleared": whether executables were dropped}.
     """
+    if os.environ.get(ENV, "1").strip().lower() in ("0", "off", "false", "no"):
+        return {"before": None, "after": None, "cleared": False}
     import jax
 
     gc.collect()
@@ -82,4 +90,4 @@ def release_memory(*, above_bytes: int | None = RELEASE_ABOVE_BYTES) -> dict:
     return {"before": before, "after": after, "cleared": cleared}
 
 
-__all__ = ["release_memory", "resident_bytes", "peak_resident_bytes", "RELEASE_ABOVE_BYTES"]
+__all__ = ["release_memory", "resident_bytes", "peak_resident_bytes", "RELEASE_ABOVE_BYTES", "ENV"]

@@ -21,6 +21,7 @@ from jsve.fitting._fit import fit as fit
 from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
 from jsve.fitting._fit import nelder_mead as nelder_mead
 from jsve.fitting._fit import relaxed_fit as relaxed_fit
+from jsve.fitting._fit import resolve_search as resolve_search
 from jsve.fitting._fit import search_all as search_all
 from jsve.fitting._halving import HalvingResult as HalvingResult
 from jsve.fitting._halving import RunLossCache as RunLossCache
@@ -37,3 +38,4 @@ from jsve.fitting._space import space_from_dict as space_from_dict
 from jsve.fitting._space import sve_space as sve_space
 from jsve.fitting._study import StudyConfig as StudyConfig
 from jsve.fitting._study import run_study as run_study
+from jsve.fitting._study import study_folds as study_folds
