@@ -25,7 +25,6 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import functools
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +33,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jsve.core._objective import ObjectiveConfig
-from jsve.fitting._search import SearchResult, search
+from jsve.fitting._search import RESULT_FIELDS, SearchResult, search
 from jsve.fitting._space import ParamSpace
 from jsve.io import _scheduler
 
@@ -42,8 +41,6 @@ SETTINGS_PER_TASK = 256
 """Settings per task: enough setting-runs for a task to outweigh its scheduling (a few ms) and the
 transfer of its [settings, R] results (256 x 3,410 runs x ~30 B = 26 MB), few enough that a design of
 2,048 settings keeps 8 workers busy."""
-
-_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included")
 
 
 @functools.lru_cache(maxsize=1)
@@ -73,7 +70,7 @@ def search_task(
     else:
         parts, counts, _ = lazy_subset_parts(data.parts, data.run_counts, runs)
     result = search(parts, space, values, config, run_counts=counts, progress=False)
-    return data.content_digest, {name: getattr(result, name) for name in _FIELDS}
+    return data.content_digest, {name: getattr(result, name) for name in RESULT_FIELDS}
 
 
 @dataclass
@@ -176,13 +173,8 @@ class ShardedSearch:
         assert len(shards_out) == len(shards)
         if n_runs is not None and shards_out[0]["loss"].shape[1] != n_runs:
             raise RuntimeError(f"a shard returned {shards_out[0]['loss'].shape[1]} runs, not {n_runs}")
-        arrays = {name: np.concatenate([o[name] for o in shards_out]) for name in _FIELDS}
+        arrays = {name: np.concatenate([o[name] for o in shards_out]) for name in RESULT_FIELDS}
         return SearchResult(values=values, **arrays)
 
 
-def expected_tasks(n_settings: int, settings_per_task: int = SETTINGS_PER_TASK) -> int:
-    """Tasks of a sharded search of n_settings settings."""
-    return math.ceil(n_settings / max(1, settings_per_task))
-
-
-__all__ = ["ShardedSearch", "search_task", "SETTINGS_PER_TASK", "expected_tasks"]
+__all__ = ["ShardedSearch", "search_task", "SETTINGS_PER_TASK"]

@@ -41,7 +41,7 @@ import pandas as pd
 
 from jsve._memory import release_memory
 from jsve.core._objective import ObjectiveConfig
-from jsve.fitting._search import SearchBatch, SearchResult, search
+from jsve.fitting._search import RESULT_FIELDS, SearchBatch, SearchResult, search
 
 log = logging.getLogger(__name__)
 
@@ -157,9 +157,6 @@ def subset_runs(run_counts: Sequence[int], part_runs: Sequence[int], runs: np.nd
     return sizes
 
 
-_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included")
-
-
 @dataclass
 class RunLossCache:
     """Per-run results of a fixed design's settings, filled on demand by the search kernel.
@@ -246,7 +243,7 @@ class RunLossCache:
         self.evaluations += len(settings) * len(columns)
         block = np.ix_(settings, columns)
         new = ~self.known[block]
-        for name in _FIELDS:
+        for name in RESULT_FIELDS:
             x = getattr(res, name)
             if name not in self.arrays:
                 self.arrays[name] = np.zeros((len(self.values), self.n_runs), x.dtype)
@@ -261,7 +258,7 @@ class RunLossCache:
             raise ValueError("RunLossCache.result: some pairs are not computed (fill them first)")
         return SearchResult(
             values=self.values[settings],
-            **{name: self.arrays[name][np.ix_(settings, runs)] for name in _FIELDS},
+            **{name: self.arrays[name][np.ix_(settings, runs)] for name in RESULT_FIELDS},
         )
 
 

@@ -527,6 +527,9 @@ class SearchResult:
         return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
 
 
+RESULT_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included")
+"""SearchResult's [S, R] matrices by name (every field but `values`)."""
+
 LANES_PER_CALL = 8192
 """Settings x runs per kernel call: enough lanes to vectorise each frame step, few enough that the scan's
 carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (measured best of 4k-64k lanes,
@@ -656,6 +659,7 @@ def use_all_cores() -> None:
 
 __all__ = [
     "SearchBatch",
+    "RESULT_FIELDS",
     "prepare",
     "search_chunk",
     "search",
