@@ -4,6 +4,7 @@ v1 logs (one summary warning) among v2 logs."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -21,6 +22,7 @@ from jsve.io import _ingest as ingest
 from jsve.io import _logs as logs
 from jsve.io import _schema as schema
 from jsve.io._errors import LogVersionWarning
+from jsve.io._groundtruth import GroundTruth
 from jsve.io._logs import LogFormatError
 
 N = 20  # frames of the small logs below
@@ -462,3 +464,69 @@ def test_a_folder_search_finds_gzip_and_upper_case_logs_and_names_the_rest(tmp_p
 )  # fmt: skip
 def test_log_names(name, is_log):
     assert ingest.is_log_name(name) is is_log
+
+
+# ---------------------------------------------------------------------------------------------------
+# The Parquet layout: both routes of a log (Arrow rows, RunLog frames) give the same file contents
+
+
+def _with_world(run: schema.RunLog, seed: int) -> schema.RunLog:
+    """The run with world_* columns: a random similarity per frame (unit quaternion, scale > 0)."""
+    rng = np.random.default_rng(seed)
+    frames = run.frames.copy()
+    q = rng.normal(size=(len(frames), 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    values = np.concatenate([q, rng.normal(size=(len(frames), 3)), rng.uniform(0.5, 2, (len(frames), 1))], 1)
+    for k, c in enumerate(schema.WORLD_COLUMNS):
+        frames[c] = values[:, k]
+    return schema.RunLog(meta=run.meta, frames=frames, source=run.source)
+
+
+def test_ingest_writes_every_column_group_as_the_frames_hold_it(tmp_path):
+    root = tmp_path / "logs"
+    logs.write_log(make_run(30, 0, sequence="V101"), root / "a.csv")  # gt_*
+    logs.write_log(make_run(30, 1, with_gt=False, sequence="V101"), root / "b.csv")  # none
+    logs.write_log(_with_world(make_run(30, 2, gt_missing=0.3, no_pose=0.3), 2), root / "c.csv")  # all
+    logs.write_log(_with_world(make_run(30, 3, with_gt=False, sequence="V101"), 3), root / "d.csv")
+    out = tmp_path / "s.parquet"
+    ingest.ingest(root, out, workers=1, progress=False)
+    expected = ingest.read_logs(root, workers=1, progress=False).runs
+    assert [r.has_world_frame for r in expected] == [False, False, True, True]
+    assert same_runs(ingest.read_parquet(out), expected)
+    table = pq.read_table(out)
+    rows = np.cumsum([0] + [len(r.frames) for r in expected])
+    # A group a run lacks is null; a frame without a value (pose, ground truth) is NaN, never null.
+    for k, run in enumerate(expected):
+        part = table.slice(rows[k], rows[k + 1] - rows[k])
+        for names, has in (
+            (schema.GT_COLUMNS, run.has_ground_truth),
+            (schema.WORLD_COLUMNS, run.has_world_frame),
+        ):
+            assert all(part.column(c).null_count == (0 if has else len(run.frames)) for c in names)
+        assert part.column("vis_px").null_count == 0
+
+
+def test_ingest_with_ground_truth_equals_reading_with_it(shared_data, tmp_path):
+    gt_path = shared_data / "euroc" / "groundtruth_left_cam" / "V101_GT.txt"
+    lines = [line for line in gt_path.read_text().splitlines() if not line.startswith("#")]
+    stamps = np.array([int(line.split(",")[0].split(".")[0]) for line in lines[100:140]], dtype=np.int64)
+    run = make_run(40, 1, with_gt=False, sequence="V101")
+    logs.write_log(dataclasses.replace(run, frames=run.frames.assign(t_ns=stamps)), tmp_path / "a.csv")
+    spec = {"V101": GroundTruth(gt_path, "euroc")}
+    ingest.ingest(tmp_path, tmp_path / "s.parquet", ground_truth=spec, workers=1, progress=False)
+    expected = ingest.read_logs(tmp_path, ground_truth=spec, workers=1, progress=False).runs
+    back = ingest.read_parquet(tmp_path / "s.parquet")
+    assert back[0].has_ground_truth and back[0].meta["gt_missing_frames"] == 0
+    assert same_runs(back, expected)
+
+
+def test_the_study_file_has_its_encodings(logdir, tmp_path):
+    out = tmp_path / "s.parquet"
+    ingest.ingest(logdir[0], out, on_error="quarantine", workers=1, progress=False)
+    meta = pq.ParquetFile(out).metadata.row_group(0)
+    columns = {meta.column(k).path_in_schema: meta.column(k) for k in range(meta.num_columns)}
+    assert {c.compression for c in columns.values()} <= {"LZ4", "LZ4_RAW"}
+    assert "BYTE_STREAM_SPLIT" in columns["vis_px"].encodings
+    assert (
+        "RLE_DICTIONARY" in columns["n_inliers"].encodings and "RLE_DICTIONARY" in columns["run_id"].encodings
+    )

@@ -15,6 +15,7 @@ are already complete and were simulated under the same seed, --imu, configuratio
 from __future__ import annotations
 
 import argparse
+import math
 
 from jsve.cli import _common as common
 from jsve.cli._scheduler import add_scheduler_option
@@ -56,6 +57,13 @@ def register(subparsers) -> None:
         "levels: blur,occlusion (their default levels) or blur=0,25,50,occlusion=100,200 (the earlier "
         "blur:0:25:50 works too); see `jsve disturb --list` for names and units",
     )
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="length of every procedural flight, s (at 20 frames/s: 180 s = 3,600 frames; default: each "
+        "flight's drawn between 80 and 180 s)",
+    )
     p.add_argument("--runs", type=int, default=10, metavar="N", help="runs per setting")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="study seed")
     common.add_workers_option(p, "processes simulating sequences")
@@ -76,12 +84,22 @@ def register(subparsers) -> None:
 @common.guarded("simulate")
 def run(args: argparse.Namespace) -> int:
     from jsve.io._scheduler import check_scheduler
+    from jsve.sim._motion import FlightProfile
     from jsve.sim._simulate import LOG_BYTES_PER_FRAME, SimConfig, settings, study_size, write_study
 
     if args.sequences and not args.euroc_gt:
         return common.fail("simulate", "--sequences needs --euroc-gt DIR (or use --procedural N)")
     if args.runs < 1:
         return common.fail("simulate", "--runs must be >= 1")
+    if args.duration is not None and args.sequences:
+        return common.fail(
+            "simulate", "--duration sets procedural flights' length; EuRoC sequences have their own"
+        )
+    if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
+        return common.fail(
+            "simulate", f"--duration must be a positive number of seconds, got {args.duration}"
+        )
+    flight = FlightProfile() if args.duration is None else FlightProfile(duration_s=(args.duration,) * 2)
     try:
         check_scheduler(args.scheduler)  # before the size is announced: a wrong value writes nothing
         grid = settings(args.disturbances)
@@ -91,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
             euroc_gt=args.euroc_gt,
             disturbances=args.disturbances,
             runs=args.runs,
+            flight=flight,
         )
         detail = f"{common.plural(logs, 'log')} x ~{frames:.0f} frames x ~{LOG_BYTES_PER_FRAME} B"
         stop = common.announce_size("simulate", args.output, total, detail, yes=args.yes)
@@ -105,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             runs=args.runs,
             seed=args.seed,
             workers=args.workers,
-            config=SimConfig(imu_source=args.imu),
+            config=SimConfig(imu_source=args.imu, flight=flight),
             progress=not args.no_progress,
             parquet=args.parquet,
             force=args.force,

@@ -23,6 +23,7 @@ import os
 import sys
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -36,16 +37,20 @@ from tqdm.auto import tqdm
 from jsve.io import _atomic as atomic
 from jsve.io import _schema as schema
 from jsve.io._errors import LogVersionWarning
-from jsve.io._groundtruth import GroundTruth, GroundTruthSpec, load_ground_truth
+from jsve.io._groundtruth import GroundTruth, GroundTruthSpec, apply_ground_truth, load_ground_truth
+from jsve.io._log_batches import iter_parsed
 from jsve.io._logs import (
     PARTIAL_SUFFIX,
     LogFormatError,
     LogIncompleteError,
+    read_log_table,
     read_log_version,
+    run_from_table,
     with_v1_defaults,
 )
 from jsve.io._schema import RunLog
 from jsve.io._stream import PARQUET_FORMAT_KEY, PARQUET_RUNS_KEY, check_run_rows, open_study
+from jsve.io._study_table import PARQUET_SCHEMA, PARQUET_WRITE_OPTIONS, row_group, run_rows
 from jsve.io._workers import process_pool
 
 # The log reader's logger: read_log's warnings in worker processes are collected from it (_read_chunk)
@@ -201,6 +206,65 @@ def _read_one(path: str, ground_truth) -> tuple[RunLog, int] | LogFormatError:
         return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
 
 
+@dataclass(frozen=True)
+class _LogRows:
+    """One valid log as `ingest` writes it: its entry in the file's run list, and its rows in the
+    study layout (jsve.io._study_table.run_rows; without run_id)."""
+
+    entry: dict
+    rows: pa.Table
+
+    @property
+    def run_id(self) -> str:
+        return self.entry["run_id"]
+
+
+def _read_rows_one(path: str, ground_truth) -> tuple[_LogRows, int] | LogFormatError:
+    """`_read_one` for `ingest`: (the log's rows, format version) or the error."""
+    try:
+        return _log_rows(path, *read_log_table(path), ground_truth)
+    except LogFormatError as e:
+        return e
+    except OSError as e:
+        return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
+
+
+def _log_rows(path: str, meta: dict, version: int, table: pa.Table, ground_truth) -> tuple[_LogRows, int]:
+    """(_LogRows, version) of a parsed log (read_log_table). A v2 log without ground truth to associate
+    goes from Arrow's parse to the layout with no pandas frame."""
+    if version == 2 and ground_truth is None:
+        columns = {c: table.column(c) for c in table.column_names}
+    else:
+        run = run_from_table(meta, version, table, path)
+        if ground_truth is not None:
+            run = apply_ground_truth(run, ground_truth)  # adds gt_* and their metadata
+        meta, columns = run.meta, {c: run.frames[c].to_numpy() for c in run.frames.columns}
+    entry = {
+        "run_id": schema.run_id(meta),
+        "source": path,
+        "meta": meta,
+        "n_frames": table.num_rows,
+        "has_ground_truth": all(c in columns for c in schema.GT_COLUMNS),
+        "has_world_frame": all(c in columns for c in schema.WORLD_COLUMNS),
+        # map_id / imu_ba2 of a v1 log are schema.v1_defaults, not recorded values.
+        "log_version": version,
+    }
+    return _LogRows(entry, run_rows(columns, table.num_rows)), version
+
+
+def _iter_rows_batched(paths: list[str], *, threads: int, progress: bool, stop_on_error: bool):
+    """(path, (_LogRows, version) | LogFormatError) in path order: `_iter_read` with reader=_read_rows_one,
+    for logs without ground truth to associate, read in batches parsed as one (jsve.io._log_batches)
+    on Arrow's threads in this process: nothing is pickled between processes."""
+    bar = tqdm(total=len(paths), disable=not progress, file=sys.stderr, unit="log", desc="reading logs")
+    try:
+        parsed = iter_parsed(paths, threads=threads, stop_on_error=stop_on_error, on_batch=bar.update)
+        for path, result in parsed:
+            yield path, result if isinstance(result, LogFormatError) else _log_rows(path, *result, None)
+    finally:
+        bar.close()
+
+
 def _warn_v1(paths: list[str], stacklevel: int) -> None:
     """One LogVersionWarning for every v1 log of a batch: how many, which defaults, the first few."""
     if not paths:
@@ -226,8 +290,9 @@ class _Collect(logging.Handler):
         self.records.append(record)
 
 
-def _read_chunk(paths: list[str], ground_truth, stop_on_error: bool):
-    """Worker: read a chunk of logs; warnings are returned to the parent to be logged there."""
+def _read_chunk(paths: list[str], ground_truth, stop_on_error: bool, reader=_read_one):
+    """Worker: read a chunk of logs with `reader` (_read_one or _read_rows_one); warnings are returned
+    to the parent to be logged there."""
     records: list = []
     handler = _Collect(records)
     logger.addHandler(handler)
@@ -235,7 +300,7 @@ def _read_chunk(paths: list[str], ground_truth, stop_on_error: bool):
     try:
         out = []
         for p in paths:
-            result = _read_one(p, ground_truth)
+            result = reader(p, ground_truth)
             out.append((p, result))
             if stop_on_error and isinstance(result, LogFormatError):
                 break
@@ -254,8 +319,17 @@ def _mp_context():
     return multiprocessing.get_context("spawn")
 
 
-def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_truth, stop_on_error: bool):
-    """(path, (RunLog, version) | LogFormatError) in the order of `paths`, read in parallel chunks."""
+def _iter_read(
+    paths: list[str],
+    *,
+    workers: int | None,
+    progress: bool,
+    ground_truth,
+    stop_on_error: bool,
+    reader=_read_one,
+):
+    """(path, reader's result: (RunLog or _LogRows, version) | LogFormatError) in the order of `paths`,
+    read in parallel chunks."""
     workers = (os.cpu_count() or 1) if workers is None else int(workers)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
@@ -263,7 +337,7 @@ def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_
     try:
         if workers == 1 or len(paths) < _MIN_LOGS_PER_WORKER * 2:
             for p in paths:
-                result = _read_one(p, ground_truth)
+                result = reader(p, ground_truth)
                 bar.update(1)
                 yield p, result
             return
@@ -274,7 +348,7 @@ def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_
             pending = collections.deque()
             # A bounded window of chunks in flight keeps memory flat however many logs there are.
             for c in chunks:
-                pending.append(executor.submit(_read_chunk, c, ground_truth, stop_on_error))
+                pending.append(executor.submit(_read_chunk, c, ground_truth, stop_on_error, reader))
                 if len(pending) >= 2 * workers:
                     break
             n_warnings = 0
@@ -286,7 +360,7 @@ def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_
                         logger.handle(record)
                 nxt = next(chunks, None)
                 if nxt is not None:
-                    pending.append(executor.submit(_read_chunk, nxt, ground_truth, stop_on_error))
+                    pending.append(executor.submit(_read_chunk, nxt, ground_truth, stop_on_error, reader))
                 for p, result in out:
                     bar.update(1)
                     yield p, result
@@ -299,25 +373,34 @@ def _iter_read(paths: list[str], *, workers: int | None, progress: bool, ground_
 
 
 def _good_runs(
-    paths, *, on_error: OnError, workers, progress, ground_truth, quarantined: list
-) -> Iterator[tuple[RunLog, int]]:
-    """(valid run, its format version) in path order; bad logs raise (on_error='raise') or go to
-    `quarantined`."""
+    paths, *, on_error: OnError, workers, progress, ground_truth, quarantined: list, reader=_read_one
+) -> Iterator[tuple]:
+    """(valid run, its format version) in path order, each run a RunLog (or _LogRows with
+    reader=_read_rows_one); bad logs raise (on_error='raise') or go to `quarantined`."""
     if on_error not in ("raise", "quarantine"):
         raise ValueError(f"on_error must be 'raise' or 'quarantine', got {on_error!r}")
     seen: dict[str, str] = {}
-    results = _iter_read(
-        paths,
-        workers=workers,
-        progress=progress,
-        ground_truth=ground_truth,
-        stop_on_error=on_error == "raise",
-    )
+    if reader is _read_rows_one and ground_truth is None:
+        results = _iter_rows_batched(
+            paths,
+            threads=(os.cpu_count() or 1) if workers is None else int(workers),
+            progress=progress,
+            stop_on_error=on_error == "raise",
+        )
+    else:
+        results = _iter_read(
+            paths,
+            workers=workers,
+            progress=progress,
+            ground_truth=ground_truth,
+            stop_on_error=on_error == "raise",
+            reader=reader,
+        )
     for path, result in results:
         version = None
         if not isinstance(result, LogFormatError):
             result, version = result
-        if isinstance(result, RunLog) and result.run_id in seen:
+        if not isinstance(result, LogFormatError) and result.run_id in seen:
             result = LogFormatError(
                 path,
                 1,
@@ -436,22 +519,6 @@ def load_runs(
 # Parquet
 
 
-PARQUET_SCHEMA = pa.schema(
-    [
-        pa.field("run_id", pa.dictionary(pa.int32(), pa.string()), nullable=False),
-        pa.field("frame", pa.int32(), False),
-    ]
-    + [pa.field(c, pa.int64(), nullable=False) for c in schema.INT_COLUMNS]
-    + [pa.field(c, pa.float64(), nullable=False) for c in schema.FLOAT_COLUMNS]
-    + [pa.field(c, pa.float64(), nullable=True) for c in schema.GT_COLUMNS]
-    + [pa.field(c, pa.float64(), nullable=True) for c in schema.WORLD_COLUMNS]
-)
-"""Layout of the consolidated Parquet file: one row per frame, runs contiguous in sorted path order.
-vis_* are NaN on frames without a pose; gt_* are null for runs without ground truth, NaN for frames
-without it in runs that have it; world_* are null for runs whose logs have none (files written
-before the world_* columns existed lack them: their runs have none)."""
-
-
 @dataclass(frozen=True)
 class IngestSummary:
     """What `ingest` did.
@@ -481,30 +548,33 @@ class IngestSummary:
         return text
 
 
-def _runs_to_table(runs: list[RunLog]) -> pa.Table:
-    lengths = np.array([len(r.frames) for r in runs])
-    run_ids = pa.DictionaryArray.from_arrays(
-        pa.array(np.repeat(np.arange(len(runs), dtype=np.int32), lengths)),
-        pa.array([r.run_id for r in runs], pa.string()),
-    )
-    frame = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
-    # One 2-D block per run and dtype (a pandas selection per block, not per column: ~100x fewer).
-    ints = np.concatenate([r.frames[list(schema.INT_COLUMNS)].to_numpy(np.int64) for r in runs])
-    floats = np.concatenate([r.frames[list(schema.FLOAT_COLUMNS)].to_numpy(np.float64) for r in runs])
-    arrays = [run_ids, pa.array(frame)]
-    arrays += [pa.array(column) for column in np.ascontiguousarray(ints.T)]
-    arrays += [pa.array(column) for column in np.ascontiguousarray(floats.T)]
-    for names, has in ((schema.GT_COLUMNS, "has_ground_truth"), (schema.WORLD_COLUMNS, "has_world_frame")):
-        # NaN stays NaN (a frame without ground truth); null marks a run without the columns.
-        nan = np.full((1, len(names)), np.nan)
-        block = np.concatenate([
-            r.frames[list(names)].to_numpy(np.float64) if getattr(r, has) else nan.repeat(len(r.frames), 0)
-            for r in runs
-        ])  # fmt: skip
-        missing = np.repeat([not getattr(r, has) for r in runs], lengths)
-        mask = missing if missing.any() else None
-        arrays += [pa.array(column, mask=mask) for column in np.ascontiguousarray(block.T)]
-    return pa.Table.from_arrays(arrays, schema=PARQUET_SCHEMA)
+class _BackgroundWrites:
+    """Row groups written on a thread of their own, one at a time, while the next logs are read (Arrow
+    encodes without the GIL); an error of a write is raised by the next `write` or `wait`."""
+
+    def __init__(self, writer: pq.ParquetWriter):
+        self._writer = writer
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="jsve-parquet")
+        self._pending: Future | None = None
+
+    def write(self, table: pa.Table) -> None:
+        self.wait()  # at most one row group in flight: memory stays at two row groups
+        self._pending = self._pool.submit(self._writer.write_table, table)
+
+    def wait(self) -> None:
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            pending.result()
+
+    def __enter__(self) -> _BackgroundWrites:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if exc[0] is None:
+                self.wait()
+        finally:
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def default_quarantine_report_path(out_path: str | os.PathLike) -> Path:
@@ -562,8 +632,12 @@ def ingest(
     v1: list[str] = []
     entries = []
     n_frames = 0
-    with atomic.atomic_path(out) as tmp, pq.ParquetWriter(tmp, PARQUET_SCHEMA, compression="zstd") as writer:
-        batch: list[RunLog] = []
+    with (
+        atomic.atomic_path(out) as tmp,
+        pq.ParquetWriter(tmp, PARQUET_SCHEMA, **PARQUET_WRITE_OPTIONS) as writer,
+        _BackgroundWrites(writer) as background,
+    ):
+        batch: list[_LogRows] = []
         batch_rows = 0
         runs = _good_runs(
             paths,
@@ -572,30 +646,21 @@ def ingest(
             progress=progress,
             ground_truth=ground_truth,
             quarantined=quarantined,
+            reader=_read_rows_one,
         )
         for run, version in runs:
             if version == 1:
-                v1.append(run.source)
-            entries.append(
-                {
-                    "run_id": run.run_id,
-                    "source": run.source,
-                    "meta": run.meta,
-                    "n_frames": len(run.frames),
-                    "has_ground_truth": run.has_ground_truth,
-                    "has_world_frame": run.has_world_frame,
-                    # map_id / imu_ba2 of a v1 log are schema.v1_defaults, not recorded values.
-                    "log_version": version,
-                }
-            )
-            n_frames += len(run.frames)
+                v1.append(run.entry["source"])
+            entries.append(run.entry)
+            n_frames += run.entry["n_frames"]
             batch.append(run)
-            batch_rows += len(run.frames)
+            batch_rows += run.entry["n_frames"]
             if batch_rows >= _ROW_GROUP_ROWS:
-                writer.write_table(_runs_to_table(batch))
+                background.write(row_group([r.run_id for r in batch], [r.rows for r in batch]))
                 batch, batch_rows = [], 0
         if batch:
-            writer.write_table(_runs_to_table(batch))
+            background.write(row_group([r.run_id for r in batch], [r.rows for r in batch]))
+        background.wait()
         writer.add_key_value_metadata(
             {
                 PARQUET_RUNS_KEY: json.dumps(entries, allow_nan=False),

@@ -246,6 +246,16 @@ def recorded_rule_label(meta: dict) -> str | None:
     return f"{name}-{model}"
 
 
+def run_id(meta: dict) -> str:
+    """`sequence/disturbance-level/run` of a log's metadata, unique within a study; a run whose front-end
+    ran another rule than ORB-SLAM3's own (metadata `rule`, `switch_model`) has its rule in it as well,
+    `sequence/disturbance-level/rule-switch_model/run`, so that several rules' runs of one setting can be
+    read together."""
+    setting = f"{meta['sequence']}/{meta.get('disturbance', 'none')}-{meta.get('level', 0)}"
+    label = recorded_rule_label(meta)
+    return f"{setting}/{label}/{meta['run']}" if label else f"{setting}/{meta['run']}"
+
+
 @dataclass(frozen=True)
 class RunLog:
     """One run's tracking log in memory, as read from (or about to be written to) a v2 file.
@@ -264,14 +274,8 @@ class RunLog:
 
     @property
     def run_id(self) -> str:
-        """`sequence/disturbance-level/run`, unique within a study; a run whose front-end ran another
-        rule than ORB-SLAM3's own (metadata `rule`, `switch_model`) has its rule in it as well,
-        `sequence/disturbance-level/rule-switch_model/run`, so that several rules' runs of one setting
-        can be read together."""
-        m = self.meta
-        setting = f"{m['sequence']}/{m.get('disturbance', 'none')}-{m.get('level', 0)}"
-        label = recorded_rule_label(m)
-        return f"{setting}/{label}/{m['run']}" if label else f"{setting}/{m['run']}"
+        """run_id(meta)."""
+        return run_id(self.meta)
 
     @property
     def has_ground_truth(self) -> bool:

@@ -182,6 +182,9 @@ def file_bytes(data: bytes, source: str) -> bytes:
 # The magic-line layout
 
 
+_WHITESPACE = b" \t\n\r\x0b\x0c"  # what bytes.rstrip() strips
+
+
 @dataclass(frozen=True)
 class Sections:
     """A magic-line file cut into its parts; nothing is validated but where the lines are.
@@ -190,32 +193,56 @@ class Sections:
         first: line 1 without its line ending (bytes).
         last: the last non-blank line, decoded (undecodable bytes replaced), without '\\r'; None when
             the file has a single line.
-        n_lines: the 1-based number of that last line.
         header: line 2 without its line ending, or None when line 2 is the last line.
-        rows: the bytes between the header and the last line, each row ending in '\\n'.
+        data: the file. rows_start, rows_end: where the rows are in it (`rows`).
+        body_end: the end of the last non-blank line (for n_lines).
     """
 
     first: bytes
     last: str | None
-    n_lines: int
     header: bytes | None
-    rows: bytes
+    data: bytes
+    rows_start: int
+    rows_end: int
+    body_end: int
+
+    @property
+    def rows(self) -> bytes:
+        """The bytes between the header and the last line, each row ending in '\\n' (a copy: where
+        that costs, `rows_view` and data.find(x, rows_start, rows_end) do not copy)."""
+        return self.data[self.rows_start : self.rows_end]
+
+    @property
+    def rows_view(self) -> memoryview:
+        """`rows` without copying them."""
+        return memoryview(self.data)[self.rows_start : self.rows_end]
+
+    def rows_hold(self, needle: bytes) -> bool:
+        """Whether `needle` occurs in the rows (no copy)."""
+        return self.data.find(needle, self.rows_start, self.rows_end) >= 0
+
+    @property
+    def n_lines(self) -> int:
+        """The 1-based number of the last non-blank line: a scan of the whole file, so computed only
+        where a message needs it."""
+        return self.data.count(b"\n", 0, self.body_end) + 1
 
 
 def cut(data: bytes) -> Sections:
     """Find line 1, the header, the rows and the last non-blank line of a non-empty file."""
     nl1 = data.find(b"\n")
     first = data if nl1 < 0 else data[:nl1]
-    body_end = len(data.rstrip())
+    body_end = len(data)
+    while body_end and data[body_end - 1] in _WHITESPACE:  # data.rstrip() without copying the file
+        body_end -= 1
     last_nl = data.rfind(b"\n", 0, body_end)
-    n_lines = data.count(b"\n", 0, body_end) + 1
     if last_nl < 0:
-        return Sections(first, None, n_lines, None, b"")
+        return Sections(first, None, None, data, 0, 0, body_end)
     last = data[last_nl + 1 : body_end].decode("utf-8", errors="replace").rstrip("\r")
     if last_nl == nl1:
-        return Sections(first, last, n_lines, None, b"")
+        return Sections(first, last, None, data, 0, 0, body_end)
     nl2 = data.find(b"\n", nl1 + 1)
-    return Sections(first, last, n_lines, data[nl1 + 1 : nl2].rstrip(b"\r"), data[nl2 + 1 : last_nl + 1])
+    return Sections(first, last, data[nl1 + 1 : nl2].rstrip(b"\r"), data, nl2 + 1, last_nl + 1, body_end)
 
 
 def end_count(last: str | None, end_marker: str) -> str | None:
@@ -251,17 +278,31 @@ def write_rows(table: pa.Table) -> bytes:
     return sink.getvalue().to_pybytes()
 
 
-def read_rows(rows: bytes, columns: Sequence[str], int_columns: frozenset[str] | set[str]) -> pa.Table:
+def read_rows(
+    rows: bytes | memoryview,
+    columns: Sequence[str],
+    int_columns: frozenset[str] | set[str],
+    *,
+    threads: bool = False,
+) -> pa.Table:
     """Parse the rows with one explicit type per column: int64 for `int_columns` (never through a float),
     float64 (correctly rounded) for the others; an empty field is null; a quote is an ordinary character.
+
+    Arguments:
+        threads: parse 1 MB blocks on Arrow's thread pool (many logs' rows at once); otherwise the rows
+            are one block on this thread, each column then one chunk, which NumPy and Parquet take
+            without copying.
 
     Raises:
         pyarrow.ArrowInvalid: a row that does not parse; the caller locates it for its message.
     """
     types = {c: (pa.int64() if c in int_columns else pa.float64()) for c in columns}
+    block_size = 1 << 20 if threads else max(len(rows) + 1, 1 << 20)
     return pacsv.read_csv(
         pa.py_buffer(rows),
-        read_options=pacsv.ReadOptions(column_names=list(columns), use_threads=False),
+        read_options=pacsv.ReadOptions(
+            column_names=list(columns), use_threads=threads, block_size=block_size
+        ),
         # Fields are never quoted (docs/log-format.md): a quote is part of a value, which then does not
         # convert; quoting would also let one row span lines and shift every line number after it.
         parse_options=pacsv.ParseOptions(ignore_empty_lines=False, quote_char=False),

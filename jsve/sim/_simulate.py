@@ -789,11 +789,11 @@ def _init_worker() -> None:
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 
-def _sequence_size(spec: SequenceSpec) -> float:
+def _sequence_size(spec: SequenceSpec, flight: FlightProfile = FlightProfile()) -> float:
     """Frames of a sequence, for scheduling: the ground-truth file's lines, or a procedural flight's
-    expected length."""
+    expected length (the middle of its duration range)."""
     if spec.procedural:
-        return 130.0 * 20.0
+        return 0.5 * (flight.duration_s[0] + flight.duration_s[1]) * flight.fps
     stem = euroc_file_stem(spec.name)
     try:
         with open(Path(spec.euroc_gt) / f"{stem}_GT.txt", "rb") as f:
@@ -814,17 +814,18 @@ def study_size(
     euroc_gt: str | os.PathLike | None = None,
     disturbances: str | Iterable[str] = "seed",
     runs: int | Sequence[int] = 10,
+    flight: FlightProfile = FlightProfile(),
 ) -> tuple[int, float, float]:
     """What write_study would write, before it writes: (logs, mean frames per log, estimated bytes).
 
-    Frames come from each sequence's ground-truth file (a procedural flight's expected length), bytes from
-    LOG_BYTES_PER_FRAME. Arguments as write_study.
+    Frames come from each sequence's ground-truth file (a procedural flight's expected length under
+    `flight`, SimConfig.flight), bytes from LOG_BYTES_PER_FRAME. Other arguments as write_study.
     """
     specs = _as_specs(sequences, euroc_gt, procedural)
     n_runs = runs if isinstance(runs, int) else len(runs)
     per_sequence = len(settings(disturbances)) * n_runs
     logs = len(specs) * per_sequence
-    frames = sum(_sequence_size(spec) for spec in specs) * per_sequence
+    frames = sum(_sequence_size(spec, flight) for spec in specs) * per_sequence
     return logs, frames / max(logs, 1), frames * LOG_BYTES_PER_FRAME
 
 
