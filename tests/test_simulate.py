@@ -230,6 +230,22 @@ def test_cli(tmp_path, capsys):
     assert main(["simulate", "-o", str(out), "--sequences", "MH_01"]) == 2
 
 
+def test_cli_duration_sets_every_procedural_flights_length(tmp_path, capsys):
+    from jsve.cli import main
+
+    out = tmp_path / "d"
+    args = ["simulate", "-o", str(out), "--procedural", "2", "--disturbances", "none", "--runs", "1"]
+    assert main([*args, "--duration", "12.5", "--workers", "1", "--no-progress"]) == 0
+    assert "2 logs x ~250 frames" in capsys.readouterr().err  # the size announced from the duration
+    for name in ("proc_00", "proc_01"):
+        assert len(read_log(sim.log_path(out, name, sim.Setting("none", 0.0), 0)).frames) == 250
+    assert main([*args, "--duration", "0"]) == 2
+    assert (
+        main(["simulate", "-o", str(out), "--sequences", "MH_01", "--euroc-gt", ".", "--duration", "5"]) == 2
+    )
+    assert "--duration" in capsys.readouterr().err
+
+
 # ---- replay ----------------------------------------------------------------------------------------
 
 

@@ -59,7 +59,7 @@ def register(subparsers) -> None:
         metavar="PATH",
         help="CSV report of quarantined logs (default: OUT.quarantine.csv beside the output)",
     )
-    common.add_workers_option(p)
+    common.add_workers_option(p, "threads reading the logs (processes where --gt associates ground truth)")
     common.add_progress_option(p)
     common.add_yes_option(p)
     gt = p.add_argument_group("ground truth (associated with logs that carry none)")
