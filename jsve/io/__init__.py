@@ -43,9 +43,9 @@ from jsve.io._rule_files import load_rules as load_rules
 from jsve.io._schema import RunLog as RunLog
 from jsve.io._schema import recorded_rule_label as recorded_rule_label
 from jsve.io._stream import ParquetStudy as ParquetStudy
-from jsve.io._study_table import PARQUET_WRITE_OPTIONS as PARQUET_WRITE_OPTIONS
 from jsve.io._stream import iter_buckets as iter_buckets
 from jsve.io._stream import open_study as open_study
+from jsve.io._study_table import PARQUET_WRITE_OPTIONS as PARQUET_WRITE_OPTIONS
 from jsve.io._trajectories import TRAJECTORY_FORMATS as TRAJECTORY_FORMATS
 from jsve.io._trajectories import PosePair as PosePair
 from jsve.io._trajectories import read_pose_pairs as read_pose_pairs
