@@ -2,7 +2,7 @@
 hooked ORB-SLAM3 v1.0 does? (issue 11, deliverable 4; docs/validation.md gives the method and the verdict)
 
     python analysis/simulator_vs_frontend.py [--euroc-gt DIR] [--runs 5] [--frames 700] [--seed 0]
-        [--n-boot 1000] [--real-frames DIR] [-o docs/data] [--figure docs/figures/simulator_vs_frontend.png]
+        [--n-boot 1000] [-o docs/data] [--figure docs/figures/simulator_vs_frontend.png]
 
 The real side is what the validation study kept (docs/data/validation_agreement.csv; its raw logs are
 gone): per dataset (rendered V101 and V201, frames 0:700, `jsve render --imu-noise datasheet`;
@@ -15,7 +15,10 @@ IMU at the same settings, `--runs` runs each, keeps each log's first `--frames` 
 has no frame range: a log is cut after simulating the whole sequence; what it computes is causal, so
 the kept frames are those a 700-frame run would give), and replays every simulated run under every rule
 and switch model (jsve.evaluation.evaluate): each simulated run is a recording every rule is replayed
-on, as the `record` runs of the validation.
+on, as the `record` runs of the validation. Two scenes (VARIANTS): the rendered one the real front-end
+saw (SceneProfile.texture_scale = jsve.sim.RENDERED_TEXTURE_SCALE, fitted to the rendered frames'
+keypoints per pyramid level, with texels fixed on the surfaces, and the renderer's 8 ms exposure), and
+the camera images' (the simulator's default, fitted to the real V1_01 photographs).
 
 Statistics are jsve.evaluation's, as analysis/replay_vs_rerun.py uses them with the simulated runs in
 the place of the replayed recordings: Kendall's tau-b and regret@1 of the simulator's pick per level
@@ -28,9 +31,8 @@ own when it ties every rule).
 
 Writes into OUT: simulator_vs_frontend.csv (per level and simulator variant: tau, regret@1, the chance
 regret, with 95 % intervals), simulator_vs_frontend_rules.csv (per level and rule: simulated and real
-loss, failure share, coverage, failure agreement), simulator_vs_frontend_pooled.csv (per variant,
-levels pooled (SCOPES) and switch model) and simulator_vs_frontend_octave0.csv (ORB's octave-0
-keypoints on the real V1_01 frames per setting: `--real-frames`); and the figure.
+loss, failure share, coverage, failure agreement, and the simulated runs' first-map frame),
+simulator_vs_frontend_pooled.csv (per variant, levels pooled (SCOPES) and switch model); and the figure.
 """
 
 from __future__ import annotations
@@ -58,9 +60,16 @@ from jsve.evaluation import (  # noqa: E402
     evaluate,
     pool_draws,
 )
-from jsve.image import disturb_image, extract_orb, read_image  # noqa: E402
 from jsve.io import buckets  # noqa: E402
-from jsve.sim import ImuNoise, SimConfig, euroc_sequences, simulate_study  # noqa: E402
+from jsve.sim import (  # noqa: E402
+    RENDER_TEXEL_DEPTH_M,
+    RENDERED_TEXTURE_SCALE,
+    ImuNoise,
+    SceneProfile,
+    SimConfig,
+    euroc_sequences,
+    simulate_study,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 EUROC = REPO.parent / "shared" / "data" / "euroc"
@@ -71,19 +80,27 @@ RULES = ("orbslam3", "sve-option2", "sve-option1")
 SEQUENCES = {"V1_01": "V101", "V2_01": "V201"}
 """Simulated EuRoC sequence -> the validation's name of its rendered dataset."""
 MODELS = ("orbslam3", "imu-coast")
+RENDER_EXPOSURE_S = 0.008
+"""s: `jsve render`'s exposure (its default --exposure-ms 8, docs/render.md), whose motion blur the
+rendered scene's camera has."""
 KEYS = [*SETTING, "rule", "switch_model"]
 LEVEL = [*SETTING, "switch_model"]
 PENALTY_M = 1.0
 """Loss of a failed run (m), as in the validation study."""
-MONO_INIT_MIN_MATCHES = 100
-"""ORB-SLAM3 v1.0 MonocularInitialization starts a map only from 100 matches (Tracking.cc l.2495), which
-SearchForInitialization finds among octave-0 keypoints only (ORBmatcher.cc l.664-665); the replay's
-machine holds the same number (jsve.core's MONO_INIT_MIN_MATCHES, not exported)."""
-CLIFF = pd.DataFrame({"disturbance": "blur", "level": [10.0, 25.0]})
-"""Blur levels measured for octave-0 keypoints beside the study's (where the cliff begins)."""
-AS_SIMULATED, INIT_IMPOSED = "as simulated", "initialisation imposed"
-"""The simulator's variants: its logs as they are, and with ORB-SLAM3's monocular initialisation
-imposed where the real frames' octave-0 keypoints make it impossible (`impose_initialisation`)."""
+RENDERED, CAMERA = "rendered scene", "camera-image scene"
+VARIANTS = {
+    RENDERED: SimConfig(
+        imu=ImuNoise.datasheet(),
+        scene=SceneProfile(
+            texture_scale=RENDERED_TEXTURE_SCALE,
+            texel_depth_m=RENDER_TEXEL_DEPTH_M,
+            exposure_s=RENDER_EXPOSURE_S,
+        ),
+    ),
+    CAMERA: SimConfig(imu=ImuNoise.datasheet()),
+}
+"""The simulator's scenes: the rendered images the real front-end ran on, and the camera images the vision
+model was fitted on (the simulator's default). Both with the datasheet IMU, as the renders."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -127,13 +144,25 @@ def settings_spec(real: pd.DataFrame) -> str:
 # The simulator's runs
 
 
-def simulate(euroc_gt: Path, spec: str, runs: int, frames: int, seed: int) -> list:
-    """Simulated RunLogs of SEQUENCES at the settings `spec`, the datasheet IMU (as the renders), each
-    cut to its first `frames` frames."""
-    config = SimConfig(imu=ImuNoise.datasheet())
+def simulate(euroc_gt: Path, spec: str, runs: int, frames: int, seed: int, config: SimConfig) -> list:
+    """Simulated RunLogs of SEQUENCES at the settings `spec` under `config`, each cut to its first
+    `frames` frames."""
     specs = euroc_sequences(list(SEQUENCES), euroc_gt)
     logs = simulate_study(specs, disturbances=spec, runs=runs, seed=seed, config=config)
     return [dataclasses.replace(r, frames=r.frames.iloc[:frames].reset_index(drop=True)) for r in logs]
+
+
+def first_maps(logs: list) -> pd.DataFrame:
+    """Per setting (SETTING, the validation's names): the simulated runs' mean first-map frame (their first
+    posed frame; runs that never start one left out: NaN when none did) and the share that started one."""
+    rows = []
+    for run in logs:
+        posed = run.frames["vis_px"].notna().to_numpy()
+        first = np.argmax(posed) if posed.any() else np.nan
+        rows.append({"sequence": SEQUENCES[run.meta["sequence"]], "disturbance": run.meta["disturbance"],
+                     "level": float(run.meta["level"]), "sim_first_map": first,
+                     "sim_started": bool(posed.any())})  # fmt: skip
+    return pd.DataFrame(rows).groupby(list(SETTING), as_index=False)[["sim_first_map", "sim_started"]].mean()
 
 
 def replay(logs: list, rules=RULES, models=MODELS) -> pd.DataFrame:
@@ -147,34 +176,6 @@ def replay(logs: list, rules=RULES, models=MODELS) -> pd.DataFrame:
     ]
     table = pd.concat(tables, ignore_index=True)
     return table.assign(sequence=table["sequence"].map(SEQUENCES), level=table["level"].astype(float))
-
-
-def octave0_keypoints(frames_dir: Path, settings: pd.DataFrame, step: int = 5) -> pd.DataFrame:
-    """ORB as ORB-SLAM3 extracts it (jsve.image.extract_orb) on every `step`-th real frame under each
-    setting (disturbance, level; `none` is blur 0): frames, mean keypoints and mean octave-0 keypoints
-    per frame, the ones monocular initialisation can match."""
-    paths = sorted(frames_dir.glob("*.png"))[::step]
-    images = [read_image(p) for p in paths]
-    rows = []
-    for name, level in settings[["disturbance", "level"]].drop_duplicates().itertuples(index=False):
-        kind, value = ("blur", 0.0) if name == "none" else (name, level)
-        octaves = [extract_orb(disturb_image(im, kind, value)).octave for im in images]
-        rows.append({"disturbance": name, "level": level, "frames": len(images),
-                     "keypoints": float(np.mean([len(o) for o in octaves])),
-                     "octave0": float(np.mean([np.sum(o == 0) for o in octaves]))})  # fmt: skip
-    return pd.DataFrame(rows).sort_values(["disturbance", "level"], ignore_index=True)
-
-
-def impose_initialisation(sim: pd.DataFrame, octave0: pd.DataFrame, min_matches=MONO_INIT_MIN_MATCHES):
-    """The simulated runs with ORB-SLAM3's monocular initialisation imposed: at a setting whose real frames
-    hold fewer octave-0 keypoints than the `min_matches` matches it needs, no map starts, so every rule's
-    run fails (no estimate: rmse NaN, coverage 0, nothing tracked). Other runs are unchanged."""
-    blocked = octave0.loc[octave0["octave0"] < min_matches, ["disturbance", "level"]]
-    hit = sim.merge(blocked.assign(_hit=True), on=["disturbance", "level"], how="left")["_hit"].eq(True)
-    out = sim.copy()
-    out.loc[hit.to_numpy(), ["rmse", "coverage", "accepted_fraction"]] = [np.nan, 0.0, 0.0]
-    out.loc[hit.to_numpy(), "failed"] = True
-    return out
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -286,48 +287,48 @@ def dataset_order(table: pd.DataFrame) -> list[tuple]:
 
 
 def figure(rules: pd.DataFrame, path: Path) -> None:
-    """Mean loss and failure share per dataset and rule, the real re-runs (filled) beside the simulator
-    (hollow), one column per switch model; where imposing the initialisation changes the simulator's
-    failure share, that share as a black x."""
+    """Mean loss, failure share and coverage per dataset and rule: the real re-runs (filled) beside the
+    simulator's rendered scene (hollow) and its camera-image scene (+), one column per switch model."""
     names = dataset_order(rules)
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    fig, axes = plt.subplots(2, len(MODELS), figsize=(14, 7.8), sharex=True, squeeze=False)
+    rows = (("loss", "mean run loss (m; a failed run costs 1 m)"), ("failed", "share of failed runs"),
+            ("coverage", "coverage (share of frames with an estimate)"))  # fmt: skip
+    fig, axes = plt.subplots(len(rows), len(MODELS), figsize=(14, 10.5), sharex=True, squeeze=False)
     for col, model in enumerate(MODELS):
         for k, rule in enumerate(RULES):
             mine = rules[(rules["switch_model"] == model) & (rules["rule"] == rule)]
-            r = mine[mine["simulator"] == AS_SIMULATED]
-            x = np.array([names.index(tuple(v)) for v in r[list(SETTING)].itertuples(index=False)], float)
+            real = mine[mine["simulator"] == RENDERED]
+            camera = real[list(SETTING)].merge(
+                mine[mine["simulator"] == CAMERA], on=list(SETTING), how="left"
+            )
+            x = np.array([names.index(tuple(v)) for v in real[list(SETTING)].itertuples(index=False)], float)
             x += 0.27 * (k - 1)
-            for row, what in enumerate(("loss", "failed")):
+            for row, (what, _) in enumerate(rows):
                 ax = axes[row, col]
-                ax.plot(x - 0.07, r[f"real_{what}"], "o", color=cycle[k], ms=6,
+                ax.plot(x - 0.08, real[f"real_{what}"], "o", color=cycle[k], ms=6,
                         label=f"{rule}: real ORB-SLAM3 re-runs")  # fmt: skip
-                ax.plot(x + 0.07, r[f"sim_{what}"], "s", color=cycle[k], mfc="none", ms=6,
-                        label=f"{rule}: simulator")  # fmt: skip
-            other = mine[mine["simulator"] == INIT_IMPOSED][[*SETTING, "sim_failed"]]
-            imposed = r[list(SETTING)].merge(other, on=list(SETTING), how="left")["sim_failed"].to_numpy()
-            moved = np.isfinite(imposed) & (imposed != r["sim_failed"].to_numpy())
-            label = "simulator, initialisation imposed" if k == 0 else None
-            axes[1, col].plot(x[moved] + 0.07, imposed[moved], "x", color="black", ms=5, label=label)
+                ax.plot(x, real[f"sim_{what}"], "s", color=cycle[k], mfc="none", ms=6,
+                        label=f"{rule}: simulator, rendered scene")  # fmt: skip
+                ax.plot(x + 0.08, camera[f"sim_{what}"], "+", color=cycle[k], ms=6,
+                        label=f"{rule}: simulator, camera-image scene")  # fmt: skip
         axes[0, col].set_yscale("log")
         axes[0, col].set_title(f"switch model {model}", fontsize=10)
-        axes[1, col].set_ylim(-0.05, 1.08)
+        for row in (1, 2):
+            axes[row, col].set_ylim(-0.05, 1.08)
         for ax in axes[:, col]:
             ax.axvline(len(names) / 2 - 0.5, color="grey", lw=0.8)
             ax.grid(alpha=0.3, lw=0.4)
-    axes[0, 0].set_ylabel("mean run loss (m; a failed run costs 1 m)")
-    axes[1, 0].set_ylabel("share of failed runs")
-    for ax in axes[1]:
+    for row, (_, label) in enumerate(rows):
+        axes[row, 0].set_ylabel(label, fontsize=9)
+    for ax in axes[-1]:
         ax.set_xticks(range(len(names)), [f"{s} {d} {lv:g}" for s, d, lv in names], rotation=45, ha="right",
                       fontsize=8)  # fmt: skip
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    extra = [(h, t) for h, t in zip(*axes[1, 0].get_legend_handles_labels(), strict=True) if "imposed" in t]
-    handles, labels = [*handles, *(h for h, _ in extra)], [*labels, *(t for _, t in extra)]
-    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8, frameon=False)
     fig.suptitle("The simulator against the real front-end: rendered V1_01 / V2_01, first 35 s, "
                  "5 runs per rule and dataset", fontsize=11)  # fmt: skip
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
-    fig.savefig(path, dpi=120)
+    fig.tight_layout(rect=(0, 0.09, 1, 1))
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
@@ -355,10 +356,9 @@ def markdown(pool: pd.DataFrame) -> str:
 
 def parse(argv):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    gt, frames = EUROC / "groundtruth_left_cam", EUROC / "V1_01_first95" / "mav0" / "cam0" / "data"
+    gt = EUROC / "groundtruth_left_cam"
     parser.add_argument("--euroc-gt", type=Path, default=gt, help="ORB-SLAM3's EuRoC_left_cam ground truth")
     parser.add_argument("--real", type=Path, default=REAL, help="the validation's agreement.csv")
-    parser.add_argument("--real-frames", type=Path, default=frames, help="real EuRoC frames (octave 0)")
     parser.add_argument("--runs", type=int, default=5, help="simulated runs per dataset (default 5)")
     parser.add_argument("--frames", type=int, default=700, help="frames kept per log (default 700: 35 s)")
     parser.add_argument("--seed", type=int, default=0, help="simulator and bootstrap seed (default 0)")
@@ -374,41 +374,32 @@ def main(argv=None) -> int:
     wall, cpu = time.perf_counter(), time.process_time()
     args = parse(argv)
     real = real_reruns(args.real)
-    sim = replay(simulate(args.euroc_gt, settings_spec(real), args.runs, args.frames, args.seed))
-    variants = {AS_SIMULATED: sim}
-    octave0 = pd.DataFrame()
-    if args.real_frames.is_dir():
-        octave0 = octave0_keypoints(args.real_frames, pd.concat([real, CLIFF]))
-        variants[INIT_IMPOSED] = impose_initialisation(sim, octave0)
-    else:
-        print(f"{args.real_frames}: no real frames, so no octave-0 counts and no imposed initialisation")
-    levels, rules, pools = [], [], []
-    for name, table in variants.items():
+    levels, rules, pools, replays = [], [], [], 0
+    for name, config in VARIANTS.items():
+        logs = simulate(args.euroc_gt, settings_spec(real), args.runs, args.frames, args.seed, config)
+        table = replay(logs)
+        replays += len(table)
         c = compare(table, real, args.n_boot, args.seed)
         levels.append(c.levels.assign(simulator=name))
-        rules.append(c.rules.assign(simulator=name))
+        rules.append(c.rules.merge(first_maps(logs), on=list(SETTING), how="left").assign(simulator=name))
         pools.append(pooled(c, args.n_boot, args.seed).assign(simulator=name))
-    out = {
-        "": pd.concat(levels),
-        "_rules": pd.concat(rules),
-        "_pooled": pd.concat(pools),
-        "_octave0": octave0,
-    }
+    out = {"": pd.concat(levels), "_rules": pd.concat(rules), "_pooled": pd.concat(pools)}
     args.output.mkdir(parents=True, exist_ok=True)
     for suffix, table in out.items():
-        if len(table):
-            first = ["simulator"] if "simulator" in table else []
-            table = table[[*first, *(c for c in table.columns if c not in first)]]
-            table.to_csv(args.output / f"{NAME}{suffix}.csv", index=False, float_format="%.6g")
+        first = ["simulator"]
+        table = table[[*first, *(c for c in table.columns if c not in first)]]
+        table.to_csv(args.output / f"{NAME}{suffix}.csv", index=False, float_format="%.6g")
     figure(out["_rules"], args.figure)
     with pd.option_context("display.width", 220, "display.max_columns", 40, "display.max_rows", 200):
         shown = ["simulator", *LEVEL, "replay_best", "rerun_best", "tau", "regret_at_1", "chance_regret"]
         print(out[""][shown].round(3).to_string(index=False))
-        print(octave0.round(1).to_string(index=False))
+        starts = ["simulator", *SETTING, "sim_first_map", "sim_started"]
+        print(out["_rules"][starts].drop_duplicates().round(2).to_string(index=False))
     print(markdown(out["_pooled"]))
+    datasets = len(real[list(SETTING)].drop_duplicates())
     print(f"CPU cost: {time.perf_counter() - wall:.1f} s wall, {time.process_time() - cpu:.1f} s CPU "
-          f"({sim['run_id'].nunique()} simulated runs x {len(RULES)} rules x {len(MODELS)} switch models: "
-          f"{len(sim)} replays)")  # fmt: skip
+          f"({len(VARIANTS)} scenes x {args.runs} runs x {datasets} datasets; "
+          f"{replays} replays under {len(RULES)} rules x {len(MODELS)} switch models)")  # fmt: skip
     return 0
 
 

@@ -3,6 +3,10 @@
 - its settings are the seed's 31 and jsve.image._disturb's grids;
 - logs pass jsve.io._logs' validation through a write/read round trip, bit for bit, and are a
   deterministic function of the seed; write_study is resumable;
+- monocular initialisation: a first map starts at the first frame pair with 100 level-0 matches and 1
+  degree of parallax, frames before it unposed and NOT_INITIALIZED, the IMU initialised and BA2 counted
+  from it; heavy blur never starts one;
+- an occluder costs map inliers: its edge's keypoints and the points that emerge from behind it;
 - replaying a small study with ORB-SLAM3's own rule fails more as blur grows and always at blur 50.
 
 jsve.sim._motion and jsve.sim._vision have their own files (test_motion.py, test_vision.py).
@@ -69,7 +73,7 @@ def test_grids_are_jsve_disturb_grids():
 
 def test_logs_round_trip_and_are_deterministic(tmp_path):
     logs = sim.simulate_study(
-        procedural=1, disturbances="blur:0:30,occlusion:450", runs=2, seed=5, config=SHORT
+        procedural=1, disturbances="blur:0:20,occlusion:450", runs=2, seed=5, config=SHORT
     )
     assert len(logs) == 6
     for run in logs:
@@ -81,22 +85,25 @@ def test_logs_round_trip_and_are_deterministic(tmp_path):
         f = run.frames
         assert list(f.columns) == list(schema.COLUMNS)
         assert (f[list(schema.BIN_COLUMNS)].sum(axis=1) <= f["n_extracted"]).all()
-        # Format v2: one map and a pose on every frame (full support), BA2 from 15 s after the first
-        # frame where the IMU is initialised (docs/simulator.md), the rule and switch model it ran.
-        assert (f["map_id"] == 0).all() and f[list(schema.VIS_COLUMNS)].notna().all(axis=None)
+        # Format v2: one map, a pose on every frame from its first (full support from there), BA2 from
+        # 15 s after that frame where the IMU is initialised (docs/simulator.md), the rule and switch
+        # model it ran.
+        posed = f[list(schema.VIS_COLUMNS)].notna().all(axis=1).to_numpy()
+        start = int(np.argmax(posed))
+        assert (f["map_id"] == 0).all() and posed[start:].all() and not posed[:start].any()
         t = f["t_ns"].to_numpy()
-        ba2 = (f["imu_init"].to_numpy() == 1) & (t - t[0] >= 15_000_000_000)
+        ba2 = (f["imu_init"].to_numpy() == 1) & (t - t[start] >= 15_000_000_000)
         np.testing.assert_array_equal(f["imu_ba2"].to_numpy(), ba2.astype(np.int64))
         assert 0 < ba2.sum() < f["imu_init"].sum()  # 25 s flights: BA2 comes 15 s in
         assert run.meta["rule"] == "orbslam3" and run.meta["switch_model"] == "orbslam3"
         assert (f["n_inliers"] <= f["n_extracted"]).all() and f["n_extracted"].max() <= 1000
         assert set(np.unique(f["state"])) <= {1, 2, 3, 4}
     again = sim.simulate_study(
-        procedural=1, disturbances="blur:0:30,occlusion:450", runs=2, seed=5, config=SHORT
+        procedural=1, disturbances="blur:0:20,occlusion:450", runs=2, seed=5, config=SHORT
     )
     for a, b in zip(logs, again, strict=True):
         pd.testing.assert_frame_equal(a.frames, b.frames, check_exact=True)
-    other = sim.simulate_run("proc_00", "blur", 30, run=1, seed=6, config=SHORT)
+    other = sim.simulate_run("proc_00", "blur", 20, run=1, seed=6, config=SHORT)
     assert not other.frames["vis_px"].equals(logs[3].frames["vis_px"])
     # Runs of one setting share the recording (scene, IMU) and differ in tracking.
     a, b = logs[0].frames, logs[1].frames
@@ -107,7 +114,9 @@ def test_logs_round_trip_and_are_deterministic(tmp_path):
 
 
 def test_visual_error_grows_as_tracking_weakens():
-    logs = sim.simulate_study(procedural=1, disturbances="blur:0:45", runs=3, seed=2, config=SHORT)
+    # Blur 30 is the heaviest blur at which these runs still start a map (level 0 empties beyond it):
+    # the map holds less than half the inliers, and the error's tail grows with the weak tracking.
+    logs = sim.simulate_study(procedural=1, disturbances="blur:0:30", runs=3, seed=2, config=SHORT)
 
     def error(run):
         f = run.frames
@@ -115,12 +124,13 @@ def test_visual_error_grows_as_tracking_weakens():
             f[list(schema.VIS_POSITION)].to_numpy() - f[list(schema.GT_POSITION)].to_numpy(), axis=1
         )
 
+    def inliers(run):
+        return run.frames.loc[run.frames["n_frustum"] > 0, "n_inliers"].mean()  # frames of a map
+
     clear = np.concatenate([error(r) for r in logs[:3]])
     blurred = np.concatenate([error(r) for r in logs[3:]])
-    assert np.percentile(blurred, 99) > 3 * np.percentile(clear, 99)
-    assert np.mean([r.frames["n_inliers"].mean() for r in logs[3:]]) < 0.3 * np.mean(
-        [r.frames["n_inliers"].mean() for r in logs[:3]]
-    )
+    assert np.nanpercentile(blurred, 99) > 3 * np.nanpercentile(clear, 99)
+    assert np.mean([inliers(r) for r in logs[3:]]) < 0.5 * np.mean([inliers(r) for r in logs[:3]])
 
 
 def test_write_study_is_resumable(tmp_path):
@@ -246,6 +256,107 @@ def test_cli_duration_sets_every_procedural_flights_length(tmp_path, capsys):
     assert "--duration" in capsys.readouterr().err
 
 
+# ---- the first map -----------------------------------------------------------------------------------
+
+
+def _first_map(n_level0=217.0, p_match=0.6, z=0.0, n_keys=1000, speed=0.01, moves_from=30, F=80, **changes):
+    """first_map_frame on a made-up flight: 20 fps, a camera at rest until frame `moves_from`, then
+    `speed` m per frame along x, 3 m from the scene; every frame `n_keys` keypoints, `n_level0` of them
+    at level 0, each matched with probability p_match; one run whose match draws are all `z`."""
+    k = np.arange(F)
+    camera = np.zeros((F, 3))
+    camera[:, 0] = speed * np.maximum(k - moves_from, 0)
+    columns = dict(n_keys=np.full(F, n_keys), n_level0=np.full(F, n_level0), p_match=np.full(F, p_match),
+                   camera_p=camera, depth=np.full(F, 3.0), t=k / 20.0, z=np.full((1, F), z))  # fmt: skip
+    columns.update(changes)
+    return int(sim.first_map_frame(**columns)[0])
+
+
+def test_the_first_map_waits_for_matches_and_parallax():
+    """Known answers of Tracking::MonocularInitialization's rules. 1 degree at 3 m is a 5.24 cm
+    baseline: 6 frames of motion at 1 cm a frame."""
+    # Frame 0 is the reference; at rest its pairs match but have no parallax. The reference is dropped at
+    # frame 22, whose previous frame is more than 1 s after it (t[21] - t[0] = 1.05 s); frame 23 is the
+    # next, and the camera, moving from frame 30, is 6 cm from it at frame 36.
+    assert _first_map() == 36
+    # Moving from the start: frame 0's pair with frame 6 has the parallax.
+    assert _first_map(moves_from=0) == 6
+    # Too few matches (217 x 0.4 = 87 < 100): every pair drops its reference; never a map.
+    assert _first_map(p_match=0.4) == sim.NEVER
+    # The same with unlucky draws: 130.2 - 3 x 7.2 < 100.
+    assert _first_map(z=-5.0) == sim.NEVER
+    # Fewer than 100 level-0 keypoints: no pair can reach 100 matches.
+    assert _first_map(n_level0=99.0) == sim.NEVER
+    # A frame of 100 keypoints or fewer drops the reference: frames 33-35 do, so frame 36 becomes the
+    # reference, and frame 42 is 6 cm further.
+    poor = np.full(80, 1000)
+    poor[33:36] = 100
+    assert _first_map(n_keys=poor) == 42
+    # 1.5 degrees of parallax needs 7.85 cm: frame 38 (8 cm).
+    tracking = replace(sim.TrackingParams(), init_parallax_deg=1.5)
+    assert _first_map(tracking=tracking) == 38
+
+
+def test_frames_before_the_first_map_have_no_pose_and_no_map():
+    logs = sim.simulate_study(procedural=2, disturbances="none", runs=3, seed=1, config=SHORT)
+    for run in logs:
+        f = run.frames
+        posed = f["vis_px"].notna().to_numpy()
+        start = int(np.argmax(posed))
+        assert posed.any() and start > 0  # the camera must move before a map can start
+        before, after = f.iloc[:start], f.iloc[start:]
+        assert (before["state"] == schema.STATE_NOT_INITIALIZED).all()
+        assert (before[["n_inliers", "n_frustum", "imu_init", "imu_ba2"]] == 0).all(axis=None)
+        assert (after["state"].iloc[0] == schema.STATE_OK) and (after["n_inliers"] > 0).all()
+        # The IMU is initialised 2 to 3.5 s into the map (TrackingParams.imu_init_s).
+        t = (f["t_ns"].to_numpy() - f["t_ns"].iloc[0]) / 1e9
+        delay = t[int(np.argmax(f["imu_init"].to_numpy() == 1))] - t[start]
+        assert 2.0 - 0.05 <= delay <= 3.5 + 0.05
+
+
+def test_heavy_blur_never_starts_a_map():
+    """At blur 40 the camera images keep no level-0 keypoints (docs/data/simulator_octaves.csv: 0 of 217)
+    so no run initialises: every frame NOT_INITIALIZED and unposed, and every rule's replay fails."""
+    from jsve.core import preset
+    from jsve.evaluation import evaluate
+    from jsve.io import buckets
+
+    logs = sim.simulate_study(procedural=1, disturbances="blur=40", runs=2, seed=0, config=SHORT)
+    for run in logs:
+        assert (run.frames["state"] == schema.STATE_NOT_INITIALIZED).all()
+        assert run.frames["vis_px"].isna().all() and (run.frames["n_inliers"] == 0).all()
+    for rule in ("orbslam3", "sve-option2"):
+        table = evaluate(buckets(logs), preset(rule), rule_name=rule, progress=False)
+        assert table["failed"].all() and (table["coverage"] == 0).all()
+
+
+def test_an_occluder_costs_map_inliers():
+    """The edge's keypoints (static) are never inliers, and the points that emerge from behind the
+    occluder have no map point yet: the share falls with the occluder's size and with image speed."""
+    recording = sim.make_recording(sim.SequenceSpec("proc_00"), 0, SHORT)
+    share = {}
+    for side in (0, 200, 350):
+        deg = sv.degradation("occlusion" if side else "none", side)
+        counts = sv.extract(recording.scene, deg)
+        share[side] = sim.occluder_map_share(recording, counts, deg, SHORT.tracking)
+        assert counts.border.sum(axis=1).max() == (0 if side == 0 else counts.border.sum(axis=1).max())
+    assert (share[0] == 1.0).all()
+    assert 1.0 > share[200].mean() > share[350].mean() > 0.5
+    speed = np.linalg.norm(recording.omega[:, :2], axis=1)
+    fast, slow = speed > np.quantile(speed, 0.8), speed < np.quantile(speed, 0.2)
+    assert share[350][fast].mean() < share[350][slow].mean()
+    still = replace(SHORT.tracking, map_lifetime_s=0.0)
+    deg = sv.degradation("occlusion", 350)
+    assert (sim.occluder_map_share(recording, sv.extract(recording.scene, deg), deg, still) == 1.0).all()
+    logs = sim.simulate_study(procedural=1, disturbances="none,occlusion=350", runs=2, seed=0, config=SHORT)
+
+    def ratio(run):
+        f = run.frames[run.frames["n_frustum"] > 0]
+        return (f["n_inliers"] / f["n_extracted"]).mean()
+
+    assert np.mean([ratio(r) for r in logs[2:]]) < 0.75 * np.mean([ratio(r) for r in logs[:2]])
+
+
 # ---- replay ----------------------------------------------------------------------------------------
 
 
@@ -254,15 +365,20 @@ def test_orbslam3_fails_more_as_blur_grows():
     from jsve.evaluation import evaluate
     from jsve.io import buckets
 
-    logs = sim.simulate_study(procedural=2, disturbances="blur:0:20:35:50", runs=4, seed=0)
+    logs = sim.simulate_study(procedural=2, disturbances="blur:0:20:30:50", runs=4, seed=0)
     table = evaluate(buckets(logs), preset("orbslam3"), rule_name="orbslam3", progress=False)
     failed = table.groupby("level")["failed"].mean()
     assert failed.loc[0] <= 0.25
     assert failed.loc[50] == 1.0
     assert failed.is_monotonic_increasing, failed.to_dict()
     # The logged state is ORB-SLAM3's own rule: a run lost tracking (an expiry to LOST, or a reset whose
-    # new map waits in NOT_INITIALIZED) exactly when the replay says it did.
+    # new map waits in NOT_INITIALIZED) after its first map exactly when the replay says it did.
     lost_states = [schema.STATE_LOST, schema.STATE_NOT_INITIALIZED]
-    logged = {r.run_id: bool(r.frames["state"].isin(lost_states).any()) for r in logs}
+
+    def lost(run):
+        posed = run.frames["vis_px"].notna().to_numpy()
+        return posed.any() and bool(run.frames["state"].iloc[int(np.argmax(posed)) :].isin(lost_states).any())
+
+    logged = {r.run_id: lost(r) for r in logs}
     assert 0 < sum(logged.values()) < len(logged)
     assert (table["run_id"].map(logged) == table["lost_any"]).all()

@@ -1,19 +1,20 @@
 """analysis/simulator_vs_frontend.py: the re-runs rebuilt from their summaries, the per-level comparison on
-a hand-made table with a known tau, regret@1 and failure agreement, the imposed initialisation, and the
-octave-0 cliff it rests on, measured on the real V1_01 frames."""
+a hand-made table with a known tau, regret@1 and failure agreement, the simulated runs' first maps, and
+the two scenes it simulates."""
 
 from __future__ import annotations
 
 import importlib.util
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pytest
 
 from jsve.evaluation import run_loss
-from jsve.sim import settings
+from jsve.sim import RENDER_TEXEL_DEPTH_M, RENDERED_TEXTURE_SCALE, ImuNoise, SceneProfile, settings
 
 
 def _script():
@@ -112,14 +113,33 @@ def test_a_level_where_every_real_run_failed_is_left_out_of_the_informative_pool
     assert pool.loc["real rules differ", "regret_at_1"] == pytest.approx(0.4)
 
 
-def test_imposed_initialisation_fails_every_run_where_octave_zero_is_short():
-    sim = pd.concat([_sim(20.0, {r: [0.1, 0.2] for r in RULES}), _sim(30.0, {r: [0.1, 0.2] for r in RULES})])
-    octave0 = pd.DataFrame({"disturbance": "blur", "level": [20.0, 30.0], "octave0": [208.8, 15.6]})
-    out = svf.impose_initialisation(sim, octave0)
-    blocked = out["level"] == 30.0
-    assert out.loc[blocked, "failed"].all() and (out.loc[blocked, "coverage"] == 0).all()
-    assert (run_loss(out[blocked]) == 1.0).all()
-    pd.testing.assert_frame_equal(out[~blocked], sim[~blocked.to_numpy()])
+def test_first_maps_are_the_first_posed_frames():
+    def log(sequence, level, run, start):
+        posed = [0.0] * 5 if start is not None else []
+        frames = pd.DataFrame({"vis_px": [np.nan] * (start if start is not None else 10) + posed})
+        return SimpleNamespace(meta={"sequence": sequence, "disturbance": "blur", "level": level, "run": run},
+                               frames=frames)  # fmt: skip
+
+    logs = [
+        log("V1_01", 20, 0, 80),
+        log("V1_01", 20, 1, 90),
+        log("V2_01", 20, 0, None),
+        log("V2_01", 20, 1, 3),
+    ]
+    table = svf.first_maps(logs).set_index("sequence")
+    assert table.loc["V101", "sim_first_map"] == 85 and table.loc["V101", "sim_started"] == 1.0
+    # a run that never posed a frame is left out of the mean, and counted in the share
+    assert table.loc["V201", "sim_first_map"] == 3 and table.loc["V201", "sim_started"] == 0.5
+
+
+def test_the_rendered_scene_is_the_renders():
+    """The real front-end ran on `jsve render`'s images: the simulator's rendered scene has their texture
+    (fitted, fixed on the surfaces) and their 8 ms exposure; the camera-image scene is the default."""
+    rendered, camera = svf.VARIANTS[svf.RENDERED], svf.VARIANTS[svf.CAMERA]
+    assert rendered.scene.texture_scale == RENDERED_TEXTURE_SCALE
+    assert rendered.scene.texel_depth_m == RENDER_TEXEL_DEPTH_M
+    assert rendered.scene.exposure_s == 0.008 and camera.scene == SceneProfile()
+    assert rendered.imu == camera.imu == ImuNoise.datasheet()
 
 
 def test_settings_spec_is_read_back_by_the_simulator():
@@ -127,14 +147,3 @@ def test_settings_spec_is_read_back_by_the_simulator():
     real = pd.concat([real, real.assign(disturbance="none", level=0.0), real.assign(disturbance="occlusion")])
     got = {(s.disturbance, s.level) for s in settings(svf.settings_spec(real))}
     assert got == {("blur", 20.0), ("blur", 35.0), ("none", 0.0), ("occlusion", 20.0), ("occlusion", 35.0)}
-
-
-def test_octave_zero_keypoints_fall_below_initialisation_between_blur_20_and_30(shared_data):
-    """The measurement the imposed initialisation rests on: ORB as ORB-SLAM3 extracts it keeps its full
-    level-0 share (about 217 of 1000) at blur 20 and almost none at blur 30 on the real V1_01 frames."""
-    frames = shared_data / "euroc" / "V1_01_first95" / "mav0" / "cam0" / "data"
-    wanted = pd.DataFrame({"disturbance": ["none", "blur", "blur"], "level": [0.0, 20.0, 30.0]})
-    table = svf.octave0_keypoints(frames, wanted, step=30).set_index(["disturbance", "level"])
-    assert table.loc[("none", 0.0), "octave0"] > 200
-    assert table.loc[("blur", 20.0), "octave0"] > 150
-    assert table.loc[("blur", 30.0), "octave0"] < svf.MONO_INIT_MIN_MATCHES / 2

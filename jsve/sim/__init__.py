@@ -25,8 +25,12 @@ from jsve.sim._simulate import settings as settings
 from jsve.sim._simulate import simulate_run as simulate_run
 from jsve.sim._simulate import simulate_study as simulate_study
 from jsve.sim._simulate import write_study as write_study
+from jsve.sim._vision import RENDER_TEXEL_DEPTH_M as RENDER_TEXEL_DEPTH_M
+from jsve.sim._vision import RENDERED_TEXTURE_SCALE as RENDERED_TEXTURE_SCALE
 from jsve.sim._vision import Scene as Scene
+from jsve.sim._vision import SceneProfile as SceneProfile
 from jsve.sim._vision import VisionParams as VisionParams
 from jsve.sim._vision import degradation as degradation
 from jsve.sim._vision import extract as extract
+from jsve.sim._vision import level_budgets as level_budgets
 from jsve.sim._vision import make_scene as make_scene

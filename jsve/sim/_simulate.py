@@ -7,8 +7,10 @@ For any set of sequences x disturbance settings x runs, deterministically under 
                 per-frame preintegration and the scene-texture process        (jsve.sim._motion)
     setting     per (sequence, disturbance, level): ORB extraction counts and SVE bins on the
                 degraded images, matching and localisation quality             (jsve.sim._vision)
-    run         per run: map inliers and frustum counts, the visual pose error (information matrix of
-                the inliers' geometry, drift, gross jumps when tracking is weak), IMU initialisation,
+    run         per run: the first map (monocular initialisation: 100 level-0 matches and parallax),
+                map inliers (an occluder costs its edge's keypoints and the points emerging from
+                behind it) and frustum counts, the visual pose error (information matrix of the
+                inliers' geometry, drift, gross jumps when tracking is weak), IMU initialisation,
                 and ORB-SLAM3's own state (its rule replayed by jsve.core._machine.machine_step)
 
 Nothing is defined through the SVE formulas; docs/simulator.md describes the model, its parameters,
@@ -38,6 +40,7 @@ import numpy as np
 import pandas as pd
 
 from jsve.core._levels import LEVELS, SEED_DISTURBANCES, parse_disturbances
+from jsve.core._machine import MONO_INIT_MIN_KEYPOINTS, MONO_INIT_MIN_MATCHES
 from jsve.io import _scheduler
 from jsve.io import _schema as schema
 from jsve.io._resume import differences, file_digest, fingerprint, stop_if_stale
@@ -66,6 +69,7 @@ from jsve.sim._vision import (
     EUROC_CAM0,
     N_FEATURES,
     Counts,
+    Degradation,
     SceneProfile,
     VisionParams,
     bin_geometry,
@@ -164,7 +168,15 @@ class TrackingParams:
         recovery_s: s, time for strong tracking (many inliers) to pull an excursion back; weak
             tracking holds it (recovery slows as inliers / (inliers + recovery_inliers) falls).
         velocity_tau: s, smoothing of the visual velocity (the visual-inertial window).
-        imu_init_s: (min, max) s after the first frame at which ORB-SLAM3 initialises the IMU.
+        imu_init_s: (min, max) s after the first map's first frame at which ORB-SLAM3 initialises the
+            IMU (LocalMapping: the first inertial initialisation after 2 s of map).
+        init_match_share: level-0 keypoints that monocular initialisation's windowed search matches
+            between its reference and a frame up to 0.5 s later, per keypoint matched frame to frame.
+        init_max_age_s: s, ORB-SLAM3 drops an IMU_MONOCULAR initialisation reference older than this.
+        init_parallax_deg: degrees of parallax a two-view reconstruction needs.
+        map_lifetime_s: s a scene point must stay in view to become a map point (keyframes, then
+            triangulation): under an occluder the points that emerge from behind it within this
+            time of image motion have none yet.
     """
 
     map_fraction: float = 0.46
@@ -186,6 +198,10 @@ class TrackingParams:
     recovery_inliers: float = 30.0
     velocity_tau: float = 0.25
     imu_init_s: tuple[float, float] = (2.0, 3.5)
+    init_match_share: float = 0.79
+    init_max_age_s: float = 1.0
+    init_parallax_deg: float = 1.0
+    map_lifetime_s: float = 1.25
 
 
 @dataclass(frozen=True)
@@ -291,6 +307,7 @@ class Recording:
         spec: the sequence. trajectory: the smooth true trajectory. frame_ns: [F] int64.
         t: [F] s since the first frame. p, q, v: [F, 3|4|3] true body pose and velocity (world).
         omega: [F, 3] true body rates, rad/s. r_wc: [F, 3, 3] camera-to-world rotation.
+        camera_p: [F, 3] camera centre, m (world): the parallax of monocular initialisation.
         preint_zero, preint_est: (dt, dp, dv, dq) with zero biases (before IMU initialisation) and
             with the estimator's biases (after). scene: the texture process. travelled: [F] m.
         imu_source: where the IMU came from.
@@ -305,6 +322,7 @@ class Recording:
     v: np.ndarray
     omega: np.ndarray
     r_wc: np.ndarray
+    camera_p: np.ndarray
     preint_zero: tuple
     preint_est: tuple
     scene: object
@@ -350,7 +368,8 @@ def make_recording(spec: SequenceSpec, seed: int = 0, config: SimConfig = SimCon
     p, q = trajectory.pose(t)
     v = trajectory.velocity(t)
     omega = trajectory.angular_velocity(t)
-    r_wc = quat_to_matrix(q) @ EUROC_CAM0_T_BS[:3, :3]
+    r_wb = quat_to_matrix(q)
+    r_wc = r_wb @ EUROC_CAM0_T_BS[:3, :3]
     scene = make_scene(np.random.default_rng(_key(seed, "scene", spec.name)), t, omega, config.scene)
     travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     return Recording(
@@ -363,6 +382,7 @@ def make_recording(spec: SequenceSpec, seed: int = 0, config: SimConfig = SimCon
         v=v,
         omega=omega,
         r_wc=r_wc,
+        camera_p=p + r_wb @ EUROC_CAM0_T_BS[:3, 3],
         preint_zero=preintegrate(steps, np.zeros(3), np.zeros(3)),
         preint_est=preintegrate(steps, bg, ba),
         scene=scene,
@@ -406,32 +426,153 @@ def _unit_information(recording: Recording, counts: Counts, tracking: TrackingPa
     blocks = np.concatenate(
         [geo.info_t.reshape(64, 36), geo.info_m.reshape(64, 36), geo.info_r.reshape(64, 36)], 1
     )
-    per_frame = counts.bins.astype(float) @ blocks  # [F, 108]
+    per_frame = counts.texture_bins @ blocks  # [F, 108]; an occluder's edge gives no inliers
     info = per_frame[:, :36] * inv_z2[:, None] + per_frame[:, 36:72] * inv_z[:, None] + per_frame[:, 72:]
     return info.reshape(-1, 6, 6) * ((EUROC_CAM0.fx / counts.sigma_loc) ** 2)[:, None, None]
 
 
+NEVER = -1
+"""first_map_frame's value for a run that never starts a map."""
+
+
+def init_match_probability(counts: Counts, tracking: TrackingParams) -> np.ndarray:
+    """[F] probability that a level-0 keypoint of the frame is matched by monocular initialisation's
+    windowed search (ORBmatcher::SearchForInitialization: level 0 only, 100 px window, Hamming <= 50,
+    ratio 0.9): the frame-to-frame match probability times TrackingParams.init_match_share."""
+    return np.clip(counts.match_prob * tracking.init_match_share, 0.0, 1.0)
+
+
+def first_map_frame(
+    n_keys: np.ndarray,
+    n_level0: np.ndarray,
+    p_match: np.ndarray,
+    camera_p: np.ndarray,
+    depth: np.ndarray,
+    t: np.ndarray,
+    z: np.ndarray,
+    tracking: TrackingParams = TrackingParams(),
+) -> np.ndarray:
+    """[R] frame at which each run's monocular initialisation starts its first map (NEVER if none).
+
+    ORB-SLAM3 v1.0 Tracking::MonocularInitialization (l.2448-2500): a frame with more than 100
+    keypoints becomes the reference; each later frame is matched to it on level 0 and needs 100
+    matches, else the reference is dropped (and that frame is not the next one); the reference is also
+    dropped when the current frame has 100 keypoints or fewer, or when it is older than
+    init_max_age_s (IMU_MONOCULAR). With the matches, TwoViewReconstruction needs init_parallax_deg of
+    parallax (minParallax, l.116), here the camera's baseline over the scene depth.
+
+    Arguments:
+        n_keys: [F] keypoints of each frame (all levels). n_level0: [F] its level-0 keypoints (an
+            occluder's edge's among them: static, they match too).
+        p_match: [F] probability that a level-0 keypoint is matched to the reference
+            (init_match_probability). camera_p: [F, 3] camera centres, m. depth: [F] median scene
+            depth, m. t: [F] s. z: [R, F] standard normal draws of each run's match counts.
+    Returns:
+        [R] int frame index, or NEVER.
+    """
+    R, F = z.shape
+    start = np.full(R, NEVER)
+    keys_ok = n_keys > MONO_INIT_MIN_KEYPOINTS
+    # A pair can only pass where the current frame could hold the matches at all: skip the rest.
+    if not np.any(keys_ok & (n_level0 >= MONO_INIT_MIN_MATCHES)):
+        return start
+    min_parallax = math.radians(tracking.init_parallax_deg)
+    ready = np.zeros(R, bool)
+    ref = np.zeros(R, np.int64)
+    for k in range(F):
+        waiting = start == NEVER
+        if not waiting.any():
+            break
+        take = waiting & ~ready & keys_ok[k]  # becomes the reference (and tries no match)
+        trying = waiting & ready
+        # l.2483: the reference is dropped when this frame is poor or the reference too old (the test
+        # reads the previous frame's stamp).
+        stale = trying & (~keys_ok[k] | (t[max(k - 1, 0)] - t[ref] > tracking.init_max_age_s))
+        trying &= ~stale
+        # Matches of the reference's level-0 keypoints that this frame also holds: binomial, drawn by
+        # its normal approximation from the run's own draws (a run's log must not depend on which
+        # other runs are simulated beside it).
+        n = np.minimum(n_level0[ref], n_level0[k])
+        p = p_match[k]
+        matches = n * p + np.sqrt(n * p * (1.0 - p)) * z[:, k]
+        enough = trying & (matches >= MONO_INIT_MIN_MATCHES)
+        parallax = np.linalg.norm(camera_p[k] - camera_p[ref], axis=1) / depth[k]
+        start[enough & (parallax >= min_parallax)] = k
+        dropped = stale | (trying & ~enough)
+        ready = (ready & ~dropped) | take
+        ref = np.where(take, k, ref)
+    return start
+
+
+OCCLUDER_DISTANCES_PX = np.arange(0.0, 760.0, 10.0)
+"""px: distances at which occluder_map_share tabulates the bins' shares near an occluder."""
+
+
+def occluder_map_share(
+    recording: Recording, counts: Counts, deg: Degradation, tracking: TrackingParams
+) -> np.ndarray:
+    """[F] share of the frame's scene keypoints that carry a map point despite an occluder (1 without).
+
+    A point hidden behind the occluder drops out of the local map's view; one that emerges from behind
+    it is new to the map until keyframes have seen it long enough to triangulate it (map_lifetime_s).
+    The image moves f (|omega_xy| + |v| / depth) px/s, so the keypoints within that speed times
+    map_lifetime_s of the occluder's edge, on the side the scene emerges from (half of them), have no
+    map point yet. Without an occluder the image border does the same, and TrackingParams.map_fraction
+    already holds its share.
+    """
+    if deg.occluder_px <= 0:
+        return np.ones(recording.n_frames)
+    geometry = bin_geometry()
+    near = geometry.near_occluder_share(deg.occluder_px, OCCLUDER_DISTANCES_PX)  # [D, 64]
+    speed = EUROC_CAM0.fx * (
+        np.linalg.norm(recording.omega[:, :2], axis=1)
+        + np.linalg.norm(recording.v, axis=1) / recording.scene.depth
+    )
+    reach = np.clip(speed * tracking.map_lifetime_s, OCCLUDER_DISTANCES_PX[0], OCCLUDER_DISTANCES_PX[-1])
+    # Linear interpolation of each frame's reach between the tabulated distances.
+    j = np.clip(np.searchsorted(OCCLUDER_DISTANCES_PX, reach) - 1, 0, len(OCCLUDER_DISTANCES_PX) - 2)
+    w = (reach - OCCLUDER_DISTANCES_PX[j]) / (OCCLUDER_DISTANCES_PX[j + 1] - OCCLUDER_DISTANCES_PX[j])
+    share_near = near[j] * (1 - w)[:, None] + near[j + 1] * w[:, None]  # [F, 64]
+    weight = counts.texture_bins / np.maximum(counts.texture_bins.sum(axis=1, keepdims=True), 1e-12)
+    return 1.0 - 0.5 * np.sum(weight * share_near, axis=1)
+
+
 def _draw_run(
-    recording: Recording, counts: Counts, unit_info: np.ndarray, rng: np.random.Generator, config: SimConfig
+    recording: Recording,
+    counts: Counts,
+    unit_info: np.ndarray,
+    map_share: np.ndarray,
+    p_init: np.ndarray,
+    rng: np.random.Generator,
+    config: SimConfig,
 ) -> dict:
-    """Per-frame columns of one run (everything that varies between runs of one setting)."""
+    """Per-frame columns of one run (everything that varies between runs of one setting). Frames
+    before the run's first map (`start`) have no inliers, no frustum and no pose."""
     tr = config.tracking
     F = recording.n_frames
     t = recording.t
     dt = np.diff(t, prepend=t[0] - (t[1] - t[0] if F > 1 else 0.05))
+    # Monocular initialisation: the frame of the first map.
+    border = counts.border.sum(axis=1)
+    z = rng.normal(size=(1, F))
+    start = first_map_frame(
+        counts.n_extracted, counts.levels[:, 0], p_init, recording.camera_p, recording.scene.depth, t, z, tr
+    )[0]
+    mapped = np.arange(F) >= start if start != NEVER else np.zeros(F, bool)
     # Map quality of this run: a slow multiplicative process on the inlier probability.
     quality = np.exp(gauss_markov(rng, t, tr.run_sigma, tr.run_tau, 1)[:, 0] - 0.5 * tr.run_sigma**2)
-    p_inlier = np.clip(counts.match_prob * tr.map_fraction * counts.gate * quality, 0.0, 1.0)
-    n_inliers = rng.binomial(counts.n_extracted, p_inlier)
+    p_inlier = np.clip(counts.match_prob * tr.map_fraction * counts.gate * quality * map_share, 0.0, 1.0)
+    # An occluder's edge keypoints are static in the image: never inliers of the moving map.
+    n_inliers = rng.binomial(np.maximum(counts.n_extracted - border, 0), p_inlier) * mapped
     # Local-map points in view: the keypoints of about the last second.
     window = max(1, int(round(tr.frustum_window_s / max(float(np.median(dt)), 1e-3))))
     csum = np.concatenate([[0.0], np.cumsum(counts.n_extracted)])
     k = np.arange(F)
     lo = np.maximum(k - window + 1, 0)
     recent = (csum[k + 1] - csum[lo]) / (k + 1 - lo)
-    n_frustum = rng.poisson(np.maximum(recent * tr.frustum_ratio, 0.0))
+    n_frustum = rng.poisson(np.maximum(recent * tr.frustum_ratio, 0.0)) * mapped
     # Visual pose error: per-frame jitter from the inliers' information, slow drift, gross jumps.
-    share = n_inliers / np.maximum(counts.n_extracted, 1)
+    share = n_inliers / np.maximum(counts.n_extracted - border, 1)
     prior = np.diag([tr.prior_position**-2] * 3 + [tr.prior_rotation**-2] * 3)
     cov = np.linalg.inv(unit_info * share[:, None, None] + prior)
     chol = np.linalg.cholesky(0.5 * (cov + np.swapaxes(cov, 1, 2)))
@@ -444,36 +585,46 @@ def _draw_run(
     drift_inc = np.zeros((F, 6))
     drift_inc[:, :3] = rng.normal(size=(F, 3)) * (tr.drift_per_sqrt_m * np.sqrt(step))[:, None]
     drift_inc[:, 5] = rng.normal(size=F) * tr.yaw_drift_per_sqrt_m * np.sqrt(step)
-    drift = np.cumsum(drift_inc + tr.jitter_to_drift * jitter, axis=0)
-    jump_prob = tr.outlier_rate * np.exp(-n_inliers / tr.outlier_inliers)
+    # The map is anchored at its first frame: nothing accumulates before it.
+    drift = np.cumsum((drift_inc + tr.jitter_to_drift * jitter) * mapped[:, None], axis=0)
+    jump_prob = tr.outlier_rate * np.exp(-n_inliers / tr.outlier_inliers) * mapped
     jumps = (rng.uniform(size=F) < jump_prob)[:, None] * np.concatenate(
         [rng.normal(0, tr.outlier_position, (F, 3)), rng.normal(0, tr.outlier_rotation, (F, 3))], axis=1
     )
     strength = n_inliers / (n_inliers + tr.recovery_inliers)
     excursion = _linear_recurrence(np.exp(-dt * strength / tr.recovery_s), jumps)
     error = drift + excursion + jitter
-    error[0] = 0.0  # the map is anchored at the first frame
+    if start != NEVER:
+        error[start] = 0.0
     # The visual-inertial velocity follows the smooth part of the pose error (low-passed over velocity_tau).
     keep = np.exp(-dt / tr.velocity_tau)
     smooth = _linear_recurrence(keep, (drift[:, :3] + excursion[:, :3]) * (1.0 - keep)[:, None])
     vel_err = np.diff(smooth, axis=0, prepend=smooth[:1]) / dt[:, None]
-    vis_p = recording.p + error[:, :3]
+    unposed = ~mapped[:, None]
+    vis_p = np.where(unposed, np.nan, recording.p + error[:, :3])
     vis_q = quat_mul(quat_exp(error[:, 3:]), recording.q)
-    vis_q = vis_q / np.linalg.norm(vis_q, axis=1, keepdims=True)
-    vis_v = recording.v + vel_err
-    t_init = rng.uniform(*tr.imu_init_s)
-    return dict(
-        n_inliers=n_inliers, n_frustum=n_frustum, vis_p=vis_p, vis_q=vis_q, vis_v=vis_v, t_init=t_init
-    )
+    vis_q = np.where(unposed, np.nan, vis_q / np.linalg.norm(vis_q, axis=1, keepdims=True))
+    vis_v = np.where(unposed, np.nan, recording.v + vel_err)
+    # IMU initialisation a run-drawn time after the map starts (never without a map).
+    t_init = t[start] + rng.uniform(*tr.imu_init_s) if start != NEVER else np.inf
+    return dict(n_inliers=n_inliers, n_frustum=n_frustum, vis_p=vis_p, vis_q=vis_q, vis_v=vis_v,
+                t_init=t_init, start=start)  # fmt: skip
 
 
 def _orbslam3_states(
-    n_inliers: np.ndarray, n_extracted: np.ndarray, frame_ns: np.ndarray, imu_init: np.ndarray, fps: float
+    n_inliers: np.ndarray,
+    n_extracted: np.ndarray,
+    frame_ns: np.ndarray,
+    imu_init: np.ndarray,
+    imu_ba2: np.ndarray,
+    start: np.ndarray,
+    fps: float,
 ) -> np.ndarray:
     """ORB-SLAM3's logged eTrackingState per frame [R, F] under its own rule (15/50/50/10) and switch
-    model, from jsve.core._machine.machine_step on a full-support log (one recorded map, a pose on every
-    frame): OK 2; RECENTLY_LOST 3 (also on the frame that requests a reset, as Tracking.cc l.2155 logs
-    it); LOST 4 on the frame the 5 s timer expires; NOT_INITIALIZED 1 while a new map waits."""
+    model, from jsve.core._machine.machine_step on the run's log (one recorded map from `start`, a pose
+    on every frame from there): NOT_INITIALIZED 1 before the first map (all frames where start is
+    NEVER) and while a new map waits; OK 2; RECENTLY_LOST 3 (also on the frame that requests a reset,
+    as Tracking.cc l.2155 logs it); LOST 4 on the frame the 5 s timer expires."""
     import jax.numpy as jnp
 
     from jsve.core._rules import preset
@@ -482,13 +633,24 @@ def _orbslam3_states(
     padded = max(1024, int(math.ceil(F / 1024)) * 1024)  # few distinct shapes: few compilations
     pad = ((0, 0), (0, padded - F))
     t = (frame_ns - frame_ns[0]) / 1e9
-    ba2 = np.stack([schema.v1_defaults(frame_ns, i)["imu_ba2"] != 0 for i in imu_init])
-    first = lambda flags: np.array([t[np.argmax(f)] if f.any() else np.inf for f in flags], np.float32)  # noqa: E731
+    k = np.arange(F)
+    has_pose = (start[:, None] != NEVER) & (k[None] >= start[:, None])
+    first_map = (k[None] == start[:, None]).astype(np.float32)
+    t_start = np.where(start != NEVER, t[np.maximum(start, 0)], np.inf)
+
+    # The recorded run's delays from its first map to IMU initialisation and BA2 (as jsve.io reads them).
+    def first(flags):
+        return np.array(
+            [t[np.argmax(f)] - ts if f.any() else np.inf for f, ts in zip(flags, t_start, strict=True)]
+        )
+
     n_ext = np.broadcast_to(n_extracted, (R, F))
-    init_keys, init_matches = n_ext > 100, n_inliers >= 100  # MONO_INIT_* of jsve.core._machine
-    columns = [np.pad(x.astype(np.float32), pad) for x in (n_inliers, imu_init, ba2, init_keys, init_matches)]
+    init_keys = n_ext > MONO_INIT_MIN_KEYPOINTS
+    init_matches = n_inliers >= MONO_INIT_MIN_MATCHES  # the replay's stand-in (jsve.core._replay)
+    flags = (n_inliers, imu_init, imu_ba2, has_pose, init_keys, init_matches, first_map)
+    columns = [np.pad(x.astype(np.float32), pad) for x in flags]
     tt = np.pad(t.astype(np.float32), (0, padded - F), mode="edge")
-    delays = (jnp.asarray(first(imu_init)), jnp.asarray(first(ba2)))
+    delays = (jnp.asarray(first(imu_init), jnp.float32), jnp.asarray(first(imu_ba2), jnp.float32))
     out = _machine_fn()(*map(jnp.asarray, columns), jnp.asarray(tt), jnp.float32(fps), *delays,
                         preset("orbslam3").thresholds)  # fmt: skip
     modes, reset, loss = (np.asarray(x)[:, :F] for x in out)
@@ -498,6 +660,7 @@ def _orbslam3_states(
     was_lost = np.concatenate([np.zeros((R, 1), bool), modes[:, :-1] == 2], axis=1)
     state = np.where((modes == 2) & (was_lost | reset), schema.STATE_NOT_INITIALIZED, state)
     state = np.where(reset, schema.STATE_RECENTLY_LOST, state)
+    state = np.where(has_pose, state, schema.STATE_NOT_INITIALIZED)
     return state.astype(np.int64)
 
 
@@ -508,13 +671,13 @@ def _machine_fn():
 
     from jsve.core._machine import FrameData, HardLogic, RunConstants, initial_state, machine_step
 
-    def one(score, init, ba2, init_keys, init_matches, t, fps, delay, ba2_delay, thresholds):
+    def one(score, init, ba2, has_pose, init_keys, init_matches, rec_start, t, fps, delay, ba2_delay,
+            thresholds):  # fmt: skip
         k = jnp.arange(t.shape[0], dtype=t.dtype)
         zero = jnp.zeros_like(t)
-        first = (k == 0).astype(t.dtype)
-        data = FrameData(t=t, k=k, imu_init=init, imu_ba2=ba2, has_pose=zero + 1,
-                         init_keys=init_keys, init_matches=init_matches, rec_start=first, rec_loss=zero,
-                         rec_start_t=zero, rec_reloc=zero - 1)  # fmt: skip
+        data = FrameData(t=t, k=k, imu_init=init, imu_ba2=ba2, has_pose=has_pose,
+                         init_keys=init_keys, init_matches=init_matches, rec_start=rec_start, rec_loss=zero,
+                         rec_start_t=jnp.cumsum(rec_start * t), rec_reloc=zero - 1)  # fmt: skip
         run = RunConstants(fps=fps, imu_init_delay=delay, ba2_delay=ba2_delay, stereo=jnp.zeros((), t.dtype))
 
         def step(state, x):
@@ -526,7 +689,7 @@ def _machine_fn():
         _, out = jax.lax.scan(step, initial_state(t.dtype), (score, data))
         return out
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None, None, 0, 0, None)))
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, 0, 0, None, None, 0, 0, None)))
 
 
 def _round(x: np.ndarray, decimals: int) -> np.ndarray:
@@ -554,11 +717,15 @@ def simulate_setting(
     # EuRoC's stamps alternate 50,000,128 and 49,999,872 ns: fps to the millihertz (20.0).
     fps = float(round(1e9 / np.median(np.diff(recording.frame_ns)), 3)) if F > 1 else 20.0
     unit_info = _unit_information(recording, counts, config.tracking)
+    map_share = occluder_map_share(recording, counts, deg, config.tracking)
+    p_init = init_match_probability(counts, config.tracking)
     draws = [
         _draw_run(
             recording,
             counts,
             unit_info,
+            map_share,
+            p_init,
             np.random.default_rng(
                 _key(seed, "run", recording.spec.name, setting.disturbance, float(setting.level), int(r))
             ),
@@ -566,9 +733,17 @@ def simulate_setting(
         )
         for r in runs
     ]
+    start = np.array([d["start"] for d in draws], np.int64)
     imu_init = np.stack([recording.t >= d["t_init"] for d in draws])
+    imu_ba2 = np.stack([_ba2(recording.frame_ns, init, s) for init, s in zip(imu_init, start, strict=True)])
     states = _orbslam3_states(
-        np.stack([d["n_inliers"] for d in draws]), counts.n_extracted, recording.frame_ns, imu_init, fps
+        np.stack([d["n_inliers"] for d in draws]),
+        counts.n_extracted,
+        recording.frame_ns,
+        imu_init,
+        imu_ba2,
+        start,
+        fps,
     )
     out = []
     dt0, dp0, dv0, dq0 = recording.preint_zero
@@ -581,9 +756,10 @@ def simulate_setting(
             "t_ns": recording.frame_ns,
             "state": states[i],
             "imu_init": imu_init[i].astype(np.int64),
-            # One map for the whole run (a pose on every frame: full support for any rule), inertial
-            # BA2 from 15 s after the first frame: the rule of schema.v1_defaults (docs/simulator.md).
-            **schema.v1_defaults(recording.frame_ns, imu_init[i]),
+            # One map from the first map's frame on (a pose on every later frame: full support for
+            # any rule), inertial BA2 from 15 s after its start (docs/simulator.md).
+            "map_id": np.zeros(F, np.int64),
+            "imu_ba2": imu_ba2[i].astype(np.int64),
             "n_extracted": counts.n_extracted,
             "n_inliers": d["n_inliers"],
             "n_frustum": d["n_frustum"],
@@ -621,6 +797,15 @@ def simulate_setting(
         out.append(
             RunLog(meta=meta, frames=frames, source=f"<simulated {recording.spec.name}/{setting.label}/{r}>")
         )
+    return out
+
+
+def _ba2(frame_ns: np.ndarray, imu_init: np.ndarray, start: int) -> np.ndarray:
+    """[F] inertial BA2 done: schema.v1_defaults' rule (V1_BA2_DELAY_S after the map's first frame, on
+    frames whose IMU is initialised) counted from the first map's frame `start` (none if NEVER)."""
+    out = np.zeros(len(frame_ns), np.int64)
+    if start != NEVER:
+        out[start:] = schema.v1_defaults(frame_ns[start:], imu_init[start:])["imu_ba2"]
     return out
 
 

@@ -9,17 +9,23 @@ ORB-SLAM3's front-end counts on a EuRoC camera (752 x 480, radial-tangential len
   downsampling) attenuates the texture that makes it by the blur's modulation transfer at the
   texture's wavelength, exp(-2 pi^2 sigma^2 / wavelength^2); haze, low light and lens dirt scale it.
   A corner is a candidate while its contrast clears the threshold. Sensor noise adds spurious corners.
-- Extraction. ORB-SLAM3 keeps at most nFeatures (1000) and spreads them over the image (quadtree):
-  every bin keeps min(candidates, L x its image share), L set so that the total is nFeatures.
+- Extraction, per pyramid level. ORB-SLAM3 detects and spreads keypoints level by level, keeping at most
+  nFeatures (1 - 1/1.2) 1.2^-l / (1 - 1.2^-8) at level l (level_budgets: 217 of 1000 at level 0). A
+  level sees the image through the pyramid's own smoothing, and FAST's radius-3 circle there finds the
+  texture whose wavelength spans about 6 of the level's pixels (fast_scale_response): blur empties the
+  fine levels first. Within a level the quadtree spreads the budget over the image: every bin keeps
+  min(candidates, L x its image share), L set so that the level's total is its budget. An occluder's
+  edge takes the nodes it crosses (border_keypoints).
 - Matching. A keypoint is matched and verified from frame to frame with a probability that falls
   with the noise-to-contrast ratio and with the share of spurious corners.
 - Localisation. A keypoint's position is uncertain by sigma_loc px, which grows with the blur; a
   tracked map point is an inlier of ORB-SLAM3's pose optimisation if its reprojection error passes
   the chi-square gate (5.991 at 1 px, Optimizer::PoseOptimization).
 
-Parameters (`VisionParams`) were fitted to the real-frame measurement (docs/data/real_response.csv,
-ORB on EuRoC V1_01 frames) by analysis/simulator_calibration.py --fit; the localisation gate was set
-so that ORB-SLAM3's own rule fails beyond blur 35, as the seed paper reports.
+Parameters (`VisionParams`) were fitted to the real-frame measurement (docs/data/real_response.csv and
+the keypoints per pyramid level of docs/data/simulator_octaves.csv, ORB on EuRoC V1_01 frames) by
+analysis/simulator_calibration.py --fit; the localisation gate was set so that ORB-SLAM3's own rule
+fails beyond blur 35, as the seed paper reports.
 """
 
 from __future__ import annotations
@@ -44,6 +50,9 @@ CHI2_GATE = 5.991
 GRID_COLS, GRID_ROWS = 64, 48
 ORB_BORDER = 16
 """Keypoints lie at least EDGE_THRESHOLD - 3 = 16 px from the image border (ORBextractor)."""
+
+DETECTABLE_AREA_PX = (752 - 2 * ORB_BORDER) * (480 - 2 * ORB_BORDER)
+"""px^2 of a EuRoC frame where ORB-SLAM3 detects keypoints (inside ORB_BORDER)."""
 
 MEAN_INTENSITY_DN = 100.0
 """Typical mean grey level of EuRoC frames, for the shot noise of the low-light model."""
@@ -120,6 +129,39 @@ class BinGeometry:
         x, y = self.pixel_xy[:, 0], self.pixel_xy[:, 1]
         inside = (x >= x0) & (x < x0 + n) & (y >= y0) & (y < y0 + n)
         return _per_bin_fraction(self.pixel_bin, inside)
+
+    def occluder_edge(self, side_px: float, camera: CameraModel = EUROC_CAM0) -> tuple[float, np.ndarray]:
+        """(length in px of the edge of a centred black square of side_px px inside the detectable
+        image, [64] share of that edge in each bin), from the sampled pixels within 2 px outside it."""
+        distance = self.occluder_distance(side_px, camera)
+        band = (distance > 0) & (distance <= 2.0)
+        if not band.any():
+            return 0.0, np.zeros(64)
+        stride_area = float(DETECTABLE_AREA_PX) / self.n_pixels  # px^2 a sample stands for
+        perimeter = band.sum() * stride_area / 2.0  # a band 2 px wide
+        ok = band & (self.pixel_bin >= 0)
+        return float(perimeter), np.bincount(self.pixel_bin[ok], minlength=64) / band.sum()
+
+    def occluder_distance(self, side_px: float, camera: CameraModel = EUROC_CAM0) -> np.ndarray:
+        """[S] px from each sampled pixel to a centred black square of side_px px (Chebyshev distance,
+        0 inside it; inf without one)."""
+        if side_px <= 0:
+            return np.full(self.n_pixels, np.inf)
+        n = int(side_px)
+        y0, x0 = max(0, (camera.height - n) // 2), max(0, (camera.width - n) // 2)
+        x, y = self.pixel_xy[:, 0], self.pixel_xy[:, 1]
+        dx = np.maximum(np.maximum(x0 - x, x - (x0 + n - 1)), 0.0)
+        dy = np.maximum(np.maximum(y0 - y, y - (y0 + n - 1)), 0.0)
+        return np.maximum(dx, dy)
+
+    def near_occluder_share(self, side_px: float, distances: np.ndarray) -> np.ndarray:
+        """[D, 64] share of each bin's visible sampled pixels within each of `distances` px of a centred
+        black square of side_px px (0 without one, or where a bin has no visible pixel)."""
+        distance = self.occluder_distance(side_px)
+        visible = (distance > 0) & (self.pixel_bin >= 0)
+        count = np.maximum(np.bincount(self.pixel_bin[visible], minlength=64), 1)
+        d, b = distance[visible], self.pixel_bin[visible]
+        return np.stack([np.bincount(b[d <= r], minlength=64) / count for r in np.asarray(distances, float)])
 
     def field_share(self, values: np.ndarray, camera: CameraModel = EUROC_CAM0) -> np.ndarray:
         """[64] mean over each bin's pixels of a coarse image field values [h, w] (bilinear)."""
@@ -232,6 +274,10 @@ class VisionParams:
             share Q(-blank_z) of the image: bare walls, ceiling, floor) hold only blank_density of
             the texture (a smooth step of width 0.25).
         motion_blur_alpha: isotropic blur (px) equivalent to a streak of 1 px.
+        level_decay: a pyramid level 1.2^l smaller holds 1.2^(-l level_decay) of the candidates that
+            level 0 would (0: every level finds the same corners; 2: in proportion to its area).
+        border_share: share of the quadtree nodes an occluder's edge crosses that keep a keypoint of
+            the edge (border_keypoints).
     Noise and matching:
         natural_noise: DN, the camera's own noise (MT9M034 at EuRoC's exposures).
         match_max: frame-to-frame match-and-verify probability of a real corner without noise.
@@ -246,27 +292,29 @@ class VisionParams:
         loc_noise: noise-to-contrast ratio at which the localisation error grows by sqrt 2.
     """
 
-    candidates: float = 5246.0591
-    contrast_mu: float = 0.7186
-    contrast_sigma: float = 0.942
-    fine_wavelength: float = 10.3809
-    coarse_wavelength: float = 29.5788
-    fine_wavelength_sigma: float = 0.0021
-    fine_wavelength_spread: float = 0.3682
-    coarse_fraction: float = 0.0629
-    coarse_sigma: float = 2.498
-    texture_sigma: float = 2.5
-    contrast_coupling: float = 0.5531
-    blank_z: float = 0.5
-    blank_density: float = 0.01
-    motion_blur_alpha: float = 0.0716
-    natural_noise: float = 2.4713
-    match_max: float = 0.7624
-    match_noise: float = 7.1439
-    match_gamma: float = 2.9462
-    streak_match: float = 65.5723
-    dirt_scale: float = 0.8494
-    noise_corners: float = 9483.8325
+    candidates: float = 5678.7511
+    contrast_mu: float = 1.9106
+    contrast_sigma: float = 0.2817
+    fine_wavelength: float = 11.397
+    coarse_wavelength: float = 29.9437
+    fine_wavelength_sigma: float = 0.0881
+    fine_wavelength_spread: float = 0.1553
+    coarse_fraction: float = 0.0391
+    coarse_sigma: float = 2.7614
+    texture_sigma: float = 3.0739
+    contrast_coupling: float = 0.3744
+    blank_z: float = 1.4049
+    blank_density: float = 0.001
+    motion_blur_alpha: float = 0.0791
+    level_decay: float = 1.174
+    border_share: float = 0.66
+    natural_noise: float = 2.3587
+    match_max: float = 0.7366
+    match_noise: float = 8.0575
+    match_gamma: float = 2.9533
+    streak_match: float = 60.1796
+    dirt_scale: float = 0.5003
+    noise_corners: float = 3578.8051
     loc_floor: float = 0.5
     loc_per_blur: float = 0.35
     loc_noise: float = 0.3
@@ -293,6 +341,7 @@ class Degradation:
         noise_dn: DN, extra white noise (before the blur filters it).
         visible: [64] share of each bin's area not hidden (occlusion).
         noise_scale: factor on the camera's own noise (low light darkens the signal and its noise).
+        occluder_px: side (px) of the black square of an occlusion (0: none); its edge takes keypoints.
     """
 
     blur_px: float = 0.0
@@ -302,6 +351,7 @@ class Degradation:
     noise_dn: float = 0.0
     visible: np.ndarray = field(default_factory=lambda: np.ones(64))
     noise_scale: float = 1.0
+    occluder_px: float = 0.0
 
 
 def gaussian_blur_sigma(n: float) -> float:
@@ -341,7 +391,7 @@ def degradation(
         # also divides the camera's noise by 1/s.
         return Degradation(box_px=1.0 / level if level < 1.0 else 0.0, noise_scale=level)
     if name == "occlusion":
-        return Degradation(visible=1.0 - geometry.occluded_share(level))
+        return Degradation(visible=1.0 - geometry.occluded_share(level), occluder_px=level)
     if name == "noise":
         return Degradation(noise_dn=level)
     if name == "low_light":
@@ -370,6 +420,18 @@ def degradation(
 # Scene
 
 
+RENDER_TEXEL_DEPTH_M = 2.3
+"""m: `jsve render` maps the photographs at 5 mm a texel, one texel a pixel at 2.3 m (docs/render.md)."""
+
+RENDERED_TEXTURE_SCALE = 1.4
+"""SceneProfile.texture_scale of `jsve render`'s images. Their texture is a mosaic of the V1_01 photographs
+at 5 mm a texel, one texel a pixel at 2.3 m, seen from farther in most of the room: minified (and
+mip-mapped) it is finer than the camera images' and loses its level-0 corners to less blur (level 0
+falls to 58-85 keypoints at blur 20 where the photographs keep 209). Fitted to the rendered frames'
+keypoints per level under blur 0-40 (docs/data/simulator_octaves.csv; `python
+analysis/simulator_calibration.py --fit-render`: loss 637 at 1.0, 281 at 0.70, 286 at 0.65, 289 at 0.75)."""
+
+
 @dataclass(frozen=True)
 class SceneProfile:
     """The scene-texture process along a flight (sequence-level randomness).
@@ -385,6 +447,11 @@ class SceneProfile:
         field_tau: s, correlation time of the spatial pattern over the bins.
         depth: (min, max) m, median scene depth along the flight (EuRoC rooms and hall).
         exposure_s: s, exposure time: the camera's own motion blur is f |omega| exposure px.
+        texture_scale: factor on every texture wavelength: 1 for EuRoC's camera images (the vision
+            model was fitted on them); `jsve render`'s images are finer (RENDERED_TEXTURE_SCALE).
+        texel_depth_m: m; 0, or the depth at which the texture has its texture_scale wavelengths,
+            which then scale with texel_depth_m / depth frame by frame: a texture painted on the
+            surfaces at a fixed size, as `jsve render`'s (RENDER_TEXEL_DEPTH_M).
     """
 
     texture_sigma: float = 0.35
@@ -397,6 +464,8 @@ class SceneProfile:
     field_tau: float = 5.0
     depth: tuple[float, float] = (2.0, 6.0)
     exposure_s: float = 0.003
+    texture_scale: float = 1.0
+    texel_depth_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -411,6 +480,8 @@ class Scene:
         pool_z: [F, 64] standard normal draws realising the candidate counts per bin (common to all
             settings, so a stronger disturbance never adds corners to a frame).
         depth: [F] m, median scene depth; streak_px: [F] the camera's own motion-blur streak, px.
+        texture_scale: [F] factor on the texture's wavelengths (SceneProfile.texture_scale, and
+            its texel_depth_m over the frame's depth when set).
     """
 
     texture: np.ndarray
@@ -420,6 +491,7 @@ class Scene:
     pool_z: np.ndarray
     depth: np.ndarray
     streak_px: np.ndarray
+    texture_scale: np.ndarray | float = 1.0
 
 
 def _spatial_smoother() -> np.ndarray:
@@ -482,7 +554,16 @@ def make_scene(
         pool_z=rng.normal(0.0, 1.0, (n, 64)),
         depth=np.exp(log_depth),
         streak_px=streak,
+        texture_scale=texture_scale(profile, np.exp(log_depth)),
     )
+
+
+def texture_scale(profile: SceneProfile, depth: np.ndarray) -> np.ndarray:
+    """[F] factor on the texture's wavelengths per frame: SceneProfile.texture_scale, times
+    texel_depth_m / depth (m / m) where the texture has a fixed size on the surfaces (a render's)."""
+    if profile.texel_depth_m <= 0:
+        return np.full(len(depth), profile.texture_scale)
+    return profile.texture_scale * profile.texel_depth_m / np.asarray(depth, float)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -531,11 +612,55 @@ _GH_WEIGHTS = _GH_WEIGHTS / _GH_WEIGHTS.sum()
 
 SCALE_FACTOR = 1.2
 N_LEVELS = 8
-"""ORB-SLAM3's EuRoC pyramid: scaleFactor 1.2, nLevels 8."""
+"""ORB-SLAM3's EuRoC pyramid: scaleFactor 1.2, nLevels 8 (Examples/Monocular-Inertial/EuRoC.yaml)."""
 
-LEVEL0_WAVELENGTH = 6.0
-"""px: texture wavelength that FAST's radius-3 circle (7 px across) sees best at pyramid level 0;
-level l sees 1.2^l times longer wavelengths."""
+FAST_RADIUS_PX = 3.0
+"""FAST-9 compares a pixel with the 16 pixels of a circle of radius 3 px (Rosten & Drummond 2006), in
+the pixels of the pyramid level it runs on."""
+
+PYRAMID_STEP_BLUR = 0.408
+"""px of the finer level: standard deviation of the tent that one INTER_LINEAR resize by 1 / 1.2 applies
+(ORBextractor::ComputePyramid resizes each level from the one before; a tent of half-width 1 px has
+variance 1/6)."""
+
+
+def level_budgets(
+    n_features: int = N_FEATURES, scale_factor: float = SCALE_FACTOR, n_levels: int = N_LEVELS
+) -> np.ndarray:
+    """[n_levels] keypoints ORB-SLAM3 keeps at most per pyramid level.
+
+    ORBextractor's constructor (ORBextractor.cc l.434-445): a geometric series in 1 / scale_factor
+    summing to n_features, nFeatures (1 - 1/1.2) 1.2^-l / (1 - 1.2^-8) at level l, each rounded, the
+    last level taking the rest. A level never lends its unused budget to another, so a level short of
+    corners leaves n_extracted short. (jsve.image.OrbSettings.features_per_level is the same series for
+    the image side; a test holds them equal.)
+    """
+    factor = 1.0 / scale_factor
+    desired = n_features * (1.0 - factor) / (1.0 - factor**n_levels)
+    counts = [math.floor(desired * factor**level + 0.5) for level in range(n_levels - 1)]
+    return np.array([*counts, max(n_features - sum(counts), 0)], dtype=np.int64)
+
+
+def pyramid_blur(level: int, scale_factor: float = SCALE_FACTOR) -> float:
+    """px (level 0): the smoothing the pyramid itself has applied to level `level`, the tents of its
+    `level` successive resizes added in quadrature, each PYRAMID_STEP_BLUR pixels of the finer level."""
+    steps = np.arange(level)
+    return float(np.sqrt(np.sum((PYRAMID_STEP_BLUR * scale_factor**steps) ** 2)))
+
+
+def fast_scale_response(wavelength: np.ndarray) -> np.ndarray:
+    """Share of a texture's full contrast that FAST's radius-3 circle sees, for texture of `wavelength`
+    pixels of the level FAST runs on.
+
+    The largest intensity difference between a pixel and its circle is that of a blob's centre against
+    a ring 3 px out: amplitude x (1 - cos(2 pi 3 / wavelength)), the whole peak-to-peak swing (2 x the
+    amplitude) from wavelength 6 px down. Coarse texture is therefore found at coarse levels: at level l
+    a wavelength of lambda level-0 px spans lambda / 1.2^l px.
+    """
+    phase = np.minimum(
+        2.0 * math.pi * FAST_RADIUS_PX / np.maximum(np.asarray(wavelength, float), 1e-9), math.pi
+    )
+    return 0.5 * (1.0 - np.cos(phase))
 
 
 @dataclass(frozen=True)
@@ -544,16 +669,25 @@ class Counts:
 
     Attributes:
         bins: [F, 64] int keypoints per SVE bin. n_extracted: [F] int (bins plus those outside the grid).
+        levels: [F, N_LEVELS] int keypoints kept per pyramid level (sum n_extracted up to rounding);
+            levels[:, 0] are the ones monocular initialisation matches.
+        border: [F, N_LEVELS] int keypoints per level on an occluder's edge (static in the image: never
+            map inliers, never matched as the camera moves); included in levels, bins and n_extracted.
         match_prob: [F] probability that an extracted keypoint is matched and verified frame to frame.
         gate: [F] probability that a tracked map point passes the pose optimisation's chi-square gate.
         sigma_loc: [F] px (level 0), RMS keypoint localisation error of the extracted keypoints.
+        texture_bins: [F, 64] keypoints per bin on the scene's texture (bins less the border), not
+            rounded: the weights of per-bin tracking terms.
     """
 
     bins: np.ndarray
     n_extracted: np.ndarray
+    levels: np.ndarray
+    border: np.ndarray
     match_prob: np.ndarray
     gate: np.ndarray
     sigma_loc: np.ndarray
+    texture_bins: np.ndarray
 
 
 def texture_mtf(sigma: np.ndarray, wavelength: np.ndarray, box: float = 0.0) -> np.ndarray:
@@ -568,6 +702,26 @@ def texture_mtf(sigma: np.ndarray, wavelength: np.ndarray, box: float = 0.0) -> 
     return out
 
 
+def border_keypoints(
+    perimeter_px: float, visible_area_px: float, budgets: np.ndarray, share: float
+) -> np.ndarray:
+    """[levels] keypoints per level that ORB-SLAM3 keeps on the edge of an occluder (a black square).
+
+    Where texture meets the black edge FAST finds corners of the edge's full contrast, and the quadtree
+    (ORBextractor::DistributeOctTree) keeps the strongest keypoint of each node: every node the edge
+    crosses keeps one of the edge's with probability `share`. Level l's B_l nodes tile the visible
+    area, sqrt(A / B_l) px (level 0) a side, so the edge crosses P / sqrt(A / B_l) of them.
+
+    Arguments:
+        perimeter_px: visible length of the edge, px. visible_area_px: px^2 left to detect in.
+        budgets: [levels] keypoints per level (level_budgets). share: VisionParams.border_share.
+    """
+    if perimeter_px <= 0.0 or visible_area_px <= 0.0:
+        return np.zeros(len(budgets))
+    crossed = perimeter_px * np.sqrt(np.asarray(budgets, float) / visible_area_px)
+    return np.minimum(share * crossed, np.asarray(budgets, float))
+
+
 def extract(
     scene: Scene,
     deg: Degradation,
@@ -575,12 +729,17 @@ def extract(
     geometry: BinGeometry | None = None,
     n_features: int = N_FEATURES,
 ) -> Counts:
-    """Keypoints per bin after ORB-SLAM3's extraction, and the per-frame matching and localisation.
+    """Keypoints per bin and pyramid level after ORB-SLAM3's extraction, and the per-frame matching and
+    localisation.
 
-    Deterministic given the scene (ORB extraction on the same images is deterministic): run-level
-    randomness is drawn by the caller.
+    Each of the 8 levels is detected and spread on its own (ORBextractor::ComputeKeyPointsOctTree): a
+    level sees the degraded image through the pyramid's own smoothing (pyramid_blur), FAST finds there
+    the texture whose wavelength its circle matches (fast_scale_response), and the quadtree keeps at
+    most the level's budget (level_budgets). Deterministic given the scene (ORB extraction on the same
+    images is deterministic): run-level randomness is drawn by the caller.
     """
     geometry = geometry or bin_geometry()
+    budgets = level_budgets(n_features)
     # Effective isotropic blur (px): the disturbance, the camera's own streak, a disturbance streak.
     streak = np.sqrt(scene.streak_px**2 + deg.streak_px**2)
     blur = np.sqrt(deg.blur_px**2 + (params.motion_blur_alpha * streak) ** 2)[:, None]  # [F, 1]
@@ -603,57 +762,110 @@ def extract(
     share = geometry.share / max(geometry.share.sum(), 1e-12)
     base = params.candidates * scene.texture[:, None] * share * deg.visible
     # The fine grain of a region mixes wavelengths (log-normal, spread fine_wavelength_spread about
-    # the region's median): Gauss-Hermite quadrature over it.
-    fine_wavelength = params.fine_wavelength * np.exp(params.fine_wavelength_sigma * scene.grain_field)
-    lam_f = np.zeros_like(base)
-    contrast_f = np.zeros_like(base)  # candidates x their mean contrast, summed over the quadrature
+    # the region's median): Gauss-Hermite quadrature over it. A rendered scene's wavelengths are
+    # scene.texture_scale times those of the camera images the parameters were fitted on.
+    magnify = np.broadcast_to(np.asarray(scene.texture_scale, float), scene.texture.shape)[:, None]  # [F, 1]
+    fine_wavelength = (
+        params.fine_wavelength * magnify * np.exp(params.fine_wavelength_sigma * scene.grain_field)
+    )
+    coarse_wavelength = params.coarse_wavelength * magnify
     upper = _upper_tail(mu, params.contrast_sigma)
-    for node, w in zip(_GH_NODES, _GH_WEIGHTS, strict=True):
-        wl = fine_wavelength * np.exp(params.fine_wavelength_spread * node)
-        g = np.maximum(texture_mtf(blur, wl, deg.box_px) * deg.contrast, 1e-300)
-        p_detect, mean_contrast = _detected(mu, params.contrast_sigma, g, upper)
-        lam_f += w * base * fine * p_detect
-        contrast_f += w * base * fine * p_detect * mean_contrast
-    gain_c = np.maximum(texture_mtf(blur, params.coarse_wavelength, deg.box_px) * deg.contrast, 1e-300)
-    p_detect, mean_contrast = _detected(params.contrast_mu, params.contrast_sigma, gain_c)
-    lam_c = base * coarse * p_detect
-    lam_real = lam_f + lam_c
-    # Mean FAST contrast (DN) of the corners detected in each bin: what their matching and
-    # localisation compete with the noise on.
-    contrast_dn = FAST_FALLBACK_THRESHOLD * np.maximum(
-        (contrast_f + lam_c * mean_contrast) / np.maximum(lam_real, 1e-300), 1.0
-    )
-    wavelength = (lam_f * fine_wavelength + lam_c * params.coarse_wavelength) / np.maximum(lam_real, 1e-300)
-    # Spurious corners on noise: FAST-7 fires when the noise across its circle exceeds 7 DN.
-    noise = _effective_noise(deg, blur_eq[:, 0], params)  # [F] DN left after the blur
-    p_noise = np.exp(-((FAST_FALLBACK_THRESHOLD / (math.sqrt(2.0) * np.maximum(noise, 1e-6))) ** 2))
-    lam_noise = params.noise_corners * p_noise[:, None] * share * deg.visible
-    lam = lam_real + lam_noise
-    pool = np.maximum(lam + np.sqrt(lam) * scene.pool_z, 0.0)
-    # Keypoints beyond ORB-SLAM3's grid (undistorted corners past the bounds) count in N, in no bin.
+    upper_c = _upper_tail(params.contrast_mu, params.contrast_sigma)
     inside = max(geometry.share.sum(), 1e-12)
-    kept = _quadtree_keep(pool, share, n_features * inside)
-    bins = _round_preserving_total(kept)
-    n_extracted = np.minimum(np.floor(bins.sum(axis=1) / inside + 0.5).astype(np.int64), n_features)
-    weight = kept / np.maximum(kept.sum(axis=1, keepdims=True), 1e-12)
-    # Matching: noise over the corners' contrast; spurious corners never match.
-    real_share = np.where(lam > 0, lam_real / np.maximum(lam, 1e-300), 1.0)
-    rel_noise = noise[:, None] / contrast_dn
-    match_b = (
-        params.match_max
-        * real_share
-        / (1.0 + np.minimum(rel_noise / params.match_noise, 1e6) ** params.match_gamma)
+    border = _occluder_border(deg, geometry, budgets, params)  # [levels], [64]
+    F = len(scene.texture)
+    levels = np.zeros((F, len(budgets)))
+    bins = np.zeros((F, 64))
+    match_sum = np.zeros(F)
+    gate_sum = np.zeros(F)
+    loc2_sum = np.zeros(F)
+    for level, budget in enumerate(budgets):
+        scale = SCALE_FACTOR**level
+        blur_l = np.sqrt(blur**2 + pyramid_blur(level) ** 2)
+        lam_f = np.zeros_like(base)
+        contrast_f = np.zeros_like(base)  # candidates x their mean contrast, summed over the quadrature
+        for node, w in zip(_GH_NODES, _GH_WEIGHTS, strict=True):
+            wl = fine_wavelength * np.exp(params.fine_wavelength_spread * node)
+            seen = texture_mtf(blur_l, wl, deg.box_px) * fast_scale_response(wl / scale)
+            p_detect, mean_contrast = _detected(
+                mu, params.contrast_sigma, np.maximum(seen * deg.contrast, 1e-300), upper
+            )
+            lam_f += w * base * fine * p_detect
+            contrast_f += w * base * fine * p_detect * mean_contrast
+        seen_c = texture_mtf(blur_l, coarse_wavelength, deg.box_px) * fast_scale_response(
+            coarse_wavelength / scale
+        )
+        p_detect, mean_contrast = _detected(
+            params.contrast_mu, params.contrast_sigma, np.maximum(seen_c * deg.contrast, 1e-300), upper_c
+        )
+        lam_c = base * coarse * p_detect
+        # The same physical corners are found again at every level that resolves them; a coarser level
+        # holds fewer (its image is smaller): level_decay per octave of 1.2.
+        thin = scale**-params.level_decay
+        lam_real = (lam_f + lam_c) * thin
+        contrast_dn = FAST_FALLBACK_THRESHOLD * np.maximum(
+            (contrast_f + lam_c * mean_contrast) / np.maximum(lam_f + lam_c, 1e-300), 1.0
+        )
+        # Spurious corners on noise: FAST-7 fires when the noise across its circle exceeds 7 DN; the
+        # pyramid's smoothing averages the noise down, and a level of 1 / scale^2 the pixels holds
+        # that many fewer.
+        noise = _effective_noise(deg, blur_l[:, 0], params)  # [F] DN left at this level
+        p_noise = np.exp(-((FAST_FALLBACK_THRESHOLD / (math.sqrt(2.0) * np.maximum(noise, 1e-6))) ** 2))
+        lam_noise = params.noise_corners * p_noise[:, None] * share * deg.visible / scale**2
+        lam = lam_real + lam_noise
+        pool = np.maximum(lam + np.sqrt(lam) * scene.pool_z, 0.0)
+        # The quadtree spreads the level's budget over the image; nodes on an occluder's edge keep
+        # the edge's corners, the rest the texture's. Keypoints beyond ORB-SLAM3's grid (undistorted
+        # corners past its bounds) count in N, in no bin.
+        kept = _quadtree_keep(pool, share, (budget - border[0][level]) * inside)
+        bins += kept + border[0][level] * border[1]
+        levels[:, level] = kept.sum(axis=1) / inside + border[0][level]
+        # Matching: noise over the corners' contrast; spurious corners and the border never match
+        # from frame to frame as the camera moves (the border's keypoints are counted below).
+        real_share = np.where(lam > 0, lam_real / np.maximum(lam, 1e-300), 1.0)
+        rel_noise = noise[:, None] / contrast_dn
+        match_b = (
+            params.match_max
+            * real_share
+            / (1.0 + np.minimum(rel_noise / params.match_noise, 1e6) ** params.match_gamma)
+        )
+        # Localisation in the level's pixels, where ORB-SLAM3's gate is measured (its sigma is the
+        # level's scale): the blur shrinks by the scale, the localisation floor does not.
+        loc = np.hypot(params.loc_floor, params.loc_per_blur * blur_eq / scale) * np.hypot(
+            1.0, np.minimum(rel_noise, 1e6) / params.loc_noise
+        )
+        match_sum += np.sum(kept * match_b, axis=1)
+        gate_sum += np.sum(kept * inlier_gate(loc), axis=1)
+        loc2_sum += np.sum(kept * (loc * scale) ** 2, axis=1)
+    on_edge = border[1] * border[0].sum()  # [64] the border's keypoints per bin
+    bins_int = _round_preserving_total(bins)
+    n_extracted = np.minimum(np.floor(levels.sum(axis=1) + 0.5).astype(np.int64), n_features)
+    kept_texture = np.maximum(bins.sum(axis=1) - on_edge.sum(), 1e-12)
+    streak_match = 1.0 / (1.0 + (streak / params.streak_match) ** 2)
+    return Counts(
+        bins=bins_int,
+        n_extracted=n_extracted,
+        levels=np.round(levels).astype(np.int64),
+        border=np.broadcast_to(np.round(border[0]).astype(np.int64), levels.shape),
+        # Over the texture's keypoints: the border's never match a moving scene (the caller counts
+        # them out of the inliers).
+        match_prob=match_sum / kept_texture * streak_match,
+        gate=gate_sum / kept_texture,
+        sigma_loc=np.sqrt(loc2_sum / kept_texture),
+        texture_bins=np.maximum(bins - on_edge, 0.0),
     )
-    match = np.sum(weight * match_b, axis=1) / (1.0 + (streak / params.streak_match) ** 2)
-    # Localisation: a bin's corners are found at the pyramid level matching their wavelength, where
-    # the blur and ORB-SLAM3's gate are both measured in that level's pixels.
-    level_scale = np.clip(wavelength / LEVEL0_WAVELENGTH, 1.0, SCALE_FACTOR ** (N_LEVELS - 1))
-    loc = np.hypot(params.loc_floor, params.loc_per_blur * blur_eq / level_scale) * np.hypot(
-        1.0, np.minimum(rel_noise, 1e6) / params.loc_noise
-    )
-    gate = np.sum(weight * inlier_gate(loc), axis=1)
-    sigma_loc = np.sqrt(np.sum(weight * (loc * level_scale) ** 2, axis=1))
-    return Counts(bins=bins, n_extracted=n_extracted, match_prob=match, gate=gate, sigma_loc=sigma_loc)
+
+
+def _occluder_border(
+    deg: Degradation, geometry: BinGeometry, budgets: np.ndarray, params: VisionParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """(border keypoints per level [levels], the bins' shares of the edge [64]) of the degradation's
+    occluder; zeros without one."""
+    if deg.occluder_px <= 0:
+        return np.zeros(len(budgets)), np.zeros(64)
+    perimeter, edge = geometry.occluder_edge(deg.occluder_px)
+    visible_area = DETECTABLE_AREA_PX * float(np.sum(geometry.share * deg.visible) / geometry.share.sum())
+    return border_keypoints(perimeter, visible_area, budgets, params.border_share), edge
 
 
 MAX_CONTRAST = 255.0 / FAST_FALLBACK_THRESHOLD
