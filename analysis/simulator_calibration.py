@@ -39,7 +39,6 @@ import pandas as pd
 
 from jsve.core import SEED_DISTURBANCES, s_a, s_b
 from jsve.sim import (
-    RENDER_TEXEL_DEPTH_M,
     RENDERED_TEXTURE_SCALE,
     Scene,
     SceneProfile,
@@ -582,6 +581,7 @@ def main(argv=None) -> int:
         from jsve.sim import ImuNoise, SimConfig
 
         best, table = fit_map_lifetime(SimConfig(imu=ImuNoise.datasheet(), scene=rendered_profile()))
+        table.to_csv(OCCLUSION_FIT, index=False, float_format="%.6g")
         print(table.round(3).to_string(index=False))
         print(f"map_lifetime_s: {best:g} s")
         return 0
@@ -622,9 +622,8 @@ TEXTURE_SCALES = np.arange(0.3, 1.51, 0.05)
 
 
 def rendered_profile(texture_scale: float = RENDERED_TEXTURE_SCALE) -> SceneProfile:
-    """The scene of `jsve render`'s images: its texture at texture_scale, fixed on the surfaces (texels
-    of RENDER_TEXEL_DEPTH_M), and the renderer's 8 ms exposure."""
-    return SceneProfile(texture_scale=texture_scale, texel_depth_m=RENDER_TEXEL_DEPTH_M, exposure_s=0.008)
+    """The scene of `jsve render`'s images: its texture at texture_scale, and the renderer's 8 ms exposure."""
+    return SceneProfile(texture_scale=texture_scale, exposure_s=0.008)
 
 
 def fit_texture_scale(params: VisionParams, frames: int = 120, grid=TEXTURE_SCALES) -> float:
@@ -640,6 +639,7 @@ def fit_texture_scale(params: VisionParams, frames: int = 120, grid=TEXTURE_SCAL
 
 
 FRONTEND_RESPONSE = REPO / "docs" / "data" / "real_frontend_response.csv"
+OCCLUSION_FIT = REPO / "docs" / "data" / "simulator_occlusion_fit.csv"
 OCCLUSIONS = (0.0, 100.0, 200.0, 300.0, 350.0)
 """Occlusion levels of the real front-end's response (0: its undisturbed row)."""
 MAP_LIFETIMES = np.arange(0.0, 2.01, 0.25)

@@ -17,7 +17,7 @@ the kept frames are those a 700-frame run would give), and replays every simulat
 and switch model (jsve.evaluation.evaluate): each simulated run is a recording every rule is replayed
 on, as the `record` runs of the validation. Two scenes (VARIANTS): the rendered one the real front-end
 saw (SceneProfile.texture_scale = jsve.sim.RENDERED_TEXTURE_SCALE, fitted to the rendered frames'
-keypoints per pyramid level, with texels fixed on the surfaces, and the renderer's 8 ms exposure), and
+keypoints per pyramid level, and the renderer's 8 ms exposure), and
 the camera images' (the simulator's default, fitted to the real V1_01 photographs).
 
 Statistics are jsve.evaluation's, as analysis/replay_vs_rerun.py uses them with the simulated runs in
@@ -62,7 +62,6 @@ from jsve.evaluation import (  # noqa: E402
 )
 from jsve.io import buckets  # noqa: E402
 from jsve.sim import (  # noqa: E402
-    RENDER_TEXEL_DEPTH_M,
     RENDERED_TEXTURE_SCALE,
     ImuNoise,
     SceneProfile,
@@ -93,7 +92,6 @@ VARIANTS = {
         imu=ImuNoise.datasheet(),
         scene=SceneProfile(
             texture_scale=RENDERED_TEXTURE_SCALE,
-            texel_depth_m=RENDER_TEXEL_DEPTH_M,
             exposure_s=RENDER_EXPOSURE_S,
         ),
     ),

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from jsve.evaluation import run_loss
-from jsve.sim import RENDER_TEXEL_DEPTH_M, RENDERED_TEXTURE_SCALE, ImuNoise, SceneProfile, settings
+from jsve.sim import RENDERED_TEXTURE_SCALE, ImuNoise, SceneProfile, settings
 
 
 def _script():
@@ -134,10 +134,9 @@ def test_first_maps_are_the_first_posed_frames():
 
 def test_the_rendered_scene_is_the_renders():
     """The real front-end ran on `jsve render`'s images: the simulator's rendered scene has their texture
-    (fitted, fixed on the surfaces) and their 8 ms exposure; the camera-image scene is the default."""
+    (fitted) and their 8 ms exposure; the camera-image scene is the default."""
     rendered, camera = svf.VARIANTS[svf.RENDERED], svf.VARIANTS[svf.CAMERA]
     assert rendered.scene.texture_scale == RENDERED_TEXTURE_SCALE
-    assert rendered.scene.texel_depth_m == RENDER_TEXEL_DEPTH_M
     assert rendered.scene.exposure_s == 0.008 and camera.scene == SceneProfile()
     assert rendered.imu == camera.imu == ImuNoise.datasheet()
 

@@ -209,11 +209,11 @@ def test_keypoints_per_level_match_the_photographs():
 
 def test_the_rendered_scene_loses_level_zero_to_less_blur():
     """On `jsve render`'s frames level 0 empties from blur 15 on, where the photographs keep it to blur 25;
-    the rendered scene (RENDERED_TEXTURE_SCALE, texels fixed on the surfaces) agrees on whether level 0
+    the rendered scene (RENDERED_TEXTURE_SCALE) agrees on whether level 0
     holds initialisation's 100 keypoints at every blur level but RENDERED_MISSES, and its levels 1-4 are
     within 35 % plus 15 up to blur 30 (there too)."""
     real = _octaves("rendered")
-    profile = sv.SceneProfile(texture_scale=sv.RENDERED_TEXTURE_SCALE, texel_depth_m=sv.RENDER_TEXEL_DEPTH_M)
+    profile = sv.SceneProfile(texture_scale=sv.RENDERED_TEXTURE_SCALE)
     rendered, camera = _scene(profile), _scene(sv.SceneProfile())
     misses = []
     for _, row in real[real["disturbance"] == "blur"].iterrows():

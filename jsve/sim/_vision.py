@@ -420,10 +420,7 @@ def degradation(
 # Scene
 
 
-RENDER_TEXEL_DEPTH_M = 2.3
-"""m: `jsve render` maps the photographs at 5 mm a texel, one texel a pixel at 2.3 m (docs/render.md)."""
-
-RENDERED_TEXTURE_SCALE = 1.4
+RENDERED_TEXTURE_SCALE = 0.7
 """SceneProfile.texture_scale of `jsve render`'s images. Their texture is a mosaic of the V1_01 photographs
 at 5 mm a texel, one texel a pixel at 2.3 m, seen from farther in most of the room: minified (and
 mip-mapped) it is finer than the camera images' and loses its level-0 corners to less blur (level 0
@@ -449,9 +446,6 @@ class SceneProfile:
         exposure_s: s, exposure time: the camera's own motion blur is f |omega| exposure px.
         texture_scale: factor on every texture wavelength: 1 for EuRoC's camera images (the vision
             model was fitted on them); `jsve render`'s images are finer (RENDERED_TEXTURE_SCALE).
-        texel_depth_m: m; 0, or the depth at which the texture has its texture_scale wavelengths,
-            which then scale with texel_depth_m / depth frame by frame: a texture painted on the
-            surfaces at a fixed size, as `jsve render`'s (RENDER_TEXEL_DEPTH_M).
     """
 
     texture_sigma: float = 0.35
@@ -465,7 +459,6 @@ class SceneProfile:
     depth: tuple[float, float] = (2.0, 6.0)
     exposure_s: float = 0.003
     texture_scale: float = 1.0
-    texel_depth_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -480,8 +473,7 @@ class Scene:
         pool_z: [F, 64] standard normal draws realising the candidate counts per bin (common to all
             settings, so a stronger disturbance never adds corners to a frame).
         depth: [F] m, median scene depth; streak_px: [F] the camera's own motion-blur streak, px.
-        texture_scale: [F] factor on the texture's wavelengths (SceneProfile.texture_scale, and
-            its texel_depth_m over the frame's depth when set).
+        texture_scale: factor on the texture's wavelengths (SceneProfile.texture_scale).
     """
 
     texture: np.ndarray
@@ -491,7 +483,7 @@ class Scene:
     pool_z: np.ndarray
     depth: np.ndarray
     streak_px: np.ndarray
-    texture_scale: np.ndarray | float = 1.0
+    texture_scale: float = 1.0
 
 
 def _spatial_smoother() -> np.ndarray:
@@ -554,16 +546,8 @@ def make_scene(
         pool_z=rng.normal(0.0, 1.0, (n, 64)),
         depth=np.exp(log_depth),
         streak_px=streak,
-        texture_scale=texture_scale(profile, np.exp(log_depth)),
+        texture_scale=profile.texture_scale,
     )
-
-
-def texture_scale(profile: SceneProfile, depth: np.ndarray) -> np.ndarray:
-    """[F] factor on the texture's wavelengths per frame: SceneProfile.texture_scale, times
-    texel_depth_m / depth (m / m) where the texture has a fixed size on the surfaces (a render's)."""
-    if profile.texel_depth_m <= 0:
-        return np.full(len(depth), profile.texture_scale)
-    return profile.texture_scale * profile.texel_depth_m / np.asarray(depth, float)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -764,7 +748,7 @@ def extract(
     # The fine grain of a region mixes wavelengths (log-normal, spread fine_wavelength_spread about
     # the region's median): Gauss-Hermite quadrature over it. A rendered scene's wavelengths are
     # scene.texture_scale times those of the camera images the parameters were fitted on.
-    magnify = np.broadcast_to(np.asarray(scene.texture_scale, float), scene.texture.shape)[:, None]  # [F, 1]
+    magnify = scene.texture_scale
     fine_wavelength = (
         params.fine_wavelength * magnify * np.exp(params.fine_wavelength_sigma * scene.grain_field)
     )
