@@ -439,8 +439,8 @@ class SceneProfile:
         sequence_sigma: log spread of a sequence's mean texture around the reference scene.
         lowtex_rate: low-texture stretches per second (a blank wall, a dark corner, the floor).
         lowtex_duration: (min, max) s of a stretch. lowtex_depth: (min, max) of -ln(texture factor).
-        init_clear_s: s at the start free of low-texture stretches: a log starts once ORB-SLAM3 has
-            initialised its map, which it does on a textured view.
+        init_clear_s: s at the start free of low-texture stretches: EuRoC's flights start their
+            first map within a few seconds, on a textured view.
         field_tau: s, correlation time of the spatial pattern over the bins.
         depth: (min, max) m, median scene depth along the flight (EuRoC rooms and hall).
         exposure_s: s, exposure time: the camera's own motion blur is f |omega| exposure px.
