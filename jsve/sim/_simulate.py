@@ -80,7 +80,7 @@ from jsve.sim._vision import (
 
 logger = logging.getLogger(__name__)
 
-FRONTEND = "jsve simulator 1"
+FRONTEND = "jsve simulator 2"
 """Value of the `frontend` metadata key of simulated logs (the model version)."""
 
 GRIDS = {name: (0, *levels) if name == "occlusion" else levels for name, levels in LEVELS.items()}
