@@ -46,6 +46,7 @@ from jsve.io._logs import (
     read_log_table,
     read_log_version,
     run_from_table,
+    unreadable,
     with_v1_defaults,
 )
 from jsve.io._schema import RunLog
@@ -203,7 +204,7 @@ def _read_one(path: str, ground_truth) -> tuple[RunLog, int] | LogFormatError:
     except LogFormatError as e:
         return e
     except OSError as e:
-        return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
+        return unreadable(path, e)
 
 
 @dataclass(frozen=True)
@@ -226,7 +227,7 @@ def _read_rows_one(path: str, ground_truth) -> tuple[_LogRows, int] | LogFormatE
     except LogFormatError as e:
         return e
     except OSError as e:
-        return LogFormatError(path, None, f"cannot read the file: {e.strerror or e}")
+        return unreadable(path, e)
 
 
 def _log_rows(path: str, meta: dict, version: int, table: pa.Table, ground_truth) -> tuple[_LogRows, int]:

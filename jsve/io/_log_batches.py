@@ -28,7 +28,7 @@ import pyarrow as pa
 from jsve.io import _schema as schema
 from jsve.io import _text as text
 from jsve.io._errors import LogFormatError
-from jsve.io._logs import log_layout, parse_table, read_log_bytes, rows_are_valid
+from jsve.io._logs import log_layout, parse_table, read_log_bytes, rows_are_valid, unreadable
 
 Parsed = tuple[dict, int, pa.Table]
 
@@ -94,7 +94,7 @@ def _read(paths: Sequence[str]) -> list[tuple[str, bytes | LogFormatError]]:
         except LogFormatError as e:
             out.append((p, e))
         except OSError as e:
-            out.append((p, LogFormatError(p, None, f"cannot read the file: {e.strerror or e}")))
+            out.append((p, unreadable(p, e)))
     return out
 
 

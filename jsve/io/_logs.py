@@ -685,6 +685,11 @@ def read_log_table(path: str | os.PathLike) -> tuple[dict, int, pa.Table]:
     return parse_table(read_log_bytes(path), os.fspath(path))
 
 
+def unreadable(path: str, error: OSError) -> LogFormatError:
+    """The LogFormatError of a log that cannot be read (quarantined or raised like any bad log)."""
+    return LogFormatError(path, None, f"cannot read the file: {error.strerror or error}")
+
+
 def read_log_bytes(path: str | os.PathLike) -> bytes:
     """The whole file of a log.
 
