@@ -12,7 +12,7 @@ import pytest
 
 from jsve.fitting._distributed import ShardedSearch
 from jsve.fitting._fit import FitConfig, FitData, fit
-from jsve.fitting._halving import subset_parts
+from jsve.fitting._packing import subset_parts
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, sve_space
 from jsve.io._ingest import ingest

@@ -25,8 +25,8 @@ from jsve.fitting._halving import (
     halving_searches,
     rung_sizes,
     stratified_order,
-    subset_parts,
 )
+from jsve.fitting._packing import subset_parts
 from jsve.fitting._search import search, search_chunk
 from jsve.fitting._space import inlier_space, sve_space
 
@@ -398,21 +398,3 @@ def test_auto_search_halves_with_a_first_rung_of_at_least_100_runs(n_runs, eta, 
     for given in ("halving", "exhaustive"):
         config = FitConfig(search=given, initial_fraction=0.5)
         assert resolve_search(config, n_runs) == config
-
-
-def test_lazy_subset_parts_are_the_eager_ones_gathered_on_reading(counts_data):
-    from jsve.fitting._halving import lazy_subset_parts
-
-    runs = np.array([0, 2, 3, 7, 11])
-    eager, counts, columns = subset_parts(counts_data.parts, counts_data.run_counts, runs)
-    lazy, lazy_counts, lazy_columns = lazy_subset_parts(counts_data.parts, counts_data.run_counts, runs)
-    assert counts == lazy_counts and np.array_equal(columns, lazy_columns) and len(lazy) == len(eager)
-    for a, b in zip(eager, lazy, strict=True):
-        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
-            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    space = inlier_space()
-    values = _design(space, 8, seed=1)
-    by_lazy = search(lazy, space, values, counts_data.config, run_counts=lazy_counts, progress=False)
-    by_eager = search(eager, space, values, counts_data.config, run_counts=counts, progress=False)
-    for a, b in zip(_fields(by_lazy), _fields(by_eager), strict=True):
-        np.testing.assert_array_equal(a, b)

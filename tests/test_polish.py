@@ -9,8 +9,11 @@ import knownanswer as ka
 import numpy as np
 import pytest
 
-from jsve.fitting._fit import FitConfig, FitData, fit, hard_objective
-from jsve.fitting._polish import pack_runs, polish_runs
+from jsve.fitting import _packing
+from jsve.fitting._crossval import cross_validate, kfold, rule_results
+from jsve.fitting._fit import FitConfig, FitData, fit, hard_objective, nelder_mead, search_all, search_design
+from jsve.fitting._packing import frame_classes, pack_runs, packing, subset_parts
+from jsve.fitting._polish import polish_runs
 from jsve.fitting._search import search
 from jsve.fitting._space import ParamSpace, inlier_space
 from jsve.sim import _motion as sm
@@ -53,6 +56,41 @@ def test_a_packed_part_scores_each_run_as_its_own_bucket(data):
     assert np.any(whole.failed[:, runs]) and np.any(~whole.failed[:, runs])
 
 
+def test_a_subset_is_packed_by_length_class_and_scores_as_its_own_parts(data, monkeypatch):
+    """subset_parts: a part whose runs are all selected is passed as it is; the other selected runs are
+    packed by length class into parts of at most PACK_RUNS runs, a power of 2 with padding; every
+    selected run scores as on its own part, and the columns name the runs in the order scored."""
+    space = _space()
+    values = np.asarray(space.values_from_unit(np.random.default_rng(1).random((8, space.dim))), np.float64)
+    whole = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
+    first = np.arange(data.run_counts[0])  # all of the first part, and 7 runs of the other two
+    runs = np.concatenate([first, data.n_runs - 1 - np.arange(7)])
+    monkeypatch.setattr(_packing, "PACK_RUNS", 4)  # a class of more than 4 selected runs fills two parts
+    frames = [p.n_frames for p in data.parts]
+    layout = packing(data.run_counts, [(p.n_frames, p.n_runs) for p in data.parts], runs)
+    assert layout[0].whole and layout[0].frames == frames[0] and layout[0].n_real == data.run_counts[0]
+    assert all(not item.whole and item.n_real <= 4 for item in layout[1:])
+    assert all(item.runs == _packing.padded_runs(item.n_real) for item in layout[1:])
+    assert sum(item.n_real for item in layout) == len(runs) and len(layout) >= 4
+    classes = frame_classes(frames, [p.n_runs for p in data.parts])
+    for item in layout[1:]:  # a packed part has the frames of its class's longest part
+        (c,) = {classes[p] for p, _ in item.picks}
+        assert item.frames == max(f for f, k in zip(frames, classes, strict=True) if k == c)
+    parts, counts, columns = subset_parts(data.parts, data.run_counts, runs)
+    assert sorted(columns) == sorted(runs) and counts == [item.n_real for item in layout]
+    assert parts[0] is data.parts[0]
+    sub = search(parts, space, values, data.config, run_counts=counts, progress=False)
+    for key in ("loss", "rmse", "coverage", "failed", "included"):
+        np.testing.assert_allclose(getattr(sub, key), getattr(whole, key)[:, columns], rtol=1e-5, atol=1e-6)
+
+
+def test_frame_classes_cut_parts_by_length_into_classes_of_about_equal_runs():
+    classes = frame_classes([300, 100, 200, 400], [10, 10, 10, 10], 2)
+    np.testing.assert_array_equal(classes, [1, 0, 0, 1])
+    assert np.array_equal(frame_classes([100, 200], [1, 100], 4), [0, 0])  # a part is never split
+    assert len(set(frame_classes(np.arange(27) * 64 + 1900, np.full(27, 126)))) == 4
+
+
 def test_the_subset_is_stratified_weighted_and_sorted(data):
     w = np.ones(data.n_runs)
     assert polish_runs(data.meta, w, 0) is None and polish_runs(data.meta, w, data.n_runs) is None
@@ -88,3 +126,35 @@ def test_a_fit_polished_on_a_subset_is_judged_on_every_run(data):
 def test_a_wrong_polish_runs_is_refused(bad):
     with pytest.raises(ValueError, match="polish_runs must be a count"):
         FitConfig(polish_runs=bad)
+
+
+def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
+    """cross_validate polishes each fold on its own training runs, then judges all folds in one batched
+    search (jsve.fitting._fit.judge). Each fold's fitted values and training objective equal a fit of
+    that fold alone from the same search, its polishes' values equal Nelder-Mead run alone from the same
+    starts, and its held-out rows equal an independent one-setting search of its fitted values."""
+    space = _space()
+    config = FitConfig(n_search=32, n_starts=2, nm_steps=15, polish_runs=6, search="exhaustive")
+    folds = kfold(data.n_runs, 3, seed=1)
+    cv = cross_validate(data, {"inliers": space}, folds, config=config, presets=("orbslam3",), progress=False)
+    searched = search_all(data, space, search_design(space, config), progress=False)
+    for fold in folds:
+        train = (~fold.test).astype(np.float64)
+        alone = fit(data, space, train, config, search_result=searched, progress=False)
+        row = cv.params[cv.params["fold"] == fold.name].iloc[0]
+        np.testing.assert_array_equal([row[n] for n in space.names], alone.values)
+        assert row["train_objective"] == pytest.approx(alone.objective, rel=1e-12)
+        assert alone.objective == pytest.approx(hard_objective(data, space, alone.values, train), rel=1e-6)
+        starts = searched.values[np.argsort(searched.objective(train), kind="stable")[:2]]
+        for start, stage in zip(starts, alone.stages[1:], strict=True):
+            values, value, _ = nelder_mead(
+                data, space, start, train, max_steps=15, window=config.nm_window, ftol=config.nm_ftol,
+                on_runs=6, seed=config.seed,
+            )  # fmt: skip
+            np.testing.assert_array_equal(stage["values"], values)
+            assert stage["objective"] == pytest.approx(value, rel=1e-6)
+        held = cv.heldout[(cv.heldout["fold"] == fold.name) & (cv.heldout["rule"] == "fitted-inliers")]
+        oracle = rule_results(data, space, alone.values)
+        np.testing.assert_array_equal(held["run_index"], np.flatnonzero(fold.test))
+        np.testing.assert_allclose(held["loss"], oracle.loss[0, fold.test], rtol=1e-6)
+        np.testing.assert_array_equal(held["failed"], oracle.failed[0, fold.test])

@@ -17,9 +17,13 @@ from jsve.fitting._fit import SEARCH_METHODS as SEARCH_METHODS
 from jsve.fitting._fit import FitConfig as FitConfig
 from jsve.fitting._fit import FitData as FitData
 from jsve.fitting._fit import FitResult as FitResult
+from jsve.fitting._fit import PolishedFit as PolishedFit
 from jsve.fitting._fit import fit as fit
+from jsve.fitting._fit import fit_search as fit_search
 from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
+from jsve.fitting._fit import judge as judge
 from jsve.fitting._fit import nelder_mead as nelder_mead
+from jsve.fitting._fit import polish as polish
 from jsve.fitting._fit import relaxed_fit as relaxed_fit
 from jsve.fitting._fit import resolve_search as resolve_search
 from jsve.fitting._fit import search_all as search_all
@@ -29,6 +33,7 @@ from jsve.fitting._halving import halving_search as halving_search
 from jsve.fitting._halving import halving_searches as halving_searches
 from jsve.fitting._halving import rung_sizes as rung_sizes
 from jsve.fitting._halving import stratified_order as stratified_order
+from jsve.fitting._packing import subset_parts as subset_parts
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
 from jsve.fitting._simplex import StallingNelderMead as StallingNelderMead

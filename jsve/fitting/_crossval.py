@@ -33,9 +33,11 @@ from jsve.fitting._fit import (
     FitConfig,
     FitData,
     FitResult,
-    fit,
     fit_cache,
+    fit_search,
     fitted_rule_name,
+    judge,
+    polish,
     resolve_search,
     search_all,
     search_design,
@@ -237,9 +239,10 @@ def cross_validate(
             )
     per_rule = preset_results(data, presets, progress=progress)
 
-    rows, params = [], []
-    # One step per fit (fold x family): a fold's fits take minutes (Nelder-Mead), so a bar over folds
-    # alone would move too seldom to give an ETA early.
+    # Each fold's fit polishes on its own training runs, one after the other (fold x family: minutes
+    # each, so the bar moves per fit); then all folds of a family are judged on every run in one batched
+    # search, whose rows also hold each fold's fitted rule on its held-out runs (`judge`).
+    polished = {name: [] for name in spaces}
     with tqdm(
         total=len(folds) * len(spaces),
         desc=f"cross-validation, {len(folds)} folds x {len(spaces)} families",
@@ -250,38 +253,40 @@ def cross_validate(
             train = w * ~fold.test
             if not np.any(train > 0):
                 raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
-            fitted = {}
             for name, space in spaces.items():
-                result = fit(
-                    data,
-                    space,
-                    train,
-                    config,
-                    search_result=_fold_search(name, k, screened, searches, config),
-                    progress=False,
-                )
-                fitted[fitted_rule_name(name)] = rule_results(data, space, result.values)
-                release_memory()  # each fold's search and polish leave executables behind (jsve._memory)
+                search_result = _fold_search(name, k, screened, searches, config)
+                if search_result is None:  # the fold searches alone (per-run results do not fit memory)
+                    search_result = fit_search(data, space, train, config, progress=False)[0]
+                polished[name].append(polish(data, space, train, search_result, config))
+                release_memory()  # each fold's polish leaves executables behind (jsve._memory)
                 bar.update(1)
-                params.append(
-                    {
-                        "fold_kind": fold.kind,
-                        "fold": fold.name,
-                        "family": name,
-                        "train_objective": result.objective,
-                        **result.params(),
-                    }
-                )
-            for rule, res in {**fitted, **per_rule}.items():
-                held = np.flatnonzero(fold.test)
-                table = meta.iloc[held].copy()
-                table.insert(0, "run_index", held)
-                table["fold_kind"], table["fold"], table["rule"] = fold.kind, fold.name, rule
-                table["weight"] = w[held]
-                for key in ("loss", "rmse", "failed", "coverage", "unsupported", "included"):
-                    table[key] = getattr(res, key)[0, held]
-                table["loss"] = table["loss"].where(table["included"])
-                rows.append(table)
+    fits = {name: judge(data, spaces[name], polished[name], progress=progress) for name in spaces}
+
+    rows, params = [], []
+    for k, fold in enumerate(folds):
+        fitted = {}
+        for name in spaces:
+            result = fits[name][k]
+            fitted[fitted_rule_name(name)] = result.results
+            params.append(
+                {
+                    "fold_kind": fold.kind,
+                    "fold": fold.name,
+                    "family": name,
+                    "train_objective": result.objective,
+                    **result.params(),
+                }
+            )
+        for rule, res in {**fitted, **per_rule}.items():
+            held = np.flatnonzero(fold.test)
+            table = meta.iloc[held].copy()
+            table.insert(0, "run_index", held)
+            table["fold_kind"], table["fold"], table["rule"] = fold.kind, fold.name, rule
+            table["weight"] = w[held]
+            for key in ("loss", "rmse", "failed", "coverage", "unsupported", "included"):
+                table[key] = getattr(res, key)[0, held]
+            table["loss"] = table["loss"].where(table["included"])
+            rows.append(table)
     return CrossValidation(heldout=pd.concat(rows, ignore_index=True), params=pd.DataFrame(params))
 
 

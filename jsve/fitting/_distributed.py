@@ -62,13 +62,13 @@ def search_task(
 ) -> tuple[str | None, dict[str, np.ndarray]]:
     """One shard on a worker: `search` of `values` on the study's runs (all, or the global indices
     `runs`, in increasing order). Returns (the content digest the worker read, the [s, R] arrays)."""
-    from jsve.fitting._halving import lazy_subset_parts
+    from jsve.fitting._packing import subset_parts
 
     data = _worker_data(source, config, _stamp(source))
     if runs is None:
         parts, counts = data.parts, data.run_counts
     else:
-        parts, counts, _ = lazy_subset_parts(data.parts, data.run_counts, runs)
+        parts, counts, _ = subset_parts(data.parts, data.run_counts, runs)
     result = search(parts, space, values, config, run_counts=counts, progress=False)
     return data.content_digest, {name: getattr(result, name) for name in RESULT_FIELDS}
 

@@ -16,25 +16,27 @@ computations, each costing time in proportion to the frames it scans:
   ceil(ceil(S / size) / D) x size x F x R lane-frames per device. Unit: lane-frames per device.
   - the fit's search, exhaustive: the family's design (n_search + its presets) on every part;
   - halving (jsve.fitting._halving): rung k scores its ceil(S / eta^k) settings on the runs new to
-    it (the prefix of the stratified order, `rung_sizes`), gathered per part and padded to a power of
-    2 (`subset_runs`); a cross-validation fold's rungs are the same prefixes less its held-out runs, so
-    on the full fit's cache they add nothing (assuming the folds keep the full fit's survivors, which
-    they mostly do); on a resumed study without the fit's cache, all their pairs;
+    it (the prefix of the stratified order, `rung_sizes`), packed by length class into parts of a
+    power of 2 of runs (jsve.fitting._packing); a cross-validation fold's rungs are the same prefixes
+    less its held-out runs, so on the full fit's cache they add nothing (assuming the folds keep the
+    full fit's survivors, which they mostly do); on a resumed study without the fit's cache, all their pairs;
   - the parameter bootstrap's local design (n_local + 1 settings): on every part, or screened on
     `bootstrap_screen_runs` runs packed into one part and BOOTSTRAP_KEPT_SHARE of it on every part;
     the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
 - **objective**: the hard objective of one setting on every run (`_fit._hard_jit`, Nelder-Mead's
-  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x steps + d + 2 evaluations (the last: its
-  value on every run), each step evaluating twice (reflection, then expansion or contraction) plus a
-  simplex of d + 1 points on a shrink. Without the stall test (nm_window = 0) it runs to its step
+  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x steps + d + 1 evaluations, each step
+  evaluating twice (reflection, then expansion or contraction) plus a simplex of d + 1 points on a
+  shrink. Without the stall test (nm_window = 0) it runs to its step
   limit nm_steps (measured: every fit of the studies in docs/fitting.md); with it, to
   `nm_expected_steps` (the stall test's typical stop, NM_STALL_WINDOWS windows, measured). A fit runs
   n_starts of them, the full fit and each cross-validation fold, per family.
 - **polish**: the hard objective of one setting on the packed subset of `polish_runs` runs
-  (jsve.fitting._polish) that Nelder-Mead moves on in a fit of more training runs; each polish then
-  costs one **objective** evaluation on every run (its verdict).
-- **setting**: one setting's per-run results (a search of one setting): after each fit, per fold and
-  family the held-out scoring, and the presets that are points of a family's space.
+  (jsve.fitting._polish) that Nelder-Mead moves on in a fit of more training runs. The verdict on
+  every run is a **search**: each fit's candidates (its search's best and each polish's result), of all
+  the cross-validation's folds at once (jsve.fitting._fit.judge), whose rows also score each fold's
+  fitted rule on its held-out runs.
+- **setting**: one setting's per-run results (a search of one setting): the presets that are points of
+  a family's space.
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
   presets, the fitted rules, and in the cross-validation the presets outside the fitted families'
   spaces (their replay objective, or a search of a family the probe does not time, counted alike).
@@ -252,21 +254,18 @@ def search_cost(
     ceil(S / size) calls per part, ceil(calls / D) rounds on the D devices, each scanning
     size x runs x frames lane-frames.
     """
-    from jsve.fitting._halving import subset_runs
+    from jsve.fitting._packing import packing
     from jsve.fitting._search import call_size
 
-    parts = list(size.parts)
-    part_runs = [r for _, r in parts]
     if packed > 0:
-        parts = [(max(f for f, _ in size.parts), packed)]
-        sub: list[int | None] = [packed]
+        shapes = [(max(f for f, _ in size.parts), packed)]
     elif runs is None:
-        sub = list(part_runs)
+        shapes = list(size.parts)
     else:
-        sub = subset_runs(size.run_counts, part_runs, runs)
+        shapes = [(item.frames, item.runs) for item in packing(size.run_counts, size.parts, runs)]
     units, keys = 0, set()
-    for (frames, _), r in zip(parts, sub, strict=True):
-        if r is None or n_settings < 1:
+    for frames, r in shapes:
+        if n_settings < 1:
             continue
         per_call = call_size(r, n_settings)
         calls = math.ceil(n_settings / per_call)
@@ -355,30 +354,33 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         compile_("search", family, {(f, r, 1, 0) for f, r in size.parts})
 
     def fit_stages(stage: str, family: str, train_runs: Sequence[int]) -> None:
-        """Nelder-Mead, the relaxed fit and the fitted setting's results, once per fit of `train_runs`
-        training runs; a fit of more than polish_runs polishes on a packed subset (jsve.fitting._polish)
-        and judges each polish on every run."""
+        """Nelder-Mead and the relaxed fit once per fit of `train_runs` training runs, then the verdict
+        of every fit's candidates (its search's best and each polish) in one search on every run
+        (jsve.fitting._fit.judge); a fit of more than polish_runs polishes on a packed subset
+        (jsve.fitting._polish)."""
         folds = len(train_runs)
         polished = sum(1 for n in train_runs if 0 < fit.polish_runs < n)
+        candidates = 1 + max(fit.n_starts, 0)
         if fit.n_starts > 0:
             per_start = NM_EVALS_PER_STEP * nm_expected_steps(fit) + size.dims[family] + 1
             add(stage, "objective", family, (folds - polished) * fit.n_starts * per_start)
             add(stage, "polish", family, polished * fit.n_starts * per_start)
-            add(stage, "objective", family, folds * fit.n_starts)  # the verdict on every run
-            compile_("objective", family, {family})
             if polished < folds:
+                compile_("objective", family, {family})
                 compile_("nelder_mead", family, {family})
             if polished:
                 compile_("polish", family, {family})
                 compile_("nelder_mead_polish", family, {family})
         if fit.relaxed:
             temps = len(fit.temperatures)
+            search(stage, family, folds * candidates)  # the relaxed fit's start: the best so far
             add(stage, "relaxed", family, folds * temps * (BFGS_EVALS_PER_STEP * fit.bfgs_steps + 1))
             add(stage, "objective", family, folds * temps)
             compile_("relaxed", family, {family})
             compile_("bfgs", family, {family})
             compile_("objective", family, {family})
-        one_setting(stage, family, folds)  # the fitted setting's per-run results (FitResult)
+            candidates += 1
+        search(stage, family, folds * candidates)  # the verdict, all fits' candidates at once
 
     def evaluate(stage: str, structures: Sequence[str]) -> None:
         units = sum(n * runs * frames for n, runs, frames in size.chunks)
@@ -401,7 +403,7 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
     if "evaluate_fitted" not in done:
         evaluate("evaluate_fitted", [size.structures[f] for f in families])
     if "cross_validation" not in done and size.folds:
-        stage, n_folds = "cross_validation", len(size.folds)
+        stage = "cross_validation"
         for _, structure, family in size.presets:
             if family in families:
                 one_setting(stage, family, 1)
@@ -414,8 +416,8 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
                 rects = halving_rectangles(size, family, fit.eta, fit.initial_fraction, cached=cached)[1]
                 for n, runs in rects:
                     search(stage, family, n, runs)
+            # the verdict's rows hold each fold's fitted rule on its held-out runs too
             fit_stages(stage, family, [size.n_runs - int(np.sum(f)) for f in size.folds])
-            one_setting(stage, family, n_folds)  # the fold's fitted rule on its held-out runs
     if "parameter_bootstrap" not in done:
         screen = config.bootstrap_screen_runs if 0 < config.bootstrap_screen_runs < size.n_runs else 0
         for family in families:

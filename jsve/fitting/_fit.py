@@ -393,6 +393,18 @@ def nelder_mead(
         (values [d], hard objective at them over every run with weight, steps taken).
     """
     w = _default_weights(data, weights)
+    values, steps = _simplex(
+        data, space, start, w, max_steps=max_steps, step=step, rtol=rtol, atol=atol, window=window,
+        ftol=ftol, on_runs=on_runs, seed=seed,
+    )  # fmt: skip
+    # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
+    z = space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype))
+    value = float(_hard_jit(z, data.parts, data.split_weights(w), space, data.config))
+    return values, value, steps
+
+
+def _simplex(data, space, start, w, *, max_steps, step, rtol, atol, window, ftol, on_runs, seed):
+    """Nelder-Mead's values [d] and steps, without the verdict on every run (`nelder_mead`, `fit`)."""
     packed = packed_subset(data, w, on_runs, seed=seed)
     if packed is None:
         parts, part_w = data.parts, data.split_weights(w)
@@ -404,10 +416,7 @@ def nelder_mead(
         rtol=float(rtol), atol=float(atol), adelta=float(step), window=int(window), ftol=float(ftol)
     )
     z, steps = _nelder_mead(z0, parts, part_w, space, data.config, int(max_steps), solver)
-    values = np.asarray(space.values_from_z(z), np.float64)
-    # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
-    value = float(_hard_jit(z, data.parts, data.split_weights(w), space, data.config))
-    return values, value, int(steps)
+    return np.asarray(space.values_from_z(z), np.float64), int(steps)
 
 
 def relaxed_fit(
@@ -559,6 +568,7 @@ class FitResult:
         n_excluded: runs (with weight > 0) dropped from the objective (support="exclude"; else 0).
         cache: under the halving search, the per-run results it computed (cross-validation folds reuse
             them: jsve.fitting._crossval.cross_validate's `caches`); not saved with the study.
+        results: the fitted setting's per-run results on every run ([1, R]: `judge`); not saved.
     """
 
     space: ParamSpace
@@ -572,6 +582,7 @@ class FitResult:
     n_unsupported: int = 0
     n_excluded: int = 0
     cache: RunLossCache | None = None
+    results: SearchResult | None = None
 
     @property
     def rule(self):
@@ -633,120 +644,210 @@ def fit(
     """
     w = _default_weights(data, weights)
     config = resolve_search(config, data.n_runs)
-    method = "given" if search_result is not None else config.search  # before halving sets it
-    stages = []
     t0 = time.perf_counter()
-    screening = {}
-    if search_result is None and config.search == "halving":
-        if cache is None:
-            cache = fit_cache(data, space, config)
-        elif not np.array_equal(cache.values, search_design(space, config)):
-            raise ValueError("fit: the cache holds another design than this fit's (search_design)")
-        halving = halving_search(
-            cache,
-            w,
-            eta=config.eta,
-            initial_fraction=config.initial_fraction,
-            order=stratified_order(data.meta, data.n_runs, seed=config.seed),
-            progress=progress,
-            desc=f"halving {space.kind}",
-        )
-        search_result, screening = halving.search, halving.as_dict()
-    elif search_result is None:
-        search_result = search_all(
-            data, space, search_design(space, config), progress=progress, desc=f"search {space.kind}"
-        )
+    if search_result is None:
+        search_result, screening, cache = fit_search(data, space, w, config, cache=cache, progress=progress)
+        method = config.search
+    else:
+        screening, method = {}, "given"
+    pending = polish(
+        data, space, w, search_result, config, method=method, search_seconds=time.perf_counter() - t0,
+        screening=screening,
+    )  # fmt: skip
+    (result,) = judge(data, space, [pending], cache=cache)
+    return result
+
+
+def fit_search(
+    data: FitData,
+    space: ParamSpace,
+    weights: np.ndarray,
+    config: FitConfig,
+    *,
+    cache: RunLossCache | None = None,
+    progress: bool = True,
+) -> tuple[SearchResult, dict, RunLossCache | None]:
+    """The fit's search under run weights: halving (on `cache`, a new one by default) or exhaustive, as
+    config.search says once resolved for the study's size.
+
+    Returns:
+        (the search: every setting, or halving's survivors, on every run; halving's record of its rungs
+        ({} for the exhaustive search); the cache of per-run results, None for the exhaustive search).
+    """
+    config = resolve_search(config, data.n_runs)
+    if config.search != "halving":
+        values = search_design(space, config)
+        return search_all(data, space, values, progress=progress, desc=f"search {space.kind}"), {}, None
+    if cache is None:
+        cache = fit_cache(data, space, config)
+    elif not np.array_equal(cache.values, search_design(space, config)):
+        raise ValueError("fit: the cache holds another design than this fit's (search_design)")
+    halving = halving_search(
+        cache,
+        np.asarray(weights, np.float64),
+        eta=config.eta,
+        initial_fraction=config.initial_fraction,
+        order=stratified_order(data.meta, data.n_runs, seed=config.seed),
+        progress=progress,
+        desc=f"halving {space.kind}",
+    )
+    return halving.search, halving.as_dict(), cache
+
+
+@dataclass
+class PolishedFit:
+    """A fit before its verdict: its search, its polishes' values, and the stages that record them.
+
+    Attributes:
+        weights: [R] the fit's run weights. search: the search it started from.
+        stages: the search's, Nelder-Mead's and the relaxed fit's records (their objectives are set by
+            `judge`, on every run with weight).
+        candidates: (stage index, values [d]): the search's best (stage 0) and each polish's result.
+    """
+
+    weights: np.ndarray
+    search: SearchResult
+    stages: list[dict]
+    candidates: list[tuple[int, np.ndarray]]
+
+
+def polish(
+    data: FitData,
+    space: ParamSpace,
+    weights: np.ndarray,
+    search_result: SearchResult,
+    config: FitConfig,
+    *,
+    method: str = "given",
+    search_seconds: float = 0.0,
+    screening: dict | None = None,
+) -> PolishedFit:
+    """Nelder-Mead from the best searched settings (and the relaxed fit from the best so far), each
+    moving on its own runs (`polish_runs`); none of them judged on every run yet (`judge`)."""
+    w = np.asarray(weights, np.float64)
     obj = search_result.objective(w)
     order = np.argsort(obj, kind="stable")
     best_values, best = search_result.values[order[0]], float(obj[order[0]])
-    stages.append(
+    stages = [
         {
             "stage": "search",
             "objective": best,
             "values": best_values.tolist(),
             "settings": int(len(obj)),
             "method": method,
-            "seconds": time.perf_counter() - t0,
-            **screening,
+            "seconds": search_seconds,
+            **(screening or {}),
         }
-    )
+    ]
     log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
-
     release_memory()  # the search's executables (one per part and rung shape) are not needed again
-    starts = [search_result.values[i] for i in order[: max(config.n_starts, 0)]]
-    for i, start in enumerate(starts):
+    candidates = [(0, np.asarray(best_values, np.float64))]
+    subset = polish_runs(data.meta, w, config.polish_runs, seed=config.seed)
+    for i, start in enumerate(search_result.values[order[: max(config.n_starts, 0)]]):
         t1 = time.perf_counter()
-        values, value, steps = nelder_mead(
-            data,
-            space,
-            start,
-            w,
-            max_steps=config.nm_steps,
-            step=config.nm_step,
-            window=config.nm_window,
-            ftol=config.nm_ftol,
-            on_runs=config.polish_runs,
-            seed=config.seed,
-        )
-        subset = polish_runs(data.meta, w, config.polish_runs, seed=config.seed)
+        values, steps = _simplex(
+            data, space, start, w, max_steps=config.nm_steps, step=config.nm_step, rtol=1e-4, atol=1e-4,
+            window=config.nm_window, ftol=config.nm_ftol, on_runs=config.polish_runs, seed=config.seed,
+        )  # fmt: skip
+        candidates.append((len(stages), values))
         stages.append(
             {
                 "stage": f"nelder_mead_{i}",
-                "objective": value,
                 "values": values.tolist(),
                 "steps": steps,
                 "polish_runs": int(np.sum(w > 0)) if subset is None else len(subset),
                 "seconds": time.perf_counter() - t1,
             }
         )
-        log.info("%s Nelder-Mead from start %d: %.5f m (%d steps)", space.kind, i, value, steps)
-        if value < best:
-            best, best_values = value, values
     if config.relaxed:
         t1 = time.perf_counter()
+        # from the best polish on its own runs' verdict (the relaxed fit starts where the simplex ended)
+        start = _best_on_all(data, space, candidates, w)
         values, history = relaxed_fit(
-            data, space, best_values, w, temperatures=config.temperatures, max_steps=config.bfgs_steps
+            data, space, start, w, temperatures=config.temperatures, max_steps=config.bfgs_steps
         )
-        value = history[-1]["hard"] if history else float("inf")
-        stages.append(
-            {
-                "stage": "relaxed",
-                "objective": value,
-                "values": values.tolist(),
-                "history": history,
-                "seconds": time.perf_counter() - t1,
-            }
+        candidates.append((len(stages), values))
+        seconds = time.perf_counter() - t1
+        stages.append({"stage": "relaxed", "values": values.tolist(), "history": history, "seconds": seconds})
+    return PolishedFit(weights=w, search=search_result, stages=stages, candidates=candidates)
+
+
+def _best_on_all(data: FitData, space: ParamSpace, candidates, w: np.ndarray) -> np.ndarray:
+    """The candidate values with the lowest hard objective on every run with weight (ties: the first)."""
+    values = np.stack([v for _, v in candidates])
+    res = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
+    return values[int(np.argmin(res.objective(w)))]
+
+
+def judge(
+    data: FitData,
+    space: ParamSpace,
+    fits: Sequence[PolishedFit],
+    *,
+    cache: RunLossCache | None = None,
+    progress: bool = False,
+) -> list[FitResult]:
+    """The verdict of many fits at once: every candidate of every fit (its search's best and each
+    polish's result) scored on every run in one batched search, each fit's setting the candidate with the
+    lowest objective on its own weights (ties to the earlier: the search's best before a polish). A
+    polish that moved on a subset of the runs is judged on all of them.
+
+    One search of all the candidates fills the kernel's lanes (settings x runs): cross-validation's folds
+    are judged together, not one setting per fold and pass over the study (docs/fitting.md).
+
+    Returns:
+        One FitResult per fit, in order, with `results`: the fitted setting's per-run results on every
+        run ([1, R] matrices), which cross-validation scores its held-out runs by.
+    """
+    values = np.stack([v for f in fits for _, v in f.candidates])
+    everything = search(
+        data.parts, space, values, data.config, run_counts=data.run_counts, progress=progress,
+        desc=f"verdict {space.kind}, {len(fits)} fits",
+    )  # fmt: skip
+    out, row = [], 0
+    for f in fits:
+        rows = np.arange(row, row + len(f.candidates))
+        row += len(f.candidates)
+        judged = everything.objective(f.weights)[rows]
+        stages = [dict(stage) for stage in f.stages]
+        best = 0
+        for k, (stage, _) in enumerate(f.candidates):
+            if stage > 0:
+                stages[stage]["objective"] = float(judged[k])
+                log.info("%s %s: %.5f m", space.kind, stages[stage]["stage"], judged[k])
+            if judged[k] < judged[best]:
+                best = k
+        final = _rows(everything, rows[best : best + 1])
+        w = f.weights
+        weighted = w > 0
+        n_unsupported = int(np.sum(final.unsupported[0] & weighted))
+        n_excluded = int(np.sum(~final.included[0] & weighted))
+        if n_unsupported:
+            log.info(
+                "%s fit: the fitted rule leaves the logs' support on %d of %d runs (%s: %d excluded)",
+                space.kind, n_unsupported, int(weighted.sum()), data.config.support, n_excluded,
+            )  # fmt: skip
+        out.append(
+            FitResult(
+                space=space,
+                values=np.asarray(f.candidates[best][1], np.float64),
+                objective=float(final.objective(w)[0]),
+                failure_rate=float(final.failure_rate(w)[0]),
+                coverage=float(final.coverage_mean(w)[0]),
+                stages=stages,
+                search=f.search,
+                unsupported_rate=float(final.unsupported_rate(w)[0]),
+                n_unsupported=n_unsupported,
+                n_excluded=n_excluded,
+                cache=cache,
+                results=final,
+            )
         )
-        if value < best:
-            best, best_values = value, values
-    final = search(
-        data.parts, space, best_values[None], data.config, run_counts=data.run_counts, progress=False
-    )
-    weighted = w > 0
-    n_unsupported = int(np.sum(final.unsupported[0] & weighted))
-    n_excluded = int(np.sum(~final.included[0] & weighted))
-    if n_unsupported:
-        log.info(
-            "%s fit: the fitted rule leaves the logs' support on %d of %d runs (%s: %d excluded)",
-            space.kind,
-            n_unsupported,
-            int(weighted.sum()),
-            data.config.support,
-            n_excluded,
-        )
-    return FitResult(
-        space=space,
-        values=np.asarray(best_values, np.float64),
-        objective=float(final.objective(w)[0]),
-        failure_rate=float(final.failure_rate(w)[0]),
-        coverage=float(final.coverage_mean(w)[0]),
-        stages=stages,
-        search=search_result,
-        unsupported_rate=float(final.unsupported_rate(w)[0]),
-        n_unsupported=n_unsupported,
-        n_excluded=n_excluded,
-        cache=cache,
-    )
+    return out
+
+
+def _rows(result: SearchResult, rows: np.ndarray) -> SearchResult:
+    return SearchResult(*(x[rows] for x in result.as_tuple()))
 
 
 __all__ = [
@@ -754,6 +855,10 @@ __all__ = [
     "FitConfig",
     "FitResult",
     "fit",
+    "fit_search",
+    "polish",
+    "judge",
+    "PolishedFit",
     "nelder_mead",
     "relaxed_fit",
     "hard_objective",

@@ -34,13 +34,12 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
 from jsve._memory import release_memory
 from jsve.core._objective import ObjectiveConfig
+from jsve.fitting._packing import subset_parts
 from jsve.fitting._search import RESULT_FIELDS, SearchBatch, SearchResult, search
 
 log = logging.getLogger(__name__)
@@ -77,84 +76,6 @@ def stratified_order(meta: pd.DataFrame | None, n_runs: int, *, seed: int = 0, s
     turn = rng.permutation(len(members))
     depth = max((len(m) for m in members), default=0)
     return np.asarray([members[g][i] for i in range(depth) for g in turn if i < len(members[g])], np.int64)
-
-
-def subset_parts(
-    parts: Sequence[SearchBatch], run_counts: Sequence[int], runs: np.ndarray
-) -> tuple[list[SearchBatch], list[int], np.ndarray]:
-    """The kernel's inputs for a subset of the runs: per part, its selected runs gathered on the run axis
-    (the last of every SearchBatch leaf) and padded with copies of the first to a power of two, so that
-    few shapes compile. A part whose real runs are all selected is passed as it is.
-
-    Arguments:
-        runs: global run indices (data order, as FitData.meta), any order, no repeats.
-    Returns:
-        (parts, real runs per part, the global run index of each result column in order).
-    """
-    lazy, counts, columns = lazy_subset_parts(parts, run_counts, runs)
-    return list(lazy), counts, columns
-
-
-class GatheredParts(Sequence):
-    """`subset_parts`' parts, each gathered when it is read and not kept: `search` holds at most two
-    parts at once, so a subset of most of the study costs two parts' copies, not a copy of the study
-    (on the 3,410-log study a halving rung's subset of 2,273 runs was 2.5 GB gathered at once)."""
-
-    def __init__(self, parts: Sequence[SearchBatch], picks: list[tuple[int, np.ndarray | None]]):
-        self._parts, self._picks = parts, picks
-
-    def __len__(self) -> int:
-        return len(self._picks)
-
-    def __getitem__(self, i):
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
-        p, index = self._picks[i]
-        part = self._parts[p]
-        return part if index is None else jax.tree.map(lambda x: x[..., jnp.asarray(index)], part)
-
-
-def lazy_subset_parts(
-    parts: Sequence[SearchBatch], run_counts: Sequence[int], runs: np.ndarray
-) -> tuple[GatheredParts, list[int], np.ndarray]:
-    """`subset_parts` with the parts gathered as they are read (GatheredParts)."""
-    picks, counts, columns = [], [], []
-    for p, (local, start, real) in enumerate(_selected(run_counts, runs)):
-        n = len(local)
-        if not n:
-            continue
-        index = None if n == real else np.concatenate([local, np.repeat(local[:1], padded_subset(n) - n)])
-        picks.append((p, index))
-        counts.append(n)
-        columns.append(start + local)
-    return GatheredParts(parts, picks), counts, np.concatenate(columns) if columns else np.zeros(0, np.int64)
-
-
-def padded_subset(n: int) -> int:
-    """Runs of the sub-batch `subset_parts` gathers for n selected runs of a part: the power of 2 at or
-    above n."""
-    return 2 ** math.ceil(math.log2(n))
-
-
-def _selected(run_counts: Sequence[int], runs: np.ndarray) -> list[tuple[np.ndarray, int, int]]:
-    """Per part: (its selected runs as local indices, the part's first global run, its real runs)."""
-    chosen = np.zeros(sum(run_counts), bool)
-    chosen[np.asarray(runs, np.int64)] = True
-    out, start = [], 0
-    for n in run_counts:
-        out.append((np.flatnonzero(chosen[start : start + n]), start, n))
-        start += n
-    return out
-
-
-def subset_runs(run_counts: Sequence[int], part_runs: Sequence[int], runs: np.ndarray) -> list[int | None]:
-    """Per part, the runs of the sub-batch `subset_parts` scores for `runs` (global indices): the part as
-    it is (part_runs, padding included) where all its real runs are selected, else the selected count
-    padded to a power of 2; None where none is selected. Shapes only: what a cost model needs."""
-    sizes: list[int | None] = []
-    for (local, _, n), whole in zip(_selected(run_counts, runs), part_runs, strict=True):
-        sizes.append(None if not len(local) else whole if len(local) == n else padded_subset(len(local)))
-    return sizes
 
 
 @dataclass
@@ -230,7 +151,7 @@ class RunLossCache:
             if every:
                 parts, counts, columns = list(self.parts), list(self.run_counts), np.arange(self.n_runs)
             else:
-                parts, counts, columns = lazy_subset_parts(self.parts, self.run_counts, runs)
+                parts, counts, columns = subset_parts(self.parts, self.run_counts, runs)
             res = search(
                 parts,
                 self.space,
@@ -413,9 +334,4 @@ __all__ = [
     "halving_searches",
     "rung_sizes",
     "stratified_order",
-    "subset_parts",
-    "lazy_subset_parts",
-    "GatheredParts",
-    "subset_runs",
-    "padded_subset",
 ]

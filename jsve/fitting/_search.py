@@ -401,8 +401,9 @@ def _exact_from_start(sb: SearchBatch, config: ObjectiveConfig) -> bool:
 
 
 def _needs_corrections(fast: _LaneSums) -> bool:
-    """Some lane that never lost tracking has estimated frames off its posed ones (host sync)."""
-    return bool(jnp.any((fast.lost < 0.5) & (fast.n_off > 0.5)))
+    """Some lane that never lost tracking has estimated frames off its posed ones (host sync; on the
+    host, since an eager jnp test would compile per shape)."""
+    return bool(np.any((np.asarray(fast.lost) < 0.5) & (np.asarray(fast.n_off) > 0.5)))
 
 
 def _traced_lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSums:
