@@ -63,8 +63,13 @@ def test_a_subset_is_packed_by_length_class_and_scores_as_its_own_parts(data, mo
     space = _space()
     values = np.asarray(space.values_from_unit(np.random.default_rng(1).random((8, space.dim))), np.float64)
     whole = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
-    first = np.arange(data.run_counts[0])  # all of the first part, and 7 runs of the other two
-    runs = np.concatenate([first, data.n_runs - 1 - np.arange(7)])
+    starts = np.cumsum([0, *data.run_counts])
+    # all runs of the first part, all but the first of each other part
+    runs = np.concatenate(
+        [np.arange(data.run_counts[0])]
+        + [np.arange(a + 1, b) for a, b in zip(starts[1:-1], starts[2:], strict=True)]
+    )
+    assert all(n > 5 for n in data.run_counts[1:])
     monkeypatch.setattr(_packing, "PACK_RUNS", 4)  # a class of more than 4 selected runs fills two parts
     frames = [p.n_frames for p in data.parts]
     layout = packing(data.run_counts, [(p.n_frames, p.n_runs) for p in data.parts], runs)
