@@ -70,18 +70,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 NM_STALL_WINDOWS = 2
-"""Windows a Nelder-Mead run with the stall test typically takes (jsve.fitting._simplex): the first
-checkpoint sets the mark, the second finds no progress. Measured on the 3,410-log study (sve, polish on
-256 runs, nm_window 25): 50 steps in each of 3 runs (2 fits, 2 starts), against 200 without it,
-with the same best objective of each fit (0.08634 and 0.08497 m)."""
+"""Windows of moves a Nelder-Mead run with the stall test typically takes (jsve.fitting._simplex): the
+first improves the start, the second finds no progress. Measured on the 3,410-log study of 2026-11-24
+(sve, polish on 256 runs, nm_window 25): every polish improved in its first window and stalled in its
+second, with the same best objective of each fit as 200 steps (0.08634 and 0.08497 m). A polish whose
+first window improves nothing stops after one (on the study of 2026-11-28 every polish of the full fits
+had nothing to improve on its search's best): the model is then an upper bound."""
 
 
 def nm_expected_steps(fit) -> float:
     """Steps the cost model expects a Nelder-Mead run of FitConfig `fit` to take: its step limit without
-    the stall test, else NM_STALL_WINDOWS windows (at most the limit)."""
+    the stall test, else the initial simplex and NM_STALL_WINDOWS windows (at most the limit)."""
     if fit.nm_window <= 0:
         return float(fit.nm_steps)
-    return float(min(fit.nm_steps, NM_STALL_WINDOWS * fit.nm_window))
+    return float(min(fit.nm_steps, 1 + NM_STALL_WINDOWS * fit.nm_window))
 
 
 BOOTSTRAP_KEPT_SHARE = 0.5

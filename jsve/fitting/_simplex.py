@@ -70,8 +70,10 @@ class StallingNelderMead(optx.AbstractMinimiser):
         y, simplex, aux = self._inner().step(fn, y, args, options, state.simplex, tags)
         steps = state.steps + 1
         best = simplex.best[0]
-        # The initial simplex's evaluation is step 1; a checkpoint every `window` steps after it.
-        checkpoint = (self.window > 0) & (steps % max(self.window, 1) == 0)
+        # The initial simplex's evaluation is step 1 and the first checkpoint: its best is the mark the
+        # first window of moves is judged against (checkpoints at multiples of the window left the first
+        # window unjudged, so every run took two windows even where its first improved nothing).
+        checkpoint = (self.window > 0) & ((steps - 1) % max(self.window, 1) == 0)
         stalled = checkpoint & (state.mark - best <= self.ftol)
         mark = jnp.where(checkpoint, best, state.mark).astype(state.mark.dtype)
         return y, _StallState(simplex=simplex, mark=mark, steps=steps, stalled=stalled), aux
