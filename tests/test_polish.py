@@ -163,3 +163,16 @@ def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
         np.testing.assert_array_equal(held["run_index"], np.flatnonzero(fold.test))
         np.testing.assert_allclose(held["loss"], oracle.loss[0, fold.test], rtol=1e-6)
         np.testing.assert_array_equal(held["failed"], oracle.failed[0, fold.test])
+
+
+def test_a_relaxed_fit_is_judged_with_the_polishes(data):
+    """relaxed = true: the annealed BFGS starts from the best candidate so far and its result is one more
+    candidate of the verdict: its stage's objective is the hard objective of its values on every run,
+    and the fit keeps the lowest of all candidates."""
+    space = _space()
+    config = FitConfig(n_search=16, n_starts=1, nm_steps=8, polish_runs=6, relaxed=True, temperatures=(0.1,))
+    result = fit(data, space, config=config, progress=False)
+    assert [s["stage"] for s in result.stages] == ["search", "nelder_mead_0", "relaxed"]
+    relaxed = result.stages[-1]
+    assert relaxed["objective"] == pytest.approx(hard_objective(data, space, relaxed["values"]), rel=1e-6)
+    assert result.objective == pytest.approx(min(s["objective"] for s in result.stages), rel=1e-9)

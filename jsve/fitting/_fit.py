@@ -761,8 +761,9 @@ def polish(
         )
     if config.relaxed:
         t1 = time.perf_counter()
-        # from the best polish on its own runs' verdict (the relaxed fit starts where the simplex ended)
-        start = _best_on_all(data, space, candidates, w)
+        # from the best candidate so far, judged on every run (the relaxed fit starts where the simplex ended)
+        so_far = PolishedFit(weights=w, search=search_result, stages=stages, candidates=candidates)
+        start = judge(data, space, [so_far])[0].values
         values, history = relaxed_fit(
             data, space, start, w, temperatures=config.temperatures, max_steps=config.bfgs_steps
         )
@@ -770,13 +771,6 @@ def polish(
         seconds = time.perf_counter() - t1
         stages.append({"stage": "relaxed", "values": values.tolist(), "history": history, "seconds": seconds})
     return PolishedFit(weights=w, search=search_result, stages=stages, candidates=candidates)
-
-
-def _best_on_all(data: FitData, space: ParamSpace, candidates, w: np.ndarray) -> np.ndarray:
-    """The candidate values with the lowest hard objective on every run with weight (ties: the first)."""
-    values = np.stack([v for _, v in candidates])
-    res = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
-    return values[int(np.argmin(res.objective(w)))]
 
 
 def judge(
