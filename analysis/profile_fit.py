@@ -9,6 +9,9 @@ On a Parquet study (`jsve ingest`), the steps one family's fit and its cross-val
 - the fit's search (halving or exhaustive, as `jsve fit` resolves it for the study's size);
 - the polishes of one fit (FitConfig.n_starts Nelder-Mead runs on `polish_runs` packed runs), twice: the
   first compiles;
+- the polishes of the cross-validation's folds (the study's folds: k-fold and leave-one-out, each from
+  the full fit's search under its training weights), all in lockstep (`polish_fits`), against the
+  one fit's polishes times the folds (one fit after the other, as before);
 - the verdict of one fit (its candidates on every run), and the verdict of `--folds` fits at once (the
   cross-validation's), against as many one-setting passes over the study as the folds made before
   (4 a fold: two polishes' verdicts, the fitted setting's results, its held-out scoring).
@@ -51,10 +54,13 @@ def main(argv=None) -> None:
         inlier_space,
         judge,
         polish,
+        polish_fits,
         resolve_search,
         search,
+        study_folds,
         sve_space,
     )
+    from jsve.fitting._study import StudyConfig
 
     def timed(label: str, fn):
         before, started = len(compiles), time.perf_counter()
@@ -77,9 +83,24 @@ def main(argv=None) -> None:
         f"search {args.family}", lambda: fit_search(data, space, weights, config, progress=False)
     )
     timed("polishes of one fit (first: compiles)", lambda: polish(data, space, weights, searched, config))
-    polished, _ = timed("polishes of one fit (again)", lambda: polish(data, space, weights, searched, config))
+    polished, one = timed(
+        "polishes of one fit (again)", lambda: polish(data, space, weights, searched, config)
+    )
     steps = [s.get("steps") for s in polished.stages[1:]]
     print(f"  Nelder-Mead steps: {steps}", flush=True)
+    study_fold_list = study_folds(data.meta, StudyConfig())
+    trains = [weights * ~fold.test for fold in study_fold_list]
+    fold_fits, together = timed(
+        f"polishes of {len(trains)} folds in lockstep",
+        lambda: polish_fits(data, space, [(t, searched) for t in trains], config, progress=True),
+    )
+    fold_steps = [s["steps"] for f in fold_fits for s in f.stages[1:]]
+    print(
+        f"  {len(fold_steps)} simplexes, steps {min(fold_steps)}-{max(fold_steps)}"
+        f" (mean {np.mean(fold_steps):.1f});"
+        f" one fit after another: ~{len(trains) * one:.1f} s ({len(trains) * one / together:.1f}x)",
+        flush=True,
+    )
     timed("verdict of one fit (first: compiles)", lambda: judge(data, space, [polished]))
     timed("verdict of one fit (again)", lambda: judge(data, space, [polished]))
     folds = [polished] * args.folds

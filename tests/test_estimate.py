@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from jsve.fitting._estimate import (
-    NELDER_MEAD_COMPILE,
-    NM_EVALS_PER_STEP,
+    NM_MOVED_SHARE,
     Plan,
     Rates,
     StudySize,
@@ -77,18 +76,19 @@ def test_search_cost_is_rounds_of_calls_times_lanes_and_frames():
 def test_plan_counts_every_stage_of_the_study():
     """The units of each stage by hand (module docstring of jsve.fitting._estimate)."""
     work = plan(_size(), CONFIG)
-    per_start = NM_EVALS_PER_STEP * 10 + 4 + 1  # steps x evaluations, the simplex
+    assert NM_MOVED_SHARE == 0.5  # the counts below: half of the reflections are followed by a point
     expected = {
         ("evaluate_presets", "evaluate", ""): 2 * R * F,  # two rule structures, one chunk each
-        # the design in 4 rounds of 128, then the verdict: the search's best and 2 polishes, a call of 4
-        ("fit", "search", "inliers"): 4 * 128 * R * F + 4 * R * F,
-        ("fit", "objective", "inliers"): 2 * per_start,
+        # the design in 4 rounds of 128; Nelder-Mead from 2 starts in lockstep on every run (64 are
+        # fewer than polish_runs): the initial simplexes (2 x 5 points, a call of 16), then 10 steps of
+        # a call of 2 (reflections) and one of 1; the verdict: the search's best and 2 polishes (4)
+        ("fit", "search", "inliers"): (4 * 128 + 16 + 10 * (2 + 1) + 4) * R * F,
         ("evaluate_fitted", "evaluate", ""): R * F,
         ("cross_validation", "setting", "inliers"): 1,  # orbslam3
         ("cross_validation", "evaluate", ""): R * F,  # sve-eq1 is no point of a space: the replay
-        ("cross_validation", "objective", "inliers"): 2 * 2 * per_start,
-        # both folds' verdicts (and held-out rows) in one search of 2 x 3 candidates: a call of 8
-        ("cross_validation", "search", "inliers"): 8 * R * F,
+        # 2 folds x 2 starts: simplexes of 20 points (a call of 32), steps of 4 and 2 points; both
+        # folds' verdicts (and held-out rows) in one search of 2 x 3 candidates: a call of 8
+        ("cross_validation", "search", "inliers"): (32 + 10 * (4 + 2) + 8) * R * F,
         ("parameter_bootstrap", "search", "inliers"): 16 * R * F,  # n_local + 1 settings, one call
         ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1000 + 16),
         ("heatmap", "search", "inliers"): 16 * R * F,  # 4 x 4
@@ -96,16 +96,19 @@ def test_plan_counts_every_stage_of_the_study():
     got = {(w.stage, w.kind, w.family): w.units for w in work.work}
     assert got == pytest.approx(expected)
     assert work.compiles["search", "inliers"] == {
-        (F, R, 128, 0), (F, R, 128, 1), (F, R, 1, 0), (F, R, 16, 0), (F, R, 4, 0), (F, R, 8, 0)
+        (F, R, 128, 0), (F, R, 128, 1), (F, R, 1, 0), (F, R, 2, 0), (F, R, 16, 0), (F, R, 32, 0),
+        (F, R, 4, 0), (F, R, 8, 0)
     }  # fmt: skip
     assert work.compiles["evaluate", ""] == {("I", R, F), ("E", R, F), ("preset", "E", F, R)}
-    assert work.compiles["nelder_mead", "inliers"] == {"inliers"}
+    assert ("nelder_mead", "inliers") not in work.compiles  # no computation of its own
     # stages done already are left out; with all of them done there is nothing to do
     fewer = plan(_size(), CONFIG, done={"evaluate_presets", "fit_inliers"})
     assert not fewer.units("search", "inliers", stage="fit") and not fewer.units(
         "evaluate", stage="evaluate_presets"
     )
-    assert fewer.units("objective", "inliers") == pytest.approx(4 * per_start)
+    assert fewer.units("search", "inliers", stage="cross_validation") == pytest.approx(
+        work.units("search", "inliers", stage="cross_validation")
+    )
     every = {"evaluate_presets", "fit_inliers", "evaluate_fitted", "cross_validation", "parameter_bootstrap"}
     assert plan(_size(), CONFIG, done=every | {"heatmap"}).work == ()
 
@@ -145,18 +148,18 @@ def test_price_is_units_times_rates_and_the_compilations_left():
         compiles={
             ("search", "sve"): frozenset({1, 2, 3}),
             ("objective", "sve"): frozenset({"sve"}),
-            ("nelder_mead", "sve"): frozenset({"sve"}),
+            ("relaxed", "sve"): frozenset({"sve"}),
         },
     )
     rates = Rates(
         seconds={("search", "sve"): 2e-8, ("objective", "sve"): 0.5},
-        compile={("search", "sve"): 4.0, ("objective", "sve"): 10.0},
+        compile={("search", "sve"): 4.0, ("objective", "sve"): 10.0, ("relaxed", "sve"): 30.0},
         compiled={("search", "sve"): frozenset({1}), ("objective", "sve"): frozenset({"sve"})},
     )
     estimate = price(work, rates)
     assert estimate.stages == {"fit": pytest.approx(20.0 + 50.0)}
-    assert estimate.compile == pytest.approx(2 * 4.0 + NELDER_MEAD_COMPILE * 10.0)
-    assert estimate.total == pytest.approx(70.0 + 8.0 + NELDER_MEAD_COMPILE * 10.0)
+    assert estimate.compile == pytest.approx(2 * 4.0 + 30.0)  # the objective was compiled by the probe
+    assert estimate.total == pytest.approx(70.0 + 8.0 + 30.0)
     assert [duration(s) for s in (40, 210, 7200)] == ["40 s", "3.5 min", "2.0 h"]
 
 

@@ -24,6 +24,7 @@ from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
 from jsve.fitting._fit import judge as judge
 from jsve.fitting._fit import nelder_mead as nelder_mead
 from jsve.fitting._fit import polish as polish
+from jsve.fitting._fit import polish_fits as polish_fits
 from jsve.fitting._fit import relaxed_fit as relaxed_fit
 from jsve.fitting._fit import resolve_search as resolve_search
 from jsve.fitting._fit import search_all as search_all
@@ -36,7 +37,7 @@ from jsve.fitting._halving import stratified_order as stratified_order
 from jsve.fitting._packing import subset_parts as subset_parts
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
-from jsve.fitting._simplex import StallingNelderMead as StallingNelderMead
+from jsve.fitting._simplex import lockstep_nelder_mead as lockstep_nelder_mead
 from jsve.fitting._space import ParamSpace as ParamSpace
 from jsve.fitting._space import inlier_space as inlier_space
 from jsve.fitting._space import space_from_dict as space_from_dict

@@ -37,7 +37,7 @@ from jsve.fitting._fit import (
     fit_search,
     fitted_rule_name,
     judge,
-    polish,
+    polish_fits,
     resolve_search,
     search_all,
     search_design,
@@ -239,27 +239,26 @@ def cross_validate(
             )
     per_rule = preset_results(data, presets, progress=progress)
 
-    # Each fold's fit polishes on its own training runs, one after the other (fold x family: minutes
-    # each, so the bar moves per fit); then all folds of a family are judged on every run in one batched
-    # search, whose rows also hold each fold's fitted rule on its held-out runs (`judge`).
-    polished = {name: [] for name in spaces}
-    with tqdm(
-        total=len(folds) * len(spaces),
-        desc=f"cross-validation, {len(folds)} folds x {len(spaces)} families",
-        unit="fit",
-        disable=not progress,
-    ) as bar:
+    # Each fold's fit polishes on its own training runs; all folds of a family move in lockstep (each
+    # Nelder-Mead step is one batched search for all of them, `polish_fits`); then all folds of a family
+    # are judged on every run in one batched search, whose rows also hold each fold's fitted rule on its
+    # held-out runs (`judge`).
+    polished = {}
+    for name, space in spaces.items():
+        searched = []
         for k, fold in enumerate(folds):
             train = w * ~fold.test
             if not np.any(train > 0):
                 raise ValueError(f"fold {fold.kind}/{fold.name} leaves no training run")
-            for name, space in spaces.items():
-                search_result = _fold_search(name, k, screened, searches, config)
-                if search_result is None:  # the fold searches alone (per-run results do not fit memory)
-                    search_result = fit_search(data, space, train, config, progress=False)[0]
-                polished[name].append(polish(data, space, train, search_result, config))
-                release_memory()  # each fold's polish leaves executables behind (jsve._memory)
-                bar.update(1)
+            search_result = _fold_search(name, k, screened, searches, config)
+            if search_result is None:  # the fold searches alone (per-run results do not fit memory)
+                search_result = fit_search(data, space, train, config, progress=False)[0]
+            searched.append((train, search_result))
+        polished[name] = polish_fits(
+            data, space, searched, config, progress=progress,
+            desc=f"Nelder-Mead {name}, {len(folds)} folds x {config.n_starts} starts",
+        )  # fmt: skip
+        release_memory()  # the polishes' executables (jsve._memory)
     fits = {name: judge(data, spaces[name], polished[name], progress=progress) for name in spaces}
 
     rows, params = [], []

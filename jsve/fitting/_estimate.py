@@ -23,18 +23,19 @@ computations, each costing time in proportion to the frames it scans:
   - the parameter bootstrap's local design (n_local + 1 settings): on every part, or screened on
     `bootstrap_screen_runs` runs packed into one part and BOOTSTRAP_KEPT_SHARE of it on every part;
     the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
-- **objective**: the hard objective of one setting on every run (`_fit._hard_jit`, Nelder-Mead's
-  function). A Nelder-Mead run costs NM_EVALS_PER_STEP x steps + d + 1 evaluations, each step
-  evaluating twice (reflection, then expansion or contraction) plus a simplex of d + 1 points on a
-  shrink. Without the stall test (nm_window = 0) it runs to its step
-  limit nm_steps (measured: every fit of the studies in docs/fitting.md); with it, to
-  `nm_expected_steps` (the stall test's typical stop, NM_STALL_WINDOWS windows, measured). A fit runs
-  n_starts of them, the full fit and each cross-validation fold, per family.
-- **polish**: the hard objective of one setting on the packed subset of `polish_runs` runs
-  (jsve.fitting._polish) that Nelder-Mead moves on in a fit of more training runs. The verdict on
-  every run is a **search**: each fit's candidates (its search's best and each polish's result), of all
-  the cross-validation's folds at once (jsve.fitting._fit.judge), whose rows also score each fold's
-  fitted rule on its held-out runs.
+- **Nelder-Mead** (jsve.fitting._polish.polish_in_lockstep) is **search** work too: the runs of all the
+  fits of a stage (n_starts for the full fit; folds x n_starts in the cross-validation) move in
+  lockstep on the union of their polish runs (each fit's first `polish_runs` training runs in the
+  stratified order; the union is modelled as the first polish_runs x R / (fewest training runs) runs of
+  it), packed by length class. Per step one search of their reflections and one of the
+  NM_MOVED_SHARE of them that expand or contract; first the initial simplexes, d + 1 points each.
+  Without the stall test (nm_window = 0) they run to the step limit nm_steps (measured: every fit of
+  the studies in docs/fitting.md); with it, to `nm_expected_steps` (NM_STALL_WINDOWS windows). The
+  verdict on every run is a search as well: each fit's candidates (its search's best and each
+  polish's result), of all the cross-validation's folds at once (jsve.fitting._fit.judge), whose rows
+  also score each fold's fitted rule on its held-out runs.
+- **objective** (`[fit] relaxed = true` only): the hard objective of one setting on every run
+  (`_fit._hard_jit`), the relaxed fit's value after each temperature.
 - **setting**: one setting's per-run results (a search of one setting): the presets that are points of
   a family's space.
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
@@ -46,15 +47,16 @@ computations, each costing time in proportion to the frames it scans:
 
 Seconds = sum over (stage, kind) of units x the probe's seconds per unit. Compilation is counted apart:
 every distinct computation the study compiles (per family: the search kernel per part shape, call size
-and device; the objective; Nelder-Mead, NELDER_MEAD_COMPILE x the objective's compile time; per rule
-structure and chunk shape, evaluate) costs what the probe's compile of its kind took; what the probe
-compiled is already paid. With JAX's persistent cache warm (a second `jsve fit` of the same shapes) the
-probe's compilations are cache loads, and so the estimate's. Left out: loading the logs and preparing
+and device; with the relaxed fit, the objective; per rule structure and chunk shape, evaluate) costs
+what the probe's compile of its kind took; what the probe compiled is already paid. With JAX's
+persistent cache warm (a second `jsve fit` of the same shapes) the probe's compilations are cache
+loads, and so the estimate's. Left out: loading the logs and preparing
 FitData (done before the probe), tables, summaries and the report (seconds).
 
 The probe (`probe`) runs, after compiling each, the same calls the study makes first: per family one
-round of search calls on the first part (one per device, the search's call size), a one-setting search
-and one objective evaluation over all runs; one evaluate chunk of the first bucket; a matrix product.
+round of search calls on the first part (one per device, the search's call size) and a one-setting
+search over all runs (with the relaxed fit, one objective evaluation); one evaluate chunk of the first
+bucket; a matrix product.
 Each is timed twice, the first call's extra time being its compilation; results are discarded, so the
 study's results do not change, and the compiled computations are those the study then reuses.
 """
@@ -91,15 +93,10 @@ BOOTSTRAP_KEPT_SHARE = 0.5
 plausible_winners, on bootstrap_screen_runs runs). Measured on the 3,410-log study (n_local 1024,
 screen on 512 runs): 531 of 1025 settings kept (sve), 428 (inliers)."""
 
-NM_EVALS_PER_STEP = 2.3
-"""Objective evaluations per Nelder-Mead step: 2 (optimistix's step scans the reflection and one more
-point) plus the shrinks' simplexes. Measured on a 186-run simulated study (jsve simulate --procedural 3
---runs 2): 0.36 s a step against 0.15 s an evaluation (SVE), 0.17 s against 0.08 s (inliers)."""
-
-NELDER_MEAD_COMPILE = 3.3
-"""Compile time of a family's Nelder-Mead (optimistix.minimise over the objective, traced twice: the
-step's two points, the shrink's vmapped simplex) over that of its objective: measured 3.5 (SVE, 76 s
-against 22 s) and 3.1 (inliers, 31 s against 10 s) on the same study."""
+NM_MOVED_SHARE = 0.5
+"""Share of Nelder-Mead steps whose reflection is followed by an expansion or a contraction (a second
+point scored); shrinks (d + 1 points) are left out, being rare. Measured on the 3,410-log study: see
+docs/fitting.md."""
 
 BFGS_EVALS_PER_STEP = 4.0
 """Relaxed-objective evaluations per BFGS step (value and gradient by reverse mode, about 3 values, and
@@ -123,7 +120,6 @@ STAGES = (
 UNITS = {
     "search": "lane-frames per device",
     "objective": "evaluations",
-    "polish": "evaluations",
     "setting": "one-setting searches",
     "evaluate": "run-frames",
     "relaxed": "evaluations",
@@ -361,18 +357,18 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         (jsve.fitting._fit.judge); a fit of more than polish_runs polishes on a packed subset
         (jsve.fitting._polish)."""
         folds = len(train_runs)
-        polished = sum(1 for n in train_runs if 0 < fit.polish_runs < n)
         candidates = 1 + max(fit.n_starts, 0)
         if fit.n_starts > 0:
-            per_start = NM_EVALS_PER_STEP * nm_expected_steps(fit) + size.dims[family] + 1
-            add(stage, "objective", family, (folds - polished) * fit.n_starts * per_start)
-            add(stage, "polish", family, polished * fit.n_starts * per_start)
-            if polished < folds:
-                compile_("objective", family, {family})
-                compile_("nelder_mead", family, {family})
-            if polished:
-                compile_("polish", family, {family})
-                compile_("nelder_mead_polish", family, {family})
+            order = np.arange(size.n_runs) if size.order is None else np.asarray(size.order)
+            fewest = max(min(train_runs), 1)
+            union = size.n_runs if fit.polish_runs <= 0 else fit.polish_runs * size.n_runs / fewest
+            runs = np.sort(order[: min(size.n_runs, math.ceil(union))])
+            simplexes = folds * fit.n_starts
+            search(stage, family, simplexes * (size.dims[family] + 1), runs)
+            reflections, _ = search_cost(size, simplexes, runs, family=family)
+            moved, keys = search_cost(size, math.ceil(NM_MOVED_SHARE * simplexes), runs, family=family)
+            add(stage, "search", family, nm_expected_steps(fit) * (reflections + moved))
+            compile_("search", family, keys | search_cost(size, simplexes, runs, family=family)[1])
         if fit.relaxed:
             temps = len(fit.temperatures)
             search(stage, family, folds * candidates)  # the relaxed fit's start: the best so far
@@ -539,10 +535,6 @@ def price(work: Plan, rates: Rates, *, basis: str = "") -> Estimate:
 
 def compile_rate(rates: Rates, kind: str, family: str) -> float:
     """Seconds to compile one computation of a kind: measured, or a measured kind times its factor."""
-    if kind == "nelder_mead":
-        return NELDER_MEAD_COMPILE * rates.compile.get(("objective", family), 0.0)
-    if kind == "nelder_mead_polish":
-        return NELDER_MEAD_COMPILE * rates.compile.get(("polish", family), 0.0)
     if kind == "bfgs":
         return BFGS_COMPILE * rates.compile.get(("relaxed", family), 0.0)
     return rates.compile.get((kind, family), 0.0)
@@ -618,7 +610,6 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     from jsve.core._rules import BASELINES, preset
     from jsve.evaluation._evaluate import evaluate_batch
     from jsve.fitting._fit import _hard_jit, _relaxed_jit, search_design
-    from jsve.fitting._polish import packed_subset
     from jsve.fitting._search import call_size, search
 
     n_devices = len(jax.local_devices())
@@ -627,14 +618,9 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     compiled: dict[tuple[str, str], set] = {}
     started, spent = time.perf_counter(), []
     families = list(config.families)
-    steps = (4 if config.fit.relaxed else 3) * len(families) + 2
+    steps = (4 if config.fit.relaxed else 2) * len(families) + 2
     weights = data.split_weights(np.ones(data.n_runs))
     part, n_real = data.parts[0], data.run_counts[0]
-    polish = packed_subset(data, np.ones(data.n_runs), config.fit.polish_runs, seed=config.fit.seed)
-    if polish is not None:
-        part_packed, subset = polish
-        packed = [part_packed]
-        packed_weights = [jnp.ones(len(subset), packed[0].t.dtype)]
     with tqdm(total=steps, desc="timing probe", unit="step", disable=not progress) as bar:
         for family in families:
             space = config.space(family)
@@ -660,17 +646,12 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             compiled["search", family] |= {(p.n_frames, p.n_runs, 1, 0) for p in data.parts}
             bar.update(1)
 
-            z = space.z_from_values(jnp.asarray(values[0], part.t.dtype))
-            run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
-            compile_s["objective", family], seconds["objective", family] = _twice(run, spent)
-            compiled["objective", family] = {family}
-            if polish is not None:  # Nelder-Mead's objective on the packed subset (jsve.fitting._polish)
-                run = functools.partial(_hard_jit, z, packed, packed_weights, space, data.config)
-                compile_s["polish", family], seconds["polish", family] = _twice(run, spent)
-                compiled["polish", family] = {family}
-            bar.update(1)
-
-            if config.fit.relaxed:
+            if config.fit.relaxed:  # the relaxed fit's objectives (jsve.fitting._fit.relaxed_fit)
+                z = space.z_from_values(jnp.asarray(values[0], part.t.dtype))
+                run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
+                compile_s["objective", family], seconds["objective", family] = _twice(run, spent)
+                compiled["objective", family] = {family}
+                bar.update(1)
                 tau = jnp.asarray(config.fit.temperatures[0], z.dtype)
                 run = functools.partial(_relaxed_jit, z, *data.slim(), weights, tau, space, data.config)
                 compile_s["relaxed", family], seconds["relaxed", family] = _twice(run, spent)
@@ -730,8 +711,7 @@ __all__ = [
     "estimate",
     "describe",
     "duration",
-    "NM_EVALS_PER_STEP",
+    "NM_MOVED_SHARE",
     "NM_STALL_WINDOWS",
     "nm_expected_steps",
-    "NELDER_MEAD_COMPILE",
 ]

@@ -39,9 +39,8 @@ from jsve.core._replay import batch_features
 from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
 from jsve.fitting._halving import RunLossCache, halving_search, rung_sizes, stratified_order
-from jsve.fitting._polish import packed_subset, polish_runs
+from jsve.fitting._polish import polish_in_lockstep
 from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
-from jsve.fitting._simplex import StallingNelderMead
 from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog
@@ -343,15 +342,6 @@ _relaxed_grad = eqx.filter_jit(jax.value_and_grad(_relaxed_value))
 
 
 @eqx.filter_jit
-def _nelder_mead(z0, parts, weights, space, config, max_steps, solver):
-    def fn(z, args):
-        return _hard_value(z, args[0], args[1], space, config)
-
-    sol = optx.minimise(fn, solver, z0, args=(parts, weights), max_steps=max_steps, throw=False)
-    return sol.value, sol.stats["num_steps"]
-
-
-@eqx.filter_jit
 def _bfgs(z0, batches, features, weights, temperature, space, config, max_steps, rtol, atol):
     def fn(z, args):
         return _relaxed_value(z, args[0], args[1], args[2], args[3], space, config)
@@ -378,45 +368,31 @@ def nelder_mead(
     on_runs: int = 0,
     seed: int = 0,
 ) -> tuple[np.ndarray, float, int]:
-    """optimistix Nelder-Mead on the hard objective from `start` (free values).
+    """Nelder-Mead on the hard objective from `start` (free values): one run of the fit's polish
+    (jsve.fitting._simplex.lockstep_nelder_mead; `polish_fits` moves many together).
 
     on_runs: where more runs have weight, the simplex moves on the first on_runs of them in the study's
-    stratified order (seeded by `seed`), packed into one part (jsve.fitting._polish); 0: on every run.
+    stratified order (seeded by `seed`), packed by length class (jsve.fitting._polish); 0: on every run.
 
     The simplex starts at the start's unconstrained coordinates z plus `step` along each axis (a step
     of 0.5 in z moves a value at mid-box by ~12 % of its box). The hard objective is piecewise constant
     in the thresholds (finitely many frames), which a simplex method handles where gradients cannot.
-    window, ftol: stop once `window` steps improve the best value by at most `ftol` metres
-    (jsve.fitting._simplex.StallingNelderMead); window 0: run to optimistix's test or max_steps.
+    window, ftol: stop once `window` steps improve the best value by at most `ftol` metres; window 0:
+    run to the simplex's convergence test or max_steps.
 
     Returns:
         (values [d], hard objective at them over every run with weight, steps taken).
     """
     w = _default_weights(data, weights)
-    values, steps = _simplex(
-        data, space, start, w, max_steps=max_steps, step=step, rtol=rtol, atol=atol, window=window,
-        ftol=ftol, on_runs=on_runs, seed=seed,
+    ended = polish_in_lockstep(
+        data, space, [w], [(0, np.asarray(start, np.float64))], n_runs=on_runs, seed=seed, step=step,
+        max_steps=max_steps, window=window, ftol=ftol, rtol=rtol, atol=atol,
     )  # fmt: skip
+    values = ended.values[0]
     # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
     z = space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype))
     value = float(_hard_jit(z, data.parts, data.split_weights(w), space, data.config))
-    return values, value, steps
-
-
-def _simplex(data, space, start, w, *, max_steps, step, rtol, atol, window, ftol, on_runs, seed):
-    """Nelder-Mead's values [d] and steps, without the verdict on every run (`nelder_mead`, `fit`)."""
-    packed = packed_subset(data, w, on_runs, seed=seed)
-    if packed is None:
-        parts, part_w = data.parts, data.split_weights(w)
-    else:
-        part, subset = packed
-        parts, part_w = [part], [jnp.asarray(w[subset], part.t.dtype)]
-    z0 = space.z_from_values(jnp.asarray(start, data.parts[0].t.dtype))
-    solver = StallingNelderMead(
-        rtol=float(rtol), atol=float(atol), adelta=float(step), window=int(window), ftol=float(ftol)
-    )
-    z, steps = _nelder_mead(z0, parts, part_w, space, data.config, int(max_steps), solver)
-    return np.asarray(space.values_from_z(z), np.float64), int(steps)
+    return values, value, int(ended.steps[0])
 
 
 def relaxed_fit(
@@ -724,53 +700,84 @@ def polish(
 ) -> PolishedFit:
     """Nelder-Mead from the best searched settings (and the relaxed fit from the best so far), each
     moving on its own runs (`polish_runs`); none of them judged on every run yet (`judge`)."""
-    w = np.asarray(weights, np.float64)
-    obj = search_result.objective(w)
-    order = np.argsort(obj, kind="stable")
-    best_values, best = search_result.values[order[0]], float(obj[order[0]])
-    stages = [
-        {
-            "stage": "search",
-            "objective": best,
-            "values": best_values.tolist(),
-            "settings": int(len(obj)),
-            "method": method,
-            "seconds": search_seconds,
-            **(screening or {}),
-        }
-    ]
-    log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
-    release_memory()  # the search's executables (one per part and rung shape) are not needed again
-    candidates = [(0, np.asarray(best_values, np.float64))]
-    subset = polish_runs(data.meta, w, config.polish_runs, seed=config.seed)
-    for i, start in enumerate(search_result.values[order[: max(config.n_starts, 0)]]):
-        t1 = time.perf_counter()
-        values, steps = _simplex(
-            data, space, start, w, max_steps=config.nm_steps, step=config.nm_step, rtol=1e-4, atol=1e-4,
-            window=config.nm_window, ftol=config.nm_ftol, on_runs=config.polish_runs, seed=config.seed,
+    record = {"method": method, "seconds": search_seconds, **(screening or {})}
+    return polish_fits(data, space, [(weights, search_result)], config, records=[record])[0]
+
+
+def polish_fits(
+    data: FitData,
+    space: ParamSpace,
+    searched: Sequence[tuple[np.ndarray, SearchResult]],
+    config: FitConfig,
+    *,
+    records: Sequence[dict] | None = None,
+    progress: bool = False,
+    desc: str | None = None,
+) -> list[PolishedFit]:
+    """`polish` of many fits at once: the Nelder-Mead runs of all of them (config.n_starts a fit, from
+    its search's best settings under its own weights) move in lockstep, each on its own polish runs
+    (jsve.fitting._polish.polish_in_lockstep), so each step is one batched search for all of them.
+
+    Arguments:
+        searched: (run weights [R], its search) of each fit. records: extra fields of each fit's
+            search stage (its method, seconds, halving record); default {"method": "given"}.
+    Returns:
+        One PolishedFit per fit, in order; each Nelder-Mead stage records the lockstep's wall time
+        (`seconds`, shared by `simplexes` runs).
+    """
+    records = list(records) if records is not None else [{"method": "given"}] * len(searched)
+    pending, starts = [], []
+    for f, ((weights, search_result), record) in enumerate(zip(searched, records, strict=True)):
+        w = np.asarray(weights, np.float64)
+        obj = search_result.objective(w)
+        order = np.argsort(obj, kind="stable")
+        best_values, best = search_result.values[order[0]], float(obj[order[0]])
+        stage = {"stage": "search", "objective": best, "values": best_values.tolist(), "settings": len(obj)}
+        stage = {**stage, "method": "given", "seconds": 0.0, **record}
+        log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
+        pending.append(PolishedFit(w, search_result, [stage], [(0, np.asarray(best_values, np.float64))]))
+        starts += [(f, start) for start in search_result.values[order[: max(config.n_starts, 0)]]]
+    release_memory()  # the searches' executables (one per part and rung shape) are not needed again
+    if starts:
+        ended = polish_in_lockstep(
+            data, space, [p.weights for p in pending], starts, n_runs=config.polish_runs, seed=config.seed,
+            step=config.nm_step, max_steps=config.nm_steps, window=config.nm_window, ftol=config.nm_ftol,
+            progress=progress, desc=desc or f"Nelder-Mead {space.kind}, {len(starts)} simplexes",
         )  # fmt: skip
-        candidates.append((len(stages), values))
-        stages.append(
-            {
-                "stage": f"nelder_mead_{i}",
-                "values": values.tolist(),
-                "steps": steps,
-                "polish_runs": int(np.sum(w > 0)) if subset is None else len(subset),
-                "seconds": time.perf_counter() - t1,
-            }
-        )
+        counts = dict.fromkeys(range(len(pending)), 0)
+        for k, (f, _) in enumerate(starts):
+            fit_ = pending[f]
+            fit_.candidates.append((len(fit_.stages), ended.values[k]))
+            fit_.stages.append(
+                {
+                    "stage": f"nelder_mead_{counts[f]}",
+                    "values": ended.values[k].tolist(),
+                    "steps": int(ended.steps[k]),
+                    "polish_runs": int(ended.polish_runs[k]),
+                    "seconds": ended.seconds,
+                    "simplexes": len(starts),
+                }
+            )
+            counts[f] += 1
     if config.relaxed:
-        t1 = time.perf_counter()
-        # from the best candidate so far, judged on every run (the relaxed fit starts where the simplex ended)
-        so_far = PolishedFit(weights=w, search=search_result, stages=stages, candidates=candidates)
-        start = judge(data, space, [so_far])[0].values
-        values, history = relaxed_fit(
-            data, space, start, w, temperatures=config.temperatures, max_steps=config.bfgs_steps
-        )
-        candidates.append((len(stages), values))
-        seconds = time.perf_counter() - t1
-        stages.append({"stage": "relaxed", "values": values.tolist(), "history": history, "seconds": seconds})
-    return PolishedFit(weights=w, search=search_result, stages=stages, candidates=candidates)
+        for fit_ in pending:
+            t1 = time.perf_counter()
+            # from the best candidate so far, judged on every run (it starts where the simplex ended)
+            start = judge(data, space, [fit_])[0].values
+            values, history = relaxed_fit(
+                data,
+                space,
+                start,
+                fit_.weights,
+                temperatures=config.temperatures,
+                max_steps=config.bfgs_steps,
+            )
+            seconds = time.perf_counter() - t1
+            fit_.candidates.append((len(fit_.stages), values))
+            fit_.stages.append(
+                {"stage": "relaxed", "values": values.tolist(), "history": history, "seconds": seconds}
+            )
+    return pending
 
 
 def judge(
@@ -851,6 +858,7 @@ __all__ = [
     "fit",
     "fit_search",
     "polish",
+    "polish_fits",
     "judge",
     "PolishedFit",
     "nelder_mead",

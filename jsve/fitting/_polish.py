@@ -18,11 +18,18 @@ subset moves the optimiser, never the verdict. This is the multi-fidelity idea o
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 from jsve.fitting._halving import stratified_order
-from jsve.fitting._packing import pack_runs
-from jsve.fitting._search import SearchBatch
+from jsve.fitting._packing import pack_runs, subset_parts
+from jsve.fitting._search import SearchBatch, search
+from jsve.fitting._simplex import lockstep_nelder_mead
 
 
 def polish_runs(meta, weights: np.ndarray, n: int, *, seed: int = 0) -> np.ndarray | None:
@@ -48,4 +55,97 @@ def packed_subset(
     return pack_runs(data.parts, data.run_counts, subset), subset
 
 
-__all__ = ["polish_runs", "packed_subset"]
+@dataclass(frozen=True)
+class Polishes:
+    """Where the Nelder-Mead runs of `polish_in_lockstep` ended.
+
+    Attributes:
+        values: [N, d] each run's free values. steps: [N] its steps. polish_runs: [N] the runs its fit
+            moved on. runs_scanned: runs of the shared scan (the union of every fit's polish runs).
+        seconds: wall time of all of them together. evaluations: objective points scored.
+    """
+
+    values: np.ndarray
+    steps: np.ndarray
+    polish_runs: np.ndarray
+    runs_scanned: int
+    seconds: float
+    evaluations: int
+
+
+def polish_in_lockstep(
+    data,
+    space,
+    weights: Sequence[np.ndarray],
+    starts: Sequence[tuple[int, np.ndarray]],
+    *,
+    n_runs: int,
+    seed: int,
+    step: float,
+    max_steps: int,
+    window: int,
+    ftol: float,
+    rtol: float = 1e-4,
+    atol: float = 1e-4,
+    progress: bool = False,
+    desc: str = "Nelder-Mead",
+) -> Polishes:
+    """Nelder-Mead from every start of every fit, all moved together (jsve.fitting._simplex.
+    lockstep_nelder_mead): each step scores the points of all unfinished runs in one batched search.
+
+    Each fit moves on its own `polish_runs` (its first n_runs weighted runs in the stratified order, or
+    all of them), exactly as it would alone: the scan covers the union of the fits' polish runs, packed
+    by length class once (jsve.fitting._packing), and a point is averaged over its own fit's runs only.
+
+    Arguments:
+        data: FitData. weights: [R] run weights of each fit. starts: (fit index, free values [d]) of
+            each Nelder-Mead run. step, max_steps, window, ftol, rtol, atol: the simplex
+            (nelder_mead's arguments).
+    """
+    t0 = time.perf_counter()
+    weights = [np.asarray(w, np.float64) for w in weights]
+    own = [polish_runs(data.meta, w, n_runs, seed=seed) for w in weights]
+    own = [np.flatnonzero(w > 0) if runs is None else runs for w, runs in zip(weights, own, strict=True)]
+    union = np.unique(np.concatenate(own))
+    packed, run_counts, columns = subset_parts(data.parts, data.run_counts, union)
+    parts = list(packed)  # gathered once: every step scans them again
+    fit_weights = np.zeros((len(weights), len(columns)))
+    for f, (w, runs) in enumerate(zip(weights, own, strict=True)):
+        mine = np.isin(columns, runs)
+        fit_weights[f, mine] = w[columns[mine]]
+    owner_fit = np.asarray([f for f, _ in starts], np.int64)
+    dtype = data.parts[0].t.dtype
+
+    def objective(z: np.ndarray, owners: np.ndarray) -> np.ndarray:
+        values = np.asarray(space.values_from_z(jnp.asarray(z, dtype)), np.float64)
+        scored = search(parts, space, values, data.config, run_counts=run_counts, progress=False)
+        return _weighted_rows(scored, fit_weights[owner_fit[owners]])
+
+    z0 = np.stack([np.asarray(space.z_from_values(jnp.asarray(v, dtype))) for _, v in starts])
+    with tqdm(total=len(starts), desc=desc, unit="simplex", disable=not progress) as bar:
+        ended = lockstep_nelder_mead(
+            objective, z0, adelta=step, rtol=rtol, atol=atol, window=window, ftol=ftol,
+            max_steps=max_steps, on_finish=lambda _: bar.update(1),
+        )  # fmt: skip
+    values = np.asarray(space.values_from_z(jnp.asarray(ended.z, dtype)), np.float64)
+    return Polishes(
+        values=values,
+        steps=ended.steps,
+        polish_runs=np.asarray([len(own[f]) for f in owner_fit]),
+        runs_scanned=len(union),
+        seconds=time.perf_counter() - t0,
+        evaluations=ended.evaluations,
+    )
+
+
+def _weighted_rows(scored, weights: np.ndarray) -> np.ndarray:
+    """[M] each setting's weighted mean loss over its included runs under its own weights [M, R] (over
+    all its runs where none is included, as jsve.core._objective.weighted_objective)."""
+    loss, inc = scored.loss.astype(np.float64), scored.included.astype(np.float64)
+    num, den = np.sum(weights * inc * loss, axis=1), np.sum(weights * inc, axis=1)
+    every = np.sum(weights * loss, axis=1) / np.sum(weights, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1.0), every)
+
+
+__all__ = ["polish_runs", "packed_subset", "Polishes", "polish_in_lockstep"]
