@@ -1,19 +1,23 @@
-"""Where Nelder-Mead polishes: on every run, or on a stratified subset of the runs packed into one part.
+"""Where Nelder-Mead polishes: on every run, or on a stratified subset of the runs; and how the simplexes
+of many fits move together.
 
-Nelder-Mead evaluates the hard objective of one setting at a time, about 460 times a polish (200 steps),
-and a study polishes twice per family for the full fit and every cross-validation fold: on a large study
-this is almost all of `jsve fit`'s time (jsve.fitting._estimate: 90 % of the 3,410-log study's
-estimate), and each evaluation scans every run of every part (27 length buckets there, each its own scan,
-all compiled into the objective).
+A Nelder-Mead run evaluates the hard objective of one setting at a time, 2-3 times a step, and a study
+polishes n_starts times per family for the full fit and every cross-validation fold: on a large study
+this was almost all of `jsve fit`'s time (jsve.fitting._estimate: 90 % of the 3,410-log study's
+estimate), each evaluation scanning every run of every part (27 length buckets there).
 
-With `FitConfig.polish_runs = N` and more than N training runs, the polish runs on the first N training
+With `FitConfig.polish_runs = N` and more than N training runs, a fit polishes on the first N training
 runs of the study's stratified order (jsve.fitting._halving.stratified_order, as balanced over sequence,
-disturbance and level as N runs can be), gathered from their parts into one part padded to the longest
-part's frames: one scan of N runs per evaluation, one compilation per study (its shape is fixed), a cost
-that no longer grows with the study. The search that picks the starts has seen every training run, and
-`fit` keeps a polished setting only if its objective on every training run beats the search's best: the
-subset moves the optimiser, never the verdict. This is the multi-fidelity idea of the halving search
-(screen on few runs, decide on all) applied to the local optimiser.
+disturbance and level as N runs can be): a cost that no longer grows with the study. The search that
+picks the starts has seen every training run, and `fit` keeps a polished setting only if its objective
+on every training run beats the search's best: the subset moves the optimiser, never the verdict. This
+is the multi-fidelity idea of the halving search (screen on few runs, decide on all) applied to the
+local optimiser.
+
+`polish_in_lockstep` moves the Nelder-Mead runs of many fits together (jsve.fitting._simplex): the
+union of their polish runs is packed by length class once (jsve.fitting._packing.subset_parts), and
+each step's points of all fits are one batched search whose rows are averaged over each point's own
+fit's polish runs, so a fit moves exactly as it would alone.
 """
 
 from __future__ import annotations
