@@ -72,7 +72,9 @@ def test_effective_runs_is_kish():
 
 def test_a_screened_bootstrap_gives_the_unscreened_intervals():
     """On logs whose best inlier threshold is K (tests/knownanswer.py), the screened parameter
-    bootstrap scores fewer local settings on every run and picks the same setting in every resample."""
+    bootstrap scores fewer local settings on every run and picks the same setting in every resample:
+    with one screen (60 of the 160 runs) and with a race of two (20, then 60 runs), whose second rung
+    drops settings the first kept."""
     import knownanswer as ka
 
     from jsve.core._objective import ObjectiveConfig
@@ -88,7 +90,11 @@ def test_a_screened_bootstrap_gives_the_unscreened_intervals():
     kwargs = dict(n_local=255, fraction=0.3, n_boot=300, seed=3, progress=False)
     full = parameter_bootstrap(data, space, result, **kwargs)
     screened = parameter_bootstrap(data, space, result, screen_runs=60, **kwargs)
-    assert set(full["local"]) == set(full["local_scored"]) == {256}
+    raced = parameter_bootstrap(data, space, result, screen_runs=20, **kwargs)
+    assert set(full["local"]) == set(full["local_scored"]) == {256} and set(full["race"]) == {"256"}
     assert screened["local_scored"].iloc[0] < 256
+    first, second, last = (int(k) for k in raced["race"].iloc[0].split(">"))
+    assert first == 256 and 256 > second > last == raced["local_scored"].iloc[0]
     for column in ("value", "ci_low", "ci_high", "boot_std"):
         np.testing.assert_allclose(screened[column], full[column], err_msg=column)
+        np.testing.assert_allclose(raced[column], full[column], err_msg=column)

@@ -218,3 +218,27 @@ def test_jsve_fit_states_its_expected_time_and_meets_it(tmp_path, capsys):
     assert not list((tmp_path / "c").iterdir())
     assert main([*argv, "-o", str(tmp_path / "a"), "--estimate-only"]) == 0
     assert "nothing to estimate" in capsys.readouterr().err
+
+
+def test_the_bootstrap_race_is_counted_rung_by_rung():
+    """bootstrap_screen_runs 8 of 64 runs: rungs of 8 and 24 runs (RACE_ETA 3), each keeping
+    BOOTSTRAP_KEPT_SHARE of the settings left, then the survivors on the other 40 runs."""
+    from dataclasses import replace
+
+    from jsve.fitting._crossval import RACE_ETA
+    from jsve.fitting._estimate import BOOTSTRAP_KEPT_SHARE
+
+    assert RACE_ETA == 3
+    size = _size(order=np.random.default_rng(1).permutation(R))
+    config = replace(CONFIG, bootstrap_screen_runs=8, n_local=99, heatmap=(), kfold=0)
+    n1 = 100
+    n2 = int(np.ceil(BOOTSTRAP_KEPT_SHARE * n1))
+    n3 = int(np.ceil(BOOTSTRAP_KEPT_SHARE * n2))
+    order = np.asarray(size.order)
+    expected = (
+        search_cost(size, n1, np.sort(order[:8]))[0]
+        + search_cost(size, n2, np.sort(order[8:24]))[0]
+        + search_cost(size, n3, np.sort(order[24:]))[0]
+    )
+    work = plan(size, config)
+    assert work.units("search", "inliers", stage="parameter_bootstrap") == expected

@@ -43,7 +43,7 @@ from jsve.fitting._fit import (
     search_design,
 )
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
-from jsve.fitting._polish import packed_subset
+from jsve.fitting._packing import subset_parts
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
@@ -416,6 +416,73 @@ def effective_runs(weights: np.ndarray) -> float:
     return float(np.sum(w) ** 2 / np.sum(w**2))
 
 
+RACE_ETA = 3
+"""Growth of the bootstrap race's prefix of runs from rung to rung (`bootstrap_race`)."""
+
+
+def bootstrap_race(
+    data: FitData,
+    space: ParamSpace,
+    local: np.ndarray,
+    weights: np.ndarray,
+    screen_runs: int,
+    *,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[SearchResult, list[int]]:
+    """The settings of `local` (the fit in the last row) that could win a bootstrap resample of the whole
+    study, scored on every run, found by a race over growing prefixes of the study's stratified order.
+
+    Rung k scores the settings still in the race on the runs of the first screen_runs x RACE_ETA^k
+    weighted runs that the earlier rungs did not score (packed by length class), then drops those that
+    cannot win on the prefix (`plausible_winners`); the survivors of the last rung are scored on the
+    remaining runs. A prefix tells a setting's loss from the fit's more precisely than the one before
+    it (its standard error falls as 1/sqrt(runs)), so each rung drops settings the first could not: the
+    share of the design scored on every run falls with the study's size instead of staying fixed.
+    screen_runs 0, or at least the weighted runs: every setting on every run.
+
+    Returns:
+        (the surviving settings' results on every run, the settings in the race at each rung and at the
+        end: [len(local), ...]).
+    """
+    w = np.asarray(weights, np.float64)
+    ordered = stratified_order(data.meta, data.n_runs, seed=seed)
+    ordered = ordered[w[ordered] > 0]
+    if not 0 < screen_runs < len(ordered):
+        everything = search(data.parts, space, local, data.config, run_counts=data.run_counts,
+                            progress=progress, desc=f"bootstrap design {space.kind}")  # fmt: skip
+        return everything, [len(local)]
+    n_full = effective_runs(w[w > 0])
+    fields = {name: None for name in ("loss", "failed", "rmse", "coverage", "unsupported", "included")}
+    keep = np.arange(len(local))
+    kept, done, prefix = [len(local)], np.zeros(data.n_runs, bool), screen_runs
+
+    def score(runs: np.ndarray, desc: str) -> None:
+        parts, counts, columns = subset_parts(data.parts, data.run_counts, runs)
+        piece = search(
+            parts, space, local[keep], data.config, run_counts=counts, progress=progress, desc=desc
+        )
+        for name in fields:
+            block = getattr(piece, name)
+            if fields[name] is None:
+                fields[name] = np.zeros((len(local), data.n_runs), block.dtype)
+            fields[name][np.ix_(keep, columns)] = block
+        done[columns] = True
+
+    while prefix < len(ordered):
+        runs = ordered[:prefix]
+        score(runs[~done[runs]], f"bootstrap race {space.kind}, {prefix:,} runs")
+        columns = np.sort(runs)
+        survive = plausible_winners(fields["loss"][np.ix_(keep, columns)], w[columns], n_full)
+        keep = keep[survive]
+        kept.append(len(keep))
+        log.info("bootstrap %s: %d of %d local settings could win a resample (%d runs)",
+                 space.kind, len(keep), len(local), prefix)  # fmt: skip
+        prefix *= RACE_ETA
+    score(np.flatnonzero(~done), f"bootstrap design {space.kind}")
+    return SearchResult(local[keep], *(fields[name][keep] for name in fields)), kept
+
+
 def parameter_bootstrap(
     data: FitData,
     space: ParamSpace,
@@ -437,47 +504,23 @@ def parameter_bootstrap(
     the fit itself: a refit that costs a matrix-vector product. Its resolution is the local design's
     (n_local points in a box of +-fraction of each range).
 
-    screen_runs: where more runs have weight, the local design is first scored on that many runs (the
-    study's stratified order, packed into one part) and only the settings that could still win a
-    resample of the whole study (`plausible_winners`) are scored on every run; 0: every setting on
-    every run. The bootstrap itself is always over every run.
+    screen_runs: where more runs have weight, the local design races over growing prefixes of the
+    study's stratified order, from screen_runs runs (`bootstrap_race`), and only the settings that could
+    still win a resample of the whole study (`plausible_winners`) are scored on every run; 0: every
+    setting on every run. The bootstrap itself is always over every run.
 
     Returns:
         One row per free parameter: parameter, value (the fit), ci_low, ci_high, boot_std, n_boot,
-        local (settings of the local design, the fit included) and local_scored (those scored on every
-        run), plus the same for the derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
+        local (settings of the local design, the fit included), local_scored (those scored on every
+        run) and race (the settings in the race at each rung, "1025>831>540"), plus the same for the
+        derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
     local = np.concatenate(
         [local_design(space, result.values, n_local, fraction=fraction, seed=seed), result.values[None]]
     )
     n_local_design = len(local)
-    packed = packed_subset(data, w, screen_runs, seed=seed)
-    if packed is not None:
-        part, subset = packed
-        screened = search(
-            [part],
-            space,
-            local,
-            data.config,
-            run_counts=[len(subset)],
-            progress=progress,
-            desc=f"bootstrap screen {space.kind}",
-        )
-        keep = plausible_winners(screened.loss, w[subset], effective_runs(w[w > 0]))
-        log.info(
-            "bootstrap %s: %d of %d local settings could win a resample", space.kind, keep.sum(), len(keep)
-        )
-        local = local[keep]
-    res = search(
-        data.parts,
-        space,
-        local,
-        data.config,
-        run_counts=data.run_counts,
-        progress=progress,
-        desc=f"bootstrap design {space.kind}",
-    )
+    res, kept = bootstrap_race(data, space, local, w, screen_runs, seed=seed, progress=progress)
     if result.search is not None:
         res = result.search.concat(res)
     rng = np.random.default_rng(seed)
@@ -505,7 +548,8 @@ def parameter_bootstrap(
             "boot_std": picks.std(axis=0),
             "n_boot": n_boot,
             "local": n_local_design,
-            "local_scored": len(local),
+            "local_scored": len(res.values) - (0 if result.search is None else len(result.search.values)),
+            "race": ">".join(str(k) for k in kept),
         }
     )
 
@@ -521,6 +565,7 @@ __all__ = [
     "local_design",
     "parameter_bootstrap",
     "plausible_winners",
+    "bootstrap_race",
     "effective_runs",
     "rule_results",
 ]

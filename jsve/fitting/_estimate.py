@@ -20,8 +20,10 @@ computations, each costing time in proportion to the frames it scans:
     power of 2 of runs (jsve.fitting._packing); a cross-validation fold's rungs are the same prefixes
     less its held-out runs, so on the full fit's cache they add nothing (assuming the folds keep the
     full fit's survivors, which they mostly do); on a resumed study without the fit's cache, all their pairs;
-  - the parameter bootstrap's local design (n_local + 1 settings): on every part, or screened on
-    `bootstrap_screen_runs` runs packed into one part and BOOTSTRAP_KEPT_SHARE of it on every part;
+  - the parameter bootstrap's local design (n_local + 1 settings): on every part, or raced over
+    prefixes of bootstrap_screen_runs x RACE_ETA^k runs of the stratified order, each rung scoring the
+    settings left on its new runs and keeping BOOTSTRAP_KEPT_SHARE of them, the last survivors scored
+    on the remaining runs (jsve.fitting._crossval.bootstrap_race);
     the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
 - **Nelder-Mead** (jsve.fitting._polish.polish_in_lockstep) is **search** work too: the runs of all the
   fits of a stage (n_starts for the full fit; folds x n_starts in the cross-validation) move in
@@ -88,10 +90,11 @@ def nm_expected_steps(fit) -> float:
     return float(min(fit.nm_steps, 1 + NM_STALL_WINDOWS * fit.nm_window))
 
 
-BOOTSTRAP_KEPT_SHARE = 0.5
-"""Share of the parameter bootstrap's local design that its screen keeps (jsve.fitting._crossval.
-plausible_winners, on bootstrap_screen_runs runs). Measured on the 3,410-log study (n_local 1024,
-screen on 512 runs): 531 of 1025 settings kept (sve), 428 (inliers)."""
+BOOTSTRAP_KEPT_SHARE = 0.7
+"""Share of the settings left in the parameter bootstrap's race that a rung keeps (jsve.fitting.
+_crossval.bootstrap_race, plausible_winners). Measured on 3,410-log studies (n_local 1024, first rung
+512 runs): 531 and 428 of 1025 kept (sve, inliers; study of 2026-11-24), 831 and 1025 (study of
+2026-11-28); its later rungs: docs/fitting.md."""
 
 NM_MOVED_SHARE = 0.5
 """Share of Nelder-Mead steps whose reflection is followed by an expansion or a contraction (a second
@@ -329,6 +332,7 @@ def halving_rectangles(
 def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
     """The study's work (cost model, module docstring) under StudyConfig `config`, leaving out the
     stages in `done` (names of jsve.fitting._study's stages: fit_<family> for the fits)."""
+    from jsve.fitting._crossval import RACE_ETA
     from jsve.fitting._fit import resolve_search
 
     fit = resolve_search(config.fit, size.n_runs)
@@ -419,9 +423,13 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
     if "parameter_bootstrap" not in done:
         screen = config.bootstrap_screen_runs if 0 < config.bootstrap_screen_runs < size.n_runs else 0
         for family in families:
-            if screen:  # the screen on a packed subset, then the settings it keeps on every run
-                search("parameter_bootstrap", family, config.n_local + 1, packed=screen)
-                search("parameter_bootstrap", family, math.ceil(BOOTSTRAP_KEPT_SHARE * (config.n_local + 1)))
+            if screen:  # the race over growing prefixes, then its survivors on the other runs
+                order = np.arange(size.n_runs) if size.order is None else np.asarray(size.order)
+                n, scored, prefix = config.n_local + 1, 0, screen
+                while prefix < size.n_runs:
+                    search("parameter_bootstrap", family, n, np.sort(order[scored:prefix]))
+                    n, scored, prefix = math.ceil(BOOTSTRAP_KEPT_SHARE * n), prefix, prefix * RACE_ETA
+                search("parameter_bootstrap", family, n, np.sort(order[scored:]))
             else:
                 search("parameter_bootstrap", family, config.n_local + 1)
             if halving:  # the survivors of the last rung
