@@ -50,6 +50,7 @@ def main(argv=None) -> None:
     from jsve.fitting import (
         FitConfig,
         FitData,
+        StudyConfig,
         fit_search,
         inlier_space,
         judge,
@@ -60,7 +61,6 @@ def main(argv=None) -> None:
         study_folds,
         sve_space,
     )
-    from jsve.fitting._study import StudyConfig
 
     def timed(label: str, fn):
         before, started = len(compiles), time.perf_counter()
