@@ -437,7 +437,11 @@ def _fake_study(out):
                 "objective": 0.0312,
                 "failure_rate": 0.0,
                 "coverage": 1.0,
-                "stages": [{"stage": "search", "objective": 0.033, "seconds": 1.5}],
+                "stages": [
+                    {"stage": "search", "objective": 0.033, "seconds": 1.5},
+                    {"stage": "nelder_mead_0", "objective": 0.0312, "seconds": 7.25, "simplexes": 2},
+                    {"stage": "nelder_mead_1", "objective": 0.0315, "seconds": 7.25, "simplexes": 2},
+                ],
             },
             out / f"fitted_{family}.json",
         )
@@ -445,6 +449,15 @@ def _fake_study(out):
 
 def _section(md: str, heading: str) -> str:
     return md.split(f"## {heading}\n")[1].split("\n## ")[0]
+
+
+def test_stage_seconds_of_simplexes_in_lockstep_are_marked_shared(tmp_path):
+    """Nelder-Mead runs moved in lockstep record the lockstep's wall time each: the stage table says the
+    time is theirs together, so no reader adds it up twice."""
+    _fake_study(tmp_path)
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    assert md.count("| 7.2 (all 2 simplexes) |") == 4  # two stages of each family's table
+    assert "| 1.5 |" in md
 
 
 def test_headline_comes_first_and_says_what_the_tables_say(tmp_path):

@@ -584,7 +584,8 @@ def study_sections(s: StudyFolder, fig_dir: Path) -> list[Section]:
                 {
                     "stage": s["stage"],
                     "objective, cm": cm(s["objective"]),
-                    "seconds": fixed(s.get("seconds", float("nan")), 1),
+                    "seconds": fixed(s.get("seconds", float("nan")), 1)
+                    + (f" (all {s['simplexes']} simplexes)" if s.get("simplexes", 1) > 1 else ""),
                 }
                 for s in record.get("stages", [])
             ]
