@@ -76,7 +76,7 @@ def test_search_cost_is_rounds_of_calls_times_lanes_and_frames():
 def test_plan_counts_every_stage_of_the_study():
     """The units of each stage by hand (module docstring of jsve.fitting._estimate)."""
     work = plan(_size(), CONFIG)
-    assert NM_MOVED_SHARE == 0.5  # the counts below: half of the reflections are followed by a point
+    assert 0 < NM_MOVED_SHARE <= 0.25  # below: the moved points of 2 and of 4 simplexes are 1 (rounded up)
     expected = {
         ("evaluate_presets", "evaluate", ""): 2 * R * F,  # two rule structures, one chunk each
         # the design in 4 rounds of 128; Nelder-Mead from 2 starts in lockstep on every run (64 are
@@ -86,9 +86,9 @@ def test_plan_counts_every_stage_of_the_study():
         ("evaluate_fitted", "evaluate", ""): R * F,
         ("cross_validation", "setting", "inliers"): 1,  # orbslam3
         ("cross_validation", "evaluate", ""): R * F,  # sve-eq1 is no point of a space: the replay
-        # 2 folds x 2 starts: simplexes of 20 points (a call of 32), steps of 4 and 2 points; both
+        # 2 folds x 2 starts: simplexes of 20 points (a call of 32), steps of 4 and 1 points; both
         # folds' verdicts (and held-out rows) in one search of 2 x 3 candidates: a call of 8
-        ("cross_validation", "search", "inliers"): (32 + 10 * (4 + 2) + 8) * R * F,
+        ("cross_validation", "search", "inliers"): (32 + 10 * (4 + 1) + 8) * R * F,
         ("parameter_bootstrap", "search", "inliers"): 16 * R * F,  # n_local + 1 settings, one call
         ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1000 + 16),
         ("heatmap", "search", "inliers"): 16 * R * F,  # 4 x 4

@@ -73,13 +73,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-NM_STALL_WINDOWS = 2
-"""Windows of moves a Nelder-Mead run with the stall test typically takes (jsve.fitting._simplex): the
-first improves the start, the second finds no progress. Measured on the 3,410-log study of 2026-11-24
-(sve, polish on 256 runs, nm_window 25): every polish improved in its first window and stalled in its
-second, with the same best objective of each fit as 200 steps (0.08634 and 0.08497 m). A polish whose
-first window improves nothing stops after one (on the study of 2026-11-28 every polish of the full fits
-had nothing to improve on its search's best): the model is then an upper bound."""
+NM_STALL_WINDOWS = 1
+"""Windows of moves a Nelder-Mead run with the stall test typically takes (jsve.fitting._simplex) after
+its initial simplex. Measured on the 3,410-log study of 2026-11-28: all 76 polishes of `jsve fit` (the
+full fits' and the 19 folds', both families) stopped after one window, 26 steps: none improved on its
+search's best. A polish that keeps improving takes more (on the study of 2026-11-24, with optimistix's
+NelderMead, every polish took two): the estimate is then low by up to a window a polish."""
 
 
 def nm_expected_steps(fit) -> float:
@@ -96,10 +95,12 @@ _crossval.bootstrap_race, plausible_winners). Measured on 3,410-log studies (n_l
 512 runs): 531 and 428 of 1025 kept (sve, inliers; study of 2026-11-24), 831 and 1025 (study of
 2026-11-28); its later rungs: docs/fitting.md."""
 
-NM_MOVED_SHARE = 0.5
+NM_MOVED_SHARE = 0.05
 """Share of Nelder-Mead steps whose reflection is followed by an expansion or a contraction (a second
-point scored); shrinks (d + 1 points) are left out, being rare. Measured on the 3,410-log study: see
-docs/fitting.md."""
+point scored); shrinks (d + 1 points) are left out. Measured on the 3,410-log study of 2026-11-28 (the
+19 folds' SVE polishes, 38 simplexes x 25 steps): 21 of 950 reflections (0.02), the objective flat
+around every start (a reflection that ties is taken as it is); a polish that descends expands or
+contracts on most of its steps (up to 1)."""
 
 BFGS_EVALS_PER_STEP = 4.0
 """Relaxed-objective evaluations per BFGS step (value and gradient by reverse mode, about 3 values, and
