@@ -15,6 +15,7 @@ affordable the refit is the best setting of a dense design around the fit, see `
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -419,6 +420,38 @@ def effective_runs(weights: np.ndarray) -> float:
 RACE_ETA = 3
 """Growth of the bootstrap race's prefix of runs from rung to rung (`bootstrap_race`)."""
 
+TIE_RTOL = 1e-9
+"""Objectives within this relative distance of a resample's best are ties (`resample_winners`): settings
+with the same decisions on every run have the same per-run losses, and so means equal up to rounding."""
+
+
+def resample_winners(objective: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Each bootstrap resample's refit: the setting with the lowest objective, a tie drawn at random.
+
+    The hard objective is piecewise constant, so many settings of a design tie on a plateau (they take
+    the same decisions on every run). Taking the first of them, as argmin does, picked the fit itself in
+    every resample (it comes first) and gave intervals of zero width on a plateau, hiding that the data
+    cannot tell those settings apart. A tie is broken by a key drawn from each setting's values and the
+    resample's index, so the choice is uniform over the tied settings and does not depend on their
+    order or on which other settings were scored (a screened design refits as the full one).
+
+    Arguments:
+        objective: [n_boot, S] each setting's objective under each resample's weights.
+        values: [S, d] the settings.
+    Returns:
+        [n_boot] the index of each resample's setting.
+    """
+    best = objective.min(axis=1, keepdims=True)
+    tied = objective <= best + TIE_RTOL * np.maximum(np.abs(best), 1e-300)
+    keys = np.stack([_tie_keys(v, len(objective)) for v in np.asarray(values, np.float64)], axis=1)
+    return np.argmin(np.where(tied, keys, np.inf), axis=1)
+
+
+def _tie_keys(values: np.ndarray, n: int) -> np.ndarray:
+    """n uniform keys seeded by a setting's values (its bytes): the same setting, the same keys."""
+    seed = int.from_bytes(hashlib.sha256(np.ascontiguousarray(values).tobytes()).digest()[:8], "little")
+    return np.random.default_rng(seed).random(n)
+
 
 def bootstrap_race(
     data: FitData,
@@ -529,7 +562,7 @@ def parameter_bootstrap(
         np.float64
     )
     objective = res.objective(counts * w[None])  # [n_boot, S]
-    picks = res.values[np.argmin(objective, axis=1)]  # [n_boot, d]
+    picks = res.values[resample_winners(objective, res.values)]  # [n_boot, d]
     names, fitted = list(space.names), list(result.values)
     derived = space.derived(picks)
     if derived:
@@ -566,6 +599,7 @@ __all__ = [
     "parameter_bootstrap",
     "plausible_winners",
     "bootstrap_race",
+    "resample_winners",
     "effective_runs",
     "rule_results",
 ]
