@@ -45,7 +45,7 @@ from jsve.fitting._fit import (
 )
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
 from jsve.fitting._packing import subset_parts
-from jsve.fitting._search import SearchResult, search
+from jsve.fitting._search import RESULT_FIELDS, SearchResult, search
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
 log = logging.getLogger(__name__)
@@ -486,7 +486,7 @@ def bootstrap_race(
                             progress=progress, desc=f"bootstrap design {space.kind}")  # fmt: skip
         return everything, [len(local)]
     n_full = effective_runs(w[w > 0])
-    fields = {name: None for name in ("loss", "failed", "rmse", "coverage", "unsupported", "included")}
+    fields = dict.fromkeys(RESULT_FIELDS)  # SearchResult's matrices, filled rung by rung
     keep = np.arange(len(local))
     kept, done, prefix = [len(local)], np.zeros(data.n_runs, bool), screen_runs
 

@@ -732,8 +732,8 @@ def polish_fits(
         obj = search_result.objective(w)
         order = np.argsort(obj, kind="stable")
         best_values, best = search_result.values[order[0]], float(obj[order[0]])
-        stage = {"stage": "search", "objective": best, "values": best_values.tolist(), "settings": len(obj)}
-        stage = {**stage, "method": "given", "seconds": 0.0, **record}
+        stage = {"stage": "search", "objective": best, "values": best_values.tolist(), "settings": len(obj),
+                 "method": "given", "seconds": 0.0, **record}  # fmt: skip
         log.info("%s search: best %.5f m over %d settings", space.kind, best, len(obj))
         pending.append(PolishedFit(w, search_result, [stage], [(0, np.asarray(best_values, np.float64))]))
         starts += [(f, start) for start in search_result.values[order[: max(config.n_starts, 0)]]]
