@@ -379,12 +379,13 @@ def test_halving_is_deterministic_under_the_seed(counts_data):
         (50, 3.0, ("exhaustive", None)),
         (299, 3.0, ("exhaustive", None)),
         (300, 3.0, ("halving", 1 / 3)),
-        (3410, 3.0, ("halving", 1 / 27)),
-        (10_000, 3.0, ("halving", 1 / 81)),
-        (3410, 2.0, ("halving", 1 / 32)),
+        (3410, 3.0, ("halving", 1 / 81)),
+        (10_000, 3.0, ("halving", 1 / 243)),
+        (3410, 2.0, ("halving", 1 / 64)),
+        (299, 2.0, ("exhaustive", None)),  # below AUTO_HALVING_RUNS whatever the first rung
     ],
 )
-def test_auto_search_halves_with_a_first_rung_of_at_least_100_runs(n_runs, eta, want):
+def test_auto_search_halves_from_300_runs_with_a_first_rung_of_at_least_40_runs(n_runs, eta, want):
     from jsve.fitting._fit import AUTO_FIRST_RUNG_RUNS, resolve_search
 
     resolved = resolve_search(FitConfig(search="auto", eta=eta), n_runs)

@@ -13,7 +13,7 @@ from jsve.fitting import _packing
 from jsve.fitting._crossval import cross_validate, kfold, rule_results
 from jsve.fitting._fit import FitConfig, FitData, fit, hard_objective, nelder_mead, search_all, search_design
 from jsve.fitting._packing import frame_classes, pack_runs, packing, subset_parts
-from jsve.fitting._polish import polish_runs
+from jsve.fitting._polish import polish_in_lockstep, polish_runs
 from jsve.fitting._search import search
 from jsve.fitting._space import ParamSpace, inlier_space
 from jsve.sim import _motion as sm
@@ -109,6 +109,30 @@ def test_the_subset_is_stratified_weighted_and_sorted(data):
     assert polish_runs(data.meta, w, 9) is None
 
 
+def test_folds_polish_on_the_full_fits_polish_runs_less_their_held_out_ones(data):
+    """With the study's weights as the pool, a fold's polish runs are the full fit's less its held-out
+    runs, so folds moving in lockstep scan the full fit's runs only (not a union of 6 runs a fold)."""
+    w = np.ones(data.n_runs)
+    full = polish_runs(data.meta, w, 6)
+    folds = kfold(data.n_runs, 3, seed=1)
+    for fold in folds:
+        own = polish_runs(data.meta, w * ~fold.test, 6, pool=w)
+        np.testing.assert_array_equal(own, full[~fold.test[full]])
+        alone = polish_runs(data.meta, w * ~fold.test, 6)  # without the pool: its own first 6
+        assert len(alone) == 6 and not np.any(fold.test[alone])
+    space = _space()
+    start = space.values_from_unit(np.full(space.dim, 0.5))
+    trains = [w * ~fold.test for fold in folds]
+    starts = [(k, np.asarray(start, np.float64)) for k in range(len(folds))]
+    common = dict(n_runs=6, seed=0, step=0.5, max_steps=3, window=0, ftol=0.0)
+    pooled = polish_in_lockstep(data, space, trains, starts, pool=w, **common)
+    assert pooled.runs_scanned == 6
+    assert list(pooled.polish_runs) == [int((~fold.test[full]).sum()) for fold in folds]
+    assert polish_in_lockstep(data, space, trains, starts, **common).runs_scanned > 6
+    with pytest.raises(ValueError, match="pool has shape"):
+        polish_runs(data.meta, w, 6, pool=w[:-1])
+
+
 def test_a_fit_polished_on_a_subset_is_judged_on_every_run(data):
     """With polish_runs below the runs, Nelder-Mead moves on the subset; the fit's objective is the hard
     objective of its values over every run, never worse than the search's best, and the stage records
@@ -134,10 +158,11 @@ def test_a_wrong_polish_runs_is_refused(bad):
 
 
 def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
-    """cross_validate polishes each fold on its own training runs, then judges all folds in one batched
-    search (jsve.fitting._fit.judge). Each fold's fitted values and training objective equal a fit of
-    that fold alone from the same search, its polishes' values equal Nelder-Mead run alone from the same
-    starts, and its held-out rows equal an independent one-setting search of its fitted values."""
+    """cross_validate polishes each fold on the full fit's polish runs less its held-out ones, then judges
+    all folds in one batched search (jsve.fitting._fit.judge). Each fold's fitted values and training
+    objective equal a fit of that fold alone from the same search and pool, its polishes' values equal
+    Nelder-Mead run alone from the same starts, and its held-out rows equal an independent one-setting
+    search of its fitted values."""
     space = _space()
     config = FitConfig(n_search=32, n_starts=2, nm_steps=15, polish_runs=6, search="exhaustive")
     folds = kfold(data.n_runs, 3, seed=1)
@@ -145,7 +170,9 @@ def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
     searched = search_all(data, space, search_design(space, config), progress=False)
     for fold in folds:
         train = (~fold.test).astype(np.float64)
-        alone = fit(data, space, train, config, search_result=searched, progress=False)
+        alone = fit(
+            data, space, train, config, search_result=searched, pool=np.ones(data.n_runs), progress=False
+        )
         row = cv.params[cv.params["fold"] == fold.name].iloc[0]
         np.testing.assert_array_equal([row[n] for n in space.names], alone.values)
         assert row["train_objective"] == pytest.approx(alone.objective, rel=1e-12)
@@ -154,7 +181,7 @@ def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
         for start, stage in zip(starts, alone.stages[1:], strict=True):
             values, value, _ = nelder_mead(
                 data, space, start, train, max_steps=15, window=config.nm_window, ftol=config.nm_ftol,
-                on_runs=6, seed=config.seed,
+                on_runs=6, seed=config.seed, pool=np.ones(data.n_runs),
             )  # fmt: skip
             np.testing.assert_array_equal(stage["values"], values)
             assert stage["objective"] == pytest.approx(value, rel=1e-6)
@@ -163,6 +190,32 @@ def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
         np.testing.assert_array_equal(held["run_index"], np.flatnonzero(fold.test))
         np.testing.assert_allclose(held["loss"], oracle.loss[0, fold.test], rtol=1e-6)
         np.testing.assert_array_equal(held["failed"], oracle.failed[0, fold.test])
+
+
+def test_the_verdict_scores_each_distinct_candidate_once(data, monkeypatch):
+    """judge scores fits that share candidates (folds with the same search best) once per distinct
+    setting, and each fit's verdict is that of the fit judged alone."""
+    from jsve.fitting import _fit
+
+    space = _space()
+    config = FitConfig(n_search=16, n_starts=1, nm_steps=3, polish_runs=6, search="exhaustive")
+    searched = search_all(data, space, search_design(space, config), progress=False)
+    weights = [np.ones(data.n_runs), np.ones(data.n_runs)]  # two fits with the same candidates
+    pending = _fit.polish_fits(data, space, [(w, searched) for w in weights], config)
+    calls = []
+    real_search = _fit.search
+
+    def counted(parts, space, values, *args, **kwargs):
+        calls.append(len(values))
+        return real_search(parts, space, values, *args, **kwargs)
+
+    monkeypatch.setattr(_fit, "search", counted)
+    both = _fit.judge(data, space, pending)
+    assert calls == [len(np.unique(np.stack([v for _, v in pending[0].candidates]), axis=0))]
+    alone = _fit.judge(data, space, pending[:1])
+    for result in both:
+        np.testing.assert_array_equal(result.values, alone[0].values)
+        assert result.objective == alone[0].objective
 
 
 def test_a_relaxed_fit_is_judged_with_the_polishes(data):

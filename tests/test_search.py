@@ -100,6 +100,32 @@ def test_search_kernel_equals_replay_objective(x64, align, dtype):
         assert np.isnan(np.asarray(got.rmse)[failed]).all()
 
 
+def test_inputs_without_imu_columns_score_the_same_and_refuse_imu_coast():
+    """prepare(..., imu=False) (what FitData loads for the "orbslam3" switch model) leaves out the IMU's
+    columns: the orbslam3 kernel's results are bit for bit those with them, an imu-coast search on
+    them raises a clear error, and the kernel's per-frame inputs are 69 bytes in float32 (141 with the
+    IMU; 230 when every column was a float32)."""
+    runs = ka.make_study("occlusion", range(4), n_frames=200)
+    batch = from_runs(runs, dtype=jnp.float32).batch
+    f = batch_features(batch)
+    full, slim = prepare(batch, f), prepare(batch, f, imu=False)
+    assert slim.imu is None and full.imu is not None
+    space = sve_space()
+    rules = space.rule(jnp.asarray(space.values_from_unit(sobol(16, space.dim, seed=5)), jnp.float32))
+    for a, b in zip(
+        jax.tree.leaves(search_chunk(full, rules)), jax.tree.leaves(search_chunk(slim, rules)), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="imu-coast.*without its columns"):
+        search_chunk(slim, rules, ObjectiveConfig(switch_model="imu-coast"))
+
+    def frame_bytes(sb):
+        leaves = [x for x in jax.tree.leaves(sb) if x.ndim == 2 and x.shape == sb.t.shape]
+        return sum(x.dtype.itemsize for x in leaves)
+
+    assert (frame_bytes(slim), frame_bytes(full)) == (69, 141)
+
+
 @pytest.mark.slow
 def test_search_kernel_eager_equals_jit(x64):
     """Op by op (jax.disable_jit) and compiled, the kernel gives the same results (to 1e-12 m)."""

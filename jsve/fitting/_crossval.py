@@ -240,9 +240,10 @@ def cross_validate(
             )
     per_rule = preset_results(data, presets, progress=progress)
 
-    # Each fold's fit polishes on its own training runs; all folds of a family move in lockstep (each
-    # Nelder-Mead step is one batched search for all of them, `polish_fits`); then all folds of a family
-    # are judged on every run in one batched search, whose rows also hold each fold's fitted rule on its
+    # Each fold's fit polishes on the full fit's polish runs less its held-out ones (pool=w); all folds
+    # of a family move in lockstep (each Nelder-Mead step is one batched search for all of them,
+    # `polish_fits`); then all folds of a family are judged on every run in one batched search, whose
+    # rows also hold each fold's fitted rule on its
     # held-out runs (`judge`).
     polished = {}
     for name, space in spaces.items():
@@ -256,7 +257,7 @@ def cross_validate(
                 search_result = fit_search(data, space, train, config, progress=False)[0]
             searched.append((train, search_result))
         polished[name] = polish_fits(
-            data, space, searched, config, progress=progress,
+            data, space, searched, config, pool=w, progress=progress,
             desc=f"Nelder-Mead {name}, {len(folds)} folds x {config.n_starts} starts",
         )  # fmt: skip
         release_memory()  # the polishes' executables (jsve._memory)
@@ -522,7 +523,7 @@ def parameter_bootstrap(
     result: FitResult,
     weights=None,
     *,
-    n_local: int = 1024,
+    n_local: int = 256,
     fraction: float = 0.15,
     n_boot: int = 500,
     level: float = 0.95,

@@ -27,10 +27,10 @@ computations, each costing time in proportion to the frames it scans:
     the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
 - **Nelder-Mead** (jsve.fitting._polish.polish_in_lockstep) is **search** work too: the runs of all the
   fits of a stage (n_starts for the full fit; folds x n_starts in the cross-validation) move in
-  lockstep on the union of their polish runs (each fit's first `polish_runs` training runs in the
-  stratified order; the union is modelled as the first polish_runs x R / (fewest training runs) runs of
-  it), packed by length class. Per step one search of their reflections and one of the
-  NM_MOVED_SHARE of them that expand or contract; first the initial simplexes, d + 1 points each.
+  lockstep on the union of their polish runs (the study's first `polish_runs` runs in the stratified
+  order, each fold's less its held-out ones: the union is those runs), packed by length class. Per
+  step one search of their reflections and one of the NM_MOVED_SHARE of them that expand or contract;
+  first the initial simplexes, d + 1 points each.
   Without the stall test (nm_window = 0) they run to the step limit nm_steps (measured: every fit of
   the studies in docs/fitting.md); with it, to `nm_expected_steps` (NM_STALL_WINDOWS windows). The
   verdict on every run is a search as well: each fit's candidates (its search's best and each
@@ -365,9 +365,8 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         candidates = 1 + max(fit.n_starts, 0)
         if fit.n_starts > 0:
             order = np.arange(size.n_runs) if size.order is None else np.asarray(size.order)
-            fewest = max(min(train_runs), 1)
-            union = size.n_runs if fit.polish_runs <= 0 else fit.polish_runs * size.n_runs / fewest
-            runs = np.sort(order[: min(size.n_runs, math.ceil(union))])
+            union = size.n_runs if fit.polish_runs <= 0 else fit.polish_runs
+            runs = np.sort(order[: min(size.n_runs, union)])
             simplexes = folds * fit.n_starts
             search(stage, family, simplexes * (size.dims[family] + 1), runs)
             reflections, _ = search_cost(size, simplexes, runs, family=family)

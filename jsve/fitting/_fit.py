@@ -190,11 +190,13 @@ class FitData:
         """Search layouts of buckets (in memory or streamed), and their slim batches and features where
         keep_slim."""
         batches, features, parts, counts, metas = [], [], [], [], []
+        # Without a switch model given, the IMU's columns are kept for either.
+        imu = config is None or config.switch_model == "imu-coast"
         for slim, feats, real, meta in _slim_chunks(groups, runs_per_part):
             if keep_slim:
                 batches.append(slim)
                 features.append(feats)
-            parts.append(prepare(slim, feats))
+            parts.append(prepare(slim, feats, imu=imu))
             counts.append(real)
             metas.append(meta)
         meta = pd.concat(metas, ignore_index=True)
@@ -367,12 +369,14 @@ def nelder_mead(
     ftol: float = 1e-4,
     on_runs: int = 0,
     seed: int = 0,
+    pool=None,
 ) -> tuple[np.ndarray, float, int]:
     """Nelder-Mead on the hard objective from `start` (free values): one run of the fit's polish
     (jsve.fitting._simplex.lockstep_nelder_mead; `polish_fits` moves many together).
 
     on_runs: where more runs have weight, the simplex moves on the first on_runs of them in the study's
     stratified order (seeded by `seed`), packed by length class (jsve.fitting._polish); 0: on every run.
+    pool: [R] the weights those runs are drawn from (a fold: the study's, `polish_runs`); default weights.
 
     The simplex starts at the start's unconstrained coordinates z plus `step` along each axis (a step
     of 0.5 in z moves a value at mid-box by ~12 % of its box). The hard objective is piecewise constant
@@ -386,7 +390,7 @@ def nelder_mead(
     w = _default_weights(data, weights)
     ended = polish_in_lockstep(
         data, space, [w], [(0, np.asarray(start, np.float64))], n_runs=on_runs, seed=seed, step=step,
-        max_steps=max_steps, window=window, ftol=ftol, rtol=rtol, atol=atol,
+        max_steps=max_steps, window=window, ftol=ftol, rtol=rtol, atol=atol, pool=pool,
     )  # fmt: skip
     values = ended.values[0]
     # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
@@ -504,27 +508,34 @@ class FitConfig:
 
 SEARCH_METHODS = ("auto", "exhaustive", "halving")
 
-AUTO_FIRST_RUNG_RUNS = 100
+AUTO_HALVING_RUNS = 300
+"""search = "auto": the fewest runs it halves on. At 93-279 runs halving chose the exhaustive search's
+rules but, on a first run, was not faster (its rungs' compilations cost what it saved; docs/fitting.md),
+so below 300 runs "auto" is the exhaustive search."""
+
+AUTO_FIRST_RUNG_RUNS = 40
 """search = "auto": the fewest runs the halving's first rung screens every setting on. At 93-279 runs
 halving and the exhaustive search chose the same rules on every fold measured with first rungs of 10-31
-runs (docs/fitting.md), so 100 leaves a margin; below 100 x eta runs "auto" is the exhaustive search,
-whose compilations are fewer and which is as fast there."""
+runs, and at 3,410 runs a first rung of 42 runs (1/81) fitted the rules and held-out objectives of one
+of 126 (1/27) in the full fit and all 38 fold fits, at 0.4x its setting-runs (docs/fitting.md,
+"Successive halving"); it was 100 until 2026-11-28."""
 
 
 def resolve_search(config: FitConfig, n_runs: int) -> FitConfig:
     """The concrete search of `config` for a study of n_runs runs.
 
-    "auto" becomes halving with the smallest initial_fraction eta^-K (K >= 1) whose first rung still
-    screens on AUTO_FIRST_RUNG_RUNS runs, or the exhaustive search where no K >= 1 does (n_runs below
-    eta x AUTO_FIRST_RUNG_RUNS); the cost of halving's search is then (K + 1) / eta^K of the exhaustive
-    one's (3,410 runs, eta 3: K = 3, f0 = 1/27, 15 %). "exhaustive" and "halving" are returned as given.
-    Resolved on the study's runs (not a fold's), so that every fold halves on the same rungs.
+    "auto" becomes the exhaustive search below AUTO_HALVING_RUNS runs, else halving with the smallest
+    initial_fraction eta^-K (K >= 1) whose first rung still screens on AUTO_FIRST_RUNG_RUNS runs (the
+    exhaustive search where no K >= 1 does); the cost of halving's search is then about (K + 1) / eta^K
+    of the exhaustive one's (3,410 runs, eta 3: K = 4, f0 = 1/81, 6 %). "exhaustive" and "halving" are
+    returned as given. Resolved on the study's runs (not a fold's), so that every fold halves on the
+    same rungs.
     """
     if config.search != "auto":
         return config
     ratio = n_runs / AUTO_FIRST_RUNG_RUNS
     k = math.floor(math.log(ratio) / math.log(config.eta) + 1e-9) if ratio >= 1 else 0
-    if k < 1:
+    if k < 1 or n_runs < AUTO_HALVING_RUNS:
         return replace(config, search="exhaustive")
     return replace(config, search="halving", initial_fraction=float(config.eta) ** -k)
 
@@ -606,6 +617,7 @@ def fit(
     *,
     search_result: SearchResult | None = None,
     cache: RunLossCache | None = None,
+    pool=None,
     progress: bool = True,
 ) -> FitResult:
     """Fit the free parameters of `space` to minimise the weighted hard objective over `data`.
@@ -615,6 +627,8 @@ def fit(
         search_result: a search already run on these data (cross-validation reuses one for all folds).
         cache: under config.search == "halving", per-run results of the fit's design computed so far
             (cross-validation shares one between folds); default a new one.
+        pool: [R] the run weights Nelder-Mead's runs are drawn from (a fold: the study's weights, so it
+            polishes on the full fit's polish runs less its held-out ones); default `weights`.
     Returns:
         FitResult; its stages record the objective after the search, Nelder-Mead and the relaxed fit.
     """
@@ -628,7 +642,7 @@ def fit(
         screening, method = {}, "given"
     pending = polish(
         data, space, w, search_result, config, method=method, search_seconds=time.perf_counter() - t0,
-        screening=screening,
+        screening=screening, pool=pool,
     )  # fmt: skip
     (result,) = judge(data, space, [pending], cache=cache)
     return result
@@ -697,11 +711,13 @@ def polish(
     method: str = "given",
     search_seconds: float = 0.0,
     screening: dict | None = None,
+    pool=None,
 ) -> PolishedFit:
     """Nelder-Mead from the best searched settings (and the relaxed fit from the best so far), each
-    moving on its own runs (`polish_runs`); none of them judged on every run yet (`judge`)."""
+    moving on its own runs (`polish_runs`, drawn from `pool`); none of them judged on every run yet
+    (`judge`)."""
     record = {"method": method, "seconds": search_seconds, **(screening or {})}
-    return polish_fits(data, space, [(weights, search_result)], config, records=[record])[0]
+    return polish_fits(data, space, [(weights, search_result)], config, records=[record], pool=pool)[0]
 
 
 def polish_fits(
@@ -711,6 +727,7 @@ def polish_fits(
     config: FitConfig,
     *,
     records: Sequence[dict] | None = None,
+    pool: np.ndarray | None = None,
     progress: bool = False,
     desc: str | None = None,
 ) -> list[PolishedFit]:
@@ -721,6 +738,8 @@ def polish_fits(
     Arguments:
         searched: (run weights [R], its search) of each fit. records: extra fields of each fit's
             search stage (its method, seconds, halving record); default {"method": "given"}.
+        pool: [R] the run weights every fit's polish runs are drawn from (the study's, for
+            cross-validation folds: jsve.fitting._polish.polish_runs); default each fit's own.
     Returns:
         One PolishedFit per fit, in order; each Nelder-Mead stage records the lockstep's wall time
         (`seconds`, shared by `simplexes` runs).
@@ -742,7 +761,7 @@ def polish_fits(
         ended = polish_in_lockstep(
             data, space, [p.weights for p in pending], starts, n_runs=config.polish_runs, seed=config.seed,
             step=config.nm_step, max_steps=config.nm_steps, window=config.nm_window, ftol=config.nm_ftol,
-            progress=progress, desc=desc or f"Nelder-Mead {space.kind}, {len(starts)} simplexes",
+            pool=pool, progress=progress, desc=desc or f"Nelder-Mead {space.kind}, {len(starts)} simplexes",
         )  # fmt: skip
         counts = dict.fromkeys(range(len(pending)), 0)
         for k, (f, _) in enumerate(starts):
@@ -793,18 +812,23 @@ def judge(
     lowest objective on its own weights (ties to the earlier: the search's best before a polish). A
     polish that moved on a subset of the runs is judged on all of them.
 
-    One search of all the candidates fills the kernel's lanes (settings x runs): cross-validation's folds
-    are judged together, not one setting per fold and pass over the study (docs/fitting.md).
+    One search of all the distinct candidates fills the kernel's lanes (settings x runs):
+    cross-validation's folds are judged together, not one setting per fold and pass over the study
+    (docs/fitting.md).
 
     Returns:
         One FitResult per fit, in order, with `results`: the fitted setting's per-run results on every
         run ([1, R] matrices), which cross-validation scores its held-out runs by.
     """
     values = np.stack([v for f in fits for _, v in f.candidates])
-    everything = search(
-        data.parts, space, values, data.config, run_counts=data.run_counts, progress=progress,
-        desc=f"verdict {space.kind}, {len(fits)} fits",
+    # Folds often share candidates (the same search best; a polish that ended where it started): each
+    # distinct setting is scored once.
+    distinct, inverse = np.unique(values, axis=0, return_inverse=True)
+    scored = search(
+        data.parts, space, distinct, data.config, run_counts=data.run_counts, progress=progress,
+        desc=f"verdict {space.kind}, {len(fits)} fits, {len(distinct)} settings",
     )  # fmt: skip
+    everything = _rows(scored, np.asarray(inverse).reshape(-1))
     out, row = [], 0
     for f in fits:
         rows = np.arange(row, row + len(f.candidates))
@@ -870,6 +894,7 @@ __all__ = [
     "search_all",
     "SEARCH_METHODS",
     "AUTO_FIRST_RUNG_RUNS",
+    "AUTO_HALVING_RUNS",
     "resolve_search",
     "DEFAULT_TEMPERATURES",
 ]

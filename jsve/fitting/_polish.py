@@ -36,15 +36,27 @@ from jsve.fitting._search import SearchBatch, search
 from jsve.fitting._simplex import lockstep_nelder_mead
 
 
-def polish_runs(meta, weights: np.ndarray, n: int, *, seed: int = 0) -> np.ndarray | None:
-    """The runs Nelder-Mead polishes on: the first n runs with weight > 0 in the stratified order of the
-    study (sorted), or None where n is 0 or there are at most n such runs (polish on every run)."""
+def polish_runs(
+    meta, weights: np.ndarray, n: int, *, seed: int = 0, pool: np.ndarray | None = None
+) -> np.ndarray | None:
+    """The runs Nelder-Mead polishes on: the first n runs with weight > 0 in `pool` (default: in
+    `weights`) in the stratified order of the study, less those without weight in `weights` (sorted);
+    or None where n is 0 or at most n runs have weight in the pool (polish on every weighted run).
+
+    A cross-validation fold passes the study's weights as its pool: it polishes on the full fit's polish
+    runs less its held-out ones (as its halving screens on the full fit's rungs less them), so the folds
+    moving in lockstep scan the full fit's n runs, not a union of n runs a fold (about 400 of the
+    3,410-log study's runs for n = 256)."""
     weights = np.asarray(weights)
-    train = weights > 0
-    if n <= 0 or int(train.sum()) <= n:
+    pool = weights if pool is None else np.asarray(pool)
+    if pool.shape != weights.shape:
+        raise ValueError(f"polish_runs: pool has shape {pool.shape}, weights {weights.shape}")
+    eligible = pool > 0
+    if n <= 0 or int(eligible.sum()) <= n:
         return None
     order = stratified_order(meta, len(weights), seed=seed)
-    return np.sort(order[train[order]][:n])
+    first = order[eligible[order]][:n]
+    return np.sort(first[weights[first] > 0])
 
 
 def packed_subset(
@@ -91,6 +103,7 @@ def polish_in_lockstep(
     ftol: float,
     rtol: float = 1e-4,
     atol: float = 1e-4,
+    pool: np.ndarray | None = None,
     progress: bool = False,
     desc: str = "Nelder-Mead",
 ) -> Polishes:
@@ -104,11 +117,12 @@ def polish_in_lockstep(
     Arguments:
         data: FitData. weights: [R] run weights of each fit. starts: (fit index, free values [d]) of
             each Nelder-Mead run. step, max_steps, window, ftol, rtol, atol: the simplex
-            (nelder_mead's arguments).
+            (nelder_mead's arguments). pool: [R] the weights every fit's polish runs are drawn from
+            (`polish_runs`; default each fit's own).
     """
     t0 = time.perf_counter()
     weights = [np.asarray(w, np.float64) for w in weights]
-    own = [polish_runs(data.meta, w, n_runs, seed=seed) for w in weights]
+    own = [polish_runs(data.meta, w, n_runs, seed=seed, pool=pool) for w in weights]
     own = [np.flatnonzero(w > 0) if runs is None else runs for w, runs in zip(weights, own, strict=True)]
     union = np.unique(np.concatenate(own))
     packed, run_counts, columns = subset_parts(data.parts, data.run_counts, union)

@@ -88,23 +88,15 @@ class SearchBatch(eqx.Module):
     log_ratio: Array  # log N_inliers / N_extracted (0 where it is 0, see pos_ratio)
     log_s_b: Array
     log_s_c: Array
-    pos_ratio: Array
-    pos_s_b: Array
-    pos_s_c: Array
-    t: Array
-    data: FrameData  # the log's facts per frame, [F, R] leaves
+    pos_ratio: Array  # bool
+    pos_s_b: Array  # bool
+    pos_s_c: Array  # bool
+    data: FrameData  # the log's facts per frame, [F, R] leaves, its flags bool (`_compact`)
     run: RunConstants  # [R] leaves
-    valid: Array
-    gt: Array  # frame exists and has ground truth
-    weight: Array  # ... and a recorded pose: the frames the alignment statistics are fixed for
+    valid: Array  # bool
+    gt: Array  # bool: frame exists and has ground truth
+    weight: Array  # bool: ... and a recorded pose: the frames the alignment statistics are fixed for
     vis_p: tuple
-    vis_q: tuple
-    vis_v: tuple
-    imu_dt: Array
-    imu_dp: tuple
-    imu_dv: tuple
-    imu_dq: tuple
-    ref: tuple  # ground truth + the run's mean visual offset
     g_c: tuple  # ground truth less its mean over the weight frames; 0 where gt is 0
     gravity: tuple  # [R] each
     offset: Array  # [3, R]
@@ -112,6 +104,12 @@ class SearchBatch(eqx.Module):
     gram: Array  # [3, 3, R] over the weight frames
     n_eval: Array  # [R] weight frames
     n_gt: Array  # [R] frames with ground truth
+    imu: ImuColumns | None  # only "imu-coast" predicts from the IMU (`prepare(..., imu=False)`: None)
+
+    @property
+    def t(self) -> Array:
+        """s since each log's first frame, [F, R]; its dtype is the kernel's float dtype."""
+        return self.data.t
 
     @property
     def n_runs(self) -> int:
@@ -122,24 +120,62 @@ class SearchBatch(eqx.Module):
         return self.t.shape[0]
 
 
-@jax.jit
-def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
-    """The kernel's inputs for a LogBatch and its features (one compiled call per shape)."""
+class ImuColumns(eqx.Module):
+    """What ORB-SLAM3's IMU prediction reads per frame ([F, R] columns): the visual velocity and
+    orientation it starts from and the preintegration from the previous frame (s, m, m/s, wxyz).
+    Only the "imu-coast" switch model uses them: without them a frame's kernel inputs are 69 bytes
+    instead of 141 in float32 (tests/test_search.py; 230 when every column was a float32)."""
+
+    vis_q: tuple
+    vis_v: tuple
+    dt: Array
+    dp: tuple
+    dv: tuple
+    dq: tuple
+
+
+FLAGS = ("imu_init", "imu_ba2", "has_pose", "init_keys", "init_matches", "rec_start", "rec_loss")
+"""FrameData's 0/1 fields, held as bool in the kernel's inputs (a byte a frame instead of four) and
+turned back into the float dtype a scan step at a time."""
+
+
+def _compact(data: FrameData) -> FrameData:
+    return dataclasses.replace(data, **{name: getattr(data, name) > 0.5 for name in FLAGS})
+
+
+def _expanded(data: FrameData, dtype) -> FrameData:
+    return dataclasses.replace(data, **{name: getattr(data, name).astype(dtype) for name in FLAGS})
+
+
+@functools.partial(jax.jit, static_argnames=("imu",))
+def prepare(batch: LogBatch, features: FrameFeatures, *, imu: bool = True) -> SearchBatch:
+    """The kernel's inputs for a LogBatch and its features (one compiled call per shape); imu=False
+    leaves out the columns only the "imu-coast" switch model reads (`ImuColumns`)."""
     dtype = batch.t.dtype
     fm = lambda x: jnp.swapaxes(x, 0, 1).astype(dtype)  # noqa: E731
     cols = lambda x: tuple(fm(x[..., i]) for i in range(x.shape[-1]))  # noqa: E731
     # Frames a run that keeps tracking usually has an estimate on: posed by the recorded run (a lane
     # whose estimates differ from these frames corrects the statistics in search_chunk).
-    gt = (batch.valid & batch.gt_valid).astype(dtype)
-    weight = gt * batch.has_pose.astype(dtype)  # [R, F]
-    n = jnp.sum(weight, axis=1)
+    gt = batch.valid & batch.gt_valid
+    weight = gt & batch.has_pose  # [R, F]
+    gt_f, weight_f = gt.astype(dtype), weight.astype(dtype)
+    n = jnp.sum(weight_f, axis=1)
     n_safe = jnp.maximum(n, 1.0)
-    mean = lambda x: jnp.sum(weight[..., None] * x, axis=1) / n_safe[:, None]  # noqa: E731
+    mean = lambda x: jnp.sum(weight_f[..., None] * x, axis=1) / n_safe[:, None]  # noqa: E731
     g_mean = mean(batch.gt_p)  # [R, 3]
     offset = mean(batch.vis_p - batch.gt_p)
-    g_c = (batch.gt_p - g_mean[:, None]) * gt[..., None]
-    gram = jnp.einsum("rfi,rfj->ijr", g_c * weight[..., None], g_c)
+    g_c = (batch.gt_p - g_mean[:, None]) * gt_f[..., None]
+    gram = jnp.einsum("rfi,rfj->ijr", g_c * weight_f[..., None], g_c)
     logs = feature_logs(fm(features.inlier_ratio), fm(features.s_b), fm(features.s_c))
+    swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
+    imu_columns = ImuColumns(
+        vis_q=cols(batch.vis_q),
+        vis_v=cols(batch.vis_v),
+        dt=fm(batch.imu_dt),
+        dp=cols(batch.imu_dp),
+        dv=cols(batch.imu_dv),
+        dq=cols(batch.imu_dq),
+    )
     return SearchBatch(
         n_inliers=fm(features.n_inliers),
         log_ratio=logs[0],
@@ -148,27 +184,20 @@ def prepare(batch: LogBatch, features: FrameFeatures) -> SearchBatch:
         pos_ratio=logs[3],
         pos_s_b=logs[4],
         pos_s_c=logs[5],
-        t=fm(batch.t),
-        data=jax.tree.map(fm, frame_data(batch)),
+        data=_compact(jax.tree.map(fm, frame_data(batch))),
         run=run_constants(batch),
-        valid=fm(batch.valid),
-        gt=fm(gt),
-        weight=fm(weight),
+        valid=swap(batch.valid),
+        gt=swap(gt),
+        weight=swap(weight),
         vis_p=cols(batch.vis_p),
-        vis_q=cols(batch.vis_q),
-        vis_v=cols(batch.vis_v),
-        imu_dt=fm(batch.imu_dt),
-        imu_dp=cols(batch.imu_dp),
-        imu_dv=cols(batch.imu_dv),
-        imu_dq=cols(batch.imu_dq),
-        ref=cols(batch.gt_p + offset[:, None]),
         g_c=cols(g_c),
         gravity=tuple(batch.gravity[:, i].astype(dtype) for i in range(3)),
         offset=offset.T,
         g_mean=g_mean.T,
         gram=gram,
         n_eval=n,
-        n_gt=jnp.sum(gt, axis=1),
+        n_gt=jnp.sum(gt_f, axis=1),
+        imu=imu_columns if imu else None,
     )
 
 
@@ -270,6 +299,13 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
     accumulates the corrections for estimated frames other than the weight frames, else only counts
     those frames."""
     dtype = sb.t.dtype
+    coast = config.switch_model == "imu-coast"
+    if coast and sb.imu is None:
+        raise ValueError(
+            'switch_model="imu-coast" predicts from the IMU, and these kernel inputs were prepared '
+            "without its columns (prepare(..., imu=False), FitData loaded for another switch model): "
+            "load the study again with the imu-coast objective"
+        )
     lanes = (jax.tree.leaves(rule)[0].shape[0], sb.n_runs)
     state0 = jax.tree.map(lambda x: jnp.broadcast_to(x, lanes), initial_state(dtype))
     first = lambda cols: tuple(jnp.broadcast_to(c[0], lanes) for c in cols)  # noqa: E731
@@ -277,30 +313,21 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
     counts = (zeros, zeros)  # estimates in closed maps, in the current map
     flags = (zeros, zeros, zeros)  # ever lost, ever out of support, frames off the weight frames
     n_sums = _MOMENTS + (_CORRECTIONS if exact else 0)
-    start = (state0, first(sb.vis_p), first(sb.vis_v), first(sb.vis_q), flags, counts, (zeros,) * n_sums)
-    xs = (
-        sb.n_inliers,
-        (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c),
-        sb.data,
-        sb.valid,
-        sb.gt,
-        sb.weight,
-        sb.vis_p,
-        sb.vis_q,
-        sb.vis_v,
-        sb.imu_dt,
-        sb.imu_dp,
-        sb.imu_dv,
-        sb.imu_dq,
-        sb.ref,
-        sb.g_c,
-    )
+    # Only the IMU prediction reads the velocity and orientation: without it the pose is the position.
+    pose0 = (first(sb.vis_p), first(sb.imu.vis_v), first(sb.imu.vis_q)) if coast else first(sb.vis_p)
+    start = (state0, pose0, flags, counts, (zeros,) * n_sums)
+    features = (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c)
+    imu = sb.imu if coast else None
+    xs = (sb.n_inliers, features, sb.data, sb.valid, sb.gt, sb.weight, sb.vis_p, sb.g_c, imu)
+    # e = p - (g + o) = (p - (g_mean + o)) - g_c on frames with ground truth (where it counts)
+    base = tuple(sb.g_mean[i] + sb.offset[i] for i in range(3))
     logic = HardLogic()
-    coast = config.switch_model == "imu-coast"
 
     def step(carry, x):
-        state, p, v, q, (lost, unsupported, n_off), (n_closed, n_map), mom = carry
-        n_inl, feats, fd, valid, gt, w, vp, vq, vv, dt, dp, dv, dq, ref, g_c = x
+        state, pose, (lost, unsupported, n_off), (n_closed, n_map), mom = carry
+        n_inl, feats, fd, valid, gt, w, vp, g_c, imu = x
+        valid, gt, w = (f.astype(dtype) for f in (valid, gt, w))
+        fd = _expanded(fd, dtype)
         score = score_columns(rule, n_inl, *feats)
         state, decision = machine_step(
             logic, state, score, fd, sb.run, rule.thresholds, config.time_recently_lost
@@ -309,16 +336,17 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
         state, decision = jax.tree.map(lambda x: x.astype(dtype), (state, decision))
         posed = fd.has_pose > 0.5
         if coast:
-            pp, pv, pq = imu_predict_columns(p, v, q, dt, dp, dv, dq, sb.gravity)
+            p, v, q = pose
+            pp, pv, pq = imu_predict_columns(p, v, q, imu.dt, imu.dp, imu.dv, imu.dq, sb.gravity)
             tracked = decision.tracked > 0.5
             a = tracked & posed
             sel = lambda vis, pred: tuple(jnp.where(a, u, z) for u, z in zip(vis, pred, strict=True))  # noqa: E731
-            p2, v2, q2 = sel(vp, pp), sel(vv, pv), sel(vq, pq)
+            pose = (sel(vp, pp), sel(imu.vis_v, pv), sel(imu.vis_q, pq))
+            p2 = pose[0]
             est = (a | (decision.coasting > 0.5)).astype(dtype)
             needs_pose = tracked  # as jsve.core._replay: a coasting frame needs no recorded pose
         else:
-            keep = lambda vis, old: tuple(jnp.where(posed, u, z) for u, z in zip(vis, old, strict=True))  # noqa: E731
-            p2, v2, q2 = keep(vp, p), keep(vv, v), keep(vq, q)
+            pose = p2 = tuple(jnp.where(posed, u, z) for u, z in zip(vp, pose, strict=True))
             needs_pose = decision.tracked + decision.coasting > 0.5
             est = (needs_pose & posed).astype(dtype)
         lost = jnp.maximum(lost, decision.loss * valid)
@@ -329,7 +357,7 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
         new_map, reset = decision.new_map * valid, decision.reset * valid
         n_closed = n_closed + new_map * n_map
         n_map = (1 - new_map) * (1 - reset) * n_map + counted
-        e = [counted * (p2[i] - ref[i]) for i in range(3)]
+        e = [counted * ((p2[i] - base[i]) - g_c[i]) for i in range(3)]
         off = counted - w  # +1 / -1 on frames off those the statistics were fixed for; usually 0
         new = [
             *e,
@@ -342,9 +370,9 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
         else:
             n_off = n_off + jnp.abs(off)
         mom = tuple(acc + d for acc, d in zip(mom, new, strict=True))
-        return (state, p2, v2, q2, (lost, unsupported, n_off), (n_closed, n_map), mom), None
+        return (state, pose, (lost, unsupported, n_off), (n_closed, n_map), mom), None
 
-    (_, _, _, _, (lost, unsupported, n_off), (n_closed, n_map), mom), _ = jax.lax.scan(step, start, xs)
+    (_, _, (lost, unsupported, n_off), (n_closed, n_map), mom), _ = jax.lax.scan(step, start, xs)
     return _LaneSums(
         lost=lost,
         unsupported=unsupported,
@@ -397,7 +425,7 @@ def _scan_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig, exact: boo
 def _exact_from_start(sb: SearchBatch, config: ObjectiveConfig) -> bool:
     """Under "imu-coast", runs with frames with ground truth and no recorded pose: lanes coasting over
     them need the corrections, so the scan carries them from the start."""
-    return config.switch_model == "imu-coast" and bool(jnp.any((sb.gt > 0.5) & (sb.weight < 0.5)))
+    return config.switch_model == "imu-coast" and bool(np.any(np.asarray(sb.gt) & ~np.asarray(sb.weight)))
 
 
 def _needs_corrections(fast: _LaneSums) -> bool:
@@ -418,7 +446,7 @@ def _traced_lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> 
         return jax.lax.cond(inexact, exact, lambda: fast)
 
     if config.switch_model == "imu-coast":
-        return jax.lax.cond(jnp.any((sb.gt > 0.5) & (sb.weight < 0.5)), exact, fast_then_exact)
+        return jax.lax.cond(jnp.any(sb.gt & ~sb.weight), exact, fast_then_exact)
     return fast_then_exact()
 
 
