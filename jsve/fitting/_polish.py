@@ -26,6 +26,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
@@ -126,7 +127,9 @@ def polish_in_lockstep(
     own = [np.flatnonzero(w > 0) if runs is None else runs for w, runs in zip(weights, own, strict=True)]
     union = np.unique(np.concatenate(own))
     packed, run_counts, columns = subset_parts(data.parts, data.run_counts, union)
-    parts = list(packed)  # gathered once: every step scans them again
+    # gathered once (every step scans them again), each on the device `search` runs its calls on
+    devices = jax.local_devices()
+    parts = [jax.device_put(part, devices[p % len(devices)]) for p, part in enumerate(packed)]
     fit_weights = np.zeros((len(weights), len(columns)))
     for f, (w, runs) in enumerate(zip(weights, own, strict=True)):
         mine = np.isin(columns, runs)

@@ -621,18 +621,21 @@ def search(
     def dispatch(p: int, part: SearchBatch, n_real: int) -> list:
         """Start every call of part p (JAX dispatches asynchronously) and return what collecting needs."""
         size = call_size(part.n_runs, n_settings, settings_per_call)
-        # a copy of the part on each device that gets a call (one call: the part where it is)
+        # a copy of the part on each device that gets a call; a part of one call goes to the devices in
+        # turn (every part built on the default device, its calls on one core: a verdict or a
+        # Nelder-Mead step of a few settings used one core of two)
         n_calls = math.ceil(n_settings / size)
-        copies = [part] if n_calls == 1 else [jax.device_put(part, d) for d in devices[:n_calls]]
+        if n_calls == 1:
+            copies = [jax.device_put(part, devices[p % len(devices)])]
+        else:
+            copies = [jax.device_put(part, d) for d in devices[:n_calls]]
         calls = []
         for i, sl in enumerate(_settings_chunks(n_settings, size)):
             chunk = values[sl]
             if len(chunk) < size:
                 chunk = np.concatenate([chunk, np.repeat(chunk[-1:], size - len(chunk), 0)])
             k = i % len(copies)
-            rules = space.rule(jnp.asarray(chunk, part.t.dtype))
-            if len(copies) > 1:
-                rules = jax.device_put(rules, devices[k])
+            rules = jax.device_put(space.rule(jnp.asarray(chunk, part.t.dtype)), _device(copies[k]))
             exact = _exact_from_start(copies[k], config)
             sums = _scan_sums(copies[k], rules, config, exact=exact)
             calls.append((p, sl, n_real, copies[k], rules, exact, sums))
@@ -671,6 +674,12 @@ def search(
         unsupported=merged.unsupported,
         included=merged.included,
     )
+
+
+def _device(tree):
+    """The device a (single-device) pytree of arrays lives on."""
+    (device,) = jax.tree.leaves(tree)[0].devices()
+    return device
 
 
 def use_all_cores() -> None:
