@@ -523,7 +523,7 @@ def parameter_bootstrap(
     result: FitResult,
     weights=None,
     *,
-    n_local: int = 256,
+    n_local: int = 1024,
     fraction: float = 0.15,
     n_boot: int = 500,
     level: float = 0.95,

@@ -113,7 +113,7 @@ class StudyConfig:
     leave_one_out: tuple[str, ...] = ("sequence", "disturbance")
     n_boot: int = 2000
     level: float = 0.95
-    n_local: int = 256
+    n_local: int = 1024
     local_fraction: float = 0.15
     bootstrap_screen_runs: int = 512
     heatmap: tuple = ("imu_init", "recovery", 25)
