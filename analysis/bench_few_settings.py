@@ -26,17 +26,13 @@ def main(argv=None) -> None:
     import numpy as np
 
     from jsve.core import ObjectiveConfig
-    from jsve.fitting import FitData
-    from jsve.fitting._fit import FitConfig, search_design
-    from jsve.fitting._packing import subset_parts
-    from jsve.fitting._polish import polish_runs
-    from jsve.fitting._search import search
-    from jsve.fitting._space import family_space
+    from jsve.fitting import FitData, search, sobol, space_from_dict, stratified_order, subset_parts
 
     data = FitData.from_parquet(args.study, ObjectiveConfig())
-    space = family_space(args.family)
-    values = search_design(space, FitConfig(n_search=64))
-    runs = polish_runs(data.meta, np.ones(data.n_runs), 256)
+    space = space_from_dict({"kind": args.family})
+    values = np.asarray(space.values_from_unit(sobol(64, space.dim, seed=0)), np.float64)
+    # the polish runs of a fit on every run (jsve.fitting._polish.polish_runs): the first 256 in the order
+    runs = np.sort(stratified_order(data.meta, data.n_runs, seed=0)[:256])
     packed, counts, _ = subset_parts(data.parts, data.run_counts, runs)
     parts = list(packed)
     for rep in range(4):
