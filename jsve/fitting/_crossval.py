@@ -243,8 +243,7 @@ def cross_validate(
     # Each fold's fit polishes on the full fit's polish runs less its held-out ones (pool=w); all folds
     # of a family move in lockstep (each Nelder-Mead step is one batched search for all of them,
     # `polish_fits`); then all folds of a family are judged on every run in one batched search, whose
-    # rows also hold each fold's fitted rule on its
-    # held-out runs (`judge`).
+    # rows also hold each fold's fitted rule on its held-out runs (`judge`).
     polished = {}
     for name, space in spaces.items():
         searched = []

@@ -168,14 +168,16 @@ def prepare(batch: LogBatch, features: FrameFeatures, *, imu: bool = True) -> Se
     gram = jnp.einsum("rfi,rfj->ijr", g_c * weight_f[..., None], g_c)
     logs = feature_logs(fm(features.inlier_ratio), fm(features.s_b), fm(features.s_c))
     swap = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
-    imu_columns = ImuColumns(
-        vis_q=cols(batch.vis_q),
-        vis_v=cols(batch.vis_v),
-        dt=fm(batch.imu_dt),
-        dp=cols(batch.imu_dp),
-        dv=cols(batch.imu_dv),
-        dq=cols(batch.imu_dq),
-    )
+    imu_columns = None
+    if imu:
+        imu_columns = ImuColumns(
+            vis_q=cols(batch.vis_q),
+            vis_v=cols(batch.vis_v),
+            dt=fm(batch.imu_dt),
+            dp=cols(batch.imu_dp),
+            dv=cols(batch.imu_dv),
+            dq=cols(batch.imu_dq),
+        )
     return SearchBatch(
         n_inliers=fm(features.n_inliers),
         log_ratio=logs[0],
@@ -197,7 +199,7 @@ def prepare(batch: LogBatch, features: FrameFeatures, *, imu: bool = True) -> Se
         gram=gram,
         n_eval=n,
         n_gt=jnp.sum(gt_f, axis=1),
-        imu=imu_columns if imu else None,
+        imu=imu_columns,
     )
 
 
