@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 
 import knownanswer as ka
 import numpy as np
@@ -16,6 +17,7 @@ from jsve.fitting._estimate import (
     Rates,
     StudySize,
     Work,
+    backend_caveat,
     duration,
     halving_rectangles,
     plan,
@@ -161,6 +163,19 @@ def test_price_is_units_times_rates_and_the_compilations_left():
     assert estimate.compile == pytest.approx(2 * 4.0 + 30.0)  # the objective was compiled by the probe
     assert estimate.total == pytest.approx(70.0 + 8.0 + 30.0)
     assert [duration(s) for s in (40, 210, 7200)] == ["40 s", "3.5 min", "2.0 h"]
+
+
+def test_an_estimate_off_cpu_says_it_may_be_far_too_low():
+    """The cost model was measured on CPU; on an accelerator (an H200: 3.7 min expected, not done after
+    4.3 min) the line says so, and on CPU it says nothing more."""
+    estimate = price(Plan(work=(Work("fit", "search", "sve", 1e9),), compiles={}), Rates(
+        seconds={("search", "sve"): 2e-8}, compile={}, compiled={}
+    ))  # fmt: skip
+    assert backend_caveat("cpu") == "" and estimate.line().endswith("compiling")
+    gpu = replace(estimate, caveat=backend_caveat("gpu"))
+    assert gpu.total == estimate.total
+    assert gpu.line().startswith(estimate.line() + "; on gpu it may be far too low")
+    assert gpu.as_dict()["caveat"] == backend_caveat("gpu") and "H200" in gpu.line()
 
 
 # One family and one call size for every search (65, 128 and 81 settings: 128 a call), so that the

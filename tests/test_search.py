@@ -24,7 +24,10 @@ from jsve.core._sve import feature_logs
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import FitData
 from jsve.fitting._search import (
+    LANES_PER_CALL,
     _scan,
+    call_size,
+    lanes_per_call,
     prepare,
     score_columns,
     search,
@@ -171,6 +174,31 @@ def test_search_chunks_and_vmap_equal_a_loop(occlusion_data):
     w = np.arange(1, data.n_runs + 1, dtype=float)
     np.testing.assert_allclose(a.objective(w), (a.loss @ w) / w.sum())
     np.testing.assert_allclose(a.objective(np.stack([w, w])), np.stack([a.objective(w)] * 2))
+
+
+def test_lanes_per_call_default_and_override_change_call_size_not_results(occlusion_data, monkeypatch):
+    """The lanes a call holds: LANES_PER_CALL on CPU, JSVE_LANES_PER_CALL when set (the GPU benchmark's
+    knob). The call size follows it; the search's results do not depend on it."""
+    monkeypatch.delenv("JSVE_LANES_PER_CALL", raising=False)
+    assert jax.default_backend() == "cpu" and lanes_per_call() == LANES_PER_CALL
+    assert call_size(64, 10_000) == LANES_PER_CALL // 64
+    assert call_size(64, 10) == 16  # at most the power of 2 at or above the settings
+    assert call_size(100, 10_000) == 64  # the power of 2 at or below 8192 / 100
+    data = occlusion_data
+    space = inlier_space()
+    values = np.asarray(space.values_from_unit(sobol(13, space.dim, seed=5)))
+    default = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
+    part_runs = data.parts[0].n_runs
+    monkeypatch.setenv("JSVE_LANES_PER_CALL", str(2 * part_runs))
+    assert lanes_per_call() == 2 * part_runs and call_size(part_runs, 13) == 2
+    narrow = search(data.parts, space, values, data.config, run_counts=data.run_counts, progress=False)
+    # float32: other lane counts contract multiply-adds differently (as above)
+    np.testing.assert_allclose(narrow.loss, default.loss, rtol=1e-4, atol=1e-6)
+    np.testing.assert_array_equal(narrow.failed, default.failed)
+    for bad in ("0", "-5", "many", "1e5"):
+        monkeypatch.setenv("JSVE_LANES_PER_CALL", bad)
+        with pytest.raises(ValueError, match="JSVE_LANES_PER_CALL must be a positive integer"):
+            lanes_per_call()
 
 
 # ---------------------------------------------------------------------------------------------------

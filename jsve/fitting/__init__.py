@@ -35,6 +35,7 @@ from jsve.fitting._halving import halving_searches as halving_searches
 from jsve.fitting._halving import rung_sizes as rung_sizes
 from jsve.fitting._halving import stratified_order as stratified_order
 from jsve.fitting._packing import subset_parts as subset_parts
+from jsve.fitting._search import lanes_per_call as lanes_per_call
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
 from jsve.fitting._simplex import lockstep_nelder_mead as lockstep_nelder_mead

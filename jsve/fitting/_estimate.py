@@ -11,7 +11,7 @@ The cost model (`plan`). Every long stage of `jsve.fitting.run_study` is a numbe
 computations, each costing time in proportion to the frames it scans:
 
 - **search** (the batched kernel, jsve.fitting._search.search): one call scans the F frames of a part of
-  R runs (padding included) for `size` settings at once (`call_size`: about LANES_PER_CALL = size x R
+  R runs (padding included) for `size` settings at once (`call_size`: about `lanes_per_call()` = size x R
   lanes), and the calls of a part are spread over the D devices, so S settings on a part cost
   ceil(ceil(S / size) / D) x size x F x R lane-frames per device. Unit: lane-frames per device.
   - the fit's search, exhaustive: the family's design (n_search + its presets) on every part;
@@ -69,7 +69,7 @@ import functools
 import math
 import time
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -481,6 +481,7 @@ class Estimate:
         compile: seconds of compiling still to come.
         probe_seconds, probe_compile: the probe's wall time and its compilation (already spent).
         basis: the study's size in words.
+        caveat: what the estimate is known to miss on this machine ("" when nothing).
     """
 
     stages: dict[str, float]
@@ -488,6 +489,7 @@ class Estimate:
     probe_seconds: float = 0.0
     probe_compile: float = 0.0
     basis: str = ""
+    caveat: str = ""
 
     @property
     def compute(self) -> float:
@@ -506,7 +508,7 @@ class Estimate:
             f"expected wall time {duration(self.total)} ({duration(self.compute)} computing"
             f"{': ' + parts if parts else ''}; "
             f"{duration(self.compile)} compiling) for {self.basis}; from a probe of {probe} after "
-            f"{duration(self.probe_compile)} compiling"
+            f"{duration(self.probe_compile)} compiling{'; ' + self.caveat if self.caveat else ''}"
         )
 
     def as_dict(self) -> dict:
@@ -518,6 +520,7 @@ class Estimate:
             "probe_s": self.probe_seconds,
             "probe_compile_s": self.probe_compile,
             "basis": self.basis,
+            "caveat": self.caveat,
         }
 
 
@@ -701,7 +704,29 @@ def estimate(data, config, *, done: Collection[str] = (), progress: bool = False
     if not work.work:
         return None
     rates = probe(data, config, progress=progress)
-    return price(work, rates, basis=describe(size, config))
+    estimate = price(work, rates, basis=describe(size, config))
+    return replace(estimate, caveat=backend_caveat(jax_backend()))
+
+
+ACCELERATOR_CAVEAT = (
+    "on {backend} it may be far too low: the cost model prices scanned lane-frames, while an accelerator's "
+    "scans cost a launch latency per frame step whatever their width (measured on an NVIDIA H200: 3.7 min "
+    "expected, the fit still in its second family after 4.3 min; docs/fitting.md)"
+)
+"""What the estimate misses on an accelerator (`backend_caveat`)."""
+
+
+def backend_caveat(backend: str) -> str:
+    """The caveat an estimate on JAX backend `backend` carries: none on CPU, where the cost model was
+    measured (actual / expected 0.78-1.30 at 100-3,410 logs), ACCELERATOR_CAVEAT elsewhere."""
+    return "" if backend == "cpu" else ACCELERATOR_CAVEAT.format(backend=backend)
+
+
+def jax_backend() -> str:
+    """JAX's default backend ("cpu", "gpu", "tpu")."""
+    import jax
+
+    return jax.default_backend()
 
 
 __all__ = [
@@ -719,6 +744,7 @@ __all__ = [
     "estimate",
     "describe",
     "duration",
+    "backend_caveat",
     "NM_MOVED_SHARE",
     "NM_STALL_WINDOWS",
     "nm_expected_steps",

@@ -40,6 +40,7 @@ import dataclasses
 import functools
 import logging
 import math
+import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -562,16 +563,36 @@ RESULT_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included"
 """SearchResult's [S, R] matrices by name (every field but `values`)."""
 
 LANES_PER_CALL = 8192
-"""Settings x runs per kernel call: enough lanes to vectorise each frame step, few enough that the scan's
-carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (measured best of 4k-64k lanes,
+"""Settings x runs per kernel call on CPU: enough lanes to vectorise each frame step, few enough that the
+scan's carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (measured best of 4k-64k lanes,
 analysis/bench_search.py)."""
+
+GPU_LANES_PER_CALL = 262144
+"""Settings x runs per kernel call on an accelerator: a scan step costs a few kernel launches whatever its
+width, so a call must hold enough lanes to fill the chip. Measured on an NVIDIA H200 (4,096 settings on
+124 runs of 2,400 frames, analysis/bench_search.py --lanes): 32,768 lanes 1.4e9 / 7.8e8 frame-settings/s
+(inliers / SVE), 262,144 lanes 6.6e9 / 6.1e9; wider was not measured."""
+
+LANES_ENV = "JSVE_LANES_PER_CALL"
+"""Environment variable that overrides the lanes per call (a positive integer), for benchmarks."""
+
+
+def lanes_per_call() -> int:
+    """Settings x runs per kernel call: $JSVE_LANES_PER_CALL when set, else LANES_PER_CALL on CPU and
+    GPU_LANES_PER_CALL on an accelerator (JAX's default backend)."""
+    value = os.environ.get(LANES_ENV, "").strip()
+    if value:
+        if not value.isdigit() or int(value) < 1:
+            raise ValueError(f"{LANES_ENV} must be a positive integer, got {value!r}")
+        return int(value)
+    return LANES_PER_CALL if jax.default_backend() == "cpu" else GPU_LANES_PER_CALL
 
 
 def call_size(n_runs: int, n_settings: int, settings_per_call: int | None = None) -> int:
     """Settings per compiled call of `search` on a part of n_runs runs (padding runs included): the
-    given settings_per_call, else the power of 2 that fills LANES_PER_CALL lanes, at most the power of 2
-    at or above n_settings. One size per part and search, so one compilation serves all its calls."""
-    size = settings_per_call or 2 ** int(math.log2(max(1, LANES_PER_CALL // n_runs)))
+    given settings_per_call, else the power of 2 that fills `lanes_per_call()` lanes, at most the power
+    of 2 at or above n_settings. One size per part and search, so one compilation serves all its calls."""
+    size = settings_per_call or 2 ** int(math.log2(max(1, lanes_per_call() // n_runs)))
     return min(size, 2 ** math.ceil(math.log2(max(n_settings, 1))))
 
 
@@ -597,7 +618,7 @@ def search(
         parts: SearchBatches (from `prepare`), each a chunk of runs; results are concatenated in order.
         space: jsve.fitting._space.ParamSpace of the values.
         run_counts: real runs of each part (the rest is padding and is dropped); default all.
-        settings_per_call: settings per compiled call (default: `call_size`, LANES_PER_CALL lanes / runs
+        settings_per_call: settings per compiled call (default: `call_size`, `lanes_per_call()` lanes / runs
             per part as a power of 2, fixed so one compilation serves every call; the last call is padded).
         progress: a bar over the setting-runs (settings x real runs) on stderr.
     Returns:
@@ -688,8 +709,6 @@ def use_all_cores() -> None:
     """Ask XLA for one CPU device per core, so that `search` runs its calls on every core. Effective
     only before JAX's backend starts, and only when XLA_FLAGS does not set a device count already.
     For the command line and scripts: a library user decides this for their own process."""
-    import os
-
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" not in flags:
         os.environ["XLA_FLAGS"] = (
@@ -709,4 +728,6 @@ __all__ = [
     "use_all_cores",
     "call_size",
     "LANES_PER_CALL",
+    "GPU_LANES_PER_CALL",
+    "lanes_per_call",
 ]
