@@ -182,7 +182,8 @@ def test_lanes_per_call_default_and_override_change_call_size_not_results(occlus
     monkeypatch.delenv("JSVE_LANES_PER_CALL", raising=False)
     assert jax.default_backend() == "cpu" and lanes_per_call() == LANES_PER_CALL
     assert call_size(64, 10_000) == LANES_PER_CALL // 64
-    assert call_size(64, 10) == 16  # at most the power of 2 at or above the settings
+    # at most the settings rounded up to the power of 2 or multiple of 8 above them, the smaller
+    assert [call_size(64, n) for n in (1, 2, 3, 10, 17, 38, 100)] == [1, 2, 4, 16, 24, 40, 104]
     assert call_size(100, 10_000) == 64  # the power of 2 at or below 8192 / 100
     data = occlusion_data
     space = inlier_space()
