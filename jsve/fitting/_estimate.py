@@ -704,8 +704,10 @@ def estimate(data, config, *, done: Collection[str] = (), progress: bool = False
     if not work.work:
         return None
     rates = probe(data, config, progress=progress)
+    import jax
+
     estimate = price(work, rates, basis=describe(size, config))
-    return replace(estimate, caveat=backend_caveat(jax_backend()))
+    return replace(estimate, caveat=backend_caveat(jax.default_backend()))
 
 
 ACCELERATOR_CAVEAT = (
@@ -720,13 +722,6 @@ def backend_caveat(backend: str) -> str:
     """The caveat an estimate on JAX backend `backend` carries: none on CPU, where the cost model was
     measured (actual / expected 0.78-1.30 at 100-3,410 logs), ACCELERATOR_CAVEAT elsewhere."""
     return "" if backend == "cpu" else ACCELERATOR_CAVEAT.format(backend=backend)
-
-
-def jax_backend() -> str:
-    """JAX's default backend ("cpu", "gpu", "tpu")."""
-    import jax
-
-    return jax.default_backend()
 
 
 __all__ = [
