@@ -102,6 +102,16 @@ def test_a_screened_bootstrap_gives_the_unscreened_intervals():
     # that plateau and never leave it
     row = full.set_index("parameter").loc["recovery"]
     assert 39.0 < row["ci_low"] < row["ci_high"] <= 40.0 + 1e-6, row
+    # without a local design (n_local 0, the default study) a refit chooses between the search's
+    # settings and the fit: no race (one setting to score, the fit, on every run), and every interval
+    # lies within those candidates' values
+    bare = parameter_bootstrap(data, space, result, **{**kwargs, "n_local": 0}, screen_runs=20)
+    assert set(bare["local"]) == set(bare["local_scored"]) == {1} and set(bare["race"]) == {"1"}
+    candidates = np.concatenate([result.search.values, result.values[None]])
+    for j, name in enumerate(space.names):
+        row = bare.set_index("parameter").loc[name]
+        lo, hi = candidates[:, j].min(), candidates[:, j].max()
+        assert lo - 1e-9 <= row["ci_low"] <= row["ci_high"] <= hi + 1e-9, (name, row)
 
 
 def test_a_tie_is_broken_at_random_whatever_the_order():

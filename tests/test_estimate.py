@@ -116,6 +116,17 @@ def test_plan_counts_every_stage_of_the_study():
     )
     every = {"evaluate_presets", "fit_inliers", "evaluate_fitted", "cross_validation", "parameter_bootstrap"}
     assert plan(_size(), CONFIG, done=every | {"heatmap"}).work == ()
+    # without a local design (n_local 0, the default study) the bootstrap scores the fit alone on every
+    # run, never raced, and the rest is unchanged
+    for screen in (0, 8):
+        lean = plan(_size(), replace(CONFIG, n_local=0, bootstrap_screen_runs=screen))
+        assert {(w.stage, w.kind, w.family): w.units for w in lean.work} == pytest.approx(
+            {
+                **expected,
+                ("parameter_bootstrap", "search", "inliers"): 1 * R * F,
+                ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1000 + 1),
+            }
+        )
 
 
 def test_halving_scores_each_rung_on_its_new_runs():

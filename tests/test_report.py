@@ -538,6 +538,23 @@ def test_parameters_flag_what_the_data_cannot_say(tmp_path):
     assert "| >= 4 inliers | outside its interval" in lines["recovery"]  # recovery: score > 3.4 from 4 on
 
 
+def test_parameter_intervals_say_what_the_refits_chose_from(tmp_path):
+    """With a local design the refits chose from it and the search; without one (the default study's
+    n_local 0: `local` is 1, the fit alone) the report says the intervals are only as fine as the search's
+    settings, and how to get finer ones."""
+    from jsve.fitting._study import read_table, write_table
+
+    _fake_study(tmp_path)
+    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    assert "the best setting of the search and a dense local design" in _section(md, "Fitted parameters")
+    params = read_table(tmp_path, "params")
+    write_table(params.assign(local=1, local_scored=1, race="1"), tmp_path, "params")
+    section = _section(write_report(tmp_path, title="fake")["markdown"].read_text(), "Fitted parameters")
+    assert "dense local design" not in section
+    assert "under halving its last rung's survivors, and the fit; no local design" in section
+    assert "`jsve fit --thorough` adds 1,024 settings around the fit" in section
+
+
 def test_configuration_is_written_as_sentences(tmp_path):
     _fake_study(tmp_path)
     md = write_report(tmp_path, title="fake")["markdown"].read_text()

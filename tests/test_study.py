@@ -90,6 +90,38 @@ def test_search_method_from_the_config_file_and_the_command_line(tmp_path):
         load_study_config(None, search="halving", eta=1.0)
 
 
+def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
+    """The default study cross-validates by k-fold and its parameter bootstrap has no local design;
+    `jsve fit --thorough` (jsve.fitting.THOROUGH) adds leave-one-sequence/disturbance-out folds and a
+    local design of 1,024 settings;
+    a --config file's keys win over --thorough, command-line flags over both; the study's key changes
+    with it; a count that is not one is refused."""
+    from jsve.cli import build_parser
+    from jsve.cli.fit import load_study_config
+    from jsve.fitting import THOROUGH
+    from jsve.fitting._study import fingerprint, study_folds
+
+    default = StudyConfig()
+    assert default.leave_one_out == () and default.n_local == 0
+    runs = ka.make_study("occlusion", range(6), n_frames=50)
+    folds = study_folds(FitData.from_runs(runs).meta, default)
+    assert {f.kind for f in folds} == {"kfold"} and len(folds) == default.kfold
+    thorough = load_study_config(None, thorough=True)
+    assert thorough.leave_one_out == THOROUGH["leave_one_out"] == ("sequence", "disturbance")
+    assert thorough.n_local == THOROUGH["n_local"] == 1024
+    assert thorough == StudyConfig(**THOROUGH) and load_study_config(None) == default
+    assert fingerprint(thorough.to_dict()) != fingerprint(default.to_dict())
+    toml = tmp_path / "fit.toml"
+    toml.write_text("n_local = 64\n")
+    assert load_study_config(str(toml), thorough=True) == StudyConfig(**{**THOROUGH, "n_local": 64})
+    assert load_study_config(str(toml), thorough=True, seed=3).seed == 3
+    assert build_parser().parse_args(["fit", "logs", "-o", "out", "--thorough"]).thorough
+    assert not build_parser().parse_args(["fit", "logs", "-o", "out"]).thorough
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match=r"n_local must be a count >= 0 \(0: none\)"):
+            StudyConfig(n_local=bad)
+
+
 @pytest.fixture(scope="module")
 def data():
     return FitData.from_runs(ka.make_study("occlusion", range(6), n_frames=200))

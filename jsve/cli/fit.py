@@ -3,8 +3,9 @@
     jsve fit study.parquet -o results/ --config sweeps/fit.toml
 
 LOGS is a folder of format-v1 logs, a log, or a Parquet file from `jsve ingest`; the logs need ground
-truth. Runs every stage of jsve.fitting._study (presets, fits, cross-validation, bootstrap, heat map, SVE per
-level) into OUT, resumably, then writes OUT/report.md and OUT/report.html (`jsve report OUT` re-renders).
+truth. Runs every stage of jsve.fitting._study (presets, fits, k-fold cross-validation, heat map, SVE per
+level; with --thorough also leave-one-group-out folds and the parameter bootstrap) into OUT, resumably,
+then writes OUT/report.md and OUT/report.html (`jsve report OUT` re-renders).
 A study folder is resumed only for the same data content and configuration; another stops the command
 (exit 2, one line naming the folder and what differs) unless --force deletes the old study's files.
 """
@@ -27,8 +28,8 @@ def register(subparsers) -> None:
         "fit",
         help=HELP,
         description="Search, Nelder-Mead and (optionally) relaxed BFGS fits of each rule family, with "
-        "k-fold and leave-one-group-out cross-validation against the presets, bootstrap confidence intervals "
-        "and a report.",
+        "k-fold cross-validation against the presets (--thorough: also leave-one-group-out folds and "
+        "bootstrap intervals of the fitted parameters) and a report.",
     )
     p.add_argument("logs", metavar="LOGS", help="folder of logs, a log, or a Parquet file from `jsve ingest`")
     p.add_argument(
@@ -58,6 +59,14 @@ def register(subparsers) -> None:
     penalty.penalty = common.LibraryValue("jsve.core._objective", "DEFAULT_FAILURE_PENALTY_M")
     common.add_switch_model_option(p)
     common.add_support_option(p)
+    p.add_argument(
+        "--thorough",
+        action="store_true",
+        help="also leave out each sequence and each disturbance in turn, and bootstrap the fitted "
+        "parameters' confidence intervals (jsve.fitting.THOROUGH; about 3x the default's time, "
+        "docs/fitting.md); --config's settings override it (default: k-fold only, and each parameter's "
+        "spread over the k-fold refits)",
+    )
     p.add_argument("--relaxed", action="store_true", help="also run the relaxed (annealed BFGS) fit")
     p.add_argument(
         "--search",
@@ -124,11 +133,12 @@ FIT_OVERRIDES = ("search", "eta", "initial_fraction")
 """Command-line options that set a key of the config's [fit] table (jsve.fitting.FitConfig)."""
 
 
-def load_study_config(path: str | None, **overrides):
-    """StudyConfig from a TOML file (top-level study keys, a [fit] table) with command-line overrides."""
+def load_study_config(path: str | None, *, thorough: bool = False, **overrides):
+    """StudyConfig from a TOML file (top-level study keys, a [fit] table) with command-line overrides:
+    the defaults, then THOROUGH's where `thorough`, then the file's keys, then the overrides."""
     from dataclasses import asdict
 
-    from jsve.fitting._study import StudyConfig
+    from jsve.fitting._study import THOROUGH, StudyConfig
 
     spec = {}
     if path:
@@ -138,6 +148,8 @@ def load_study_config(path: str | None, **overrides):
             raise ValueError(f"{path}: {err}") from None
         spec.pop("demo", None)
     base = asdict(StudyConfig())
+    if thorough:
+        base.update(THOROUGH)
     base["fit"] = {**base["fit"], **spec.pop("fit", {})}
     base.update(spec)
     for key, value in overrides.items():
@@ -173,6 +185,7 @@ def run(args) -> int:
     try:
         config = load_study_config(
             args.config,
+            thorough=args.thorough,
             families=tuple(args.family) if args.family else None,
             failure_penalty=args.failure_penalty,
             switch_model=args.switch_model,

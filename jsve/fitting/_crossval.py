@@ -472,7 +472,8 @@ def bootstrap_race(
     remaining runs. A prefix tells a setting's loss from the fit's more precisely than the one before
     it (its standard error falls as 1/sqrt(runs)), so each rung drops settings the first could not: the
     share of the design scored on every run falls with the study's size instead of staying fixed.
-    screen_runs 0, or at least the weighted runs: every setting on every run.
+    screen_runs 0, at least the weighted runs, or a single setting (nothing to drop): every setting on
+    every run.
 
     Returns:
         (the surviving settings' results on every run, the settings in the race at each rung and at the
@@ -481,7 +482,7 @@ def bootstrap_race(
     w = np.asarray(weights, np.float64)
     ordered = stratified_order(data.meta, data.n_runs, seed=seed)
     ordered = ordered[w[ordered] > 0]
-    if not 0 < screen_runs < len(ordered):
+    if not 0 < screen_runs < len(ordered) or len(local) == 1:
         everything = search(data.parts, space, local, data.config, run_counts=data.run_counts,
                             progress=progress, desc=f"bootstrap design {space.kind}")  # fmt: skip
         return everything, [len(local)]
@@ -535,7 +536,9 @@ def parameter_bootstrap(
     Each resample of runs (with replacement, weights kept) is refitted by taking the best setting, under
     the resample's weights, of the fit's own search design plus a dense local design around the fit and
     the fit itself: a refit that costs a matrix-vector product. Its resolution is the local design's
-    (n_local points in a box of +-fraction of each range).
+    (n_local points in a box of +-fraction of each range); with n_local 0 there is none, and a refit
+    chooses between the search's settings (under halving, its last rung's survivors) and the fit: a
+    coarse interval (the default study's), at the cost of scoring the fit on every run.
 
     screen_runs: where more runs have weight, the local design races over growing prefixes of the
     study's stratified order, from screen_runs runs (`bootstrap_race`), and only the settings that could
@@ -549,9 +552,8 @@ def parameter_bootstrap(
         derived simplex weights (weight_a, weight_b, weight_c) of an SVE fit.
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
-    local = np.concatenate(
-        [local_design(space, result.values, n_local, fraction=fraction, seed=seed), result.values[None]]
-    )
+    around = [local_design(space, result.values, n_local, fraction=fraction, seed=seed)] if n_local else []
+    local = np.concatenate([*around, result.values[None]])
     n_local_design = len(local)
     res, kept = bootstrap_race(data, space, local, w, screen_runs, seed=seed, progress=progress)
     if result.search is not None:

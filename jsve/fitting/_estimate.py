@@ -422,6 +422,7 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
             fit_stages(stage, family, [size.n_runs - int(np.sum(f)) for f in size.folds])
     if "parameter_bootstrap" not in done:
         screen = config.bootstrap_screen_runs if 0 < config.bootstrap_screen_runs < size.n_runs else 0
+        screen = screen if config.n_local > 0 else 0  # the fit alone: no race, on every run
         for family in families:
             if screen:  # the race over growing prefixes, then its survivors on the other runs
                 order = np.arange(size.n_runs) if size.order is None else np.asarray(size.order)

@@ -302,6 +302,20 @@ def _parameter_view(table: pd.DataFrame, family: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _refit_text(params: pd.DataFrame | None) -> str:
+    """What a bootstrap resample's refit chose from, in words: with a local design (params' `local`,
+    the fit included, above 1) the best of the search and of the design; without one (the default
+    study) the best of the search's settings and the fit, a coarse interval."""
+    local = int(params["local"].max()) if params is not None and "local" in params else 0
+    if local == 1:
+        return (
+            "each resample's best of the search's settings, under halving its last rung's survivors, "
+            "and the fit; no local design, so an interval is only as fine as those settings are dense: "
+            "`jsve fit --thorough` adds 1,024 settings around the fit"
+        )
+    return "the best setting of the search and a dense local design under each resample's weights"
+
+
 def _method_bullets(study: dict, scoring: derive.Scoring) -> list[str]:
     cfg = study.get("config", {})
     fit = cfg.get("fit", {})
@@ -550,8 +564,9 @@ def study_sections(s: StudyFolder, fig_dir: Path) -> list[Section]:
         sections.append(Section("Held-out comparison", [text, Table(_heldout_table(rows, scoring.support))]))
     if param_table is not None and not param_table.empty:
         blocks: list = [
-            "Fitted on all runs; 95 % intervals from refits on bootstrap resamples of the runs (the best "
-            "setting of the search and a dense local design under each resample's weights). Flags: not "
+            "Fitted on all runs; 95 % intervals from refits on bootstrap resamples of the runs ("
+            + _refit_text(s.params)
+            + "). Flags: not "
             f"identified (the interval spans at least {100 * derive.NOT_IDENTIFIED_SPAN:.0f} % of the search "
             f"range), at a bound (within {100 * derive.AT_BOUND_SHARE:.0f} % of the range from a bound), "
             "outside its interval (the fit is not inside its own bootstrap interval), implausible (an inlier "
