@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -17,6 +19,29 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 # user's cache folder nor reads executables compiled by another checkout. tests/test_jax_cache.py turns
 # it on in its own processes.
 os.environ["JSVE_JAX_CACHE"] = "off"
+
+SUITE_CACHE_ENV = "JSVE_TEST_JAX_CACHE"
+"""A JAX compilation cache folder of this test run alone (a fresh temporary folder, deleted at its end),
+shared by its pytest-xdist workers: a computation one worker compiled, the other loads, and a module that
+compiles what an earlier one did (the in-memory caches are dropped after every module, below) loads it
+too. Set it to a folder to keep one across runs, or to "off" to compile everything (as before)."""
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput") and SUITE_CACHE_ENV not in os.environ:
+        # the controller (or a run without xdist): its workers start after this and inherit the folder
+        config.suite_cache_made = os.environ[SUITE_CACHE_ENV] = tempfile.mkdtemp(prefix="jsve-tests-jax-")
+    folder = os.environ.get(SUITE_CACHE_ENV, "off")
+    if folder.strip().lower() not in ("", "0", "off", "false", "no", "none"):
+        jax.config.update("jax_compilation_cache_dir", folder)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config):
+    made = getattr(config, "suite_cache_made", None)
+    if made:
+        shutil.rmtree(made, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
