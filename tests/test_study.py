@@ -6,6 +6,8 @@ Oracles: jsve.fitting._space for the families' spaces, and the per-frame feature
 
 from __future__ import annotations
 
+import re
+
 import jax.numpy as jnp
 import knownanswer as ka
 import numpy as np
@@ -120,6 +122,23 @@ def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match=r"n_local must be a count >= 0 \(0: none\)"):
             StudyConfig(n_local=bad)
+
+
+def test_a_wrong_setting_names_where_it_came_from(tmp_path):
+    """A wrong value in the --config file names the file (and [fit] for that table); one from a
+    command-line flag over a good file names the command line, not the file."""
+    from jsve.cli.fit import load_study_config
+
+    toml = tmp_path / "fit.toml"
+    toml.write_text("n_local = -1\n")
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(toml))}: StudyConfig.n_local must be a count"):
+        load_study_config(str(toml))
+    toml.write_text('[fit]\nsearch = "halving"\neta = 1.0\n')
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(toml))}: \[fit\] halving needs eta > 1"):
+        load_study_config(str(toml))
+    toml.write_text('[fit]\nsearch = "halving"\n')
+    with pytest.raises(ValueError, match=r"^the command line: \[fit\] halving needs eta > 1"):
+        load_study_config(str(toml), eta=1.0)
 
 
 @pytest.fixture(scope="module")

@@ -153,6 +153,7 @@ def load_study_config(path: str | None, *, thorough: bool = False, **overrides):
         base.update(THOROUGH)
     base["fit"] = {**base["fit"], **spec.pop("fit", {})}
     base.update(spec)
+    StudyConfig.from_dict(base, source=path or "<defaults>")  # a wrong value names the file
     for key, value in overrides.items():
         if value is None:
             continue
@@ -164,7 +165,7 @@ def load_study_config(path: str | None, *, thorough: bool = False, **overrides):
             base["seed"] = base["fit"]["seed"] = value
         else:
             base[key] = value
-    return StudyConfig.from_dict(base, source=path or "<defaults>")
+    return StudyConfig.from_dict(base, source="the command line")
 
 
 @common.guarded("fit")

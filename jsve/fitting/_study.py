@@ -151,7 +151,11 @@ class StudyConfig:
 
     @classmethod
     def from_dict(cls, spec: dict, source: str = "<config>") -> StudyConfig:
-        """From a parsed TOML/JSON table: top-level keys as the attributes, `[fit]` a sub-table."""
+        """From a parsed TOML/JSON table: top-level keys as the attributes, `[fit]` a sub-table.
+
+        Raises:
+            ValueError: an unknown key or a wrong value, the message starting with `source`.
+        """
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(spec) - known)
         if unknown:
@@ -165,11 +169,17 @@ class StudyConfig:
             fit_spec = dict(spec["fit"])
             if "temperatures" in fit_spec:
                 fit_spec["temperatures"] = tuple(fit_spec["temperatures"])
-            spec["fit"] = FitConfig(**fit_spec)
+            try:
+                spec["fit"] = FitConfig(**fit_spec)
+            except ValueError as err:
+                raise ValueError(f"{source}: [fit] {err}") from None
         for key in ("families", "balance_by", "leave_one_out", "heatmap"):
             if key in spec:
                 spec[key] = tuple(spec[key])
-        return cls(**spec)
+        try:
+            return cls(**spec)
+        except ValueError as err:
+            raise ValueError(f"{source}: {err}") from None
 
 
 THOROUGH = {"leave_one_out": ("sequence", "disturbance"), "n_local": 1024}
