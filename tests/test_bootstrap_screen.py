@@ -107,6 +107,9 @@ def test_a_screened_bootstrap_gives_the_unscreened_intervals():
     # lies within those candidates' values
     bare = parameter_bootstrap(data, space, result, **{**kwargs, "n_local": 0}, screen_runs=20)
     assert set(bare["local"]) == set(bare["local_scored"]) == {1} and set(bare["race"]) == {"1"}
+    unscreened = parameter_bootstrap(data, space, result, **{**kwargs, "n_local": 0})
+    for column in ("ci_low", "ci_high", "boot_std"):  # skipping the race changes nothing
+        np.testing.assert_array_equal(bare[column], unscreened[column], err_msg=column)
     candidates = np.concatenate([result.search.values, result.values[None]])
     for j, name in enumerate(space.names):
         row = bare.set_index("parameter").loc[name]
