@@ -83,14 +83,13 @@ def test_plan_counts_every_stage_of_the_study():
     work = plan(_size(), CONFIG)
     assert 0 < NM_MOVED_SHARE <= 0.25  # below: the moved points of 2 and of 4 simplexes are 1 (rounded up)
     expected = {
-        ("evaluate_presets", "evaluate", ""): 2 * R * F,  # two rule structures, one chunk each
         # the design in 4 rounds of 128; Nelder-Mead from 2 starts in lockstep on every run (64 are
         # fewer than polish_runs): the initial simplexes (2 x 5 points, a call of 16), then 10 steps of
         # a call of 2 (reflections) and one of 1; the verdict: the search's best and 2 polishes (4)
         ("fit", "search", "inliers"): (4 * 128 + 16 + 10 * (2 + 1) + 4) * R * F,
-        ("evaluate_fitted", "evaluate", ""): R * F,
-        ("cross_validation", "setting", "inliers"): 1,  # orbslam3
-        ("cross_validation", "evaluate", ""): R * F,  # sve-eq1 is no point of a space: the replay
+        # the presets (two rule structures) and the fitted rule in one pass, one chunk each; it also gives
+        # the cross-validation its presets' held-out rows, so that stage replays none
+        ("evaluate", "evaluate", ""): 3 * R * F,
         # 2 folds x 2 starts: simplexes of 20 points (a call of 24, a multiple of 8), steps of 4 and 1
         # points; both folds' verdicts (and held-out rows) in one search of 2 x 3 candidates: a call of 8
         ("cross_validation", "search", "inliers"): (24 + 10 * (4 + 1) + 8) * R * F,
@@ -104,17 +103,15 @@ def test_plan_counts_every_stage_of_the_study():
         (F, R, 128, 0), (F, R, 128, 1), (F, R, 1, 0), (F, R, 2, 0), (F, R, 16, 0), (F, R, 24, 0),
         (F, R, 4, 0), (F, R, 8, 0)
     }  # fmt: skip
-    assert work.compiles["evaluate", ""] == {("I", R, F), ("E", R, F), ("preset", "E", F, R)}
+    assert work.compiles["evaluate", ""] == {("I", R, F), ("E", R, F)}
     assert ("nelder_mead", "inliers") not in work.compiles  # no computation of its own
     # stages done already are left out; with all of them done there is nothing to do
-    fewer = plan(_size(), CONFIG, done={"evaluate_presets", "fit_inliers"})
-    assert not fewer.units("search", "inliers", stage="fit") and not fewer.units(
-        "evaluate", stage="evaluate_presets"
-    )
+    fewer = plan(_size(), CONFIG, done={"evaluate", "fit_inliers"})
+    assert not fewer.units("search", "inliers", stage="fit") and not fewer.units("evaluate", stage="evaluate")
     assert fewer.units("search", "inliers", stage="cross_validation") == pytest.approx(
         work.units("search", "inliers", stage="cross_validation")
     )
-    every = {"evaluate_presets", "fit_inliers", "evaluate_fitted", "cross_validation", "parameter_bootstrap"}
+    every = {"fit_inliers", "evaluate", "cross_validation", "parameter_bootstrap"}
     assert plan(_size(), CONFIG, done=every | {"heatmap"}).work == ()
     # without a local design (n_local 0, the default study) the bootstrap scores the fit alone on every
     # run, never raced, and the rest is unchanged

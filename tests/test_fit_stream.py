@@ -104,3 +104,61 @@ def test_streamed_data_holds_only_the_search_layout_and_streams_the_rest_again(b
     assert batches is held.batches and len(batches) == len(held.parts)
     fresh = FitData.from_parquet(path, COAST)
     assert len(fresh.slim()[0]) == len(fresh.parts) and fresh.batches  # streamed once, then held
+
+
+def test_one_evaluation_pass_gives_the_presets_objective_and_the_level_table():
+    """`jsve fit` evaluates every rule in one pass that also scores each run as the objective does
+    (evaluate_rules(objective=...)) and sums the SVE level table (on_chunk): the presets' per-run
+    results taken from that table equal those replayed (or searched) on their own, and the level table
+    equals the one of a pass of its own."""
+    from jsve.evaluation._evaluate import evaluate_rules
+    from jsve.fitting._crossval import objective_results, preset_results
+    from jsve.fitting._levels import SveLevelSums, sve_level_table
+
+    runs = ka.make_study("occlusion", range(6), n_frames=300)
+    runs[1], runs[4] = ka.lose_map(runs[1], 100, 160), ka.lose_map(runs[4], 220)  # failures to compare
+    streamed = FitData.from_runs(runs, COAST)
+    names = ["sve-eq1", "sve-option1", "orbslam3", "sve-option2"]
+    combos = {"eq1": preset("sve-eq1").combination, "option2": preset("sve-option2").combination}
+    levels = SveLevelSums(combos)
+    table = evaluate_rules(
+        streamed.full_buckets(), [(n, preset(n)) for n in names], n_runs=streamed.n_runs,
+        switch_model=COAST.switch_model, objective=COAST, on_chunk=levels.add, progress=False,
+    )  # fmt: skip
+    from_table = objective_results(table, streamed.meta, names)
+    alone = preset_results(streamed, names)
+    assert list(from_table) == names
+    failures = 0
+    for name in names:
+        a, b = from_table[name], alone[name]
+        assert a.loss.shape == b.loss.shape == (1, streamed.n_runs)
+        np.testing.assert_array_equal(a.failed, b.failed)
+        np.testing.assert_array_equal(a.included, b.included)
+        np.testing.assert_array_equal(a.unsupported, b.unsupported)
+        np.testing.assert_allclose(a.loss, b.loss, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(a.coverage, b.coverage, rtol=1e-6)
+        np.testing.assert_array_equal(np.isnan(a.rmse), a.failed)  # no number for a failure
+        failures += int(a.failed.sum())
+    assert 0 < failures < len(names) * streamed.n_runs  # both outcomes are compared
+    pd_testing = pytest.importorskip("pandas.testing")
+    pd_testing.assert_frame_equal(levels.table(), sve_level_table(streamed, combos), rtol=1e-6, atol=1e-9)
+
+    # a rule scored on only some of the runs is an error, never a shorter row; a table without the
+    # objective's columns gives nothing (the presets are then replayed)
+    partial = table[~((table["rule"] == "sve-eq1") & (table["run_id"] == table["run_id"].iloc[0]))]
+    with pytest.raises(ValueError, match=r"'sve-eq1' on \d+ runs and lacks 1 of the study's"):
+        objective_results(partial, streamed.meta, names)
+    assert objective_results(table.drop(columns=["objective_loss"]), streamed.meta, names) == {}
+
+
+def test_the_objective_of_another_replay_is_refused(both):
+    """The objective's terms come from the evaluation's replay: an objective under another switch model
+    (or time_recently_lost) would describe a replay that did not happen."""
+    from jsve.evaluation._evaluate import evaluate_rules
+
+    _, streamed, _ = both
+    with pytest.raises(ValueError, match=r"the objective replays under switch_model='imu-coast'"):
+        evaluate_rules(
+            streamed.full_buckets(), [("orbslam3", preset("orbslam3"))], switch_model="orbslam3",
+            objective=COAST, progress=False,
+        )  # fmt: skip

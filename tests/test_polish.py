@@ -89,6 +89,38 @@ def test_a_subset_is_packed_by_length_class_and_scores_as_its_own_parts(data, mo
         np.testing.assert_allclose(getattr(sub, key), getattr(whole, key)[:, columns], rtol=1e-5, atol=1e-6)
 
 
+def test_the_layout_is_one_part_for_few_settings_and_length_classes_for_many(data):
+    """subset_layout packs a subset into one part where its calls cost less by scan_cost (a call's steps
+    dominate a narrow call: few settings), else by length class (many settings: the classes pad less);
+    either scores every run as its own part does."""
+    space = _space()
+    shapes = [(p.n_frames, p.n_runs) for p in data.parts]
+    starts = np.cumsum([0, *data.run_counts])
+    runs = np.concatenate([np.arange(a, a + 2) for a in starts[:-1]])  # 2 runs of each part
+    whole_values = np.asarray(space.values_from_unit(np.random.default_rng(2).random((64, space.dim))))
+    whole = search(data.parts, space, whole_values, data.config, run_counts=data.run_counts, progress=False)
+    few, many = 1, 4096
+    assert _packing.cheaper_in_one_part(data.run_counts, shapes, runs, few)
+    assert not _packing.cheaper_in_one_part(data.run_counts, shapes, runs, many)
+    # by hand for one setting (one call of one lane-setting per part): frames x (step lanes + runs)
+    classes = [(item.frames, item.runs) for item in packing(data.run_counts, shapes, runs)]
+    longest = max(f for f, _ in shapes)
+    assert _packing.scan_cost([(longest, len(runs))], 1) == longest * (_packing.SCAN_STEP_LANES + len(runs))
+    assert _packing.scan_cost(classes, 1) == sum(f * (_packing.SCAN_STEP_LANES + r) for f, r in classes)
+    for n_settings, n_parts in ((few, 1), (many, len(classes))):
+        parts, counts, columns = _packing.subset_layout(data.parts, data.run_counts, runs[::-1], n_settings)
+        assert len(parts) == n_parts and sorted(columns) == sorted(runs) and sum(counts) == len(runs)
+        scored = search(list(parts), space, whole_values, data.config, run_counts=counts, progress=False)
+        for key in ("loss", "rmse", "coverage", "failed", "included"):
+            np.testing.assert_allclose(
+                getattr(scored, key), getattr(whole, key)[:, columns], rtol=1e-5, atol=1e-6
+            )
+    # one part pads every run to the longest: never for more than ONE_PART_RUNS runs
+    assert not _packing.cheaper_in_one_part(
+        [1000, 1000], [(100, 1000), (100, 1000)], np.arange(_packing.ONE_PART_RUNS + 1), 1
+    )
+
+
 def test_frame_classes_cut_parts_by_length_into_classes_of_about_equal_runs():
     classes = frame_classes([300, 100, 200, 400], [10, 10, 10, 10], 2)
     np.testing.assert_array_equal(classes, [1, 0, 0, 1])

@@ -56,7 +56,6 @@ def study(tmp_path_factory):
 def test_study_writes_every_table_as_parquet_and_csv(study):
     out, data, stages, _, _ = study
     names = (
-        "runs_presets",
         "runs",
         "summary",
         "heldout",
@@ -80,20 +79,25 @@ def test_study_writes_every_table_as_parquet_and_csv(study):
             err_msg=name,
         )
     assert set(stages) == {
-        "evaluate_presets",
         "fit_sve",
         "fit_inliers",
-        "evaluate_fitted",
+        "evaluate",
         "cross_validation",
         "parameter_bootstrap",
         "heatmap",
-        "sve_levels",
     }
     assert not list(out.glob("*.partial")) and not list(out.glob("figures/*.partial"))
     runs = read_table(out, "runs")
     assert set(runs["rule"]) == {*PRESETS, "fitted-sve", "fitted-inliers"}
     assert {"orbslam3", "sve-eq1", "sve-option1", "sve-option2", "jsve-eq1"} <= set(PRESETS)
     assert (runs.groupby("rule").size() == data.n_runs).all()
+    # the presets' held-out rows are the evaluation's objective terms of the same runs (one pass)
+    heldout = read_table(out, "heldout")
+    for rule in PRESETS:
+        rows = heldout[heldout["rule"] == rule].merge(runs[runs["rule"] == rule], on="run_id")
+        assert len(rows) == len(heldout[heldout["rule"] == rule]) > 0
+        np.testing.assert_allclose(rows["loss"], rows["objective_loss"], rtol=1e-7)
+        np.testing.assert_array_equal(rows["failed_x"], rows["objective_failed"])
 
 
 @pytest.mark.slow

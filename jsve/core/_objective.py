@@ -56,7 +56,7 @@ from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES
 from jsve.core._batch import LogBatch
 from jsve.core._machine import TIME_RECENTLY_LOST_S, HardLogic, check_switch_model
 from jsve.core._numerics import safe_divide
-from jsve.core._replay import batch_features, replay
+from jsve.core._replay import ReplayResult, batch_features, replay
 from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import align, weighted_rmse
@@ -246,6 +246,19 @@ def run_losses(
         features = batch_features(batch)
     result = replay(batch, rule, features, switch_model=config.switch_model, logic=logic,
                     time_recently_lost=config.time_recently_lost)  # fmt: skip
+    return replay_losses(result, batch, config, hard=hard)
+
+
+def replay_losses(
+    result: ReplayResult, batch: LogBatch, config: ObjectiveConfig, *, hard: bool = True
+) -> RunLoss:
+    """Score every run of a replay of `batch` (`run_losses` after its replay; jsve.evaluation._evaluate
+    calls it on the replay it evaluates, so that a rule's objective terms come without a second
+    replay). `result` must come from a replay under config's switch model and time_recently_lost.
+
+    Returns:
+        RunLoss with [R] leaves.
+    """
     with_q = ALIGNERS[config.align].first_pose  # only first-pose alignments read orientations
     kernel = functools.partial(_one_run_loss, config=config, hard=hard)
     return jax.vmap(kernel)(

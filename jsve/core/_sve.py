@@ -369,10 +369,16 @@ def feature_metrics(features: FrameFeatures, rho: ArrayLike) -> dict[str, Float[
     authors' Eq.1 and Option 1 presets combine, and a study's per-level means of them show how far.
     """
     out = {"s_a": s_a_from_ratio(features.inlier_ratio, rho)}
-    for field in dataclasses.fields(features):
-        if field.name not in ("n_inliers", "inlier_ratio"):  # the inlier rule's count; S_a before rho
-            out[field.name] = getattr(features, field.name)
+    for name in metric_names()[1:]:
+        out[name] = getattr(features, name)
     return out
+
+
+def metric_names() -> tuple[str, ...]:
+    """The keys of `feature_metrics` in its order: "s_a", then every field of FrameFeatures but the
+    inlier rule's count and S_a before rho."""
+    skipped = ("n_inliers", "inlier_ratio")
+    return ("s_a", *(f.name for f in dataclasses.fields(FrameFeatures) if f.name not in skipped))
 
 
 def sve_table(n_extracted, n_inliers, n_frustum, bins, n_features=1000) -> dict[str, Array]:

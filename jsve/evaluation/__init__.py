@@ -33,6 +33,7 @@ from jsve.evaluation._agreement import trust_region_warning as trust_region_warn
 from jsve.evaluation._agreement import trusted_changed_share as trusted_changed_share
 from jsve.evaluation._agreement import trusted_share as trusted_share
 from jsve.evaluation._agreement import unmatched as unmatched
+from jsve.evaluation._evaluate import OBJECTIVE_COLUMNS as OBJECTIVE_COLUMNS
 from jsve.evaluation._evaluate import Evaluation as Evaluation
 from jsve.evaluation._evaluate import evaluate as evaluate
 from jsve.evaluation._evaluate import evaluate_batch as evaluate_batch

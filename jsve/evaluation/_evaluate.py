@@ -10,7 +10,7 @@ a handful of shapes, and JAX's persistent cache (jsve._jax_cache) keeps them for
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import equinox as eqx
 import jax
@@ -20,9 +20,10 @@ import pandas as pd
 from jaxtyping import Array, Bool, Float
 from tqdm.auto import tqdm
 
-from jsve.core._batch import LogBatch, iter_chunks, ladder_chunk_size, runs_per_chunk_for
+from jsve.core._batch import DEVICE_BUDGET_BYTES, LogBatch, iter_chunks, ladder_chunk_size, runs_per_chunk_for
 from jsve.core._machine import TIME_RECENTLY_LOST_S
-from jsve.core._replay import as_logged_mode, replay
+from jsve.core._objective import ObjectiveConfig, RunLoss, replay_losses
+from jsve.core._replay import as_logged_mode, batch_features, replay
 from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import RunError, batched_run_error
@@ -46,6 +47,8 @@ class Evaluation(eqx.Module):
             not exist (the rule kept tracking where the recorded run had lost its map).
         lost_any: tracking was lost at least once (a reset, an expiry, a recorded map loss).
         failed: error.failed or lost_any: the run is a tracking failure, whatever its error.
+        objective: the run's term in the fit's objective (jsve.core._objective.replay_losses) from the
+            same replay, where `evaluate_batch` was given an ObjectiveConfig; else None.
     """
 
     error: RunError
@@ -55,6 +58,7 @@ class Evaluation(eqx.Module):
     unsupported_fraction: Float[Array, " R"]
     lost_any: Bool[Array, " R"]
     failed: Bool[Array, " R"]
+    objective: RunLoss | None = None
 
 
 def evaluate_batch(
@@ -68,6 +72,7 @@ def evaluate_batch(
     min_coverage: float = 0.0,
     time_recently_lost: float = TIME_RECENTLY_LOST_S,
     switch_model: str = "orbslam3",
+    objective: ObjectiveConfig | None = None,
 ) -> Evaluation:
     """Replay `rule` over `batch` and score every run against its ground truth (one compiled call).
 
@@ -77,18 +82,44 @@ def evaluate_batch(
         features: the batch's FrameFeatures when already computed (sweeps share them).
         align, n_first, segments, min_coverage: see jsve.core._trajectory.run_error.
         switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md).
+        objective: also score each run as the fit's objective does (Evaluation.objective), from the
+            same replay: its switch model and time_recently_lost must be the evaluation's.
     """
     rule.check_defined()
+    _check_objective(objective, switch_model, time_recently_lost)
     return _evaluate_compiled(batch, rule, features, align=align, n_first=n_first, segments=segments,
                               min_coverage=min_coverage, time_recently_lost=time_recently_lost,
-                              switch_model=switch_model)  # fmt: skip
+                              switch_model=switch_model, objective=objective)  # fmt: skip
+
+
+def _check_objective(objective: ObjectiveConfig | None, switch_model: str, time_recently_lost: float) -> None:
+    """The objective's terms come from the evaluation's replay: they must describe the same replay."""
+    if objective is None:
+        return
+    if (objective.switch_model, objective.time_recently_lost) != (switch_model, time_recently_lost):
+        raise ValueError(
+            f"evaluate: the objective replays under switch_model={objective.switch_model!r}, "
+            f"time_recently_lost={objective.time_recently_lost} s, the evaluation under "
+            f"{switch_model!r}, {time_recently_lost} s: its terms would describe another replay"
+        )
 
 
 @functools.partial(
-    jax.jit, static_argnames=("align", "n_first", "segments", "time_recently_lost", "switch_model")
+    jax.jit,
+    static_argnames=("align", "n_first", "segments", "time_recently_lost", "switch_model", "objective"),
 )
 def _evaluate_compiled(
-    batch, rule, features, *, align, n_first, segments, min_coverage, time_recently_lost, switch_model
+    batch,
+    rule,
+    features,
+    *,
+    align,
+    n_first,
+    segments,
+    min_coverage,
+    time_recently_lost,
+    switch_model,
+    objective,
 ) -> Evaluation:
     """evaluate_batch's computation, free of host callbacks so that JAX's persistent cache keeps it."""
     # No traced checks (host callbacks): a computation holding one is never kept in JAX's persistent
@@ -111,6 +142,7 @@ def _evaluate_compiled(
         unsupported_fraction=share(result.out_of_support),
         lost_any=result.lost_any,
         failed=error.failed | result.lost_any,
+        objective=None if objective is None else replay_losses(result, batch, objective),
     )
 
 
@@ -135,7 +167,8 @@ def evaluate(
             from Parquet (jsve.io._stream.iter_buckets: chunk-sized buckets, read as they are needed).
         rule_name: value of the `rule` column.
         switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md); the `switch_model` column.
-        runs_per_chunk: at most this many runs per compiled call; default fits a 4 GB working set.
+        runs_per_chunk: at most this many runs per compiled call; default: as many as fit
+            jsve.core._batch.DEVICE_BUDGET_BYTES (1.5 GB) of working set.
             A bucket's chunks all have one size (`ladder_chunk_size`), so each bucket compiles once.
         n_runs: runs in all buckets, for the progress bar's total when `buckets` is an iterator.
     Returns:
@@ -161,10 +194,25 @@ def evaluate_rules(
     runs_per_chunk: int | None = None,
     progress: bool = True,
     n_runs: int | None = None,
+    chunk_bytes: float = DEVICE_BUDGET_BYTES,
+    objective: ObjectiveConfig | None = None,
+    on_chunk: Callable[[pd.DataFrame, LogBatch, FrameFeatures], None] | None = None,
 ) -> pd.DataFrame:
     """`evaluate` of several (name, rule) pairs in one pass over the buckets: each chunk is scored
     under every rule while it is in memory, so a streamed study is read once. Rows come rule by rule
-    (the order of `rules`), each rule's runs in bucket order."""
+    (the order of `rules`), each rule's runs in bucket order.
+
+    A chunk's features (jsve.core._replay.batch_features) are computed once and shared by its rules.
+
+    Arguments:
+        chunk_bytes: the working set of one compiled call (runs_per_chunk_for) where runs_per_chunk is
+            not given; two are in flight at a time.
+        objective: also give every row the run's term in the fit's objective, from the same replay
+            (`OBJECTIVE_COLUMNS`; evaluate_batch's `objective`).
+        on_chunk: called once per chunk with the metadata of its real runs, the chunk (host arrays,
+            padding runs after the real ones) and its features: a pass of its own over the study's
+            frames (jsve.fitting's SVE level table) rides on this one.
+    """
     if not rules:
         raise ValueError("evaluate_rules: no rules given")
     if n_runs is None and isinstance(buckets, Sequence):
@@ -184,7 +232,7 @@ def evaluate_rules(
             in_flight.clear()
 
         for bucket in buckets:
-            cap = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames)
+            cap = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames, bytes_budget=chunk_bytes)
             size = ladder_chunk_size(bucket.batch.n_runs, cap)
             # Chunks are cut and padded on the host (numpy), so the only computation JAX compiles is
             # evaluate_batch (features, replay and statistics together), once per chunk shape.
@@ -193,9 +241,13 @@ def evaluate_rules(
             done.append((bucket.meta, parts))
             for runs, chunk in iter_chunks(host, size):
                 n = max(0, min(runs.stop, len(bucket.meta)) - runs.start)  # streamed chunks end in padding
+                features = _features(chunk)
+                if on_chunk is not None:
+                    on_chunk(bucket.meta.iloc[runs.start : runs.start + n], chunk, features)
                 for k, (_, rule) in enumerate(rules):
-                    ev = evaluate_batch(chunk, rule, align=align, n_first=n_first, segments=segments,
-                                        min_coverage=min_coverage, switch_model=switch_model)  # fmt: skip
+                    ev = evaluate_batch(chunk, rule, features, align=align, n_first=n_first,
+                                        segments=segments, min_coverage=min_coverage,
+                                        switch_model=switch_model, objective=objective)  # fmt: skip
                     # At most two computations in flight, whatever the number of rules: each holds a
                     # chunk's working set (runs_per_chunk_for's budget), and the CPU runs dispatched
                     # ones side by side (6 rules dispatched at once peaked at 9.3 GB on 3,410 logs).
@@ -224,4 +276,31 @@ def _run_table(ev: Evaluation, meta: pd.DataFrame, rule_name: str, switch_model:
     for column in ("accepted", "coasting", "changed", "unsupported"):
         table[f"{column}_fraction"] = np.asarray(getattr(ev, f"{column}_fraction"))
     table["lost_any"] = np.asarray(ev.lost_any)
+    if ev.objective is not None:
+        terms = ev.objective
+        failed = np.asarray(terms.failed, bool)
+        table["objective_loss"] = np.asarray(terms.loss)
+        table["objective_rmse"] = np.where(failed, np.nan, np.asarray(terms.rmse))  # no number for a failure
+        table["objective_failed"] = failed
+        table["objective_coverage"] = np.asarray(terms.coverage)
+        table["objective_unsupported"] = np.asarray(terms.unsupported, bool)
+        table["objective_included"] = np.asarray(terms.included) > 0.5
     return table
+
+
+OBJECTIVE_COLUMNS = (
+    "objective_loss",
+    "objective_rmse",
+    "objective_failed",
+    "objective_coverage",
+    "objective_unsupported",
+    "objective_included",
+)
+"""The run's term in the fit's objective (jsve.core._objective), which `evaluate_rules(objective=...)` adds:
+its loss (metres; the penalty where the objective fails it), its RMSE over every frame with an estimate
+(NaN where failed), failed, coverage, whether its replay left the log's support and whether the support
+policy keeps it in the mean. The objective aligns all of a run's estimated frames, the evaluation its
+largest segment (`rmse`, `coverage`): they differ on runs that lost tracking."""
+
+_features = jax.jit(batch_features)
+"""A chunk's features, compiled once per chunk shape and shared by every rule evaluated on it."""

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 from jsve._memory import release_memory
 from jsve.core._objective import run_losses
 from jsve.core._rules import BASELINES, PRESETS, preset
+from jsve.evaluation._evaluate import OBJECTIVE_COLUMNS
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import (
     FitConfig,
@@ -159,11 +160,22 @@ def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
 _run_losses = eqx.filter_jit(run_losses)
 
 
-def preset_results(data: FitData, names: Sequence[str], *, progress: bool = False) -> dict[str, SearchResult]:
-    """Per-run results of presets by name: by the search kernel where a preset is a point of its family's
-    space, else by the replay objective (jsve.core._objective.run_losses), which scores any rule, on one
-    pass over the parts' slim batches (FitData.iter_slim: streamed again where they were not kept)."""
-    out = {name: rule_results(data, *preset_point(name)) for name in names if is_space_point(preset(name))}
+def preset_results(
+    data: FitData,
+    names: Sequence[str],
+    *,
+    known: Mapping[str, SearchResult] | None = None,
+    progress: bool = False,
+) -> dict[str, SearchResult]:
+    """Per-run results of presets by name: those in `known` as given (`objective_results` of an
+    evaluation that scored the objective), by the search kernel where a preset is a point of its
+    family's space, else by the replay objective (jsve.core._objective.run_losses), which scores any
+    rule, on one pass over the parts' slim batches (FitData.iter_slim: streamed again where they were
+    not kept)."""
+    known = dict(known or {})
+    out = {name: known[name] for name in names if name in known}
+    out |= {name: rule_results(data, *preset_point(name)) for name in names
+            if name not in out and is_space_point(preset(name))}  # fmt: skip
     others = [name for name in names if name not in out]
     per_part = {name: [] for name in others}
     if others:
@@ -185,6 +197,39 @@ def preset_results(data: FitData, names: Sequence[str], *, progress: bool = Fals
     return {name: out[name] for name in names}
 
 
+def objective_results(
+    runs: pd.DataFrame, meta: pd.DataFrame, names: Sequence[str]
+) -> dict[str, SearchResult]:
+    """[1, R] per-run results of the rules `names` from a per-run evaluation table that carries the
+    objective's terms (jsve.evaluation._evaluate.OBJECTIVE_COLUMNS), in the run order of `meta` (by
+    run_id): what `preset_results` would compute, without replaying. Rules the table lacks, or a table
+    without those columns, give nothing; a rule the table holds for only some of the runs is an error.
+    """
+    if not set(OBJECTIVE_COLUMNS) <= set(runs.columns) or "run_id" not in meta.columns:
+        return {}
+    out = {}
+    ids = meta["run_id"].astype(str).to_numpy()
+    for name in names:
+        rows = runs[runs["rule"] == name]
+        if rows.empty:
+            continue
+        rows = rows.set_index(rows["run_id"].astype(str))
+        if missing := [rid for rid in ids if rid not in rows.index]:
+            raise ValueError(
+                f"the evaluation table scores {name!r} on {len(rows)} runs and lacks {len(missing)} of the "
+                f"study's (first: {missing[0]})"
+            )
+        rows = rows.loc[ids]
+        column = lambda c, dtype, rows=rows: rows[c].to_numpy(dtype)[None]  # noqa: E731
+        out[name] = SearchResult(
+            values=np.zeros((1, 0)), loss=column("objective_loss", np.float64),
+            failed=column("objective_failed", bool), rmse=column("objective_rmse", np.float64),
+            coverage=column("objective_coverage", np.float64),
+            unsupported=column("objective_unsupported", bool), included=column("objective_included", bool),
+        )  # fmt: skip
+    return out
+
+
 def cross_validate(
     data: FitData,
     spaces: Mapping[str, ParamSpace],
@@ -195,6 +240,7 @@ def cross_validate(
     presets: Sequence[str] = PRESETS,
     searches: Mapping[str, SearchResult] | None = None,
     caches: Mapping[str, RunLossCache] | None = None,
+    replayed: Mapping[str, SearchResult] | None = None,
     progress: bool = True,
 ) -> CrossValidation:
     """Fit every family on each fold's training runs and score it, and the presets, on its held-out runs.
@@ -207,6 +253,8 @@ def cross_validate(
             exhaustive search (config.search == "exhaustive").
         caches: per-run results of the halving search already computed (by family name; FitResult.cache
             of the fit on all runs, whose design is the folds'), reused and filled by the halving search.
+        replayed: per-run results of presets already scored on every run (`objective_results` of the
+            study's evaluation), used instead of replaying them again (`preset_results`).
     """
     w = np.ones(data.n_runs) if weights is None else np.asarray(weights, np.float64)
     config = resolve_search(config, data.n_runs)  # the full fit's rungs, which the folds' caches hold
@@ -238,7 +286,7 @@ def cross_validate(
             searches[name] = search_all(
                 data, space, search_design(space, config), progress=progress, desc=f"search {name}"
             )
-    per_rule = preset_results(data, presets, progress=progress)
+    per_rule = preset_results(data, presets, known=replayed, progress=progress)
 
     # Each fold's fit polishes on the full fit's polish runs less its held-out ones (pool=w); all folds
     # of a family move in lockstep (each Nelder-Mead step is one batched search for all of them,
@@ -604,4 +652,6 @@ __all__ = [
     "resample_winners",
     "effective_runs",
     "rule_results",
+    "objective_results",
+    "preset_results",
 ]

@@ -24,11 +24,13 @@ computations, each costing time in proportion to the frames it scans:
     prefixes of bootstrap_screen_runs x RACE_ETA^k runs of the stratified order, each rung scoring the
     settings left on its new runs and keeping BOOTSTRAP_KEPT_SHARE of them, the last survivors scored
     on the remaining runs (jsve.fitting._crossval.bootstrap_race);
-    the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs packed into one part.
+    the heat map's grid (n^2 settings), on every part or on `heatmap_runs` runs laid out as
+    jsve.fitting._packing.subset_layout chooses (one part, or length classes where cheaper).
 - **Nelder-Mead** (jsve.fitting._polish.polish_in_lockstep) is **search** work too: the runs of all the
   fits of a stage (n_starts for the full fit; folds x n_starts in the cross-validation) move in
   lockstep on the union of their polish runs (the study's first `polish_runs` runs in the stratified
-  order, each fold's less its held-out ones: the union is those runs), packed by length class. Per
+  order, each fold's less its held-out ones: the union is those runs), laid out once for a step's
+  points (subset_layout: in one part for a few simplexes, else by length class). Per
   step one search of their reflections and one of the NM_MOVED_SHARE of them that expand or contract;
   first the initial simplexes, d + 1 points each.
   Without the stall test (nm_window = 0) they run to the step limit nm_steps (measured: every fit of
@@ -38,11 +40,9 @@ computations, each costing time in proportion to the frames it scans:
   also score each fold's fitted rule on its held-out runs.
 - **objective** (`[fit] relaxed = true` only): the hard objective of one setting on every run
   (`_fit._hard_jit`), the relaxed fit's value after each temperature.
-- **setting**: one setting's per-run results (a search of one setting): the presets that are points of
-  a family's space.
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
-  presets, the fitted rules, and in the cross-validation the presets outside the fitted families'
-  spaces (their replay objective, or a search of a family the probe does not time, counted alike).
+  presets and the fitted rules, in one pass that also gives the cross-validation the presets' held-out
+  rows (the objective's terms of every run) and the SVE level table.
 - **relaxed** (`[fit] relaxed = true`): the relaxed objective of one setting on every run; a BFGS step
   costs BFGS_EVALS_PER_STEP of them (value and gradient), up to bfgs_steps per temperature.
 - **flops**: the parameter bootstrap's resample weights times the per-run losses, 2 x n_boot x R x S.
@@ -56,9 +56,9 @@ loads, and so the estimate's. Left out: loading the logs and preparing
 FitData (done before the probe), tables, summaries and the report (seconds).
 
 The probe (`probe`) runs, after compiling each, the same calls the study makes first: per family one
-round of search calls on the first part (one per device, the search's call size) and a one-setting
-search over all runs (with the relaxed fit, one objective evaluation); one evaluate chunk of the first
-bucket; a matrix product.
+round of search calls on the first part (one per device, the search's call size) (with the relaxed
+fit, one objective evaluation and one relaxed one); one evaluate chunk of the first bucket; a matrix
+product.
 Each is timed twice, the first call's extra time being its compilation; results are discarded, so the
 study's results do not change, and the compiled computations are those the study then reuses.
 """
@@ -111,20 +111,17 @@ BFGS_COMPILE = 4.0
 the scan); not measured, as BFGS_EVALS_PER_STEP."""
 
 STAGES = (
-    "evaluate_presets",
     "fit",
-    "evaluate_fitted",
+    "evaluate",
     "cross_validation",
     "parameter_bootstrap",
     "heatmap",
-    "sve_levels",
 )
 """The study's stages in order (jsve.fitting._study.run_study; "fit" stands for fit_<family>)."""
 
 UNITS = {
     "search": "lane-frames per device",
     "objective": "evaluations",
-    "setting": "one-setting searches",
     "evaluate": "run-frames",
     "relaxed": "evaluations",
     "flops": "flops",
@@ -246,21 +243,23 @@ class Plan:
 
 
 def search_cost(
-    size: StudySize, n_settings: int, runs: np.ndarray | None = None, *, family: str = "", packed: int = 0
+    size: StudySize, n_settings: int, runs: np.ndarray | None = None, *, family: str = "", layout_for: int = 0
 ) -> tuple[int, set]:
     """Lane-frames per device of `search` scoring n_settings settings on `runs` (global indices; None:
     all), and the keys of the computations it compiles: (frames, runs, call size, device).
-    packed: > 0 for `packed` runs gathered into one part of the longest part's frames
-    (jsve.fitting._polish.pack_runs, the heat map's subset); `runs` is then ignored.
+    layout_for: > 0 where the runs are laid out by jsve.fitting._packing.subset_layout for that many
+    settings (Nelder-Mead's simplexes, the heat map's grid): in one part or by length class; else by
+    length class (halving's rungs, `packing`).
 
     ceil(S / size) calls per part, ceil(calls / D) rounds on the D devices, each scanning
     size x runs x frames lane-frames.
     """
-    from jsve.fitting._packing import packing
+    from jsve.fitting._packing import cheaper_in_one_part, one_part_shape, packing
     from jsve.fitting._search import call_size
 
-    if packed > 0:
-        shapes = [(max(f for f, _ in size.parts), packed)]
+    in_one = runs is not None and layout_for > 0
+    if in_one and cheaper_in_one_part(size.run_counts, size.parts, runs, layout_for):
+        shapes = [one_part_shape(size.parts, runs)]
     elif runs is None:
         shapes = list(size.parts)
     else:
@@ -347,14 +346,10 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
     def compile_(kind: str, family: str, keys) -> None:
         compiles.setdefault((kind, family), set()).update(keys)
 
-    def search(stage: str, family: str, n_settings: int, runs=None, packed: int = 0) -> None:
-        units, keys = search_cost(size, n_settings, runs, family=family, packed=packed)
+    def search(stage: str, family: str, n_settings: int, runs=None, layout_for: int = 0) -> None:
+        units, keys = search_cost(size, n_settings, runs, family=family, layout_for=layout_for)
         add(stage, "search", family, units)
         compile_("search", family, keys)
-
-    def one_setting(stage: str, family: str, count: int) -> None:
-        add(stage, "setting", family, count)
-        compile_("search", family, {(f, r, 1, 0) for f, r in size.parts})
 
     def fit_stages(stage: str, family: str, train_runs: Sequence[int]) -> None:
         """Nelder-Mead and the relaxed fit once per fit of `train_runs` training runs, then the verdict
@@ -368,11 +363,13 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
             union = size.n_runs if fit.polish_runs <= 0 else fit.polish_runs
             runs = np.sort(order[: min(size.n_runs, union)])
             simplexes = folds * fit.n_starts
-            search(stage, family, simplexes * (size.dims[family] + 1), runs)
-            reflections, _ = search_cost(size, simplexes, runs, family=family)
-            moved, keys = search_cost(size, math.ceil(NM_MOVED_SHARE * simplexes), runs, family=family)
+            # (the runs laid out once for a step's points, about one per simplex: jsve.fitting._polish)
+            cost = functools.partial(search_cost, size, runs=runs, family=family, layout_for=simplexes)
+            search(stage, family, simplexes * (size.dims[family] + 1), runs, layout_for=simplexes)
+            reflections, _ = cost(simplexes)
+            moved, keys = cost(math.ceil(NM_MOVED_SHARE * simplexes))
             add(stage, "search", family, nm_expected_steps(fit) * (reflections + moved))
-            compile_("search", family, keys | search_cost(size, simplexes, runs, family=family)[1])
+            compile_("search", family, keys | cost(simplexes)[1])
         if fit.relaxed:
             temps = len(fit.temperatures)
             search(stage, family, folds * candidates)  # the relaxed fit's start: the best so far
@@ -390,8 +387,6 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         compile_("evaluate", "", {(s, runs, frames) for s in structures for _, runs, frames in size.chunks})
 
     families = list(config.families)
-    if "evaluate_presets" not in done:
-        evaluate("evaluate_presets", [s for _, s, _ in size.presets])
     halving = fit.search == "halving"
     for family in families:
         if f"fit_{family}" in done:
@@ -402,16 +397,10 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
         else:
             search("fit", family, size.designs[family])
         fit_stages("fit", family, [size.n_runs])
-    if "evaluate_fitted" not in done:
-        evaluate("evaluate_fitted", [size.structures[f] for f in families])
+    if "evaluate" not in done:  # presets and fitted rules in one pass; the presets' held-out rows too
+        evaluate("evaluate", [s for _, s, _ in size.presets] + [size.structures[f] for f in families])
     if "cross_validation" not in done and size.folds:
         stage = "cross_validation"
-        for _, structure, family in size.presets:
-            if family in families:
-                one_setting(stage, family, 1)
-            else:  # the replay objective, or a search of a family the probe does not time: as a replay
-                add(stage, "evaluate", "", sum(f * r for f, r in size.parts))
-                compile_("evaluate", "", {("preset", structure, f, r) for f, r in size.parts})
         for family in families:
             if halving:
                 cached = f"fit_{family}" not in done
@@ -441,10 +430,11 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
             add("parameter_bootstrap", "flops", "", flops)
     if "heatmap" not in done and config.heatmap:
         n = int(config.heatmap[2])
-        packed = config.heatmap_runs if 0 < config.heatmap_runs < size.n_runs else 0
+        order = np.arange(size.n_runs) if size.order is None else np.asarray(size.order)
+        subset = np.sort(order[: config.heatmap_runs]) if 0 < config.heatmap_runs < size.n_runs else None
         for family in families:
             if size.heatmap.get(family):
-                search("heatmap", family, n * n, packed=packed)
+                search("heatmap", family, n * n, subset, layout_for=n * n)
     return Plan(
         work=tuple(Work(*key, units) for key, units in work.items()),
         compiles={k: frozenset(v) for k, v in compiles.items()},
@@ -630,7 +620,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     compiled: dict[tuple[str, str], set] = {}
     started, spent = time.perf_counter(), []
     families = list(config.families)
-    steps = (4 if config.fit.relaxed else 2) * len(families) + 2
+    steps = (3 if config.fit.relaxed else 1) * len(families) + 2
     weights = data.split_weights(np.ones(data.n_runs))
     part, n_real = data.parts[0], data.run_counts[0]
     with tqdm(total=steps, desc="timing probe", unit="step", disable=not progress) as bar:
@@ -651,13 +641,6 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             compiled["search", family] = keys
             bar.update(1)
 
-            run = functools.partial(
-                search, data.parts, space, values[:1], data.config, run_counts=data.run_counts, progress=False
-            )
-            seconds["setting", family] = _twice(run, spent)[1]
-            compiled["search", family] |= {(p.n_frames, p.n_runs, 1, 0) for p in data.parts}
-            bar.update(1)
-
             if config.fit.relaxed:  # the relaxed fit's objectives (jsve.fitting._fit.relaxed_fit)
                 z = space.z_from_values(jnp.asarray(values[0], part.t.dtype))
                 run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
@@ -670,14 +653,19 @@ def probe(data, config, *, progress: bool = False) -> Rates:
                 compiled["relaxed", family] = {family}
                 bar.update(1)
 
-        if data.buckets:  # evaluate's first chunk, as jsve.evaluation.evaluate cuts it
-            batch = data.buckets[0].batch
+        # evaluate's first chunk, as jsve.evaluation.evaluate_rules cuts it (a streamed study reads its
+        # first bucket), with the objective's terms the study's evaluation adds
+        buckets = iter(data.full_buckets())
+        first = next(buckets, None)
+        getattr(buckets, "close", lambda: None)()  # stop a stream after its first bucket
+        if first is not None:
+            batch = first.batch
             per_chunk = ladder_chunk_size(batch.n_runs, runs_per_chunk_for(batch.n_frames))
             _, chunk = next(iter(iter_chunks(jax.tree.map(np.asarray, batch), per_chunk)))
             rule = preset(BASELINES.get("sve", "orbslam3"))
             run = functools.partial(
                 evaluate_batch, chunk, rule, align=config.align, min_coverage=config.min_coverage,
-                switch_model=config.switch_model,
+                switch_model=config.switch_model, objective=config.objective(),
             )  # fmt: skip
             compile_s["evaluate", ""], s = _twice(run, spent)
             seconds["evaluate", ""] = s / (per_chunk * batch.n_frames)

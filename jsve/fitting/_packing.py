@@ -25,7 +25,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jsve.fitting._search import SearchBatch
+from jsve.fitting._search import SearchBatch, call_size
 
 FRAME_CLASSES = 4
 """Length classes a subset of runs is packed into (`frame_classes`): fewer classes mean fewer shapes to
@@ -201,6 +201,60 @@ def subset_parts(
     return PackedParts(parts, layout), counts, np.concatenate(columns) if columns else np.zeros(0, np.int64)
 
 
+SCAN_STEP_LANES = 1900
+"""What a call of the search kernel costs per frame whatever its lanes, in lanes: a scan step of L lanes
+takes about 48 us + 0.025 us x L on the 2-core machine (measured on the 3,410-log study's 256 polish
+runs: 0.25 s for 2 settings in one part of 256 runs x 4,096 frames, 0.62 s for 10, 2.2 s for 38 in
+calls of 32; 0.86 s and 1.96 s for 10 and 38 in its 4 length classes), so a narrow call is dominated
+by its steps. `cheaper_in_one_part` weighs calls by it."""
+
+
+ONE_PART_RUNS = 512
+"""Most runs `subset_layout` packs into one part (the heat map's default subset; 512 runs of 4,096
+frames are about 0.4 GB)."""
+
+
+def scan_cost(shapes: Sequence[tuple[int, int]], n_settings: int) -> float:
+    """Relative cost of `search` scoring n_settings settings on parts of these (frames, runs) shapes:
+    per call, frames x (SCAN_STEP_LANES + lanes), the calls cut as `search` cuts them (call_size)."""
+    total = 0.0
+    for frames, runs in shapes:
+        size = call_size(runs, n_settings)
+        total += math.ceil(n_settings / size) * frames * (SCAN_STEP_LANES + size * runs)
+    return total
+
+
+def one_part_shape(parts: Sequence[tuple[int, int]], runs) -> tuple[int, int]:
+    """The (frames, runs) of `pack_runs`' part for `runs` of parts of these (frames, runs) shapes."""
+    return max(f for f, _ in parts), len(np.unique(np.asarray(runs, np.int64)))
+
+
+def cheaper_in_one_part(
+    run_counts: Sequence[int], parts: Sequence[tuple[int, int]], runs, n_settings: int
+) -> bool:
+    """Whether n_settings settings on `runs` cost less in one part (`pack_runs`: one call per settings
+    chunk, every run padded to the longest part's frames) than in length classes (`packing`: a call per
+    class, less padding), by `scan_cost`. Few settings favour the one part (measured: 10 settings on
+    256 runs, 0.62 s against 0.86 s), many the classes (38: 2.2 s against 1.96 s). Never more than
+    ONE_PART_RUNS runs: one part pads every run to the study's longest."""
+    if len(np.unique(np.asarray(runs, np.int64))) > ONE_PART_RUNS:
+        return False
+    classes = [(item.frames, item.runs) for item in packing(run_counts, parts, runs)]
+    return scan_cost([one_part_shape(parts, runs)], n_settings) < scan_cost(classes, n_settings)
+
+
+def subset_layout(
+    parts: Sequence[SearchBatch], run_counts: Sequence[int], runs, n_settings: int
+) -> tuple[Sequence[SearchBatch], list[int], np.ndarray]:
+    """`subset_parts` or one packed part (`pack_runs`), whichever `cheaper_in_one_part` says scores
+    n_settings settings on `runs` faster; the same (parts, real runs per part, global run index of each
+    result column). A run scores the same in either (tests/test_polish.py)."""
+    runs = np.unique(np.asarray(runs, np.int64))
+    if cheaper_in_one_part(run_counts, [(p.n_frames, p.n_runs) for p in parts], runs, n_settings):
+        return [pack_runs(parts, run_counts, runs)], [len(runs)], runs
+    return subset_parts(parts, run_counts, runs)
+
+
 def pack_runs(parts: Sequence[SearchBatch], run_counts: Sequence[int], runs) -> SearchBatch:
     """One SearchBatch of the runs `runs` (global indices into FitData.meta, taken in increasing order)
     gathered from the search parts (the first run_counts[p] runs of part p real), every run padded to
@@ -231,4 +285,8 @@ __all__ = [
     "packing",
     "padded_runs",
     "subset_parts",
+    "SCAN_STEP_LANES",
+    "scan_cost",
+    "cheaper_in_one_part",
+    "subset_layout",
 ]

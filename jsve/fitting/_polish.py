@@ -15,9 +15,10 @@ is the multi-fidelity idea of the halving search (screen on few runs, decide on 
 local optimiser.
 
 `polish_in_lockstep` moves the Nelder-Mead runs of many fits together (jsve.fitting._simplex): the
-union of their polish runs is packed by length class once (jsve.fitting._packing.subset_parts), and
-each step's points of all fits are one batched search whose rows are averaged over each point's own
-fit's polish runs, so a fit moves exactly as it would alone.
+union of their polish runs is laid out once (jsve.fitting._packing.subset_layout: by length class, or in
+one part where a step's few points cost less so), and each step's points of all fits are one batched
+search whose rows are averaged over each point's own fit's polish runs, so a fit moves exactly as it
+would alone.
 """
 
 from __future__ import annotations
@@ -32,8 +33,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jsve.fitting._halving import stratified_order
-from jsve.fitting._packing import pack_runs, subset_parts
-from jsve.fitting._search import SearchBatch, search
+from jsve.fitting._packing import subset_layout
+from jsve.fitting._search import search
 from jsve.fitting._simplex import lockstep_nelder_mead
 
 
@@ -58,18 +59,6 @@ def polish_runs(
     order = stratified_order(meta, len(weights), seed=seed)
     first = order[eligible[order]][:n]
     return np.sort(first[weights[first] > 0])
-
-
-def packed_subset(
-    data, weights: np.ndarray, n: int, *, seed: int = 0
-) -> tuple[SearchBatch, np.ndarray] | None:
-    """The first n weighted runs of FitData `data`'s stratified order (`polish_runs`) packed into one part
-    (`pack_runs`), and their indices: how Nelder-Mead, the heat map and the bootstrap's screen score a
-    large study on a subset. None where `polish_runs` is (n is 0 or at most n runs have weight)."""
-    subset = polish_runs(data.meta, weights, n, seed=seed)
-    if subset is None:
-        return None
-    return pack_runs(data.parts, data.run_counts, subset), subset
 
 
 @dataclass(frozen=True)
@@ -126,7 +115,8 @@ def polish_in_lockstep(
     own = [polish_runs(data.meta, w, n_runs, seed=seed, pool=pool) for w in weights]
     own = [np.flatnonzero(w > 0) if runs is None else runs for w, runs in zip(weights, own, strict=True)]
     union = np.unique(np.concatenate(own))
-    packed, run_counts, columns = subset_parts(data.parts, data.run_counts, union)
+    # a step scores about one point per simplex: in one part where that is cheaper (few simplexes)
+    packed, run_counts, columns = subset_layout(data.parts, data.run_counts, union, len(starts))
     # gathered once (every step scans them again), each on the device `search` runs its calls on
     devices = jax.local_devices()
     parts = [jax.device_put(part, devices[p % len(devices)]) for p, part in enumerate(packed)]
@@ -169,4 +159,4 @@ def _weighted_rows(scored, weights: np.ndarray) -> np.ndarray:
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), every)
 
 
-__all__ = ["polish_runs", "packed_subset", "Polishes", "polish_in_lockstep"]
+__all__ = ["polish_runs", "Polishes", "polish_in_lockstep"]

@@ -1,8 +1,9 @@
 """A whole fitting study over a set of logs, written to one output folder, stage by stage.
 
-    evaluate the presets -> fit each family on all runs -> evaluate the fitted rules -> cross-validate
-    (k-fold, leave-one-sequence-out, leave-one-disturbance-out) -> bootstrap the fitted parameters ->
-    objective over the two main thresholds -> SVE per level -> (jsve.report._report renders it all)
+    fit each family on all runs -> evaluate the presets and fitted rules, with the objective's terms
+    and the SVE per level, in one pass -> cross-validate (k-fold; with --thorough also
+    leave-one-sequence-out and leave-one-disturbance-out) -> bootstrap the fitted parameters ->
+    objective over the two main thresholds -> (jsve.report._report renders it all)
 
 Every stage writes its tables atomically (a temporary name, then a rename) as Parquet and CSV, and
 records itself in `stages.json` under the study's key: a fingerprint of the configuration and one of the
@@ -32,13 +33,22 @@ import pandas as pd
 from jsve._memory import peak_resident_bytes, release_memory
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
-from jsve.core._sve import Combination, feature_metrics
+from jsve.core._sve import Combination
 from jsve.evaluation._aggregate import aggregate, group_weights
 from jsve.evaluation._evaluate import evaluate_rules
-from jsve.fitting._crossval import compare, cross_validate, kfold, leave_one_out, parameter_bootstrap
+from jsve.fitting._crossval import (
+    compare,
+    cross_validate,
+    kfold,
+    leave_one_out,
+    objective_results,
+    parameter_bootstrap,
+)
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
-from jsve.fitting._polish import packed_subset
+from jsve.fitting._levels import SveLevelSums, sve_level_table
+from jsve.fitting._packing import subset_layout
+from jsve.fitting._polish import polish_runs
 from jsve.fitting._search import SearchResult, search
 from jsve.fitting._space import ParamSpace, space_from_dict
 from jsve.io import _atomic as atomic
@@ -48,8 +58,12 @@ log = logging.getLogger(__name__)
 
 GROUP_COLUMNS = ("sequence", "disturbance", "level")
 
+EVALUATE_CHUNK_BYTES = 0.6e9
+"""The working set of one compiled evaluation in a study (jsve.evaluation.evaluate_rules' chunk_bytes;
+`jsve evaluate` uses 1.5 GB): the study holds its search layout (0.7 GB at 3,410 logs) beside it, and
+its evaluation was the process's peak (4.6 GB with 1.5 GB chunks, two in flight)."""
+
 TABLES = (
-    "runs_presets",
     "runs",
     "summary",
     "heldout",
@@ -71,6 +85,8 @@ STUDY_FILES = (
     "report.html",
     "report.json",
     "figures/*.png",
+    "runs_presets.parquet",  # written by studies before the presets and fitted rules shared one pass
+    "runs_presets.csv",
 )
 """Glob patterns of every file a study and its report write in their folder: what force=True deletes
 (and only that: the folder may hold other files)."""
@@ -119,7 +135,7 @@ class StudyConfig:
     n_local: int = 0
     local_fraction: float = 0.15
     bootstrap_screen_runs: int = 512
-    heatmap: tuple = ("imu_init", "recovery", 25)
+    heatmap: tuple = ("imu_init", "recovery", 20)
     heatmap_runs: int = 512
     seed: int = 0
 
@@ -320,40 +336,12 @@ def _describe_change(out: Path, config: dict, data: dict) -> Callable[[dict, dic
 # Tables of the study
 
 
-def sve_level_table(data: FitData, combinations: dict[str, Combination]) -> pd.DataFrame:
-    """Per (disturbance, level, combination): mean and std of the SVE score over all valid frames, and
-    of every SVE metric (jsve.core._sve.feature_metrics: S_a at the combination's rho, S_b, S_c; seed
-    Figs 4-6)."""
-    rows = []
-    meta = data.meta
-    sums = {name: [] for name in combinations}
-    for batch, feats, n_real in data.iter_slim():  # one pass: the parts may be streamed again
-        valid = np.asarray(batch.valid[:n_real], np.float64)
-        for name, combo in combinations.items():
-            values = {
-                "sve": combo.score(feats),
-                **feature_metrics(feats, combo.rho),
-            }
-            part = {"count": valid.sum(1)}
-            for key, v in values.items():
-                x = np.asarray(v[:n_real], np.float64)
-                part[f"{key}_sum"] = (x * valid).sum(1)
-                part[f"{key}_sq"] = (x * x * valid).sum(1)
-            sums[name].append(pd.DataFrame(part))
-    for name in combinations:
-        per_run = pd.concat(sums[name], ignore_index=True)
-        per_run["disturbance"] = meta["disturbance"].to_numpy()
-        per_run["level"] = meta["level"].to_numpy()
-        grouped = per_run.groupby(["disturbance", "level"], sort=True).sum(numeric_only=True)
-        keys = [c.removesuffix("_sum") for c in per_run.columns if c.endswith("_sum")]
-        for (dist, level), g in grouped.iterrows():
-            row = {"disturbance": dist, "level": level, "combination": name, "frames": int(g["count"])}
-            for key in keys:
-                mean = g[f"{key}_sum"] / g["count"]
-                row[f"{key}_mean"] = mean
-                row[f"{key}_std"] = float(np.sqrt(max(g[f"{key}_sq"] / g["count"] - mean * mean, 0.0)))
-            rows.append(row)
-    return pd.DataFrame(rows)
+def _sve_combinations(fits: dict[str, FitResult]) -> dict[str, Combination]:
+    """The SVE combinations of the level table: every SVE preset's, then the fitted SVE rule's."""
+    combos = {name: preset(name).combination for name in PRESETS if rule_kind(preset(name)) == "sve"}
+    if "sve" in fits:
+        combos[fitted_rule_name("sve")] = fits["sve"].rule.combination
+    return combos
 
 
 def heatmap_table(
@@ -374,8 +362,9 @@ def heatmap_table(
     Arguments:
         weights: [R] run weights (None: 1).
         runs: score the grid on the first `runs` weighted runs of the study's stratified order (seeded
-            by `seed`), packed into one part (jsve.fitting._polish): a picture of the surface whose cost
-            stops growing with the study. 0, or no more weighted runs than that: on every run.
+            by `seed`; jsve.fitting._polish.polish_runs), laid out as jsve.fitting._packing.subset_layout
+            chooses: a picture of the surface whose cost stops growing with the study. 0, or no more
+            weighted runs than that: on every run.
         progress: the search's bar.
     Returns:
         One row per grid point: family, x_name, y_name, x, y, objective (metres), failure_rate,
@@ -389,12 +378,12 @@ def heatmap_table(
     grid = np.repeat(np.asarray(values, np.float64)[None], len(unit), axis=0)
     grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
     grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
-    packed = packed_subset(data, w, runs, seed=seed)
-    if packed is None:
+    subset = polish_runs(data.meta, w, runs, seed=seed)
+    if subset is None:
         parts, counts, scored_w = data.parts, data.run_counts, w
-    else:
-        part, subset = packed
-        parts, counts, scored_w = [part], [len(subset)], w[subset]
+    else:  # in one part or by length class, whichever scores the grid faster
+        parts, counts, columns = subset_layout(data.parts, data.run_counts, subset, len(grid))
+        scored_w = w[columns]
     res = search(
         parts, space, grid, data.config, run_counts=counts, progress=progress, desc=f"heat map {space.kind}"
     )
@@ -576,14 +565,6 @@ def run_study(
         progress=progress,
     )
 
-    def evaluate_presets():
-        # All presets in one pass over the runs (one stream of a Parquet study).
-        rules = [(name, preset(name)) for name in PRESETS]
-        table = evaluate_rules(data.full_buckets(), rules, n_runs=data.n_runs, **eval_kwargs)
-        write_table(table, out, "runs_presets")
-
-    stages.run("evaluate_presets", evaluate_presets, [out / "runs_presets.parquet"])
-
     fits: dict[str, FitResult] = {}
     caches = {}  # the halving's per-run results of fits run in this process, which the folds reuse
     for family, space in spaces.items():
@@ -612,12 +593,20 @@ def run_study(
             n_excluded=record["n_excluded"],
         )
 
-    def evaluate_fitted():
-        rules = [(fitted_rule_name(f), r.rule) for f, r in fits.items()]
-        tables = [read_table(out, "runs_presets")]
-        if rules:
-            tables.append(evaluate_rules(data.full_buckets(), rules, n_runs=data.n_runs, **eval_kwargs))
-        per_run = pd.concat(tables, ignore_index=True)
+    has_levels = {"disturbance", "level"} <= set(meta.columns)
+
+    def evaluate():
+        # Every preset and fitted rule in one pass over the runs (one stream of a Parquet study, each
+        # chunk's features computed once), with the objective's terms of every run (the cross-
+        # validation's held-out rows of the presets the kernel does not search) and the SVE level
+        # sums riding on the same chunks.
+        rules = [(name, preset(name)) for name in PRESETS]
+        rules += [(fitted_rule_name(f), r.rule) for f, r in fits.items()]
+        levels = SveLevelSums(_sve_combinations(fits)) if has_levels else None
+        per_run = evaluate_rules(
+            data.full_buckets(), rules, n_runs=data.n_runs, objective=data.config,
+            on_chunk=None if levels is None else levels.add, chunk_bytes=EVALUATE_CHUNK_BYTES, **eval_kwargs,
+        )  # fmt: skip
         write_table(per_run, out, "runs")
         group = [c for c in ("disturbance", "level") if c in per_run.columns]
         write_table(
@@ -633,8 +622,11 @@ def run_study(
             out,
             "summary",
         )
+        if levels is not None:
+            write_table(levels.table(), out, "sve_levels")
 
-    stages.run("evaluate_fitted", evaluate_fitted, [out / "runs.parquet", out / "summary.parquet"])
+    outputs = [out / "runs.parquet", out / "summary.parquet"] + [out / "sve_levels.parquet"] * has_levels
+    stages.run("evaluate", evaluate, outputs)
 
     def crossvalidate():
         folds = study_folds(meta, config)
@@ -648,6 +640,7 @@ def run_study(
             config.fit,
             searches={f: r.search for f, r in fits.items()},
             caches=caches,
+            replayed=objective_results(read_table(out, "runs"), meta, PRESETS),
             progress=progress,
         )
         write_table(cv.heldout, out, "heldout")
@@ -705,14 +698,6 @@ def run_study(
 
     stages.run("heatmap", heatmap, [out / "heatmap.parquet"] if config.heatmap else [])
 
-    def sve_levels():
-        combos = {name: preset(name).combination for name in PRESETS if rule_kind(preset(name)) == "sve"}
-        if "sve" in fits:
-            combos[fitted_rule_name("sve")] = fits["sve"].rule.combination
-        if {"disturbance", "level"} <= set(meta.columns):
-            write_table(sve_level_table(data, combos), out, "sve_levels")
-
-    stages.run("sve_levels", sve_levels, [out / "sve_levels.parquet"])
     return stages.done
 
 
