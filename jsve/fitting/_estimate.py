@@ -178,9 +178,13 @@ def study_size(data, config) -> StudySize:
     from jsve.fitting._space import is_space_point, preset_point
     from jsve.fitting._study import study_folds
 
+    # the study's evaluation streams a Parquet study in the buckets its parts were cut from
+    if data.buckets:
+        buckets = [(b.batch.n_runs, b.batch.n_frames) for b in data.buckets]
+    else:
+        buckets = [(n, p.n_frames) for n, p in zip(data.run_counts, data.parts, strict=True)]
     chunks = []
-    for bucket in data.buckets:
-        n, frames = bucket.batch.n_runs, bucket.batch.n_frames
+    for n, frames in buckets:
         size = ladder_chunk_size(n, runs_per_chunk_for(frames))
         chunks.append((math.ceil(n / size), size, frames))
     spaces = {f: config.space(f) for f in config.families}

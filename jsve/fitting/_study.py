@@ -58,11 +58,6 @@ log = logging.getLogger(__name__)
 
 GROUP_COLUMNS = ("sequence", "disturbance", "level")
 
-EVALUATE_CHUNK_BYTES = 0.6e9
-"""The working set of one compiled evaluation in a study (jsve.evaluation.evaluate_rules' chunk_bytes;
-`jsve evaluate` uses 1.5 GB): the study holds its search layout (0.7 GB at 3,410 logs) beside it, and
-its evaluation was the process's peak (4.6 GB with 1.5 GB chunks, two in flight)."""
-
 TABLES = (
     "runs",
     "summary",
@@ -605,7 +600,7 @@ def run_study(
         levels = SveLevelSums(_sve_combinations(fits)) if has_levels else None
         per_run = evaluate_rules(
             data.full_buckets(), rules, n_runs=data.n_runs, objective=data.config,
-            on_chunk=None if levels is None else levels.add, chunk_bytes=EVALUATE_CHUNK_BYTES, **eval_kwargs,
+            on_chunk=None if levels is None else levels.add, **eval_kwargs,
         )  # fmt: skip
         write_table(per_run, out, "runs")
         group = [c for c in ("disturbance", "level") if c in per_run.columns]
