@@ -35,11 +35,12 @@ LAYERS: dict[str, frozenset[str] | None] = {
     "_version": frozenset(),
     # JAX's persistent compilation cache, switched on by the commands that compute (cli, _demo).
     "_jax_cache": frozenset(),
-    # Giving memory back between the stages of a long job (JAX's executables, the heap): fitting's stages.
+    # Giving memory back between the stages of a long job (JAX's executables, the heap): fitting's stages
+    # and evaluation's pass over a study (the executables of the frame lengths it has left behind).
     "_memory": frozenset(),
     "core": frozenset(),
     "io": frozenset({"core"}),
-    "evaluation": frozenset({"core", "io"}),
+    "evaluation": frozenset({"_memory", "core", "io"}),
     "image": frozenset({"core", "io"}),
     # Table I (masks/_table_one.py) scores masked against original runs with evaluation's pose scoring and
     # per-run table: one home for alignment and APE tables, so masks sits above evaluation.
