@@ -72,6 +72,32 @@ def test_chunk_size_does_not_change_results(runs):
     pd.testing.assert_frame_equal(a, b)
 
 
+def test_a_pass_gives_memory_back_where_the_frame_length_changes(runs, monkeypatch):
+    """evaluate_rules drops JAX's executables (jsve._memory.release_memory) where the next bucket has
+    another frame length and the process holds too much, never between two buckets of one length and
+    never when it holds little; the results are those of a pass that keeps everything."""
+    from jsve.evaluation import _evaluate
+
+    rules = [("orbslam3", jsve.preset("orbslam3")), ("sve-option2", jsve.preset("sve-option2"))]
+    groups = jsve.buckets(runs)
+    lengths = [g.batch.n_frames for g in groups]
+    assert len(set(lengths)) >= 2
+    stream = groups + groups[-1:]  # the last length twice in a row: no release between them
+    kept = _evaluate.evaluate_rules(stream, rules, progress=False)
+    released = []
+    monkeypatch.setattr(_evaluate, "release_memory", lambda: released.append(1))
+    monkeypatch.setattr(_evaluate, "_holds_too_much", lambda: True)
+    again = _evaluate.evaluate_rules(stream, rules, progress=False)
+    stream_lengths = [g.batch.n_frames for g in stream]
+    changes = sum(a != b for a, b in zip(stream_lengths, stream_lengths[1:], strict=False))
+    assert len(released) == changes >= 1
+    pd.testing.assert_frame_equal(again, kept)
+    monkeypatch.setattr(_evaluate, "_holds_too_much", lambda: False)
+    released.clear()
+    _evaluate.evaluate_rules(stream, rules, progress=False)
+    assert released == []
+
+
 def test_accept_all_rule_scores_the_visual_estimate(runs):
     """With thresholds that accept every frame the replay is the logged visual trajectory, so the
     APE must equal evo-style scoring of vis_* against gt_* (here: jsve.align + ape_statistics)."""
