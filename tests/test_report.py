@@ -123,7 +123,7 @@ def test_rerun_skips_finished_stages_and_changes_nothing(study):
     assert time.perf_counter() - started < 0.25 * first
     assert {p.name: p.read_bytes() for p in out.glob("*.parquet")} == before
     record = json.loads((out / "stages.json").read_text())
-    assert record["key"]["config"] == fingerprint(SMALL.to_dict()) and len(record["done"]) == 8
+    assert record["key"]["config"] == fingerprint(SMALL.to_dict()) and len(record["done"]) == 6
 
 
 @pytest.mark.slow
