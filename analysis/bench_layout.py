@@ -1,0 +1,75 @@
+"""A subset of runs in one packed part against length classes: seconds of a search of S settings on the
+study's first N polish runs (jsve.fitting._polish.polish_runs), each layout timed on a second call (the
+first compiles), with what jsve.fitting._packing.scan_cost predicts and what subset_layout chooses.
+
+    python analysis/bench_layout.py study.parquet [--family sve] [--runs 256 512] [--settings 2 10 38 400]
+
+The measurements behind SCAN_STEP_LANES (docs/fitting.md, "Nelder-Mead on a subset of the runs").
+Prints one line per (runs, settings): both layouts' seconds and cost-model units, their ratios, and
+the layout chosen.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("study", help="a Parquet study (jsve ingest)")
+    parser.add_argument("--family", default="sve")
+    parser.add_argument("--runs", type=int, nargs="+", default=[256, 512])
+    parser.add_argument("--settings", type=int, nargs="+", default=[2, 10, 38, 100, 400])
+    args = parser.parse_args(argv)
+
+    from jsve.fitting import use_all_cores
+
+    use_all_cores()
+    import numpy as np
+
+    from jsve._jax_cache import enable_compilation_cache
+    from jsve.core import ObjectiveConfig
+    from jsve.fitting import FitData
+    from jsve.fitting._fit import FitConfig, search_design
+    from jsve.fitting._packing import cheaper_in_one_part, one_part_shape, pack_runs, scan_cost, subset_parts
+    from jsve.fitting._polish import polish_runs
+    from jsve.fitting._search import search
+    from jsve.fitting._space import family_space
+
+    enable_compilation_cache()
+    data = FitData.from_parquet(args.study, ObjectiveConfig())
+    space = family_space(args.family)
+    values = search_design(space, FitConfig(n_search=max(args.settings)))
+    shapes = [(p.n_frames, p.n_runs) for p in data.parts]
+
+    def timed(parts, counts, v) -> float:
+        search(parts, space, v, data.config, run_counts=counts, progress=False)  # compiles
+        start = time.perf_counter()
+        search(parts, space, v + 1e-4, data.config, run_counts=counts, progress=False)
+        return time.perf_counter() - start
+
+    for n_runs in args.runs:
+        runs = polish_runs(data.meta, np.ones(data.n_runs), n_runs)
+        if runs is None:
+            print(f"{n_runs} runs: the study has no more, nothing to pack")
+            continue
+        classes, counts, _ = subset_parts(data.parts, data.run_counts, runs)
+        classes = list(classes)
+        one = pack_runs(data.parts, data.run_counts, runs)
+        class_shapes = [(p.n_frames, p.n_runs) for p in classes]
+        print(f"{n_runs} runs: classes {class_shapes}, one part {one_part_shape(shapes, runs)}", flush=True)
+        for n in args.settings:
+            v = values[:n]
+            t_classes, t_one = timed(classes, counts, v), timed([one], [len(runs)], v)
+            c_classes, c_one = scan_cost(class_shapes, n), scan_cost([one_part_shape(shapes, runs)], n)
+            chosen = "one part" if cheaper_in_one_part(data.run_counts, shapes, runs, n) else "classes"
+            print(
+                f"  {n:4d} settings: classes {t_classes:6.2f} s, one part {t_one:6.2f} s "
+                f"(one / classes {t_one / t_classes:4.2f}; model {c_one / c_classes:4.2f}); chosen: {chosen}",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
