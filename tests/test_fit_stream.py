@@ -75,7 +75,7 @@ def test_streamed_data_holds_only_the_search_layout_and_streams_the_rest_again(b
     what needs them (replaying presets outside the search's spaces, the SVE level table, the relaxed
     fit) streams the same parts again, with the same values as the parsed runs' held ones."""
     from jsve.fitting._crossval import preset_results
-    from jsve.fitting._study import sve_level_table
+    from jsve.fitting._levels import sve_level_table
 
     parsed, streamed, path = both
     assert streamed.batches == [] and streamed.features == [] and parsed.batches

@@ -46,7 +46,7 @@ from jsve.fitting._crossval import (
 )
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
-from jsve.fitting._levels import SveLevelSums, sve_level_table
+from jsve.fitting._levels import SveLevelSums
 from jsve.fitting._packing import subset_layout
 from jsve.fitting._polish import polish_runs
 from jsve.fitting._search import SearchResult, search
@@ -705,7 +705,6 @@ __all__ = [
     "finished_stages",
     "record_timing",
     "study_folds",
-    "sve_level_table",
     "heatmap_table",
     "write_table",
     "read_table",
