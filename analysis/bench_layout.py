@@ -28,19 +28,23 @@ def main(argv=None) -> None:
     use_all_cores()
     import numpy as np
 
-    from jsve._jax_cache import enable_compilation_cache
     from jsve.core import ObjectiveConfig
-    from jsve.fitting import FitData
-    from jsve.fitting._fit import FitConfig, search_design
-    from jsve.fitting._packing import cheaper_in_one_part, one_part_shape, pack_runs, scan_cost, subset_parts
-    from jsve.fitting._polish import polish_runs
-    from jsve.fitting._search import search
-    from jsve.fitting._space import family_space
+    from jsve.fitting import (
+        FitData,
+        cheaper_in_one_part,
+        one_part_shape,
+        pack_runs,
+        polish_runs,
+        scan_cost,
+        search,
+        sobol,
+        space_from_dict,
+        subset_parts,
+    )
 
-    enable_compilation_cache()
     data = FitData.from_parquet(args.study, ObjectiveConfig())
-    space = family_space(args.family)
-    values = search_design(space, FitConfig(n_search=max(args.settings)))
+    space = space_from_dict({"kind": args.family})
+    values = np.asarray(space.values_from_unit(sobol(max(args.settings), space.dim, seed=0)), np.float64)
     shapes = [(p.n_frames, p.n_runs) for p in data.parts]
 
     def timed(parts, counts, v) -> float:

@@ -34,7 +34,13 @@ from jsve.fitting._halving import halving_search as halving_search
 from jsve.fitting._halving import halving_searches as halving_searches
 from jsve.fitting._halving import rung_sizes as rung_sizes
 from jsve.fitting._halving import stratified_order as stratified_order
+from jsve.fitting._packing import cheaper_in_one_part as cheaper_in_one_part
+from jsve.fitting._packing import one_part_shape as one_part_shape
+from jsve.fitting._packing import pack_runs as pack_runs
+from jsve.fitting._packing import scan_cost as scan_cost
+from jsve.fitting._packing import subset_layout as subset_layout
 from jsve.fitting._packing import subset_parts as subset_parts
+from jsve.fitting._polish import polish_runs as polish_runs
 from jsve.fitting._search import lanes_per_call as lanes_per_call
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
