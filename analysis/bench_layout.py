@@ -1,12 +1,13 @@
-"""A subset of runs in one packed part against length classes: seconds of a search of S settings on the
-study's first N polish runs (jsve.fitting._polish.polish_runs), each layout timed on a second call (the
-first compiles), with what jsve.fitting._packing.scan_cost predicts and what subset_layout chooses.
+"""A subset of runs in one packed part against 2 and 4 length classes: seconds of a search of S settings
+on the study's first N polish runs (jsve.fitting._polish.polish_runs), each layout timed on a second
+call (the first compiles), with what jsve.fitting._packing.scan_cost predicts and what subset_layout
+chooses (cheapest_layout).
 
     python analysis/bench_layout.py study.parquet [--family sve] [--runs 256 512] [--settings 2 10 38 400]
 
 The measurements behind SCAN_STEP_LANES (docs/fitting.md, "Nelder-Mead on a subset of the runs").
-Prints one line per (runs, settings): both layouts' seconds and cost-model units, their ratios, and
-the layout chosen.
+Prints one line per (runs, settings): each layout's seconds and its cost-model units relative to one
+part's, and the layout chosen.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ def main(argv=None) -> None:
 
     from jsve.core import ObjectiveConfig
     from jsve.fitting import (
+        LAYOUT_CLASSES,
         FitData,
-        cheaper_in_one_part,
-        one_part_shape,
+        cheapest_layout,
+        layout_shapes,
         pack_runs,
         polish_runs,
         scan_cost,
@@ -58,21 +60,24 @@ def main(argv=None) -> None:
         if runs is None:
             print(f"{n_runs} runs: the study has no more, nothing to pack")
             continue
-        classes, counts, _ = subset_parts(data.parts, data.run_counts, runs)
-        classes = list(classes)
-        one = pack_runs(data.parts, data.run_counts, runs)
-        class_shapes = [(p.n_frames, p.n_runs) for p in classes]
-        print(f"{n_runs} runs: classes {class_shapes}, one part {one_part_shape(shapes, runs)}", flush=True)
+        layouts = {0: ([pack_runs(data.parts, data.run_counts, runs)], [len(runs)])}
+        for k in LAYOUT_CLASSES:
+            parts, counts, _ = subset_parts(data.parts, data.run_counts, runs, k)
+            layouts[k] = (list(parts), counts)
+        names = {k: "one part" if k == 0 else f"{k} classes" for k in layouts}
+        print(
+            f"{n_runs} runs: "
+            + ", ".join(f"{names[k]} {layout_shapes(data.run_counts, shapes, runs, k)}" for k in layouts),
+            flush=True,
+        )
         for n in args.settings:
             v = values[:n]
-            t_classes, t_one = timed(classes, counts, v), timed([one], [len(runs)], v)
-            c_classes, c_one = scan_cost(class_shapes, n), scan_cost([one_part_shape(shapes, runs)], n)
-            chosen = "one part" if cheaper_in_one_part(data.run_counts, shapes, runs, n) else "classes"
-            print(
-                f"  {n:4d} settings: classes {t_classes:6.2f} s, one part {t_one:6.2f} s "
-                f"(one / classes {t_one / t_classes:4.2f}; model {c_one / c_classes:4.2f}); chosen: {chosen}",
-                flush=True,
-            )
+            seconds = {k: timed(parts, counts, v) for k, (parts, counts) in layouts.items()}
+            cost = {k: scan_cost(layout_shapes(data.run_counts, shapes, runs, k), n) for k in layouts}
+            chosen = names[cheapest_layout(data.run_counts, shapes, runs, n)]
+            cells = [f"{names[k]} {seconds[k]:6.2f} s ({seconds[k] / seconds[0]:4.2f}; "
+                     f"model {cost[k] / cost[0]:4.2f})" for k in layouts]  # fmt: skip
+            print(f"  {n:4d} settings: " + ", ".join(cells) + f"; chosen: {chosen}", flush=True)
 
 
 if __name__ == "__main__":

@@ -151,6 +151,34 @@ def test_one_evaluation_pass_gives_the_presets_objective_and_the_level_table():
     assert objective_results(table.drop(columns=["objective_loss"]), streamed.meta, names) == {}
 
 
+def test_a_pass_length_by_length_is_put_back_in_the_runs_order(tmp_path):
+    """`jsve fit` evaluates length by length (full_buckets(by_length=True)); in_run_order with
+    meta_order gives the table of the pass in `meta`'s order, row for row, held or streamed."""
+    import pyarrow.parquet as pq
+    from pandas.testing import assert_frame_equal
+
+    from jsve.evaluation import evaluate_rules, in_run_order
+
+    long_first = ka.make_study("counts", range(8), n_frames=700) + ka.make_study(
+        "occlusion", range(4), n_frames=400
+    )  # as they fill, the 700-frame chunk (8 runs: ladder_chunk_size) comes first
+    paths = [write_log(run, tmp_path / "logs" / f"r{i:02d}.csv") for i, run in enumerate(long_first)]
+    ingest(paths, tmp_path / "s.parquet", workers=1, progress=False)
+    table = pq.read_table(tmp_path / "s.parquet")
+    table = table.replace_schema_metadata(pq.ParquetFile(tmp_path / "s.parquet").metadata.metadata)
+    pq.write_table(table, tmp_path / "rg.parquet", row_group_size=500)  # row groups cut the runs
+    rules = [("orbslam3", preset("orbslam3")), ("sve-option2", preset("sve-option2"))]
+    held = FitData.from_runs(long_first, COAST)  # bucket_by_length: held buckets come by length anyway
+    for data in (held, FitData.from_parquet(tmp_path / "rg.parquet", COAST)):
+        options = dict(n_runs=data.n_runs, switch_model=COAST.switch_model, objective=COAST, progress=False)
+        plain = evaluate_rules(data.full_buckets(), rules, **options)
+        lengthwise = evaluate_rules(data.full_buckets(by_length=True), rules, **options)
+        if data is not held:
+            assert list(lengthwise["run_id"]) != list(plain["run_id"])  # the pass came in another order
+        assert list(plain["run_id"]) == list(data.meta["run_id"]) * 2
+        assert_frame_equal(in_run_order(lengthwise, data.meta_order(lengthwise["run_id"])), plain)
+
+
 def test_the_objective_of_another_replay_is_refused(both):
     """The objective's terms come from the evaluation's replay: an objective under another switch model
     (or time_recently_lost) would describe a replay that did not happen."""

@@ -89,10 +89,10 @@ def test_a_subset_is_packed_by_length_class_and_scores_as_its_own_parts(data, mo
         np.testing.assert_allclose(getattr(sub, key), getattr(whole, key)[:, columns], rtol=1e-5, atol=1e-6)
 
 
-def test_the_layout_is_one_part_for_few_settings_and_length_classes_for_many(data):
-    """subset_layout packs a subset into one part where its calls cost less by scan_cost (a call's steps
-    dominate a narrow call: few settings), else by length class (many settings: the classes pad less);
-    either scores every run as its own part does."""
+def test_the_layout_is_the_cheapest_of_one_part_and_length_classes(data):
+    """subset_layout packs a subset into one part or by 2 or 4 length classes, whichever scan_cost prices
+    lowest (a call's steps dominate a narrow call: few settings favour one part; many settings the
+    classes, which pad less); every layout scores every run as its own part does."""
     space = _space()
     shapes = [(p.n_frames, p.n_runs) for p in data.parts]
     starts = np.cumsum([0, *data.run_counts])
@@ -100,24 +100,42 @@ def test_the_layout_is_one_part_for_few_settings_and_length_classes_for_many(dat
     whole_values = np.asarray(space.values_from_unit(np.random.default_rng(2).random((64, space.dim))))
     whole = search(data.parts, space, whole_values, data.config, run_counts=data.run_counts, progress=False)
     few, many = 1, 4096
-    assert _packing.cheaper_in_one_part(data.run_counts, shapes, runs, few)
-    assert not _packing.cheaper_in_one_part(data.run_counts, shapes, runs, many)
+    assert _packing.cheapest_layout(data.run_counts, shapes, runs, few) == 0
+    chosen = _packing.cheapest_layout(data.run_counts, shapes, runs, many)
+    costs = {k: _packing.scan_cost(_packing.layout_shapes(data.run_counts, shapes, runs, k), many)
+             for k in (0, *_packing.LAYOUT_CLASSES)}  # fmt: skip
+    assert chosen in _packing.LAYOUT_CLASSES and costs[chosen] == min(costs.values()) < costs[0]
     # by hand for one setting (one call of one lane-setting per part): frames x (step lanes + runs)
     classes = [(item.frames, item.runs) for item in packing(data.run_counts, shapes, runs)]
     longest = max(f for f, _ in shapes)
+    assert _packing.layout_shapes(data.run_counts, shapes, runs, 0) == [(longest, len(runs))]
+    assert _packing.layout_shapes(data.run_counts, shapes, runs, _packing.FRAME_CLASSES) == classes
     assert _packing.scan_cost([(longest, len(runs))], 1) == longest * (_packing.SCAN_STEP_LANES + len(runs))
     assert _packing.scan_cost(classes, 1) == sum(f * (_packing.SCAN_STEP_LANES + r) for f, r in classes)
-    for n_settings, n_parts in ((few, 1), (many, len(classes))):
+    for n_settings in (few, many):
         parts, counts, columns = _packing.subset_layout(data.parts, data.run_counts, runs[::-1], n_settings)
-        assert len(parts) == n_parts and sorted(columns) == sorted(runs) and sum(counts) == len(runs)
+        k = _packing.cheapest_layout(data.run_counts, shapes, runs, n_settings)
+        assert [(p.n_frames, p.n_runs) for p in parts] == _packing.layout_shapes(
+            data.run_counts, shapes, runs, k
+        )
+        assert sorted(columns) == sorted(runs) and sum(counts) == len(runs)
+    for k in _packing.LAYOUT_CLASSES:  # every class count scores the runs as their own parts do
+        parts, counts, columns = _packing.subset_parts(data.parts, data.run_counts, runs, k)
+        assert len(parts) == len(_packing.layout_shapes(data.run_counts, shapes, runs, k))
         scored = search(list(parts), space, whole_values, data.config, run_counts=counts, progress=False)
         for key in ("loss", "rmse", "coverage", "failed", "included"):
             np.testing.assert_allclose(
                 getattr(scored, key), getattr(whole, key)[:, columns], rtol=1e-5, atol=1e-6
             )
+    one, counts, columns = _packing.subset_layout(data.parts, data.run_counts, runs, few)
+    scored = search(list(one), space, whole_values, data.config, run_counts=counts, progress=False)
+    np.testing.assert_allclose(scored.loss, whole.loss[:, columns], rtol=1e-5, atol=1e-6)
     # one part pads every run to the longest: never for more than ONE_PART_RUNS runs
-    assert not _packing.cheaper_in_one_part(
-        [1000, 1000], [(100, 1000), (100, 1000)], np.arange(_packing.ONE_PART_RUNS + 1), 1
+    assert (
+        _packing.cheapest_layout(
+            [1000, 1000], [(100, 1000), (100, 1000)], np.arange(_packing.ONE_PART_RUNS + 1), 1
+        )
+        != 0
     )
 
 

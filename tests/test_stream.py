@@ -18,7 +18,7 @@ from jsve.io._batching import from_runs, run_meta_table
 from jsve.io._errors import LogFormatError, LogVersionWarning
 from jsve.io._ingest import ingest, read_parquet
 from jsve.io._logs import write_log
-from jsve.io._stream import HOST_BYTES_PER_FRAME, chunk_plan, iter_buckets, open_study
+from jsve.io._stream import HOST_BYTES_PER_FRAME, _reading_by_length, chunk_plan, iter_buckets, open_study
 
 
 def _study(tmp_path, runs) -> str:
@@ -76,27 +76,72 @@ def test_streamed_chunks_equal_the_per_run_batches(tmp_path, dtype, budget, requ
     seen = []
     # small record batches: runs span several of them
     for bucket in iter_buckets(path, dtype=dtype, host_budget=budget, batch_rows=97):
-        batch = bucket.batch
-        assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(batch))
-        n = len(bucket.meta)
-        assert (np.asarray(batch.run_index)[:n] == np.arange(n)).all()
-        assert (np.asarray(batch.run_index)[n:] == -1).all() and not np.asarray(batch.valid)[n:].any()
-        for i, (_, row) in enumerate(bucket.meta.iterrows()):
-            ref_row, ref = reference[row["run_id"]]
-            pd.testing.assert_series_equal(row.dropna(), ref_row.dropna(), check_names=False)
-            length = int(row["n_frames"])
-            for name in ref.__dataclass_fields__:
-                mine = np.asarray(getattr(batch, name))[i]
-                theirs = np.asarray(getattr(ref, name))[0]
-                if name == "run_index":
-                    continue
-                if mine.ndim >= 1 and name not in ("gravity",):
-                    assert not mine[length:].any() if mine.dtype == bool else True
-                    mine, theirs = mine[:length], theirs[:length]
-                assert mine.dtype == theirs.dtype, name
-                np.testing.assert_array_equal(mine, theirs, err_msg=name)
-            seen.append(row["run_id"])
+        seen += _check_chunk(bucket, reference)
     assert sorted(seen) == sorted(reference)
+
+
+def _check_chunk(bucket, reference) -> list[str]:
+    """Assert every run of a streamed chunk equals its per-run reference, leaf by leaf, and the padding
+    is padding; the chunk's run ids."""
+    batch = bucket.batch
+    assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(batch))
+    n = len(bucket.meta)
+    assert (np.asarray(batch.run_index)[:n] == np.arange(n)).all()
+    assert (np.asarray(batch.run_index)[n:] == -1).all() and not np.asarray(batch.valid)[n:].any()
+    for i, (_, row) in enumerate(bucket.meta.iterrows()):
+        ref_row, ref = reference[row["run_id"]]
+        pd.testing.assert_series_equal(row.dropna(), ref_row.dropna(), check_names=False)
+        length = int(row["n_frames"])
+        for name in ref.__dataclass_fields__:
+            mine = np.asarray(getattr(batch, name))[i]
+            theirs = np.asarray(getattr(ref, name))[0]
+            if name == "run_index":
+                continue
+            if mine.ndim >= 1 and name not in ("gravity",):
+                assert not mine[length:].any() if mine.dtype == bool else True
+                mine, theirs = mine[:length], theirs[:length]
+            assert mine.dtype == theirs.dtype, name
+            np.testing.assert_array_equal(mine, theirs, err_msg=name)
+    return list(bucket.meta["run_id"])
+
+
+def _with_row_groups(path, rows: int) -> str:
+    """The same study rewritten with row groups of `rows` rows (cutting runs), its metadata kept."""
+    out = path.replace(".parquet", f"-rg{rows}.parquet")
+    table = pq.read_table(path)
+    table = table.replace_schema_metadata(pq.ParquetFile(path).metadata.metadata)
+    pq.write_table(table, out, row_group_size=rows)
+    assert pq.ParquetFile(out).metadata.num_row_groups > 3
+    return out
+
+
+def test_by_length_streams_each_length_whole_from_the_row_groups_that_hold_it(tmp_path):
+    """Read bucket by bucket from row groups that cut runs in two (a stretch starts inside a run,
+    another ends inside one): the same runs, bitwise, every chunk of a length together, shortest first."""
+    path = _with_row_groups(_study(tmp_path, _mixed_runs()), 173)
+    reference = _reference(path, jnp.float32)
+    study = open_study(path)
+    bucket_of, frames, _ = chunk_plan(study.lengths, host_budget=2e5)
+    plan = _reading_by_length(study, bucket_of)
+    assert plan is not None  # the test reads bucket by bucket, not the fallback
+    assert sum(len(groups) for groups in plan.values()) > pq.ParquetFile(path).metadata.num_row_groups
+    seen, lengths = [], []
+    for bucket in iter_buckets(path, host_budget=2e5, batch_rows=97, by_length=True):
+        seen += _check_chunk(bucket, reference)
+        lengths.append(bucket.batch.n_frames)
+    assert sorted(seen) == sorted(reference)  # every run once
+    assert lengths == sorted(lengths) and len(set(lengths)) == len(set(frames)) > 2
+
+
+def test_by_length_reads_the_file_once_where_buckets_share_its_row_groups(tmp_path):
+    """One row group holding every bucket: reading it once per bucket is refused and the chunks come
+    as they fill, the same as without by_length."""
+    path = _study(tmp_path, _mixed_runs())
+    study = open_study(path)
+    assert pq.ParquetFile(path).metadata.num_row_groups == 1
+    assert _reading_by_length(study, chunk_plan(study.lengths)[0]) is None
+    ids = [list(b.meta["run_id"]) for b in iter_buckets(path, by_length=True)]
+    assert ids == [list(b.meta["run_id"]) for b in iter_buckets(path)]
 
 
 def test_chunks_follow_the_host_budget_not_the_study():

@@ -93,7 +93,7 @@ def run(args) -> int:
 
     from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
     from jsve.evaluation._aggregate import aggregate, failure_counts
-    from jsve.evaluation._evaluate import evaluate_rules
+    from jsve.evaluation._evaluate import evaluate_rules, in_run_order
     from jsve.evaluation._record import write_evaluation_record
     from jsve.io import _atomic as atomic
     from jsve.io._batching import buckets
@@ -123,9 +123,9 @@ def run(args) -> int:
             missing_gt = [e["source"] for e in study.entries if not e["has_ground_truth"]]
             if study.n_runs and not missing_gt:
                 per_run = evaluate_rules(
-                    iter_buckets(study, dtype=dtype), rules, n_runs=study.n_runs, **options
+                    iter_buckets(study, dtype=dtype, by_length=True), rules, n_runs=study.n_runs, **options
                 )
-                per_run = in_file_order(per_run, study.file_order(per_run["run_id"]))
+                per_run = in_run_order(per_run, study.file_order(per_run["run_id"]))
         else:
             runs = common.load_runs(
                 "evaluate", args.logs, on_error=args.on_error, workers=args.workers, progress=progress
@@ -174,16 +174,6 @@ def run(args) -> int:
         for rule, n_runs, reason in failures[["rule", "n_runs", "failure_reason"]].to_numpy():
             print(f"{rule!s:<{width}}  {n_runs:>6}  {reason}")
     return 0
-
-
-def in_file_order(per_run, position):
-    """Rows rule by rule (as evaluated), each rule's runs in the file's order (`position`), whatever
-    order the chunks came in."""
-    import numpy as np
-
-    rule_rank = {name: k for k, name in enumerate(dict.fromkeys(per_run["rule"]))}
-    order = np.lexsort((np.asarray(position), per_run["rule"].map(rule_rank).to_numpy()))
-    return per_run.iloc[order].reset_index(drop=True)
 
 
 def _record(args, rules, by: list[str], penalty: float):

@@ -243,7 +243,7 @@ def evaluate_rules(
             done.append((bucket.meta, parts))
             for runs, chunk in iter_chunks(host, size):
                 n = max(0, min(runs.stop, len(bucket.meta)) - runs.start)  # streamed chunks end in padding
-                features = _features(chunk)
+                features = batch_features(chunk)
                 if on_chunk is not None:
                     on_chunk(bucket.meta.iloc[runs.start : runs.start + n], chunk, features)
                 for k, (_, rule) in enumerate(rules):
@@ -262,6 +262,14 @@ def evaluate_rules(
         for meta, parts in done
     ]
     return pd.concat(tables, ignore_index=True)
+
+
+def in_run_order(per_run: pd.DataFrame, position) -> pd.DataFrame:
+    """`evaluate_rules`' rows rule by rule (as evaluated), each rule's runs by `position` (one number per
+    row, e.g. the run's place in the file or in a fit's run table), whatever order the chunks came in."""
+    rule_rank = {name: k for k, name in enumerate(dict.fromkeys(per_run["rule"]))}
+    order = np.lexsort((np.asarray(position), per_run["rule"].map(rule_rank).to_numpy()))
+    return per_run.iloc[order].reset_index(drop=True)
 
 
 def _run_table(ev: Evaluation, meta: pd.DataFrame, rule_name: str, switch_model: str) -> pd.DataFrame:
@@ -312,7 +320,3 @@ def _holds_too_much() -> bool:
     (a bucket's shapes are not seen again) once above the threshold, they cost a reload only there."""
     held = resident_bytes()
     return held is not None and held > RELEASE_ABOVE_BYTES
-
-
-_features = jax.jit(batch_features)
-"""A chunk's features, compiled once per chunk shape and shared by every rule evaluated on it."""

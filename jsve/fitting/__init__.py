@@ -34,7 +34,9 @@ from jsve.fitting._halving import halving_search as halving_search
 from jsve.fitting._halving import halving_searches as halving_searches
 from jsve.fitting._halving import rung_sizes as rung_sizes
 from jsve.fitting._halving import stratified_order as stratified_order
-from jsve.fitting._packing import cheaper_in_one_part as cheaper_in_one_part
+from jsve.fitting._packing import LAYOUT_CLASSES as LAYOUT_CLASSES
+from jsve.fitting._packing import cheapest_layout as cheapest_layout
+from jsve.fitting._packing import layout_shapes as layout_shapes
 from jsve.fitting._packing import one_part_shape as one_part_shape
 from jsve.fitting._packing import pack_runs as pack_runs
 from jsve.fitting._packing import scan_cost as scan_cost

@@ -258,14 +258,14 @@ def search_cost(
     ceil(S / size) calls per part, ceil(calls / D) rounds on the D devices, each scanning
     size x runs x frames lane-frames.
     """
-    from jsve.fitting._packing import cheaper_in_one_part, one_part_shape, packing
+    from jsve.fitting._packing import cheapest_layout, layout_shapes, packing
     from jsve.fitting._search import call_size
 
-    in_one = runs is not None and layout_for > 0
-    if in_one and cheaper_in_one_part(size.run_counts, size.parts, runs, layout_for):
-        shapes = [one_part_shape(size.parts, runs)]
-    elif runs is None:
+    if runs is None:
         shapes = list(size.parts)
+    elif layout_for > 0:
+        n_classes = cheapest_layout(size.run_counts, size.parts, runs, layout_for)
+        shapes = layout_shapes(size.run_counts, size.parts, runs, n_classes)
     else:
         shapes = [(item.frames, item.runs) for item in packing(size.run_counts, size.parts, runs)]
     units, keys = 0, set()

@@ -129,7 +129,12 @@ class Packed:
     whole: bool
 
 
-def packing(run_counts: Sequence[int], parts: Sequence[tuple[int, int]], runs: np.ndarray) -> list[Packed]:
+def packing(
+    run_counts: Sequence[int],
+    parts: Sequence[tuple[int, int]],
+    runs: np.ndarray,
+    n_classes: int = FRAME_CLASSES,
+) -> list[Packed]:
     """How `runs` (global indices, any order, no repeats) are laid out for the kernel: a part all of whose
     real runs are selected as it is; the others' selected runs packed by length class (`frame_classes`),
     each class in parts of its longest part's frames: parts of PACK_RUNS runs, the rest in a power of 2
@@ -137,12 +142,13 @@ def packing(run_counts: Sequence[int], parts: Sequence[tuple[int, int]], runs: n
 
     Arguments:
         run_counts: real runs per part; parts: (frames, runs with padding) per part.
+        n_classes: length classes (`frame_classes`).
     Returns:
         Packed per kernel part, whole parts first (in part order), then the classes (shortest first).
     """
     chosen = np.zeros(sum(run_counts), bool)
     chosen[np.asarray(runs, np.int64)] = True
-    classes = frame_classes([f for f, _ in parts], [r for _, r in parts])
+    classes = frame_classes([f for f, _ in parts], [r for _, r in parts], n_classes)
     whole, partial = [], {}
     start = 0
     for p, (n_real, (frames, part_runs)) in enumerate(zip(run_counts, parts, strict=True)):
@@ -185,16 +191,17 @@ class PackedParts(Sequence):
 
 
 def subset_parts(
-    parts: Sequence[SearchBatch], run_counts: Sequence[int], runs: np.ndarray
+    parts: Sequence[SearchBatch], run_counts: Sequence[int], runs: np.ndarray, n_classes: int = FRAME_CLASSES
 ) -> tuple[PackedParts, list[int], np.ndarray]:
     """The kernel's inputs for a subset of the runs (`packing`), gathered as they are read.
 
     Arguments:
         runs: global run indices (data order, as FitData.meta), any order, no repeats.
+        n_classes: length classes (`frame_classes`).
     Returns:
         (parts, real runs per part, the global run index of each result column in order).
     """
-    layout = packing(run_counts, [(p.n_frames, p.n_runs) for p in parts], runs)
+    layout = packing(run_counts, [(p.n_frames, p.n_runs) for p in parts], runs, n_classes)
     starts = np.concatenate([[0], np.cumsum(run_counts)[:-1]]).astype(np.int64)
     columns = [starts[p] + local for item in layout for p, local in item.picks]
     counts = [item.n_real for item in layout]
@@ -206,7 +213,7 @@ SCAN_STEP_LANES = 1900
 takes about 48 us + 0.025 us x L on the 2-core machine (measured on the 3,410-log study's 256 polish
 runs: 0.25 s for 2 settings in one part of 256 runs x 4,096 frames, 0.62 s for 10, 2.2 s for 38 in
 calls of 32; 0.86 s and 1.96 s for 10 and 38 in its 4 length classes), so a narrow call is dominated
-by its steps. `cheaper_in_one_part` weighs calls by it."""
+by its steps. `cheapest_layout` weighs calls by it."""
 
 
 ONE_PART_RUNS = 512
@@ -229,30 +236,48 @@ def one_part_shape(parts: Sequence[tuple[int, int]], runs) -> tuple[int, int]:
     return max(f for f, _ in parts), len(np.unique(np.asarray(runs, np.int64)))
 
 
-def cheaper_in_one_part(
+LAYOUT_CLASSES = (2, FRAME_CLASSES)
+"""Length classes `cheapest_layout` weighs against one part. Two classes pad less than one part and
+call fewer times than four: 400 settings on 512 runs (the heat map) took 21.3 s in 2, 23.1 s in one
+part and 24.6 s in 4 (analysis/bench_layout.py)."""
+
+
+def layout_shapes(
+    run_counts: Sequence[int], parts: Sequence[tuple[int, int]], runs, n_classes: int
+) -> list[tuple[int, int]]:
+    """The (frames, runs) of each kernel part that `subset_layout` gives `runs` of parts of these
+    (frames, runs) shapes: n_classes 0 is one packed part, else `packing` by that many length classes."""
+    if n_classes == 0:
+        return [one_part_shape(parts, runs)]
+    return [(item.frames, item.runs) for item in packing(run_counts, parts, runs, n_classes)]
+
+
+def cheapest_layout(
     run_counts: Sequence[int], parts: Sequence[tuple[int, int]], runs, n_settings: int
-) -> bool:
-    """Whether n_settings settings on `runs` cost less in one part (`pack_runs`: one call per settings
-    chunk, every run padded to the longest part's frames) than in length classes (`packing`: a call per
-    class, less padding), by `scan_cost`. Few settings favour the one part (measured: 10 settings on
-    256 runs, 0.62 s against 0.86 s), many the classes (38: 2.2 s against 1.96 s). Never more than
-    ONE_PART_RUNS runs: one part pads every run to the study's longest."""
-    if len(np.unique(np.asarray(runs, np.int64))) > ONE_PART_RUNS:
-        return False
-    classes = [(item.frames, item.runs) for item in packing(run_counts, parts, runs)]
-    return scan_cost([one_part_shape(parts, runs)], n_settings) < scan_cost(classes, n_settings)
+) -> int:
+    """How n_settings settings on `runs` are scored fastest by `scan_cost`: 0 for one part (`pack_runs`:
+    one call per settings chunk, every run padded to the longest part's frames), else the number of
+    length classes (LAYOUT_CLASSES; `packing`: a call per class, less padding); the first of equals.
+    Few settings favour the one part (measured: 10 settings on 256 runs, 0.62 s against 0.86 s in 4
+    classes), many the classes (38: 2.2 s against 1.96 s). Never one part above ONE_PART_RUNS runs: it
+    pads every run to the study's longest."""
+    one_part = len(np.unique(np.asarray(runs, np.int64))) <= ONE_PART_RUNS
+    candidates = ([0] if one_part else []) + list(LAYOUT_CLASSES)
+    costs = [scan_cost(layout_shapes(run_counts, parts, runs, k), n_settings) for k in candidates]
+    return candidates[int(np.argmin(costs))]
 
 
 def subset_layout(
     parts: Sequence[SearchBatch], run_counts: Sequence[int], runs, n_settings: int
 ) -> tuple[Sequence[SearchBatch], list[int], np.ndarray]:
-    """`subset_parts` or one packed part (`pack_runs`), whichever `cheaper_in_one_part` says scores
-    n_settings settings on `runs` faster; the same (parts, real runs per part, global run index of each
-    result column). A run scores the same in either (tests/test_polish.py)."""
+    """One packed part (`pack_runs`) or `subset_parts` by length class, as `cheapest_layout` says scores
+    n_settings settings on `runs` fastest; the same (parts, real runs per part, global run index of each
+    result column). A run scores the same in any (tests/test_polish.py)."""
     runs = np.unique(np.asarray(runs, np.int64))
-    if cheaper_in_one_part(run_counts, [(p.n_frames, p.n_runs) for p in parts], runs, n_settings):
+    n_classes = cheapest_layout(run_counts, [(p.n_frames, p.n_runs) for p in parts], runs, n_settings)
+    if n_classes == 0:
         return [pack_runs(parts, run_counts, runs)], [len(runs)], runs
-    return subset_parts(parts, run_counts, runs)
+    return subset_parts(parts, run_counts, runs, n_classes)
 
 
 def pack_runs(parts: Sequence[SearchBatch], run_counts: Sequence[int], runs) -> SearchBatch:
@@ -287,6 +312,8 @@ __all__ = [
     "subset_parts",
     "SCAN_STEP_LANES",
     "scan_cost",
-    "cheaper_in_one_part",
+    "LAYOUT_CLASSES",
+    "layout_shapes",
+    "cheapest_layout",
     "subset_layout",
 ]

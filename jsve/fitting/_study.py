@@ -35,7 +35,7 @@ from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination
 from jsve.evaluation._aggregate import aggregate, group_weights
-from jsve.evaluation._evaluate import evaluate_rules
+from jsve.evaluation._evaluate import evaluate_rules, in_run_order
 from jsve.fitting._crossval import (
     compare,
     cross_validate,
@@ -598,10 +598,13 @@ def run_study(
         rules = [(name, preset(name)) for name in PRESETS]
         rules += [(fitted_rule_name(f), r.rule) for f, r in fits.items()]
         levels = SveLevelSums(_sve_combinations(fits)) if has_levels else None
+        # Length by length: the pass drops each length's executables once past it (jsve._memory)
+        # without meeting that length again; the table is then put in the runs' order.
         per_run = evaluate_rules(
-            data.full_buckets(), rules, n_runs=data.n_runs, objective=data.config,
+            data.full_buckets(by_length=True), rules, n_runs=data.n_runs, objective=data.config,
             on_chunk=None if levels is None else levels.add, **eval_kwargs,
         )  # fmt: skip
+        per_run = in_run_order(per_run, data.meta_order(per_run["run_id"]))
         write_table(per_run, out, "runs")
         group = [c for c in ("disturbance", "level") if c in per_run.columns]
         write_table(

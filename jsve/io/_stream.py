@@ -147,18 +147,59 @@ class _Block:
     cols: dict[str, np.ndarray]
 
 
-def _blocks(study: ParquetStudy, columns: list[str], batch_rows: int) -> Iterator[_Block]:
+def _blocks(
+    study: ParquetStudy, columns: list[str], batch_rows: int, row_groups: list[int] | None = None
+) -> Iterator[_Block]:
     """Whole runs in file order, a few Arrow record batches at a time; the rows' grouping (run_id,
-    frame) is checked against the run list as they come."""
+    frame) is checked against the run list as they come.
+
+    row_groups: read only these row groups of the file (sorted): the runs wholly inside each stretch
+    of consecutive ones come, a run cut by a stretch's edge does not. None: every run of the file.
+    """
     # pre_buffer off: with it, Arrow's reader kept every row group it had read (1 GB per 60 batches of
     # a 3,600-frame study: `jsve evaluate` of 10,230 logs grew to 7 GB); without it memory stays flat.
     pf = pq.ParquetFile(study.path, pre_buffer=False)
+    first_row = _row_group_starts(pf)
+    groups = list(range(pf.num_row_groups)) if row_groups is None else list(row_groups)
+    for stretch in _consecutive(groups):
+        yield from _stretch_blocks(pf, study, columns, batch_rows, stretch, first_row)
+
+
+def _row_group_starts(pf: pq.ParquetFile) -> np.ndarray:
+    """File row of each row group's first row, and the file's row count after them."""
+    counts = [pf.metadata.row_group(i).num_rows for i in range(pf.num_row_groups)]
+    return np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+
+
+def _consecutive(groups: list[int]) -> list[list[int]]:
+    """Sorted row group numbers cut into stretches of consecutive ones."""
+    stretches: list[list[int]] = []
+    for g in groups:
+        if stretches and stretches[-1][-1] == g - 1:
+            stretches[-1].append(g)
+        else:
+            stretches.append([g])
+    return stretches
+
+
+def _stretch_blocks(pf, study, columns, batch_rows, groups: list[int], first_row: np.ndarray):
+    """`_blocks` of one stretch of consecutive row groups: its rows before the first run that starts in
+    it are skipped, and a run that goes on past its end is left out (the whole file: an error)."""
     offsets = np.concatenate([[0], np.cumsum(study.lengths)])
+    whole_file = groups[0] == 0 and groups[-1] == pf.num_row_groups - 1
+    start_row, end_row = int(first_row[groups[0]]), int(first_row[groups[-1] + 1])
+    run = int(np.searchsorted(offsets[:-1], start_row, side="left"))  # the first run not yet handed on
+    skip = int(offsets[run]) - start_row if run < study.n_runs else end_row - start_row
     pending: list[pa.RecordBatch] = []
-    row0 = 0  # file row of the first pending row
-    run = 0  # the first run not yet handed on
+    row0 = start_row + skip  # file row of the first pending row
     n_pending = 0
-    for rb in pf.iter_batches(batch_size=batch_rows, columns=["run_id", "frame", *columns], use_threads=True):
+    batches = pf.iter_batches(
+        batch_size=batch_rows, row_groups=groups, columns=["run_id", "frame", *columns], use_threads=True
+    )
+    for rb in batches:
+        if skip:  # the tail of a run that began before the stretch
+            cut = min(skip, rb.num_rows)
+            rb, skip = rb.slice(cut), skip - cut
         pending.append(rb)
         n_pending += rb.num_rows
         # Runs wholly inside the pending rows.
@@ -173,7 +214,7 @@ def _blocks(study: ParquetStudy, columns: list[str], batch_rows: int) -> Iterato
         yield _Block(run, offsets[run:stop] - row0, study.lengths[run:stop], cols)
         pending, n_pending = rest.to_batches(), rest.num_rows
         row0, run = row0 + n_rows, stop
-    if run != study.n_runs or n_pending:
+    if whole_file and (run != study.n_runs or n_pending):
         raise LogFormatError(study.path, None, "rows end before the runs of its run list do")
 
 
@@ -417,6 +458,7 @@ def iter_buckets(
     ratio: float = LADDER_RATIO,
     host_budget: float = DEFAULT_HOST_BUDGET,
     batch_rows: int = 131_072,
+    by_length: bool = False,
 ) -> Iterator[Bucket]:
     """The study's runs as Buckets of one chunk each, streamed from the file (see the module docstring).
 
@@ -430,6 +472,11 @@ def iter_buckets(
         ratio: the padded-length ladder's step.
         host_budget: bytes of partly filled chunks held at once (the peak follows it, not the study).
         batch_rows: rows per Arrow record batch read.
+        by_length: every chunk of a length bucket before any of the next, shortest first, read bucket by
+            bucket from the row groups that hold its runs (those shared by two buckets are read twice;
+            where that would read more than READ_AGAIN_AT_MOST times the file, the file is read once
+            and the chunks come as they fill). A pass that compiles per chunk shape then meets each
+            shape once, so what it compiled for one length can be dropped for good (jsve._memory).
     """
     if not isinstance(study, ParquetStudy):
         study = open_study(study)
@@ -439,11 +486,47 @@ def iter_buckets(
     bucket_of, n_frames, sizes = chunk_plan(study.lengths, ratio=ratio, host_budget=host_budget, fdt=fdt)
     columns = [c for c in schema.required_columns(study.version) + schema.GT_COLUMNS + schema.WORLD_COLUMNS
                if c in study.columns]  # fmt: skip
+    plan = _reading_by_length(study, bucket_of) if by_length else None
+    if plan is None:
+        yield from _fill(study, _blocks(study, columns, batch_rows), bucket_of, n_frames, sizes, fdt)
+        return
+    for g in np.argsort(n_frames, kind="stable"):
+        only_g = np.where(bucket_of == g, g, -1)
+        blocks = _blocks(study, columns, batch_rows, row_groups=plan[g])
+        yield from _fill(study, blocks, only_g, n_frames, sizes, fdt)
+
+
+READ_AGAIN_AT_MOST = 1.5
+"""`iter_buckets(by_length=True)` reads the file bucket by bucket only where that reads at most this
+many times its rows (row groups shared by buckets are read once for each)."""
+
+
+def _reading_by_length(study: ParquetStudy, bucket_of: np.ndarray) -> dict[int, list[int]] | None:
+    """The row groups holding each bucket's runs, or None where reading them bucket by bucket would
+    read more than READ_AGAIN_AT_MOST times the file's rows."""
+    first_row = _row_group_starts(pq.ParquetFile(study.path))
+    offsets = np.concatenate([[0], np.cumsum(study.lengths)])
+    plan, rows = {}, 0
+    for g in np.unique(bucket_of):
+        runs = np.flatnonzero(bucket_of == g)
+        first = np.searchsorted(first_row, offsets[runs], side="right") - 1
+        last = np.searchsorted(first_row, offsets[runs + 1] - 1, side="right") - 1
+        groups = sorted({int(k) for a, b in zip(first, last, strict=True) for k in range(a, b + 1)})
+        plan[int(g)] = groups
+        rows += int(sum(first_row[k + 1] - first_row[k] for k in groups))
+    return plan if rows <= READ_AGAIN_AT_MOST * study.n_frames else None
+
+
+def _fill(study, blocks, bucket_of, n_frames, sizes, fdt) -> Iterator[Bucket]:
+    """Blocks' runs scattered into their buckets' chunks, each handed on when full and the partly filled
+    ones at the end; runs of bucket -1 are passed over."""
     open_chunks: dict[int, _Chunk] = {}
-    for block in _blocks(study, columns, batch_rows):
+    for block in blocks:
         values = _frame_values(study, block, fdt)
         runs = np.arange(block.first, block.first + len(block.starts))
         for g in np.unique(bucket_of[runs]):
+            if g < 0:
+                continue
             mine = np.flatnonzero(bucket_of[runs] == g)
             while len(mine):
                 chunk = open_chunks.get(g) or _Chunk(sizes[g], n_frames[g], values)
