@@ -284,7 +284,6 @@ def replay(
     )  # fmt: skip
 
 
-@jax.jit
 def batch_features(batch: LogBatch) -> FrameFeatures:
     """FrameFeatures of every frame of the batch, computed once and shared by all rules.
 
@@ -292,6 +291,11 @@ def batch_features(batch: LogBatch) -> FrameFeatures:
     from the persistent cache) one by one, 254 of them and 4.4 s of the 16 s that loading the
     3,410-log study for `jsve fit` took (FitData.from_parquet; 12 s now, with its digest hashed on a
     thread)."""
+    return _compiled_features(batch)
+
+
+@jax.jit
+def _compiled_features(batch: LogBatch) -> FrameFeatures:
     return frame_features(
         batch.n_extracted, batch.n_inliers, batch.n_frustum, batch.bins, batch.n_features[:, None]
     )
