@@ -123,7 +123,7 @@ def run(args) -> int:
             missing_gt = [e["source"] for e in study.entries if not e["has_ground_truth"]]
             if study.n_runs and not missing_gt:
                 per_run = evaluate_rules(
-                    iter_buckets(study, dtype=dtype, by_length=True), rules, n_runs=study.n_runs, **options
+                    iter_buckets(study, dtype=dtype), rules, n_runs=study.n_runs, **options
                 )
                 per_run = in_run_order(per_run, study.file_order(per_run["run_id"]))
         else:
