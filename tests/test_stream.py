@@ -133,6 +133,24 @@ def test_by_length_streams_each_length_whole_from_the_row_groups_that_hold_it(tm
     assert lengths == sorted(lengths) and len(set(lengths)) == len(set(frames)) > 2
 
 
+def test_by_length_never_hands_on_a_bucket_short_of_runs(tmp_path, monkeypatch):
+    """A length read from row groups that miss some of its runs is an error naming the file and the
+    row groups, not a shorter bucket."""
+    import jsve.io._stream as stream
+
+    path = _with_row_groups(_study(tmp_path, _mixed_runs()), 173)
+    full = stream._reading_by_length
+
+    def missing_one(study, bucket_of):
+        plan = full(study, bucket_of)
+        longest = max(plan, key=lambda g: len(plan[g]))
+        return {**plan, longest: plan[longest][1:]}
+
+    monkeypatch.setattr(stream, "_reading_by_length", missing_one)
+    with pytest.raises(LogFormatError, match=r"rg173\.parquet.*row groups \[.*\] hold \d+ of the \d+ runs"):
+        list(iter_buckets(path, host_budget=2e5, by_length=True))
+
+
 def test_by_length_reads_the_file_once_where_buckets_share_its_row_groups(tmp_path):
     """One row group holding every bucket: reading it once per bucket is refused and the chunks come
     as they fill, the same as without by_length."""

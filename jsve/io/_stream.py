@@ -493,7 +493,15 @@ def iter_buckets(
     for g in np.argsort(n_frames, kind="stable"):
         only_g = np.where(bucket_of == g, g, -1)
         blocks = _blocks(study, columns, batch_rows, row_groups=plan[g])
-        yield from _fill(study, blocks, only_g, n_frames, sizes, fdt)
+        handed = 0
+        for bucket in _fill(study, blocks, only_g, n_frames, sizes, fdt):
+            handed += len(bucket.meta)
+            yield bucket
+        if handed != np.count_nonzero(only_g >= 0):  # never a bucket short of runs without a word
+            raise LogFormatError(
+                study.path, None, f"row groups {plan[g]} hold {handed} of the "
+                f"{np.count_nonzero(only_g >= 0)} runs of {n_frames[g]} frames its run list places there",
+            )  # fmt: skip
 
 
 READ_AGAIN_AT_MOST = 1.5
