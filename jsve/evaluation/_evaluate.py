@@ -232,7 +232,9 @@ def evaluate_rules(
 
         for bucket in buckets:
             if last_frames not in (None, bucket.batch.n_frames) and _holds_too_much():
-                release_memory()  # the last length's executables: not needed again in this pass
+                # the last length's executables: buckets by length (iter_buckets' by_length) never need
+                # them again; in the order chunks fill, a length may come back and is reloaded
+                release_memory()
             last_frames = bucket.batch.n_frames
             cap = runs_per_chunk or runs_per_chunk_for(bucket.batch.n_frames)
             size = ladder_chunk_size(bucket.batch.n_runs, cap)
@@ -317,6 +319,7 @@ def _holds_too_much() -> bool:
     """The process holds more than RELEASE_ABOVE_BYTES resident (jsve._memory). The executables of every
     chunk shape and rule structure of a pass stay loaded until it ends: on the 3,410-log study they
     took `jsve fit`'s evaluation of 8 rules from 2.3 to 4.8 GB; dropped where the frame length changes
-    (a bucket's shapes are not seen again) once above the threshold, they cost a reload only there."""
+    once above the threshold, they cost a reload only where a length comes back (never when the
+    buckets come by length, as `jsve fit` streams them)."""
     held = resident_bytes()
     return held is not None and held > RELEASE_ABOVE_BYTES
