@@ -284,7 +284,7 @@ def test_round_trip_is_exact(build, tmp_path, variant, gt, world):
         assert missing.any(axis=1).sum() == missing.all(axis=1).sum()
     lines = log.read_bytes().split(b"\n")
     assert lines[-1] == b"" and lines[-2] == f"{schema.END_MARKER}{N_FRAMES}".encode()
-    assert lines[0].startswith(b"# jsve-log v2 {")
+    assert lines[0].startswith(b"# jsve-log v3 {")
     assert lines[1].startswith(b"t_ns,state,imu_init,map_id,imu_ba2,n_extracted,")
     assert lines[1] == ",".join(schema.column_order(schema.FORMAT_VERSION, gt, world)).encode()
     # Frame 0 (state -1) has no pose: ten empty fields after the bins.

@@ -370,7 +370,7 @@ def test_ingest_carries_map_columns_and_missing_poses(mixed_versions, tmp_path):
     assert pf.metadata.metadata[b"jsve.format"] == b"2"
     entries = json.loads(pf.metadata.metadata[b"jsve.runs"])
     assert [e["source"] for e in entries if e["log_version"] == 1] == v1
-    assert sum(e["log_version"] == 2 for e in entries) == 15
+    assert sum(e["log_version"] == schema.FORMAT_VERSION for e in entries) == 15
 
 
 def _as_format_1(path: Path, out: Path) -> None:

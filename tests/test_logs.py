@@ -103,7 +103,7 @@ def test_round_trip_is_exact(tmp_path, seed, with_gt):
     assert back.source == str(path)
     assert isinstance(back.frames.index, pd.RangeIndex)
     lines = read_lines(path)
-    assert lines[0] == "# jsve-log v2 " + json.dumps(run.meta)
+    assert lines[0] == "# jsve-log v3 " + json.dumps(run.meta)
     assert lines[1].startswith("t_ns,state,imu_init,map_id,imu_ba2,n_extracted,")
     assert lines[1] == ",".join(schema.COLUMNS if with_gt else schema.REQUIRED_COLUMNS)
     assert lines[-1] == f"{schema.END_MARKER}400"
@@ -211,7 +211,7 @@ def test_empty_file(tmp_path):
 
 def test_wrong_magic(log):
     edit_line(log, 1, "# some other tool {}")
-    expect(log, LogFormatError, 1, reason="not a jsve log: line 1 must start with '# jsve-log v2 '")
+    expect(log, LogFormatError, 1, reason="not a jsve log: line 1 must start with '# jsve-log v3 '")
 
 
 def test_missing_magic_line(log):
@@ -219,11 +219,11 @@ def test_missing_magic_line(log):
     expect(log, LogFormatError, 1, reason="found 't_ns,state,imu_init,")
 
 
-@pytest.mark.parametrize("version", ["v3", "v0", "v2.1"])
+@pytest.mark.parametrize("version", ["v4", "v0", "v2.1"])
 def test_other_format_version(log, version):
     edit_line(log, 1, f'# jsve-log {version} {{"sequence": "X", "run": 1, "fps": 20}}')
     err = expect(log, LogFormatError, 1)
-    assert err.reason == f"unsupported format version '{version}' (this reader reads v1 and v2)"
+    assert err.reason == f"unsupported format version '{version}' (this reader reads v1, v2 and v3)"
 
 
 def test_metadata_not_json(log):
@@ -288,7 +288,7 @@ def test_header_wrong_order(log):
         LogFormatError,
         2,
         column="n_inliers",
-        reason="wrong column order: header position 6 holds 'n_inliers', v2 expects 'n_extracted'",
+        reason="wrong column order: header position 6 holds 'n_inliers', v3 expects 'n_extracted'",
     )
 
 
@@ -762,12 +762,12 @@ def test_parse_log_of_v1_bytes_warns_too(tmp_path):
     assert version == 1 and run.frames["map_id"].eq(0).all()
 
 
-def test_v1_log_is_written_back_as_v2(tmp_path):
+def test_v1_log_is_written_back_as_the_current_version(tmp_path):
     _, path = v1_run(tmp_path)
     with pytest.warns(LogVersionWarning):
         run = logs.read_log(path)
     out = logs.write_log(run, tmp_path / "v2.csv")
-    assert read_lines(out)[0].startswith("# jsve-log v2 ")
+    assert read_lines(out)[0].startswith("# jsve-log v3 ")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert same_bits(logs.read_log(out).frames, run.frames)

@@ -140,6 +140,58 @@ EDITS = (
         _SCALE_REFINED,
         _SCALE_REFINED + "    JSVE_HOOK_MAP_CHANGED(mpCurrentKeyFrame->GetMap());" + HOOK_TAG + "\n",
     ),
+    # Format v3: the events (jsve::Event) at their places.
+    Edit(
+        "src/Tracking.cc",
+        "    mlbLost = lbLost;\n",
+        "    mlbLost = lbLost;\n    JSVE_HOOK_EVENT(kEventReset);" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Tracking.cc",
+        "void Tracking::Reset(bool bLocMap)\n{\n",
+        "void Tracking::Reset(bool bLocMap)\n{\n    JSVE_HOOK_RESET_ALL();" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Tracking.cc",
+        "void Tracking::CreateMapInAtlas()\n{\n",
+        "void Tracking::CreateMapInAtlas()\n{\n    JSVE_HOOK_EVENT(kEventNewMap);" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Map.cc",
+        "    mbImuInitialized = true;\n",
+        "    if (!mbImuInitialized) JSVE_HOOK_EVENT(kEventImuInit);" + HOOK_TAG
+        + "\n    mbImuInitialized = true;\n",
+    ),
+    Edit(
+        "src/Map.cc",
+        "    mbIMU_BA1 = true;\n",
+        "    if (!mbIMU_BA1) JSVE_HOOK_EVENT(kEventBa1);" + HOOK_TAG + "\n    mbIMU_BA1 = true;\n",
+    ),
+    Edit(
+        "src/Map.cc",
+        "    mbIMU_BA2 = true;\n",
+        "    if (!mbIMU_BA2) JSVE_HOOK_EVENT(kEventBa2);" + HOOK_TAG + "\n    mbIMU_BA2 = true;\n",
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        '#include "LoopClosing.h"\n',
+        '#include "LoopClosing.h"\n#include "jsve_orbslam3_hook.hpp"' + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        "void LoopClosing::CorrectLoop()\n{\n",
+        "void LoopClosing::CorrectLoop()\n{\n    JSVE_HOOK_EVENT(kEventLoop);" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        "void LoopClosing::MergeLocal()\n{\n",
+        "void LoopClosing::MergeLocal()\n{\n    JSVE_HOOK_EVENT(kEventMerge);" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        "void LoopClosing::MergeLocal2()\n{\n",
+        "void LoopClosing::MergeLocal2()\n{\n    JSVE_HOOK_EVENT(kEventMerge);" + HOOK_TAG + "\n",
+    ),
 )  # fmt: skip
 """The anchored edits, in order. Anchors are ORB-SLAM3 v1.0 (@4452a3c) lines; see docs/frontend.md."""
 

@@ -3,11 +3,13 @@
 Each run calls the driver that `jsve frontend build` made (BUILD/bin/jsve_orbslam3) and writes, under
 OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
 
-    run_<k>.csv               the format-v2 log (jsve_log.hpp; `.partial` while running or after a failure)
+    run_<k>.csv               the format-v3 log (jsve_log.hpp; `.partial` while running or after a failure)
     run_<k>.orbslam3.txt      ORB-SLAM3's own trajectory (SaveTrajectoryEuRoC: body poses, stamps in ns)
     run_<k>.orbslam3-euroc.txt   the same as a EuRoC CSV (int ns, p, q wxyz), for `jsve ape --format
                               euroc` against the dataset's state_groundtruth_estimate0/data.csv
-    run_<k>.summary.json      the driver's summary: frames, tracking and hook seconds, exit status
+    run_<k>.saved-from-log.txt   the same trajectory rebuilt from the log alone (jsve.io._saved_trajectory)
+    run_<k>.summary.json      the driver's summary: frames, tracking and hook seconds, exit status; the
+                              events, and the ATE of both trajectories (saved_trajectory_scores)
     run_<k>.console.txt       ORB-SLAM3's console output
 
 Runs are resumable: a complete log whose metadata `generator` equals the run's key (driver build, hook,
@@ -224,8 +226,44 @@ def run_one(
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     summary.update(exit_code=code, wall_seconds=round(time.monotonic() - start, 2), log=str(job.log),
                    generator=job.meta["generator"])  # fmt: skip
+    summary.update(saved_trajectory_scores(job.log, job.dataset.path))
     summary_path.write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def saved_trajectory_scores(log: Path, dataset: Path) -> dict:
+    """What a run's summary says of its saved trajectory: ORB-SLAM3's own file and the one jsve rebuilds
+    from the log (written beside it as `run_<k>.saved-from-log.txt`, EuRoC CSV), each scored against the
+    dataset's ground truth as `jsve ape --align se3` does, their difference (a mismatch is a defect of
+    the hook or the rebuild), the share of frames saved and the run's events.
+
+    Returns:
+        {} where the log is incomplete; else `events` and, as far as they exist, `saved_coverage`,
+        `ate_saved_file_m`, `ate_from_log_m`, `ate_difference_m` (None where a part is missing).
+    """
+    from jsve.io._logs import read_log
+    from jsve.io._saved_trajectory import euroc_ate, event_counts, saved_trajectory, write_euroc
+
+    if not log.is_file():
+        return {}
+    run = read_log(log)
+    out: dict = {"events": event_counts(run)}
+    if not run.has_keyframes or run.trailers is None:
+        return out
+    saved = saved_trajectory(run)
+    gt = dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    file = Path(f"{log.with_suffix('')}.orbslam3-euroc.txt")
+    rebuilt = Path(f"{log.with_suffix('')}.saved-from-log.txt")
+    out.update(saved_coverage=None if saved is None else round(saved.coverage, 6), ate_saved_file_m=None,
+               ate_from_log_m=None, ate_difference_m=None)  # fmt: skip
+    if saved is None or len(saved.rows) == 0 or not gt.is_file():
+        return out
+    write_euroc(saved.t_ns, saved.pose, rebuilt)
+    out["ate_from_log_m"] = euroc_ate(gt, rebuilt)[0]
+    if file.is_file():
+        out["ate_saved_file_m"] = euroc_ate(gt, file)[0]
+        out["ate_difference_m"] = abs(out["ate_saved_file_m"] - out["ate_from_log_m"])
+    return out
 
 
 def write_euroc_trajectory(orbslam3: Path, out: Path) -> None:
@@ -243,16 +281,17 @@ def write_euroc_trajectory(orbslam3: Path, out: Path) -> None:
 
 
 def _recorded_generator(log: Path) -> str | None:
-    """The `generator` key in a log's line-1 metadata (`# jsve-log v2 {...}`), None when it has none
-    or line 1 is not a v2 log's."""
+    """The `generator` key in a log's line-1 metadata (`# jsve-log v3 {...}`), None when it has none
+    or line 1 is not a jsve log's."""
     from jsve.io import schema
 
     with open(log, encoding="utf-8-sig") as stream:
         line = stream.readline()
-    if not line.startswith(schema.MAGIC):
+    magic = next((m for m in schema.MAGICS.values() if line.startswith(m)), None)
+    if magic is None:
         return None
     try:
-        return json.loads(line[len(schema.MAGIC) :]).get("generator")
+        return json.loads(line[len(magic) :]).get("generator")
     except json.JSONDecodeError:
         return None
 

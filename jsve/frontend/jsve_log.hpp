@@ -1,4 +1,4 @@
-// jsve_log.hpp: header-only C++17 writer of jsve tracking log format v2.
+// jsve_log.hpp: header-only C++17 writer of jsve tracking log format v3.
 //
 // Part of jsve (GPL-3.0-or-later). The format itself is defined in jsve/io/_schema.py and described
 // in docs/log-format.md; the hook guide for ORB-SLAM3 v1.0 is docs/frontend.md. This header has no
@@ -27,6 +27,12 @@
 // similarity W from the frame's map's first world frame to the world frame its vis_* pose is in,
 // x_current = world_s * R(world_q) * x_first + world_t for points (the identity until the front-end
 // first re-expresses the map, as ORB-SLAM3's Map::ApplyScaledRotation does without a new map id).
+// A third optional group, after those (Options::keyframes): events, traj, ref_kf, rel_px, rel_py,
+// rel_pz, rel_qw, rel_qx, rel_qy, rel_qz: the front-end's events at this frame (a bit set of
+// Event), whether the frame entered the front-end's saved trajectory, its reference keyframe and its
+// camera pose relative to that keyframe's camera (T_cr; empty when ref_kf is -1). Trailer lines
+// (`# jsve-log trailer KEY JSON`, LogWriter::trailer) may follow the frames, before the end marker:
+// the front-end's state at the end of the run (docs/log-format.md, "Format v3").
 //
 // Guarantees
 //   * A log never looks complete when it is not. Lines go to `<path>.partial`; the end marker
@@ -89,13 +95,14 @@
 
 namespace jsve {
 
-inline constexpr int kFormatVersion = 2;
+inline constexpr int kFormatVersion = 3;
 inline constexpr double kFloatMax = 3.4028234663852886e38;  // float32's largest: jsve.io._schema.FLOAT_MAX
 inline constexpr int kBinMax = 65535;                        // uint16: jsve.io._schema.BIN_MAX
 inline constexpr int kBins = 64;          // SVE bins per frame, 8 x 8, row-major (k = 8 * by + bx)
 inline constexpr int kGridCols = 64;      // ORB-SLAM3 FRAME_GRID_COLS
 inline constexpr int kGridRows = 48;      // ORB-SLAM3 FRAME_GRID_ROWS
-inline constexpr const char* kMagic = "# jsve-log v2 ";
+inline constexpr const char* kMagic = "# jsve-log v3 ";
+inline constexpr const char* kTrailerPrefix = "# jsve-log trailer ";
 inline constexpr const char* kEndMarker = "# jsve-log end frames=";
 inline constexpr const char* kPartialSuffix = ".partial";
 inline constexpr double kUnitQuaternionTolerance = 1e-6;  // schema.UNIT_QUATERNION_TOLERANCE
@@ -145,7 +152,8 @@ enum class OnError { kThrow, kReturn };
 
 struct Options {
     bool ground_truth = false;   // add the seven gt_* columns (decided once per log)
-    bool world_frame = false;    // add the eight world_* columns, last (decided once per log)
+    bool world_frame = false;    // add the eight world_* columns (decided once per log)
+    bool keyframes = false;      // add the ten keyframe columns, last: events, traj, ref_kf, rel_* (once per log)
     int flush_every = 100;       // fflush after every N frames; 0 or less: only at close
     bool overwrite = false;      // replace an existing `<path>` (removed at open, not at close)
     OnError on_error = OnError::kThrow;
@@ -180,7 +188,27 @@ struct Frame {
     double world_t[3] = {0.0, 0.0, 0.0};     // its translation, m (this frame's world)
     double world_s = 1.0;                    // its scale, > 0, dimensionless; all three written on
                                              // every frame, with or without a pose
+    std::uint32_t events = 0;                // bit set of Event at this frame (only with keyframes)
+    bool traj = false;                       // the frame entered the saved trajectory (needs ref_kf >= 0)
+    std::int64_t ref_kf = -1;                // reference keyframe id, -1: none (rel_* left empty)
+    double rel_p[3] = {0.0, 0.0, 0.0};       // T_cr translation: camera relative to the reference
+    double rel_q[4] = {1.0, 0.0, 0.0, 0.0};  // keyframe's camera (m, wxyz); ORB-SLAM3's mlRelativeFramePoses
 };
+
+// Front-end events, the bits of Frame::events (jsve.io._schema.EVENTS): each set on the first frame
+// logged after it happened (events of other threads, as ORB-SLAM3's LocalMapping and LoopClosing, are
+// collected until the next frame).
+enum Event : std::uint32_t {
+    kEventReset = 1u << 0,       // the active map was reset (Tracking::ResetActiveMap)
+    kEventResetAll = 1u << 1,    // every map was reset (Tracking::Reset)
+    kEventNewMap = 1u << 2,      // a new map was started (Tracking::CreateMapInAtlas)
+    kEventMerge = 1u << 3,       // two maps were merged (LoopClosing::MergeLocal, MergeLocal2)
+    kEventLoop = 1u << 4,        // a loop was closed (LoopClosing::CorrectLoop)
+    kEventImuInit = 1u << 5,     // the map's IMU was initialised (Map::SetImuInitialized, first time)
+    kEventBa1 = 1u << 6,         // the map's inertial BA1 ran (Map::SetIniertialBA1, first time)
+    kEventBa2 = 1u << 7,         // the map's inertial BA2 ran (Map::SetIniertialBA2, first time)
+};
+inline constexpr std::uint32_t kEventMask = (1u << 8) - 1;
 
 // SVE bin of an ORB-SLAM3 grid cell: bin x = col / 8, bin y = row / 6, k = 8 * y + x.
 constexpr int bin_of_cell(int col, int row) noexcept { return 8 * (row / 6) + col / 8; }
@@ -463,6 +491,7 @@ public:
         failed_ = Status::kOk;
         error_.clear();
         frames_ = 0;
+        trailers_ = 0;
         have_last_ = false;
         path_ = path;
         partial_ = path + kPartialSuffix;
@@ -483,7 +512,7 @@ public:
         std::string head = kMagic;
         head += meta.to_json();
         head += '\n';
-        append_header_row(head, options_.ground_truth, options_.world_frame);
+        append_header_row(head, options_.ground_truth, options_.world_frame, options_.keyframes);
         if (std::fwrite(head.data(), 1, head.size(), file_) != head.size() || std::fflush(file_) != 0)
             return io_failure("cannot write the header");
         return Status::kOk;
@@ -503,6 +532,10 @@ public:
     Status write(const Frame& f) {
         if (file_ == nullptr) return fail(Status::kNotOpen, "write(): the writer is not open");
         if (failed_ != Status::kOk) return fail(Status::kFailed, partial_ + ": writer failed earlier: " + error_);
+        if (trailers_ > 0) {
+            failed_ = Status::kOutOfRange;
+            return fail(Status::kOutOfRange, partial_ + ": frame " + std::to_string(frames_) + " after a trailer line");
+        }
         std::string msg;
         const Status s = validate(f, msg);
         if (s != Status::kOk) {
@@ -555,6 +588,20 @@ public:
             p = put_doubles(p, end, f.world_t, 3);
             p = put_doubles(p, end, &f.world_s, 1);
         }
+        if (options_.keyframes) {
+            *p++ = ',';
+            p = detail::put_int(p, end, f.events);
+            *p++ = ',';
+            *p++ = f.traj ? '1' : '0';
+            *p++ = ',';
+            p = detail::put_int(p, end, f.ref_kf);
+            if (f.ref_kf >= 0) {
+                p = put_doubles(p, end, f.rel_p, 3);
+                p = put_doubles(p, end, f.rel_q, 4);
+            } else {
+                for (int i = 0; i < 7; ++i) *p++ = ',';
+            }
+        }
         *p++ = '\n';
         const auto n = static_cast<std::size_t>(p - line);
         if (std::fwrite(line, 1, n, file_) != n) return io_failure("cannot write frame " + std::to_string(frames_));
@@ -563,6 +610,31 @@ public:
         have_last_ = true;
         if (options_.flush_every > 0 && frames_ % options_.flush_every == 0 && std::fflush(file_) != 0)
             return io_failure("cannot flush after frame " + std::to_string(frames_ - 1));
+        return Status::kOk;
+    }
+
+    // Appends the trailer line `# jsve-log trailer KEY JSON` after the frames (no frame may follow):
+    // KEY is lower-case letters, digits and '_', `json` one JSON value on one line (the caller's text,
+    // written as given: jsve's reader checks it). A refused trailer fails the writer, as a frame does.
+    Status trailer(const std::string& key, const std::string& json) {
+        if (file_ == nullptr) return fail(Status::kNotOpen, "trailer(): the writer is not open");
+        if (failed_ != Status::kOk) return fail(Status::kFailed, partial_ + ": writer failed earlier: " + error_);
+        bool key_ok = !key.empty();
+        for (char c : key) key_ok = key_ok && ((c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '_');
+        const bool one_line = !json.empty() && json.find('\n') == std::string::npos && json.find('\r') == std::string::npos;
+        if (!key_ok || !one_line || frames_ == 0) {
+            failed_ = Status::kOutOfRange;
+            return fail(Status::kOutOfRange, partial_ + ": trailer '" + key + "' refused: " +
+                        (frames_ == 0 ? "no frames before it" : !key_ok ? "KEY must be [a-z0-9_]+" : "JSON must be one non-empty line"));
+        }
+        std::string line = kTrailerPrefix;
+        line += key;
+        line += ' ';
+        line += json;
+        line += '\n';
+        if (std::fwrite(line.data(), 1, line.size(), file_) != line.size() || std::fflush(file_) != 0)
+            return io_failure("cannot write trailer " + key);
+        ++trailers_;
         return Status::kOk;
     }
 
@@ -619,8 +691,8 @@ public:
 private:
     static constexpr std::size_t kBufferSize = std::size_t{1} << 16;  // stdio buffer, 64 KiB
     // t_ns, state, imu_init, map_id, imu_ba2, 3 counts, 64 bins at <= 21 chars each; 36 doubles
-    // (10 vis_*, 11 imu_*, 7 gt_*, 8 world_*) at <= 27 chars.
-    static constexpr std::size_t kLineCapacity = 8 * 21 + kBins * 21 + 36 * 27 + 16;
+    // (10 vis_*, 11 imu_*, 7 gt_*, 8 world_*, 7 rel_*) at <= 27 chars; events, traj, ref_kf.
+    static constexpr std::size_t kLineCapacity = 11 * 21 + kBins * 21 + 43 * 27 + 16;
 
     static char* put_doubles(char* p, char* end, const double* v, int n) {
         for (int i = 0; i < n; ++i) {
@@ -630,7 +702,7 @@ private:
         return p;
     }
 
-    static void append_header_row(std::string& out, bool gt, bool world) {
+    static void append_header_row(std::string& out, bool gt, bool world, bool keyframes) {
         out += "t_ns,state,imu_init,map_id,imu_ba2,n_extracted,n_inliers,n_frustum";
         for (int k = 0; k < kBins; ++k) {
             out += ",bin_";
@@ -640,6 +712,7 @@ private:
                ",imu_dt,imu_dpx,imu_dpy,imu_dpz,imu_dvx,imu_dvy,imu_dvz,imu_dqw,imu_dqx,imu_dqy,imu_dqz";
         if (gt) out += ",gt_px,gt_py,gt_pz,gt_qw,gt_qx,gt_qy,gt_qz";
         if (world) out += ",world_qw,world_qx,world_qy,world_qz,world_tx,world_ty,world_tz,world_s";
+        if (keyframes) out += ",events,traj,ref_kf,rel_px,rel_py,rel_pz,rel_qw,rel_qx,rel_qy,rel_qz";
         out += '\n';
     }
 
@@ -781,7 +854,8 @@ private:
         // What this frame writes: without a pose vis_* is not written, without ground truth gt_*.
         const bool gt = options_.ground_truth && f.has_gt;
         const bool world = options_.world_frame;
-        Group groups[12] = {};
+        const bool rel = options_.keyframes && f.ref_kf >= 0;
+        Group groups[14] = {};
         int n_groups = 0;
         if (f.has_pose) {
             groups[n_groups++] = {"vis_p", f.vis_p, 3};
@@ -800,6 +874,10 @@ private:
             groups[n_groups++] = {"world_q", f.world_q, 4};
             groups[n_groups++] = {"world_t", f.world_t, 3};
             groups[n_groups++] = {"world_s", &f.world_s, 1};
+        }
+        if (rel) {
+            groups[n_groups++] = {"rel_p", f.rel_p, 3};
+            groups[n_groups++] = {"rel_q", f.rel_q, 4};
         }
         for (int g = 0; g < n_groups; ++g) {
             for (int i = 0; i < groups[g].n; ++i) {
@@ -828,12 +906,13 @@ private:
                 return Status::kOutOfRange;
             }
         }
-        Group quats[4] = {};
+        Group quats[5] = {};
         int n_quats = 0;
         if (f.has_pose) quats[n_quats++] = {"vis_q", f.vis_q, 4};
         quats[n_quats++] = {"imu_dq", f.imu_dq, 4};
         if (gt) quats[n_quats++] = {"gt_q", f.gt_q, 4};
         if (world) quats[n_quats++] = {"world_q", f.world_q, 4};
+        if (rel) quats[n_quats++] = {"rel_q", f.rel_q, 4};
         for (int g = 0; g < n_quats; ++g) {
             const double* q = quats[g].v;
             const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
@@ -845,6 +924,21 @@ private:
         if (world && !(f.world_s > 0.0)) {
             msg = "world_s " + detail::double_text(f.world_s) + " is not positive (the scale of a similarity)";
             return Status::kOutOfRange;
+        }
+        if (options_.keyframes) {
+            if ((f.events & ~kEventMask) != 0) {
+                msg = "events " + std::to_string(f.events) + " has bits outside the known events (mask " +
+                      std::to_string(kEventMask) + ")";
+                return Status::kOutOfRange;
+            }
+            if (f.ref_kf < -1) {
+                msg = "ref_kf " + std::to_string(f.ref_kf) + " is below -1 (-1: no reference keyframe)";
+                return Status::kOutOfRange;
+            }
+            if (f.traj && f.ref_kf < 0) {
+                msg = "traj is 1 without a reference keyframe (ref_kf -1)";
+                return Status::kOutOfRange;
+            }
         }
         return Status::kOk;
     }
@@ -875,6 +969,7 @@ private:
         error_ = std::move(o.error_);
         failed_ = o.failed_;
         frames_ = o.frames_;
+        trailers_ = o.trailers_;
         last_t_ns_ = o.last_t_ns_;
         have_last_ = o.have_last_;
     }
@@ -885,6 +980,7 @@ private:
     std::string path_, partial_, error_;
     Status failed_ = Status::kOk;
     std::int64_t frames_ = 0;
+    std::int64_t trailers_ = 0;
     std::int64_t last_t_ns_ = 0;
     bool have_last_ = false;
 };

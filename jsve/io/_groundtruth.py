@@ -279,7 +279,7 @@ def associate_ground_truth(
     gt = pd.DataFrame(np.concatenate([p, q], axis=1), columns=list(schema.GT_COLUMNS), index=base.index)
     frames = pd.concat([base, gt], axis=1)
     meta = {**run.meta, "gt_missing_frames": missing, "gt_source": os.fspath(gt_path)}
-    out = RunLog(meta=meta, frames=frames, source=run.source)
+    out = RunLog(meta=meta, frames=frames, source=run.source, trailers=run.trailers)
     if missing:
         how = (
             "by frame index" if stamps is None else f"outside its span or in gaps >= {max_gap_ns / 1e6:g} ms"

@@ -50,7 +50,13 @@ from jsve.io._logs import (
     with_v1_defaults,
 )
 from jsve.io._schema import RunLog
-from jsve.io._stream import PARQUET_FORMAT_KEY, PARQUET_RUNS_KEY, check_run_rows, open_study
+from jsve.io._stream import (
+    PARQUET_FORMAT_KEY,
+    PARQUET_FORMAT_VERSION,
+    PARQUET_RUNS_KEY,
+    check_run_rows,
+    open_study,
+)
 from jsve.io._study_table import PARQUET_SCHEMA, PARQUET_WRITE_OPTIONS, row_group, run_rows
 from jsve.io._workers import process_pool
 
@@ -665,7 +671,7 @@ def ingest(
         writer.add_key_value_metadata(
             {
                 PARQUET_RUNS_KEY: json.dumps(entries, allow_nan=False),
-                PARQUET_FORMAT_KEY: str(schema.FORMAT_VERSION),
+                PARQUET_FORMAT_KEY: str(PARQUET_FORMAT_VERSION),
             }
         )
 

@@ -32,7 +32,7 @@ from jsve.io._logs import log_layout, parse_table, read_log_bytes, rows_are_vali
 
 Parsed = tuple[dict, int, pa.Table]
 
-_INT_COLUMNS = frozenset(schema.INT_COLUMNS)
+_INT_COLUMNS = frozenset(schema.INT_COLUMNS + schema.KEYFRAME_INT_COLUMNS)
 _ALONE_BYTES = (b"\r", b"x", b"X")  # a log holding one is read alone (module docstring)
 _BATCH_BYTES = 16 << 20  # logs validated together: ~9 EuRoC logs (8-64 MB measured: 16 MB as fast as any)
 
@@ -60,7 +60,8 @@ def parse_logs(items: Sequence[tuple[str, bytes]]) -> list[Parsed | LogFormatErr
             out[k] = e
             continue
         table = None
-        if not any(layout.parts.rows_hold(b) for b in _ALONE_BYTES):
+        # A log with trailers is read alone: parse_table attaches them to its table.
+        if layout.trailers is None and not any(layout.parts.rows_hold(b) for b in _ALONE_BYTES):
             table = _rows(layout.parts.rows_view, layout.columns)
         if table is None or table.num_rows != layout.count:
             out[k] = _alone(source, data)

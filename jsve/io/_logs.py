@@ -52,13 +52,17 @@ GT_METADATA = {"gt_missing_frames": int, "gt_source": str}
 """Metadata keys written by `associate_ground_truth`: frames left without ground truth (count) and
 the ground-truth file used."""
 
-_INT_SET = frozenset(schema.INT_COLUMNS)
+_INT_SET = frozenset(schema.INT_COLUMNS + schema.KEYFRAME_INT_COLUMNS)
 _GT_SET = frozenset(schema.GT_COLUMNS)
 _WORLD_SET = frozenset(schema.WORLD_COLUMNS)
+_REL_SET = frozenset(schema.REL_COLUMNS)
 _GROUP_WORDS = {
     schema.GT_COLUMNS: ("ground-truth", "seven gt_*"),
     schema.WORLD_COLUMNS: ("world-frame", "eight world_*"),
+    schema.KEYFRAME_COLUMNS: ("keyframe", "ten keyframe (events, traj, ref_kf, rel_*)"),
 }
+TRAILERS_KEY = b"jsve.trailers"
+"""Where a parsed table (parse_table) carries the log's trailers: its schema metadata, as JSON."""
 _VIS_SET = frozenset(schema.VIS_COLUMNS)
 _POSED = ", ".join(f"{s} ({schema.STATE_NAMES[s]})" for s in schema.POSED_STATES[:-1]) + (
     f" and {schema.POSED_STATES[-1]} ({schema.STATE_NAMES[schema.POSED_STATES[-1]]})"
@@ -130,7 +134,7 @@ def _is_pose(values) -> bool:
     return abs(math.sqrt(sum(v * v for v in values[:4])) - 1.0) <= schema.UNIT_QUATERNION_TOLERANCE
 
 
-_READS = " and ".join(f"v{v}" for v in schema.READ_VERSIONS)
+_READS = ", ".join(f"v{v}" for v in schema.READ_VERSIONS[:-1]) + f" and v{schema.READ_VERSIONS[-1]}"
 
 
 def _parse_meta_line(raw: bytes, source: str) -> tuple[dict, int]:
@@ -184,9 +188,13 @@ def _check_header(
             )
     required = schema.required_columns(version)
     gt, world = schema.GT_COLUMNS[0] in seen, schema.WORLD_COLUMNS[0] in seen
-    expected = list(schema.column_order(version, gt, world))
+    keyframes = schema.KEYFRAME_COLUMNS[0] in seen
+    if keyframes and version < 3:
+        fail(f"the keyframe columns are format v3; this log says v{version}", schema.KEYFRAME_COLUMNS[0])
+    expected = list(schema.column_order(version, gt, world, keyframes))
     missing = [c for c in expected if c not in seen]
-    unexpected = [c for c in names if c not in set(required + schema.GT_COLUMNS + schema.WORLD_COLUMNS)]
+    known = set(required + schema.GT_COLUMNS + schema.WORLD_COLUMNS + schema.KEYFRAME_COLUMNS)
+    unexpected = [c for c in names if c not in known]
     if missing or unexpected:
         parts = []
         if missing:
@@ -459,6 +467,9 @@ def _find_problem(
             )
         )
 
+    if "ref_kf" in pos:  # format v3's keyframe columns
+        _keyframe_problems(cols, pos, per_cell, found)
+
     tol = schema.UNIT_QUATERNION_TOLERANCE
     for names in schema.QUATERNION_GROUPS.values():
         if names[0] not in pos:
@@ -510,6 +521,57 @@ def _find_problem(
     return min(found, key=lambda p: (p.row, p.order)) if found else None
 
 
+def _keyframe_problems(cols, pos, per_cell, found: list) -> None:
+    """The rules of v3's keyframe columns (schema.KEYFRAME_COLUMNS): known event bits, traj 0/1 and only
+    with a reference keyframe, ref_kf >= -1, rel_* all present and finite exactly where ref_kf >= 0."""
+    events, traj, ref = cols["events"], cols["traj"], cols["ref_kf"]
+    per_cell(
+        (events < 0) | ((events & ~schema.EVENT_MASK) != 0),
+        ("events",),
+        f"must be a bit set of the known events (0..{schema.EVENT_MASK}; schema.EVENTS)",
+    )
+    per_cell((traj != 0) & (traj != 1), ("traj",), "must be 0 or 1")
+    per_cell(ref < -1, ("ref_kf",), "must be >= -1 (a keyframe id, or -1 for none)")
+    per_cell((traj == 1) & (ref < 0), ("traj",), "is 1 without a reference keyframe (ref_kf -1)")
+    rel = np.stack([cols[c] for c in schema.REL_COLUMNS], axis=1)
+    finite = np.isfinite(rel)
+    has_ref = ref >= 0
+    bad = (has_ref[:, None] & ~finite) | (~has_ref[:, None] & ~np.isnan(rel))
+    hit = np.flatnonzero(bad.any(axis=1))
+    if len(hit):
+        r = int(hit[0])
+        c = schema.REL_COLUMNS[int(np.argmax(bad[r]))]
+        reason = (
+            "must be a finite number where ref_kf >= 0"
+            if has_ref[r]
+            else "must be empty where ref_kf is -1 (no reference keyframe)"
+        )
+        found.append(_Problem(r, pos[c], c, reason, (c,)))
+
+
+def parse_trailers(lines: Sequence[tuple[int, str]], source: str) -> dict:
+    """key -> parsed JSON of a log's trailer lines, given as (1-based line, text) pairs.
+
+    Raises:
+        LogFormatError: naming the line, for a key that is not [a-z0-9_]+, a key given twice, or JSON
+            that does not parse.
+    """
+    trailers: dict = {}
+    for line, raw in lines:
+        key, _, body = raw[len(schema.TRAILER_PREFIX) :].partition(" ")
+        if not re.fullmatch(r"[a-z0-9_]+", key):
+            raise LogFormatError(source, line, f"trailer key must be [a-z0-9_]+, found '{shorten(key)}'")
+        if key in trailers:
+            raise LogFormatError(source, line, f"trailer '{key}' appears more than once")
+        try:
+            trailers[key] = json.loads(body)
+        except json.JSONDecodeError as e:
+            raise LogFormatError(
+                source, line, f"trailer '{key}': not JSON ({e.msg} at column {e.colno})"
+            ) from None
+    return trailers
+
+
 # --------------------------------------------------------------------------------------------------
 # In-memory validation and writing
 
@@ -534,8 +596,9 @@ def validate_run(run: RunLog) -> RunLog:
     frames = run.frames
     has_gt = any(c in frames.columns for c in schema.GT_COLUMNS)
     has_world = any(c in frames.columns for c in schema.WORLD_COLUMNS)
+    has_keyframes = any(c in frames.columns for c in schema.KEYFRAME_COLUMNS)
     names = [str(c) for c in frames.columns]
-    order = schema.column_order(schema.FORMAT_VERSION, has_gt, has_world)
+    order = schema.column_order(schema.FORMAT_VERSION, has_gt, has_world, has_keyframes)
     # In memory the order is free; the file order is fixed by the writer.
     _check_header(sorted(names, key=lambda c: order.index(c) if c in order else len(order)), source, None)
     if len(frames) == 0:
@@ -566,7 +629,7 @@ def validate_run(run: RunLog) -> RunLog:
         canonical = frames  # already canonical: no copy
     else:
         canonical = pd.DataFrame(columns, columns=list(order))
-    return RunLog(meta=meta, frames=canonical, source=source)
+    return RunLog(meta=meta, frames=canonical, source=source, trailers=run.trailers)
 
 
 def _memory_error(p: _Problem, cols: Mapping[str, np.ndarray], source: str) -> LogFormatError:
@@ -579,7 +642,7 @@ def _memory_error(p: _Problem, cols: Mapping[str, np.ndarray], source: str) -> L
 
 
 def write_log(run: RunLog, path: str | os.PathLike) -> Path:
-    """Write one run as a format-v2 CSV log, atomically (always v2, whatever the run was read from).
+    """Write one run as a format-v3 CSV log, atomically (always v3, whatever the run was read from).
 
     Line 1 is MAGIC + the metadata as JSON, line 2 the header (schema.REQUIRED_COLUMNS, plus
     GT_COLUMNS and WORLD_COLUMNS when the frames have them), then one row per frame and last the end
@@ -606,12 +669,17 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
     for c in frames.columns:
         values = frames[c].to_numpy()
         # Only gt_* and vis_* may be missing: NaN there becomes an empty field (Arrow writes nulls as "").
-        arrays.append(pa.array(values, from_pandas=c in _GT_SET or c in _VIS_SET))
+        arrays.append(pa.array(values, from_pandas=c in _GT_SET or c in _VIS_SET or c in _REL_SET))
     table = pa.Table.from_arrays(arrays, names=list(frames.columns))
+    trailers = "".join(
+        f"{schema.TRAILER_PREFIX}{key} {json.dumps(value, allow_nan=False, separators=(',', ':'))}\n"
+        for key, value in (run.trailers or {}).items()
+    ).encode("utf-8")
     return atomic.write_bytes(
         path,
         text.head(schema.MAGIC, run.meta, [str(c) for c in frames.columns]),
         text.write_rows(table),
+        trailers,
         text.tail(schema.END_MARKER, len(frames)),
     )
 
@@ -621,7 +689,7 @@ def write_log(run: RunLog, path: str | os.PathLike) -> Path:
 
 
 def read_log(path: str | os.PathLike, *, ground_truth: GroundTruthSpec | None = None) -> RunLog:
-    """Read and validate one log of format v2, or v1 with defaults.
+    """Read and validate one log of format v3 or v2, or v1 with defaults.
 
     Arguments:
         path: the CSV log. A name ending in `.partial` is an unfinished log and is reported as such.
@@ -650,7 +718,7 @@ def _warn_v1(source: str) -> None:
     # stacklevel 3: this function, read_log / parse_log, then their caller.
     warnings.warn(
         f"{source}: format v1 log read with defaults: {schema.V1_DEFAULTS_TEXT} (docs/log-format.md, "
-        "'Reading v1 logs: defaults'); write_log rewrites it as v2",
+        "'Reading v1 logs: defaults'); write_log rewrites it as v3",
         LogVersionWarning,
         stacklevel=3,
     )
@@ -728,11 +796,13 @@ def _parse(data: bytes, source: str) -> tuple[RunLog, int]:
 
 
 def run_from_table(meta: dict, version: int, table: pa.Table, source: str) -> RunLog:
-    """The RunLog of a table from `read_log_table` (pandas frames; a v1 log with its defaults)."""
-    frames = table.to_pandas()
+    """The RunLog of a table from `read_log_table` (pandas frames; a v1 log with its defaults; a v3
+    log's trailers)."""
+    stored = (table.schema.metadata or {}).get(TRAILERS_KEY)
+    frames = table.replace_schema_metadata(None).to_pandas()
     if version == 1:
         frames = with_v1_defaults(frames)
-    return RunLog(meta=meta, frames=frames, source=source)
+    return RunLog(meta=meta, frames=frames, source=source, trailers=json.loads(stored) if stored else None)
 
 
 @dataclass(frozen=True)
@@ -750,6 +820,7 @@ class LogLayout:
     columns: list[str]
     count: int
     parts: text.Sections
+    trailers: dict | None = None
 
     @property
     def rows(self) -> bytes:
@@ -801,7 +872,11 @@ def log_layout(data: bytes, source: str) -> LogLayout:
             parts.n_lines,
             f"the log is incomplete: the end marker says {count} frames but the file has no rows",
         )
-    return LogLayout(meta, version, columns, count, parts)
+    trailers = None
+    if version >= 3:
+        parts, lines = text.split_trailers(parts, schema.TRAILER_PREFIX)
+        trailers = parse_trailers(lines, source) if lines else None
+    return LogLayout(meta, version, columns, count, parts, trailers)
 
 
 def parse_table(data: bytes, source: str) -> tuple[dict, int, pa.Table]:
@@ -858,6 +933,8 @@ def parse_table(data: bytes, source: str) -> tuple[dict, int, pa.Table]:
     problem = _value_problem(table, columns, version)
     if problem is not None:
         raise _file_error(problem, region, columns, source)
+    if layout.trailers is not None:
+        table = table.replace_schema_metadata({TRAILERS_KEY: json.dumps(layout.trailers).encode("utf-8")})
     return meta, version, table
 
 
@@ -868,7 +945,7 @@ def _first_empty(table: pa.Table, columns: Sequence[str], version: int) -> tuple
     frame without a pose); checked on Arrow's null masks before conversion, since pandas would silently
     turn an int column with a null into floats.
     """
-    may_be_empty = _GT_SET | _VIS_SET if version >= 2 else _GT_SET
+    may_be_empty = (_GT_SET | _VIS_SET | _REL_SET) if version >= 2 else _GT_SET
     first_empty = None
     for c in columns:
         col = table.column(c)

@@ -1,11 +1,12 @@
-"""Tracking log format v2: the one home of column names, dtypes, units and metadata keys.
+"""Tracking log format v3: the one home of column names, dtypes, units and metadata keys.
 
 Every reader, writer, simulator and the C++ header follow this module; docs/log-format.md describes
 it for people. A log is one CSV file per run:
 
-    # jsve-log v2 {"sequence": "MH_04", "run": 7, "fps": 20, ...}      <- line 1: magic + JSON metadata
+    # jsve-log v3 {"sequence": "MH_04", "run": 7, "fps": 20, ...}      <- line 1: magic + JSON metadata
     t_ns,state,imu_init,map_id,imu_ba2,n_extracted,...                  <- line 2: header (COLUMNS order)
     1403636580838555648,2,1,0,1,1000,...                                <- one row per frame
+    # jsve-log trailer orbslam3 {"keyframes": ...}                      <- optional trailer lines (v3)
     # jsve-log end frames=3600                                          <- last line: completeness marker
 
 Conventions: timestamps are int64 nanoseconds; poses are body-in-world T_wb with quaternions wxyz;
@@ -13,7 +14,8 @@ positions in metres (world frame), velocities in m/s (world frame); IMU preinteg
 previous frame to this one, expressed in the previous body frame (ORB-SLAM3's mpImuPreintegratedFrame).
 
 Format v1 (no `map_id` / `imu_ba2`, a pose on every frame) is still read: `v1_defaults` fills the two
-columns (docs/log-format.md, "Reading v1 logs: defaults").
+columns (docs/log-format.md, "Reading v1 logs: defaults"). Format v2 is v3 without the keyframe columns
+and trailers, which v3 makes optional: a v2 log reads as it is.
 """
 
 from __future__ import annotations
@@ -25,10 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """The version every writer writes."""
 
-READ_VERSIONS = (1, 2)
+READ_VERSIONS = (1, 2, 3)
 """The versions the readers accept."""
 
 MAGIC_PREFIX = "# jsve-log v"
@@ -38,7 +40,15 @@ MAGICS = {v: f"{MAGIC_PREFIX}{v} " for v in READ_VERSIONS}
 """Line-1 prefix of each readable version; the rest of the line is a JSON object of metadata."""
 
 MAGIC = MAGICS[FORMAT_VERSION]
-"""Prefix of line 1 as written: `# jsve-log v2 `."""
+"""Prefix of line 1 as written: `# jsve-log v3 `."""
+
+TRAILER_PREFIX = "# jsve-log trailer "
+"""Prefix of a trailer line (v3): then a key ([a-z0-9_]+), a space and one JSON value. Trailer lines
+follow the rows and precede the end marker; each key at most once."""
+
+ORBSLAM3_TRAILER = "orbslam3"
+"""The trailer of jsve's ORB-SLAM3 hook: what System::SaveTrajectoryEuRoC reads at the end of the run
+(jsve.io._saved_trajectory)."""
 
 END_MARKER = "# jsve-log end frames="
 """Prefix of the last line, followed by the frame count. A log without it is incomplete."""
@@ -91,6 +101,31 @@ identity until the front-end first re-expresses its map). ORB-SLAM3 re-expresses
 (Map::ApplyScaledRotation: gravity direction and scale) at IMU initialisation, inertial BA1 / BA2 and
 scale refinement without a new map id, so the online poses of one map are in several world frames;
 jsve.io._world re-expresses them in one."""
+REL_POSITION = ("rel_px", "rel_py", "rel_pz")
+REL_QUATERNION = ("rel_qw", "rel_qx", "rel_qy", "rel_qz")
+REL_COLUMNS = REL_POSITION + REL_QUATERNION
+KEYFRAME_INT_COLUMNS = ("events", "traj", "ref_kf")
+KEYFRAME_COLUMNS = KEYFRAME_INT_COLUMNS + REL_COLUMNS
+"""Format v3's optional last group (all ten or none): `events`, the front-end's events at this frame
+(a bit set of EVENTS); `traj`, 1 when the frame entered the front-end's saved trajectory (ORB-SLAM3's
+mlRelativeFramePoses); `ref_kf`, its reference keyframe (-1: none); rel_*, the camera's pose relative to
+that keyframe's camera, T_cr (empty where ref_kf is -1)."""
+
+EVENTS = {
+    "reset": 1 << 0,  # Tracking::ResetActiveMap: the active map was cleared
+    "reset_all": 1 << 1,  # Tracking::Reset: every map was cleared
+    "new_map": 1 << 2,  # Tracking::CreateMapInAtlas (after LOST)
+    "merge": 1 << 3,  # LoopClosing::MergeLocal / MergeLocal2
+    "loop": 1 << 4,  # LoopClosing::CorrectLoop
+    "imu_init": 1 << 5,  # a map's IMU initialised (Map::SetImuInitialized, first time)
+    "ba1": 1 << 6,  # a map's inertial BA1 (Map::SetIniertialBA1, first time)
+    "ba2": 1 << 7,  # a map's inertial BA2 (Map::SetIniertialBA2, first time)
+}
+"""The bits of the `events` column (jsve_log.hpp's jsve::Event); each is set on the first frame logged
+after it happened."""
+
+EVENT_MASK = sum(EVENTS.values())
+
 COUNT_COLUMNS = ("n_extracted", "n_inliers", "n_frustum")
 MAP_COLUMNS = ("map_id", "imu_ba2")
 """The recorded run's map and its inertial stage, new in v2 (right after imu_init)."""
@@ -101,7 +136,7 @@ FLOAT_COLUMNS = VIS_COLUMNS + ("imu_dt",) + IMU_DP + IMU_DV + IMU_DQ
 REQUIRED_COLUMNS = INT_COLUMNS + FLOAT_COLUMNS
 """Columns every v2 log has, in this order."""
 
-OPTIONAL_GROUPS = (GT_COLUMNS, WORLD_COLUMNS)
+OPTIONAL_GROUPS = (GT_COLUMNS, WORLD_COLUMNS, KEYFRAME_COLUMNS)
 """Optional column groups, each all or none, in file order after the required columns."""
 
 COLUMNS = REQUIRED_COLUMNS + GT_COLUMNS
@@ -109,9 +144,15 @@ COLUMNS = REQUIRED_COLUMNS + GT_COLUMNS
 world_* columns after them (`column_order`)."""
 
 
-def column_order(version: int, gt: bool, world: bool) -> tuple[str, ...]:
-    """The columns of format `version` with (or without) the gt_* and world_* groups, in file order."""
-    return required_columns(version) + (GT_COLUMNS if gt else ()) + (WORLD_COLUMNS if world else ())
+def column_order(version: int, gt: bool, world: bool, keyframes: bool = False) -> tuple[str, ...]:
+    """The columns of format `version` with (or without) the gt_*, world_* and (v3) keyframe groups,
+    in file order."""
+    return (
+        required_columns(version)
+        + (GT_COLUMNS if gt else ())
+        + (WORLD_COLUMNS if world else ())
+        + (KEYFRAME_COLUMNS if keyframes else ())
+    )
 
 
 V1_REQUIRED_COLUMNS = tuple(c for c in REQUIRED_COLUMNS if c not in MAP_COLUMNS)
@@ -161,6 +202,7 @@ QUATERNION_GROUPS = {
     "imu_dq": IMU_DQ,
     "gt_q": GT_QUATERNION,
     "world_q": WORLD_QUATERNION,
+    "rel_q": REL_QUATERNION,
 }
 
 UNIT_QUATERNION_TOLERANCE = 1e-6
@@ -199,6 +241,11 @@ UNITS = {
     "world_q*": "unit quaternion wxyz, rotation of the similarity from the map's first world frame",
     "world_t*": "m (this frame's world), translation of that similarity",
     "world_s": "scale of that similarity (> 0, dimensionless)",
+    "events": "bit set of EVENTS at this frame",
+    "traj": "0/1, the frame entered the front-end's saved trajectory",
+    "ref_kf": "reference keyframe id (-1: none)",
+    "rel_p*": "m, camera position relative to the reference keyframe's camera (T_cr translation)",
+    "rel_q*": "unit quaternion wxyz, T_cr rotation",
 }
 
 REQUIRED_METADATA = {"sequence": str, "run": int, "fps": (int, float)}
@@ -266,11 +313,13 @@ class RunLog:
             columns int64, float columns float64, vis_* NaN on frames without a pose, gt_* NaN
             where no ground truth is associated. Runs read from v1 files carry v1_defaults.
         source: where it came from (a path, or a name for in-memory logs), used in every message.
+        trailers: the trailer lines of a v3 file, key -> parsed JSON (None: none).
     """
 
     meta: dict
     frames: pd.DataFrame
     source: str = "<memory>"
+    trailers: dict | None = None
 
     @property
     def run_id(self) -> str:
@@ -280,6 +329,11 @@ class RunLog:
     @property
     def has_ground_truth(self) -> bool:
         return all(c in self.frames.columns for c in GT_COLUMNS)
+
+    @property
+    def has_keyframes(self) -> bool:
+        """The frames carry the v3 keyframe columns (KEYFRAME_COLUMNS)."""
+        return all(c in self.frames.columns for c in KEYFRAME_COLUMNS)
 
     @property
     def has_world_frame(self) -> bool:

@@ -43,6 +43,10 @@ PARQUET_RUNS_KEY = b"jsve.runs"
 """Parquet key-value metadata key: a JSON list of {run_id, source, meta, n_frames, has_ground_truth}."""
 
 PARQUET_FORMAT_KEY = b"jsve.format"
+PARQUET_FORMAT_VERSION = 2
+"""The study layout written (its columns: format v2's; a v3 log's keyframe columns and trailers stay in
+the log)."""
+PARQUET_READ_VERSIONS = (1, 2)
 """Parquet key-value metadata key: the log format version of its columns, "2" (files written before v2
 say "1" and have no map_id / imu_ba2: read_parquet fills v1 defaults)."""
 
@@ -104,12 +108,12 @@ def open_study(path: str | os.PathLike) -> ParquetStudy:
             source, None, f"not a jsve Parquet file: no {PARQUET_RUNS_KEY.decode()!r} metadata"
         )
     version_text = kv.get(PARQUET_FORMAT_KEY, b"").decode("utf-8", errors="replace")
-    if version_text not in {str(v) for v in schema.READ_VERSIONS}:
+    if version_text not in {str(v) for v in PARQUET_READ_VERSIONS}:
         raise LogFormatError(
             source,
             None,
             f"unsupported jsve Parquet format {version_text!r} in its {PARQUET_FORMAT_KEY.decode()!r} "
-            f"metadata (this reader reads {' and '.join(map(str, schema.READ_VERSIONS))})",
+            f"metadata (this reader reads {' and '.join(map(str, PARQUET_READ_VERSIONS))})",
         )
     version = int(version_text)
     study = ParquetStudy(source, version, json.loads(kv[PARQUET_RUNS_KEY]), tuple(pf.schema_arrow.names))

@@ -16,6 +16,7 @@ authors' files too). The messages of each format stay in its own module; the rul
 from __future__ import annotations
 
 import codecs
+import dataclasses
 import gzip
 import json
 import re
@@ -243,6 +244,26 @@ def cut(data: bytes) -> Sections:
         return Sections(first, last, None, data, 0, 0, body_end)
     nl2 = data.find(b"\n", nl1 + 1)
     return Sections(first, last, data[nl1 + 1 : nl2].rstrip(b"\r"), data, nl2 + 1, last_nl + 1, body_end)
+
+
+def split_trailers(parts: Sections, prefix: str) -> tuple[Sections, list[tuple[int, str]]]:
+    """The rows without the trailer lines that end them (lines starting with `prefix`, right before the
+    last line), and those lines as (1-based line number, text) in file order."""
+    data, end, start = parts.data, parts.rows_end, parts.rows_start
+    key = prefix.encode("utf-8")
+    found: list[bytes] = []
+    while end > start:
+        begin = data.rfind(b"\n", start, end - 1) + 1
+        begin = max(begin, start)
+        if not data.startswith(key, begin):
+            break
+        found.append(data[begin:end].rstrip(b"\r\n"))
+        end = begin
+    if not found:
+        return parts, []
+    first_line = data.count(b"\n", 0, end) + 1
+    lines = [(first_line + k, raw.decode("utf-8", errors="replace")) for k, raw in enumerate(reversed(found))]
+    return dataclasses.replace(parts, rows_end=end), lines
 
 
 def end_count(last: str | None, end_marker: str) -> str | None:

@@ -232,11 +232,15 @@ int main(int argc, char** argv) {
         status = 1;
     }
     const double log_seconds = jsve_hook::state().log_seconds;
+    slam.Shutdown();
+    // The trailer (format v3) records what SaveTrajectoryEuRoC reads, once LocalMapping and LoopClosing
+    // have finished; a run without it still closes its log (`trailer_written` false in the summary).
+    const bool trailer = status == 0 && jsve_hook::write_trailer(120.0, &error);
+    if (status == 0 && !trailer) std::cerr << "jsve_orbslam3: no trailer: " << error << "\n";
     if (status == 0 && !jsve_hook::close_log(&error)) {
         std::cerr << "jsve_orbslam3: cannot close the log: " << error << "\n";
         status = 1;
     }
-    slam.Shutdown();
     // SaveTrajectoryEuRoC crashes ORB-SLAM3 when the active map has no keyframe (never built, or reset
     // at the end of the run): skip it then, and write the summary first, so that it says so.
     const jsve_hook::HookState& hook = jsve_hook::state();
@@ -247,7 +251,8 @@ int main(int argc, char** argv) {
             << ", \"hook_seconds\": " << log_seconds << ", \"imu_invalid_frames\": " << hook.imu_invalid_frames
             << ", \"pose_invalid_frames\": " << hook.pose_invalid_frames
             << ", \"keyframes_at_end\": " << hook.keyframes << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
-            << ", \"trajectory_saved\": " << (save ? "true" : "false") << ", \"status\": " << status << "}\n";
+            << ", \"trajectory_saved\": " << (save ? "true" : "false")
+            << ", \"trailer_written\": " << (trailer ? "true" : "false") << ", \"status\": " << status << "}\n";
     }
     if (save) slam.SaveTrajectoryEuRoC(args.trajectory);
     return status;

@@ -12,6 +12,13 @@
 //   Map::ApplyScaledRotation     JSVE_HOOK_WORLD_CHANGE(mnId, T, s) after the map is moved
 //   LocalMapping::InitializeIMU  JSVE_HOOK_MAP_SNAPSHOT(map) at its start, JSVE_HOOK_MAP_CHANGED(map)
 //   LocalMapping::ScaleRefinement  at its end (after the inertial BA that follows ApplyScaledRotation)
+// and, for format v3's events (jsve::Event), JSVE_HOOK_EVENT(kEvent...) where ORB-SLAM3 resets a map
+// (Tracking::ResetActiveMap, after it marks the lost frames; Tracking::Reset via JSVE_HOOK_RESET_ALL),
+// starts one (Tracking::CreateMapInAtlas), merges maps (LoopClosing::MergeLocal, MergeLocal2), closes
+// a loop (LoopClosing::CorrectLoop) and first sets a map's inertial flags (Map::SetImuInitialized,
+// SetIniertialBA1, SetIniertialBA2). At the end of the run `write_trailer` (the driver calls it just
+// before SaveTrajectoryEuRoC, once LocalMapping and LoopClosing are idle) writes the state
+// SaveTrajectoryEuRoC reads: the trajectory lists, the keyframes they reference and the maps.
 // Without a rule (set_rule) nothing in ORB-SLAM3's decisions changes: the hook only copies values.
 // With one, JSVE_HOOK_DECIDE returns the rule's success test in place of ORB-SLAM3's (the same
 // clauses, in the same order, with the rule's thresholds: jsve.core._machine.tracking_succeeds), and
@@ -26,6 +33,7 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <locale>
@@ -48,10 +56,17 @@ struct HookState {
     long imu_invalid_frames = 0;  // frames whose preintegration was NaN, logged as none (see log_frame)
     long pose_invalid_frames = 0;  // frames whose pose was NaN, logged without one (see log_frame)
     long keyframes = 0;  // keyframes in the active map after the last logged frame
+    std::atomic<std::uint32_t> pending_events{0};  // jsve::Event bits since the last logged frame
+    std::size_t entries_before = 0;  // length of Tracking::mlRelativeFramePoses before this frame's Track()
+    std::vector<std::int64_t> entry_rows;  // the log row of each entry of Tracking::mlRelativeFramePoses
+    std::string trailer_error;  // why the trailer was not written (empty: it was, or not yet asked)
 };
 
 // The process's hook state (defined in Tracking.cc's translation unit).
 HookState& state();
+
+// An event of ORB-SLAM3 (any thread): set on the next logged frame's `events`.
+inline void event(std::uint32_t bit) { state().pending_events.fetch_or(bit); }
 
 // Opens `path` (format v2, via jsve::LogWriter; refuses an existing file unless `overwrite`).
 // Returns false with `*error` set on failure.
@@ -59,6 +74,12 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
 
 // Closes the log: writes the end marker and renames `<path>.partial` to `<path>`.
 bool close_log(std::string* error);
+
+// Format v3's `orbslam3` trailer: what System::SaveTrajectoryEuRoC reads at the end of the run (the
+// trajectory lists, the keyframes they and the logged frames reference, the maps). Call after
+// System::Shutdown and before close_log; it first waits (up to `timeout_s`) for LocalMapping and
+// LoopClosing to finish. False, with `*error` set and no trailer written, when they do not.
+bool write_trailer(double timeout_s, std::string* error);
 
 // A jsve rule (jsve.core._rules): ORB-SLAM3's success test with a score and thresholds of its own.
 // A frame fails inside the relocalisation window below `reloc`; in RECENTLY_LOST it succeeds above
@@ -228,7 +249,12 @@ void map_changed(std::int64_t map_id, const Centres& centres);
 
 #define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
 #define JSVE_HOOK_INLIERS(count) (::jsve_hook::state().n_inliers = static_cast<int>(count))
-#define JSVE_HOOK_BEGIN_FRAME() (::jsve_hook::state().n_inliers = ::jsve_hook::state().n_frustum = 0)
+#define JSVE_HOOK_BEGIN_FRAME()                                                                    \
+    (::jsve_hook::state().n_inliers = ::jsve_hook::state().n_frustum = 0,                          \
+     ::jsve_hook::state().entries_before = mlRelativeFramePoses.size())
+#define JSVE_HOOK_EVENT(bit) ::jsve_hook::event(::jsve::bit)
+// Tracking::Reset clears the trajectory lists (and every map).
+#define JSVE_HOOK_RESET_ALL() (::jsve_hook::event(::jsve::kEventResetAll), ::jsve_hook::state().entry_rows.clear())
 #define JSVE_HOOK_SAVE_PREDICTION() ::jsve_hook::save_prediction(mCurrentFrame)
 #define JSVE_HOOK_DECIDE()                                                                         \
     do {                                                                                           \
@@ -266,13 +292,42 @@ void map_changed(std::int64_t map_id, const Centres& centres);
 #define JSVE_HOOK_MAP_CHANGED(map) \
     ::jsve_hook::map_changed(static_cast<std::int64_t>((map)->GetId()), JSVE_HOOK_CENTRES((map)->GetAllKeyFrames()))
 // Expands inside a Tracking member function: reads its protected members.
-#define JSVE_HOOK_LOG_FRAME() ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas)
+#define JSVE_HOOK_LOG_FRAME()                                                                      \
+    ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas,                       \
+                           ::jsve_hook::TrackerView{&mlRelativeFramePoses, &mlpReferences, &mlbLost,  \
+                                                    mpAtlas, mpLocalMapper, mpLoopClosing})
 
 #ifdef JSVE_HOOK_IMPLEMENTATION
 
 #include <chrono>
+#include <list>
+#include <set>
+#include <thread>
 
 namespace jsve_hook {
+
+// What the trailer reads of the tracker (Tracking's protected members, gathered where they are
+// visible: JSVE_HOOK_LOG_FRAME expands inside Tracking::GrabImageMonocular).
+struct TrackerView {
+    const std::list<Sophus::SE3f>* relative = nullptr;   // mlRelativeFramePoses (T_cr)
+    const std::list<ORB_SLAM3::KeyFrame*>* references = nullptr;  // mlpReferences
+    const std::list<bool>* lost = nullptr;               // mlbLost
+    ORB_SLAM3::Atlas* atlas = nullptr;
+    ORB_SLAM3::LocalMapping* local_mapping = nullptr;
+    ORB_SLAM3::LoopClosing* loop_closing = nullptr;
+};
+
+TrackerView& tracker_view() {
+    static TrackerView v;
+    return v;
+}
+
+// Every keyframe a logged frame named as its reference (ORB-SLAM3 never deletes a keyframe object: a
+// culled one is flagged bad, a reset map's are detached from it), for the trailer's keyframe table.
+std::set<ORB_SLAM3::KeyFrame*>& logged_references() {
+    static std::set<ORB_SLAM3::KeyFrame*> seen;
+    return seen;
+}
 
 HookState& state() {
     static HookState s;
@@ -287,6 +342,7 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
     options.flush_every = 1;
     options.on_error = jsve::OnError::kReturn;
     options.world_frame = true;  // the world_* columns: the maps' re-expressions (jsve.io._world)
+    options.keyframes = true;    // format v3: events, the saved trajectory's entries (write_trailer)
     auto writer = std::make_unique<jsve::LogWriter>();
     if (writer->open(path, meta, options) != jsve::Status::kOk) {
         if (error) *error = writer->last_error();
@@ -454,11 +510,48 @@ void copy_quaternion(double out[4], const Mat& r) {
 // One log row for the frame Track() just processed (docs/frontend.md section 3 maps each field).
 // A frame the writer refuses fails the writer (jsve::LogError is thrown: the run stops, the log
 // stays `.partial`): a silently dropped frame would bias every replay where tracking struggles.
-inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::Atlas* atlas) {
+// [qw, qx, qy, qz, tx, ty, tz] of a Sophus SE3f, exactly (float to double).
+inline void copy_pose(double q[4], double t[3], const Sophus::SE3f& pose) {
+    const Eigen::Quaternionf& r = pose.unit_quaternion();
+    q[0] = r.w(), q[1] = r.x(), q[2] = r.y(), q[3] = r.z();
+    for (int i = 0; i < 3; ++i) t[i] = static_cast<double>(pose.translation()(i));
+}
+
+inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::Atlas* atlas, const TrackerView& view) {
     HookState& s = state();
     if (!s.log) return;
+    tracker_view() = view;
     const auto start = std::chrono::steady_clock::now();
     jsve::Frame f;
+    // Format v3: the events since the last frame, and the frame's place in ORB-SLAM3's saved trajectory.
+    f.events = s.pending_events.exchange(0);
+    const std::size_t entries = view.relative->size();
+    f.traj = entries == s.entries_before + 1;
+    if (f.traj && view.references->back() != nullptr) {
+        // The entry SaveTrajectoryEuRoC will read (Track() appends it, or repeats the last one when the
+        // frame has no pose, Tracking.cc l.2300-2318).
+        f.ref_kf = static_cast<std::int64_t>(view.references->back()->mnId);
+        copy_pose(f.rel_q, f.rel_p, view.relative->back());
+        logged_references().insert(view.references->back());
+        s.entry_rows.push_back(s.log->frames());
+    } else {
+        f.traj = false;
+        if (entries == s.entries_before + 1) s.entry_rows.push_back(-1);  // an entry without a keyframe
+        if (frame.isSet() && frame.mpReferenceKF != nullptr) {
+            f.ref_kf = static_cast<std::int64_t>(frame.mpReferenceKF->mnId);
+            copy_pose(f.rel_q, f.rel_p, frame.GetPose() * frame.mpReferenceKF->GetPoseInverse());
+            logged_references().insert(frame.mpReferenceKF);
+        }
+    }
+    bool rel_finite = true;
+    for (int i = 0; i < 3; ++i) rel_finite = rel_finite && std::isfinite(f.rel_p[i]);
+    for (int i = 0; i < 4; ++i) rel_finite = rel_finite && std::isfinite(f.rel_q[i]);
+    if (!rel_finite) f.ref_kf = -1, f.traj = false;
+    if (f.ref_kf >= 0) {  // a float quaternion's norm can be off 1 by more than the format allows
+        const double n = std::sqrt(f.rel_q[0] * f.rel_q[0] + f.rel_q[1] * f.rel_q[1] + f.rel_q[2] * f.rel_q[2] +
+                                   f.rel_q[3] * f.rel_q[3]);
+        for (int i = 0; i < 4; ++i) f.rel_q[i] /= n;
+    }
     f.t_ns = stamp_ns(frame.mNameFile, frame.mTimeStamp);
     f.state = tracking_state;
     // Track() can return before tracking the frame while mState still says OK: when LocalMapping
@@ -538,6 +631,105 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
     const jsve::Status status = s.log->write(f);
     s.log_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (status != jsve::Status::kOk) throw jsve::LogError(status, s.log->last_error());
+}
+
+// JSON text of [qw, qx, qy, qz, tx, ty, tz] (shortest round-trip doubles).
+inline void append_pose(std::string& out, const Sophus::SE3f& pose) {
+    double q[4], t[3];
+    copy_pose(q, t, pose);
+    out += '[';
+    for (int i = 0; i < 7; ++i) {
+        if (i) out += ',';
+        out += jsve::detail::double_text(i < 4 ? q[i] : t[i - 4]);
+    }
+    out += ']';
+}
+
+template <class Values, class Put>
+void append_list(std::string& out, const char* key, const Values& values, Put&& put, bool last = false) {
+    out += '"';
+    out += key;
+    out += "\":[";
+    bool first = true;
+    for (const auto& v : values) {
+        if (!first) out += ',';
+        first = false;
+        put(out, v);
+    }
+    out += last ? "]" : "],";
+}
+
+// Waits (up to `timeout_s`) until LocalMapping and LoopClosing have finished, as System::Shutdown
+// requests, and no global BA runs: the keyframes then hold their final poses.
+inline bool wait_idle(const TrackerView& v, double timeout_s) {
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    while (!v.local_mapping->isFinished() || !v.loop_closing->isFinished() || v.loop_closing->isRunningGBA()) {
+        if (std::chrono::steady_clock::now() > until) return false;
+        std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    return true;
+}
+
+bool write_trailer(double timeout_s, std::string* error) {
+    HookState& s = state();
+    const TrackerView v = tracker_view();
+    auto refuse = [&](const std::string& why) {
+        s.trailer_error = why;
+        if (error) *error = why;
+        return false;
+    };
+    if (!s.log || v.atlas == nullptr) return refuse("no frame was logged");
+    if (!wait_idle(v, timeout_s)) return refuse("LocalMapping or LoopClosing did not finish in time");
+    if (s.entry_rows.size() != v.relative->size())
+        return refuse("the trajectory has " + std::to_string(v.relative->size()) + " entries, the hook saw " +
+                      std::to_string(s.entry_rows.size()));
+    // Every keyframe the trajectory references, and the parents SaveTrajectoryEuRoC walks from a bad one.
+    std::set<ORB_SLAM3::KeyFrame*, bool (*)(ORB_SLAM3::KeyFrame*, ORB_SLAM3::KeyFrame*)> keyframes(
+        [](ORB_SLAM3::KeyFrame* a, ORB_SLAM3::KeyFrame* b) { return a->mnId < b->mnId; });
+    std::vector<ORB_SLAM3::KeyFrame*> named(v.references->begin(), v.references->end());
+    named.insert(named.end(), logged_references().begin(), logged_references().end());
+    for (ORB_SLAM3::KeyFrame* kf : named) {
+        for (int depth = 0; kf != nullptr && depth < 100000 && keyframes.insert(kf).second; ++depth)
+            kf = kf->isBad() ? kf->GetParent() : nullptr;
+    }
+    std::vector<ORB_SLAM3::Map*> maps = v.atlas->GetAllMaps();  // SaveTrajectoryEuRoC's order (by id)
+    for (ORB_SLAM3::Map* m : maps) {
+        const std::vector<ORB_SLAM3::KeyFrame*> all = m->GetAllKeyFrames();
+        if (!all.empty()) keyframes.insert(*std::min_element(all.begin(), all.end(), ORB_SLAM3::KeyFrame::lId));
+    }
+    std::vector<ORB_SLAM3::KeyFrame*> kfs(keyframes.begin(), keyframes.end());
+    std::string out = "{";
+    const Sophus::SE3f t_bc = kfs.empty() ? Sophus::SE3f() : kfs.front()->mImuCalib.mTbc;
+    out += "\"t_bc\":";
+    append_pose(out, t_bc);
+    out += ",\"maps\":{";
+    append_list(out, "id", maps, [](std::string& o, ORB_SLAM3::Map* m) { o += std::to_string(m->GetId()); });
+    append_list(out, "keyframes", maps,
+                [](std::string& o, ORB_SLAM3::Map* m) { o += std::to_string(m->GetAllKeyFrames().size()); }, true);
+    out += "},\"keyframes\":{";
+    auto map_of = [](ORB_SLAM3::KeyFrame* kf) {
+        ORB_SLAM3::Map* m = kf->GetMap();
+        return m == nullptr ? std::string("-1") : std::to_string(m->GetId());
+    };
+    append_list(out, "id", kfs, [](std::string& o, ORB_SLAM3::KeyFrame* kf) { o += std::to_string(kf->mnId); });
+    append_list(out, "map_id", kfs, [&](std::string& o, ORB_SLAM3::KeyFrame* kf) { o += map_of(kf); });
+    append_list(out, "bad", kfs, [](std::string& o, ORB_SLAM3::KeyFrame* kf) { o += kf->isBad() ? "1" : "0"; });
+    append_list(out, "parent", kfs, [](std::string& o, ORB_SLAM3::KeyFrame* kf) {
+        ORB_SLAM3::KeyFrame* p = kf->GetParent();
+        o += p == nullptr ? std::string("-1") : std::to_string(p->mnId);
+    });
+    append_list(out, "t_cw", kfs, [](std::string& o, ORB_SLAM3::KeyFrame* kf) { append_pose(o, kf->GetPose()); });
+    append_list(out, "t_cp", kfs, [](std::string& o, ORB_SLAM3::KeyFrame* kf) { append_pose(o, kf->mTcp); }, true);
+    out += "},\"trajectory\":{";
+    append_list(out, "row", s.entry_rows, [](std::string& o, std::int64_t r) { o += std::to_string(r); });
+    append_list(out, "ref_kf", *v.references, [](std::string& o, ORB_SLAM3::KeyFrame* kf) {
+        o += kf == nullptr ? std::string("-1") : std::to_string(kf->mnId);
+    });
+    append_list(out, "lost", *v.lost, [](std::string& o, bool b) { o += b ? "1" : "0"; });
+    append_list(out, "t_cr", *v.relative, [](std::string& o, const Sophus::SE3f& t) { append_pose(o, t); }, true);
+    out += "}}";
+    if (s.log->trailer("orbslam3", out) != jsve::Status::kOk) return refuse(s.log->last_error());
+    return true;
 }
 
 }  // namespace jsve_hook

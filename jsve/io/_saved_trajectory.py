@@ -1,0 +1,219 @@
+"""ORB-SLAM3's own saved trajectory, rebuilt from a format-v3 log (its `orbslam3` trailer).
+
+What a SLAM researcher scores is the trajectory ORB-SLAM3 writes at the end of a run,
+System::SaveTrajectoryEuRoC (ORB-SLAM3 v1.0, src/System.cc l.662-777), not the online poses: it keeps
+the map with the most keyframes (the first such map in id order), and poses every entry of the
+tracker's trajectory lists (one per frame that ended in OK or RECENTLY_LOST, Tracking.cc l.2300-2318)
+that is not marked lost as
+
+    T_wb = (T_bc  T_cr  T_rw)^-1,   T_rw = T_cp,1 ... T_cp,n  T_cw(K)  T_w b0
+
+where r is the entry's reference keyframe, a bad (culled) keyframe is replaced by its parent with its
+T_cp (the keyframe's pose relative to its parent when it was culled) until a good one K is reached,
+T_cw(K) is K's final, bundle-adjusted and loop-corrected pose, and b0 is the body of the saved map's
+lowest-id keyframe. Entries whose keyframe K is not in the saved map (another map, or a reset map's,
+whose keyframes belong to none) are left out. The hook's trailer holds exactly those inputs at the end
+of the run (jsve_orbslam3_hook.hpp, write_trailer), so the rebuild equals the saved file up to the
+float32 arithmetic ORB-SLAM3 composes in and the 9 decimals it prints.
+
+Poses are [qw, qx, qy, qz, tx, ty, tz] (the form of the metadata `camera_in_body`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from jsve.core._geometry import quat_conj, quat_mul, quat_normalize, quat_rotate
+from jsve.io import _schema as schema
+from jsve.io._errors import LogFormatError
+from jsve.io._schema import RunLog
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a o b of rigid transforms [..., 7] ([qw, qx, qy, qz, tx, ty, tz]), float64."""
+    q = quat_mul(a[..., :4], b[..., :4], xp=np)
+    t = a[..., 4:] + quat_rotate(a[..., :4], b[..., 4:], xp=np)
+    return np.concatenate([q, t], axis=-1)
+
+
+def invert(a: np.ndarray) -> np.ndarray:
+    """a^-1 of rigid transforms [..., 7]."""
+    qi = quat_conj(a[..., :4], xp=np)
+    return np.concatenate([qi, -quat_rotate(qi, a[..., 4:], xp=np)], axis=-1)
+
+
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class SavedTrajectory:
+    """The trajectory ORB-SLAM3 saves, rebuilt from a log.
+
+    Attributes:
+        rows: [N] the log rows (frames) of its poses, increasing.
+        t_ns: [N] their stamps, ns.
+        pose: [N, 7] body poses T_b0 b, in the saved file's frame (the saved map's first keyframe's body).
+        world_pose: [N, 7] the same poses in the saved map's world frame (T_w b = T_w b0 T_b0 b: gravity
+            along -z once the map's IMU is initialised).
+        saved_map: the saved map's id. n_frames: the log's frames.
+    """
+
+    rows: np.ndarray
+    t_ns: np.ndarray
+    pose: np.ndarray
+    world_pose: np.ndarray
+    saved_map: int
+    n_frames: int
+
+    @property
+    def coverage(self) -> float:
+        """Share of the log's frames that have a saved pose."""
+        return len(self.rows) / self.n_frames if self.n_frames else 0.0
+
+
+class _Keyframes:
+    """The trailer's keyframe table, indexed by id."""
+
+    def __init__(self, table: dict, source: str):
+        ids = np.asarray(table["id"], np.int64)
+        self.ids = ids
+        self.index = {int(k): i for i, k in enumerate(ids)}
+        self.map_id = np.asarray(table["map_id"], np.int64)
+        self.bad = np.asarray(table["bad"], bool)
+        self.parent = np.asarray(table["parent"], np.int64)
+        self.t_cw = _poses(table["t_cw"])
+        self.t_cp = _poses(table["t_cp"])
+        self.source = source
+
+    def resolve(self, kf: int) -> tuple[int, np.ndarray] | None:
+        """(good keyframe K, T_cp chain) for keyframe `kf`: SaveTrajectoryEuRoC's walk up the spanning
+        tree from a bad keyframe; None where the walk leaves the table (no parent)."""
+        chain = IDENTITY
+        seen = 0
+        while True:
+            i = self.index.get(int(kf))
+            if i is None:
+                return None
+            if not self.bad[i]:
+                return i, chain
+            chain = compose(chain, self.t_cp[i])
+            kf = self.parent[i]
+            seen += 1
+            if kf < 0 or seen > len(self.index):
+                return None
+
+
+def _poses(values) -> np.ndarray:
+    p = np.asarray(values, np.float64).reshape(-1, 7)
+    return np.concatenate([quat_normalize(p[:, :4], xp=np), p[:, 4:]], axis=1)
+
+
+def saved_map_id(maps: dict) -> int | None:
+    """The map SaveTrajectoryEuRoC saves: the first, in id order, with the most keyframes (None: no
+    map has a keyframe, where ORB-SLAM3 saves nothing)."""
+    order = np.argsort(np.asarray(maps["id"], np.int64), kind="stable")
+    best, best_n = None, 0
+    for i in order:
+        if maps["keyframes"][i] > best_n:
+            best, best_n = int(maps["id"][i]), int(maps["keyframes"][i])
+    return best
+
+
+def _trailer(run: RunLog) -> dict:
+    trailer = (run.trailers or {}).get(schema.ORBSLAM3_TRAILER)
+    if trailer is None:
+        raise LogFormatError(
+            run.source,
+            None,
+            f"no '{schema.ORBSLAM3_TRAILER}' trailer: ORB-SLAM3's saved trajectory can be rebuilt only from "
+            "a format-v3 log of jsve's hook (a run that ended normally)",
+        )
+    return trailer
+
+
+def saved_trajectory(run: RunLog) -> SavedTrajectory | None:
+    """SaveTrajectoryEuRoC's trajectory of a v3 log (module docstring); None where ORB-SLAM3 saves none
+    (no map holds a keyframe).
+
+    Raises:
+        LogFormatError: the log has no `orbslam3` trailer, or its trajectory rows do not match its frames.
+    """
+    trailer = _trailer(run)
+    saved = saved_map_id(trailer["maps"])
+    n = len(run.frames)
+    if saved is None:
+        return None
+    kfs = _Keyframes(trailer["keyframes"], run.source)
+    traj = trailer["trajectory"]
+    rows = np.asarray(traj["row"], np.int64)
+    if np.any(rows >= n) or np.any(np.diff(rows[rows >= 0]) <= 0):
+        raise LogFormatError(
+            run.source, None, "the trailer's trajectory rows are not increasing frames of the log"
+        )
+    t_bc = _poses([trailer["t_bc"]])[0]
+    map_kfs = np.flatnonzero((kfs.map_id == saved) & ~kfs.bad)
+    first = map_kfs[np.argmin(kfs.ids[map_kfs])]  # the saved map's lowest-id keyframe
+    # T_w b0 = T_wc T_cb of that keyframe (KeyFrame::GetImuPose).
+    t_wb0 = compose(invert(kfs.t_cw[first]), invert(t_bc))
+    t_cr = _poses(traj["t_cr"])
+    keep, out = [], []
+    for k, (row, ref, lost) in enumerate(zip(rows, traj["ref_kf"], traj["lost"], strict=True)):
+        if lost or ref < 0 or row < 0:
+            continue
+        found = kfs.resolve(ref)
+        if found is None or kfs.map_id[found[0]] != saved:
+            continue
+        i, chain = found
+        t_rw = compose(compose(chain, kfs.t_cw[i]), t_wb0)
+        out.append(invert(compose(compose(t_bc, t_cr[k]), t_rw)))
+        keep.append(row)
+    pose = np.array(out).reshape(-1, 7)
+    rows_kept = np.asarray(keep, np.int64)
+    return SavedTrajectory(
+        rows=rows_kept,
+        t_ns=run.frames["t_ns"].to_numpy()[rows_kept],
+        pose=pose,
+        world_pose=compose(np.broadcast_to(t_wb0, pose.shape), pose),
+        saved_map=saved,
+        n_frames=n,
+    )
+
+
+def event_counts(run: RunLog) -> dict[str, int]:
+    """Per-run counts of the front-end's events (schema.EVENTS) of a v3 log: frames whose `events` has
+    each bit; all zero for a log without the keyframe columns."""
+    if not run.has_keyframes:
+        return {name: 0 for name in schema.EVENTS}
+    events = run.frames["events"].to_numpy()
+    return {name: int(np.count_nonzero(events & bit)) for name, bit in schema.EVENTS.items()}
+
+
+def write_euroc(t_ns: np.ndarray, pose: np.ndarray, path) -> None:
+    """Poses [N, 7] at stamps t_ns as a EuRoC CSV (`t_ns,p_x,p_y,p_z,q_w,q_x,q_y,q_z`), evo-readable;
+    numbers in the shortest text that reads back to the same double."""
+    lines = ["#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []"]
+    for t, p in zip(t_ns, pose, strict=True):
+        lines.append(",".join([str(int(t))] + [repr(float(x)) for x in (*p[4:], *p[:4])]))
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def euroc_ate(reference, estimate, align: str = "se3") -> tuple[float, int]:
+    """(ATE RMSE in metres, associated poses) of a EuRoC trajectory file against a EuRoC ground truth,
+    as `jsve ape REF EST --format euroc --align ALIGN` computes it (evo's association, float64)."""
+    import jax
+
+    from jsve.core._pose_error import batched_ape
+    from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
+
+    pair = read_pose_pairs(reference, [estimate], "euroc")
+    est, ref, valid = stack_pose_pairs(pair)
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    try:
+        result = batched_ape(est, ref, valid, align=align)
+        return float(np.asarray(result.errors.stats.rmse)[0]), int(valid.sum())
+    finally:
+        jax.config.update("jax_enable_x64", previous)
