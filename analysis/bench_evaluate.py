@@ -69,7 +69,7 @@ def synthetic_chunk(n_runs: int, n_frames: int, seed: int, fps: float = 20.0) ->
         t=jnp.asarray(np.broadcast_to(t, (n_runs, n_frames)), f32), valid=jnp.ones((n_runs, n_frames), bool),
         state=jnp.full((n_runs, n_frames), 2, jnp.int8), imu_init=jnp.asarray(t[None] > 3.0).repeat(n_runs, 0),
         imu_ba2=jnp.asarray(t[None] >= BA2_S).repeat(n_runs, 0), map_id=jnp.zeros((n_runs, n_frames), jnp.int32),
-        has_pose=jnp.ones((n_runs, n_frames), bool),
+        has_pose=jnp.ones((n_runs, n_frames), bool), in_saved=jnp.ones((n_runs, n_frames), bool),
         n_extracted=jnp.full((n_runs, n_frames), 1000, jnp.int32), n_inliers=jnp.asarray(n_inl),
         n_frustum=jnp.asarray(n_inl + 60), bins=jnp.full((n_runs, n_frames, 64), 15, jnp.uint16),
         vis_p=jnp.asarray(vis_p, f32), vis_q=jnp.asarray(q, f32), vis_v=jnp.asarray(v, f32),

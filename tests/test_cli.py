@@ -132,7 +132,7 @@ def test_alignment_choices_are_the_library_methods():
 
 
 def test_format_and_error_choices_are_the_library_lists():
-    from jsve.core._trajectory import SEGMENT_MODES
+    from jsve.core._objective import FAILURE_DEFINITIONS, LOSSES
     from jsve.io._groundtruth import GT_FORMATS
     from jsve.io._ingest import OnError
     from jsve.io._trajectories import TRAJECTORY_FORMATS
@@ -142,7 +142,8 @@ def test_format_and_error_choices_are_the_library_lists():
     assert choices(["ingest"], "--gt-format") == GT_FORMATS
     for name in ("ingest", "evaluate", "fit"):
         assert choices([name], "--on-error") == get_args(OnError), name
-    assert choices(["evaluate"], "--segments") == SEGMENT_MODES
+    assert choices(["evaluate"], "--failure") == FAILURE_DEFINITIONS
+    assert choices(["evaluate"], "--loss") == LOSSES
 
 
 # --------------------------------------------------------------------------------------------------

@@ -189,7 +189,7 @@ def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
 
     pf = pq.ParquetFile(out)
     assert pf.schema_arrow.names[:2] == ["run_id", "frame"]
-    assert pf.schema_arrow.names[2:] == list(schema.COLUMNS + schema.WORLD_COLUMNS)
+    assert pf.schema_arrow.names[2:] == [*schema.COLUMNS, *schema.WORLD_COLUMNS, "in_saved"]
     assert str(pf.schema_arrow.field("frame").type) == "int32"
     assert str(pf.schema_arrow.field("run_id").type).startswith("dictionary<values=string")
     entries = json.loads(pf.metadata.metadata[b"jsve.runs"])
@@ -367,7 +367,7 @@ def test_ingest_carries_map_columns_and_missing_poses(mixed_versions, tmp_path):
     assert same_runs(back, expected)  # map_id, imu_ba2 exact; NaN poses bit for bit
     pf = pq.ParquetFile(out)
     assert pf.schema_arrow.names[2:7] == ["t_ns", "state", "imu_init", "map_id", "imu_ba2"]
-    assert pf.metadata.metadata[b"jsve.format"] == b"2"
+    assert pf.metadata.metadata[b"jsve.format"] == b"3"
     entries = json.loads(pf.metadata.metadata[b"jsve.runs"])
     assert [e["source"] for e in entries if e["log_version"] == 1] == v1
     assert sum(e["log_version"] == schema.FORMAT_VERSION for e in entries) == 15
@@ -417,8 +417,8 @@ def test_parquet_of_an_unknown_format_is_refused(tmp_path):
     logs.write_log(make_run(N, 1), tmp_path / "logs" / "r.csv")
     out = tmp_path / "s.parquet"
     ingest.ingest(tmp_path / "logs", out, workers=1, progress=False)
-    _rewrite(out, tmp_path / "x.parquet", b"3", [])
-    with pytest.raises(LogFormatError, match="unsupported jsve Parquet format '3'.*reads 1 and 2"):
+    _rewrite(out, tmp_path / "x.parquet", b"4", [])
+    with pytest.raises(LogFormatError, match="unsupported jsve Parquet format '4'.*reads 1 and 2 and 3"):
         ingest.read_parquet(tmp_path / "x.parquet")
     _rewrite(out, tmp_path / "y.parquet", b"2", ["imu_ba2"])
     with pytest.raises(LogFormatError, match="without the column.*imu_ba2"):

@@ -97,7 +97,7 @@ def _text(run: RunLog, tmp_path) -> str:
         (lambda t: t.replace(",-1,,,,,,,", ",-1,0.25,,,,,,", 1), "rel_px"),
         (lambda t: t.replace("# jsve-log v3 ", "# jsve-log v2 ", 1), "keyframe columns are format v3"),
         (lambda t: t.replace("# jsve-log end", '# jsve-log trailer x {"a":\n# jsve-log end'), "not JSON"),
-        (lambda t: t.replace("# jsve-log end", "# jsve-log trailer x 1\n# jsve-log trailer x 2\n# jsve-log end"),
+        (lambda t: t.replace("# jsve-log end", "# jsve-log trailer x 1\n# jsve-log trailer x 2\n# jsve-log end"),  # noqa: E501
          "more than once"),
     ],
 )  # fmt: skip

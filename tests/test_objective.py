@@ -351,6 +351,7 @@ def test_relaxed_lost_any_is_the_probability_of_ever_being_lost(x64):
         imu_ba2=jnp.zeros((R, F), bool),
         map_id=jnp.zeros((R, F), jnp.int32),
         has_pose=jnp.ones((R, F), bool),
+        in_saved=jnp.ones((R, F), bool),
         n_extracted=jnp.full((R, F), 1000, jnp.int32),
         n_inliers=jnp.zeros((R, F), jnp.int32),
         n_frustum=jnp.zeros((R, F), jnp.int32),

@@ -708,6 +708,7 @@ def to_batch(logs: list[dict], n_frames: int):
     out = dict(
         t=np.zeros((R, F)), valid=np.zeros((R, F), bool), state=np.zeros((R, F), np.int8),
         imu_init=np.zeros((R, F), bool), imu_ba2=np.zeros((R, F), bool), has_pose=np.zeros((R, F), bool),
+        in_saved=np.zeros((R, F), bool),
         map_id=np.zeros((R, F), np.int32), n_extracted=np.zeros((R, F), np.int32),
         n_inliers=np.zeros((R, F), np.int32), n_frustum=np.zeros((R, F), np.int32),
         bins=np.zeros((R, F, 64), np.uint16), vis_p=np.zeros((R, F, 3)), vis_q=identity.copy(),
@@ -728,6 +729,8 @@ def to_batch(logs: list[dict], n_frames: int):
             else:
                 out[key][i, :n] = value
         out["valid"][i, :n] = True
+        if "in_saved" not in log:  # one recorded map saved whole unless the log says otherwise
+            out["in_saved"][i, :n] = np.asarray(log["has_pose"], bool)
         out["t"][i, n:] = log["t"][-1] + np.arange(1, F - n + 1) / log["fps"]
         out["n_frustum"][i, :n] = log["n_inliers"]
     fields = {f.name for f in dataclasses.fields(LogBatch)}

@@ -125,6 +125,7 @@ def log_batch(
         imu_ba2=imu_ba2,
         map_id=per_frame(map_id, np.int32),
         has_pose=has_pose,
+        in_saved=has_pose,  # every recorded map saved unless a test says otherwise (frame_arrays)
         n_extracted=per_frame(n_extracted, np.int32),
         n_inliers=per_frame(score if n_inliers is None else n_inliers, np.int32),
         n_frustum=np.full(n, 500, np.int32),

@@ -237,14 +237,33 @@ def add_support_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_segments_option(parser: argparse.ArgumentParser) -> None:
-    """--segments: which map segment of a run is scored (jsve.core._trajectory.run_error)."""
+def add_scoring_options(parser: argparse.ArgumentParser) -> None:
+    """--failure, --min-coverage and --loss: what fails a run and what a tracked run costs
+    (jsve.core._objective; docs/state-machine.md, "Scoring a run")."""
     parser.add_argument(
-        "--segments",
-        default="largest",
-        choices=LibraryNames("jsve.core._trajectory", "SEGMENT_MODES"),
-        metavar="MODE",
-        help="which map segment of a run is scored: %(choices)s",
+        "--failure",
+        default="coverage",
+        choices=LibraryNames("jsve.core._objective", "FAILURE_DEFINITIONS"),
+        metavar="DEF",
+        help="what fails a run: coverage (its saved trajectory covers less than --min-coverage of the "
+        "frames, as the field counts failures) or strict (also any loss of tracking: a reset, an expiry, "
+        "a new map); %(choices)s",
+    )
+    coverage = parser.add_argument(
+        "--min-coverage",
+        type=float,
+        metavar="C",
+        help="share of the frames with ground truth (0 to 1) the saved trajectory must cover, else the run "
+        "failed (default: %(coverage)s)",
+    )
+    coverage.coverage = LibraryValue("jsve.core._objective", "DEFAULT_MIN_COVERAGE")
+    parser.add_argument(
+        "--loss",
+        default="bounded",
+        choices=LibraryNames("jsve.core._objective", "LOSSES"),
+        metavar="LOSS",
+        help="a tracked run's loss: bounded (its ATE capped at the failure penalty: a diverged run costs "
+        "what a failed one costs) or raw (its ATE); %(choices)s",
     )
 
 

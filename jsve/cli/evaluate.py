@@ -42,15 +42,7 @@ def register(subparsers) -> None:
         metavar="N",
         help="align on the first N evaluated frames only (default: all)",
     )
-    common.add_segments_option(p)
-    p.add_argument(
-        "--min-coverage",
-        type=float,
-        default=0.0,
-        metavar="C",
-        help="a run whose coverage (share of frames with a replayed pose, 0 to 1) is below C "
-        "counts as failed",
-    )
+    common.add_scoring_options(p)
     penalty = p.add_argument(
         "--failure-penalty",
         type=float,
@@ -91,7 +83,7 @@ def run(args) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
+    from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE
     from jsve.evaluation._aggregate import aggregate, failure_counts
     from jsve.evaluation._evaluate import evaluate_rules, in_run_order
     from jsve.evaluation._record import write_evaluation_record
@@ -99,13 +91,15 @@ def run(args) -> int:
     from jsve.io._batching import buckets
 
     progress = not args.no_progress
+    if args.min_coverage is None:
+        args.min_coverage = DEFAULT_MIN_COVERAGE
     if args.output:
         atomic.check_writable(args.output)  # before the replay: an unwritable folder fails at once
     dtype = jnp.float64 if args.x64 else jnp.float32
     options = dict(
         align=args.align,
         n_first=args.n_to_align,
-        segments=args.segments,
+        failure=args.failure,
         min_coverage=args.min_coverage,
         switch_model=args.switch_model or "orbslam3",
         progress=progress,
@@ -151,7 +145,9 @@ def run(args) -> int:
         return common.fail("evaluate", f"--by keys {unknown} are not metadata of these logs; known: {known}")
     penalty = DEFAULT_FAILURE_PENALTY_M if args.failure_penalty is None else args.failure_penalty
     try:
-        summary = aggregate(per_run, by, failure_penalty=penalty, support=args.support or "penalise")
+        summary = aggregate(
+            per_run, by, failure_penalty=penalty, support=args.support or "penalise", loss=args.loss
+        )
     except ValueError as err:
         return common.fail("evaluate", err)
     if args.output:
@@ -185,8 +181,10 @@ def _record(args, rules, by: list[str], penalty: float):
     return EvaluationRecord(
         align=args.align,
         n_to_align=args.n_to_align,
-        segments=args.segments,
+        segments="saved",
         min_coverage=args.min_coverage,
+        failure=args.failure,
+        loss=args.loss,
         switch_model=args.switch_model or "orbslam3",
         failure_penalty=penalty,
         support=args.support or "penalise",
@@ -214,6 +212,9 @@ def screen_summary(summary, by: list[str], penalty: float) -> str:
     def metres(x) -> str:
         return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.4f}"
 
+    def count(x) -> str:
+        return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.2g}"
+
     columns = [
         ("runs", lambda r: str(int(r["n_runs"]))),
         ("objective m", lambda r: metres(r["objective"])),
@@ -222,6 +223,8 @@ def screen_summary(summary, by: list[str], penalty: float) -> str:
         ("coverage", lambda r: pct(r["mean_coverage"])),
         ("ATE ok m", lambda r: metres(r["rmse_mean_nonfailed"])),
         ("n ok", lambda r: str(int(r["n_runs"] - r["n_failed"]))),
+        ("resets", lambda r: count(r.get("mean_resets"))),
+        ("new maps", lambda r: count(r.get("mean_new_maps"))),
         ("changed", lambda r: pct(r.get("mean_changed"))),
     ]
     rows = [[str(r[k]) for k in by] + [cell(r) for _, cell in columns] for r in summary.to_dict("records")]
@@ -235,9 +238,11 @@ def screen_summary(summary, by: list[str], penalty: float) -> str:
         ).rstrip()
 
     legend = (
-        f"objective: the mean run loss the fit minimises, m (a run's ATE RMSE; {penalty:g} m for a run "
-        "that failed or left the log's support); failed, unsupported: share of runs; coverage: mean share "
-        "of frames with a pose; ATE ok: mean ATE RMSE of the n ok runs that did not fail; changed: mean "
-        "share of frames whose replayed state differs from the logged one"
+        f"objective: the mean run loss the fit minimises, m (a run's ATE RMSE on its saved trajectory, "
+        f"capped at {penalty:g} m unless --loss raw; {penalty:g} m for a run that failed or left the log's "
+        "support); failed, unsupported: share of runs; coverage: mean share of frames in the saved "
+        "trajectory; ATE ok: mean ATE RMSE of the n ok runs that did not fail; resets, new maps: per run "
+        "(events, not failures); changed: mean share of frames whose replayed state differs from the "
+        "logged one"
     )
     return "\n".join([line(header), *(line(row) for row in rows), "", legend])

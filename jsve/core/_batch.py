@@ -40,6 +40,8 @@ class LogBatch(eqx.Module):
         map_id: [R, F] int32, the recorded run's Atlas map (Map::GetId; a reset keeps it), as the rank
             of its id among the run's distinct ids (jsve.io._batching.map_ranks): only equality counts.
         has_pose: [R, F] the recorded run posed the frame (vis_* are zeros / identity where not).
+        in_saved: [R, F] the frame's pose belongs to the trajectory the front-end saves when a rule
+            tracks it (its keyframe ends in the saved map: jsve.io._saved_trajectory.in_saved_frame).
         n_extracted, n_inliers, n_frustum: [R, F] counts (int32).
         bins: [R, F, 64] keypoints per SVE bin (uint16).
         vis_p, vis_q, vis_v: [R, F, 3|4|3] visual estimate: m, wxyz, m/s; world frame.
@@ -62,6 +64,7 @@ class LogBatch(eqx.Module):
     imu_ba2: Bool[Leaf, "R F"]
     map_id: Int[Leaf, "R F"]
     has_pose: Bool[Leaf, "R F"]
+    in_saved: Bool[Leaf, "R F"]
     n_extracted: Int[Leaf, "R F"]
     n_inliers: Int[Leaf, "R F"]
     n_frustum: Int[Leaf, "R F"]

@@ -1,22 +1,28 @@
 """Position-error objectives of a switching rule over a LogBatch, hard and relaxed.
 
-The objective is the mean over runs of a per-run loss: the run's ATE RMSE (metres, after alignment to
-ground truth) when it succeeded, and a configurable penalty when it failed. Failed runs are never
-dropped: a rule that loses tracking on a hard run must not score better than one that keeps it (evo
-issue #673). Runs can be weighted, e.g. so that every sequence, disturbance and level counts equally
-(`group_weights`), and the weighted coverage and failure rate come with every value.
+The objective is the mean over runs of a per-run loss on the trajectory the front-end saves
+(jsve.core._replay: ReplayResult.in_trajectory; docs/state-machine.md, "Scoring a run"): the run's ATE
+RMSE (metres, after alignment to ground truth), capped at a configurable penalty, which a failed run
+costs. Failed runs are never dropped: a rule that loses tracking on a hard run must not score better
+than one that keeps it (evo issue #673). Runs can be weighted, e.g. so that every sequence, disturbance
+and level counts equally (`group_weights`), and the weighted coverage and failure rate come with every
+value.
 
     loss_r = failure_penalty              if run r failed
-           = RMSE_r                       otherwise
+           = min(RMSE_r, failure_penalty) otherwise (loss="bounded", the default; "raw": RMSE_r)
     J = sum_r w_r loss_r / sum_r w_r
 
-A run fails as in `jsve.evaluation._evaluate`: it lost tracking (a reset, an expiry or a recorded map
-loss: the hard replay then starts a new, unaligned map), its alignment was degenerate, fewer than 3 frames
-were evaluated, its coverage is below `min_coverage`, or its RMSE is not finite (an overflow or a NaN
-reached it: `RunLoss.non_finite`; it costs the penalty, never a number). A run that never lost tracking
-stays in one map, so its RMSE equals `jsve.evaluation._evaluate`'s (segments="largest"); the hard
-objective is therefore exactly mean(where(failed, penalty, rmse)) of the per-run table
-(tests/test_objective.py).
+A run fails as the field counts failures (failure="coverage", the default): its saved trajectory covers
+less than `min_coverage` of the frames with ground truth (none at all included), its alignment was
+degenerate, fewer than 3 frames were evaluated, or its RMSE is not finite (an overflow or a NaN reached
+it: `RunLoss.non_finite`; it costs the penalty, never a number). Resets, new maps and merges are events,
+not failures. failure="strict" also fails every run that lost tracking once (a reset, an expiry or a
+recorded map loss), the definition jsve used before it scored the saved trajectory. The hard objective
+is exactly mean(loss) of `jsve.evaluation._evaluate`'s per-run table (tests/test_objective.py).
+
+The bounded loss makes a diverged run cost what a failed one costs: without the cap one run tracked
+metres off outweighs dozens of centimetre runs, and comparisons of rules lose their power
+(docs/validation.md).
 
 Support (docs/state-machine.md): a run whose replay needs the recorded pose of a frame the recorded run
 did not pose (the rule kept tracking where the recorded run had lost its map) has left the log's
@@ -67,9 +73,32 @@ below it (ORB-SLAM3's EuRoC ATE is centimetres); a run that reaches LOST costs m
 keeps tracking with a plausible error. Configurable: it sets the exchange rate between failures and
 metres of error, which is a choice the user owns (docs/fitting.md)."""
 
+DEFAULT_MIN_COVERAGE = 0.5
+"""Share of the frames with ground truth the saved trajectory must cover for a run to count as tracked.
+ORB-SLAM3's paper (Campos et al. 2021, Table II) counts a run as successful when the system completes
+the sequence, with the error "for all the frames in the trajectory", and ORB-SLAM (Mur-Artal et al.
+2015) marks a failure where "a significant portion of the sequence is not processed"; neither states a
+share, and both count the frames before initialisation as processed. Half is jsve's choice within that
+practice: a run that starts its map late (EuRoC's machine-hall sequences start at rest, and ORB-SLAM3
+resets until the IMU is excited) still counts, one that loses its map for most of the sequence fails."""
+
+FAILURE_DEFINITIONS = ("coverage", "strict")
+"""What fails a run: "coverage" (default; the module docstring), or "strict", which also fails every
+run that lost tracking once (a reset, an expiry, a recorded map loss)."""
+
+LOSSES = ("bounded", "raw")
+"""A tracked run's loss: "bounded" (default) min(RMSE, failure_penalty), "raw" its RMSE."""
+
 SUPPORT_POLICIES = ("penalise", "exclude")
 """What the objective does with a run whose replay leaves the log's support (see the module docstring):
 "penalise" (default) scores it as failed; "exclude" drops the run-rule pair from the mean."""
+
+
+def check_loss(loss: str) -> str:
+    """`loss` if it is one of LOSSES, else a ValueError naming the choices."""
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    return loss
 
 
 def check_support(support: str) -> str:
@@ -86,7 +115,9 @@ class ObjectiveConfig(eqx.Module):
         failure_penalty: metres charged for a failed run.
         align: alignment before the RMSE, a method of jsve.core._align.ALIGNERS: "se3" (default), "sim3",
             "posyaw", "origin", "none".
-        min_coverage: runs whose coverage (evaluated / ground-truth frames) is below it fail.
+        min_coverage: runs whose coverage (saved frames / frames with ground truth) is below it fail.
+        failure: FAILURE_DEFINITIONS: "coverage" (default) or "strict".
+        loss: LOSSES: "bounded" (default, a tracked run costs at most the penalty) or "raw".
         time_recently_lost: s in RECENTLY_LOST before LOST (ORB-SLAM3: 5).
         switch_model: the pose of a frame in RECENTLY_LOST, "orbslam3" (the logged pose, default) or
             "imu-coast" (IMU prediction); see docs/state-machine.md.
@@ -97,7 +128,9 @@ class ObjectiveConfig(eqx.Module):
 
     failure_penalty: float = eqx.field(static=True, default=DEFAULT_FAILURE_PENALTY_M)
     align: str = eqx.field(static=True, default="se3")
-    min_coverage: float = eqx.field(static=True, default=0.0)
+    min_coverage: float = eqx.field(static=True, default=DEFAULT_MIN_COVERAGE)
+    failure: str = eqx.field(static=True, default="coverage")
+    loss: str = eqx.field(static=True, default="bounded")
     time_recently_lost: float = eqx.field(static=True, default=TIME_RECENTLY_LOST_S)
     switch_model: str = eqx.field(static=True, default="orbslam3")
     support: str = eqx.field(static=True, default="penalise")
@@ -113,6 +146,17 @@ class ObjectiveConfig(eqx.Module):
             raise ValueError(f"align must be one of {tuple(ALIGNERS)}, got {self.align!r}")
         if not 0.0 <= self.min_coverage <= 1.0:
             raise ValueError(f"min_coverage must lie in [0, 1], got {self.min_coverage}")
+        if self.failure not in FAILURE_DEFINITIONS:
+            raise ValueError(f"failure must be one of {FAILURE_DEFINITIONS}, got {self.failure!r}")
+        check_loss(self.loss)
+
+
+def tracked_loss(rmse, config: ObjectiveConfig):
+    """The loss of a run that did not fail (metres): min(rmse, penalty) under loss="bounded", else rmse.
+    The one home of the cap: the replay objective, the search kernel and the per-run tables use it."""
+    if config.loss == "bounded":
+        return jnp.minimum(rmse, jnp.asarray(config.failure_penalty, jnp.result_type(rmse)))
+    return rmse
 
 
 class RunLoss(eqx.Module):
@@ -120,11 +164,11 @@ class RunLoss(eqx.Module):
     kernel; probabilities where relaxed).
 
     Attributes:
-        loss: metres; failure_penalty where failed.
-        rmse: ATE RMSE over the evaluated frames, metres (also for failed runs, for reference).
+        loss: metres; failure_penalty where failed, else tracked_loss(rmse).
+        rmse: ATE RMSE over the saved trajectory, metres (also for failed runs, for reference).
         failed: the run failed (bool), or its probability of failing (relaxed); a run out of support
             counts as failed under both policies.
-        coverage: evaluated frames / valid frames with ground truth.
+        coverage: frames of the saved trajectory with ground truth / valid frames with ground truth.
         unsupported: the replay left the log's support on some frame (bool; relaxed: the largest
             per-frame probability).
         included: the run counts in the objective: 1 under "penalise", 1 - unsupported under "exclude"
@@ -181,8 +225,8 @@ def support_outcome(unsupported, failed, config: ObjectiveConfig, hard: bool):
 def _one_run_loss(
     est_p, est_q, has_estimate, out_of_support, lost_any, gt_p, gt_q, gt_valid, valid, config, hard
 ):
-    """Loss of one replayed run ([T, ...] arrays; has_estimate, out_of_support and lost_any are flags or
-    probabilities)."""
+    """Loss of one replayed run ([T, ...] arrays; has_estimate (the frames of the saved trajectory),
+    out_of_support and lost_any are flags or probabilities)."""
     dtype = est_p.dtype
     with_gt = (gt_valid & valid).astype(dtype)
     weight = has_estimate.astype(dtype) * with_gt
@@ -200,18 +244,23 @@ def _one_run_loss(
     broken = (
         transform.degenerate | (count < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage) | non_finite
     )
+    strict = config.failure == "strict"
     if hard:
         unsupported = jnp.any(out_of_support & valid)
-        failed, included = support_outcome(unsupported, broken | (lost_any > 0.5), config, hard)
-        loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), rmse)
+        lost = (lost_any > 0.5) if strict else jnp.zeros((), bool)
+        failed, included = support_outcome(unsupported, broken | lost, config, hard)
+        loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), tracked_loss(rmse, config))
         included = included.astype(dtype)
     else:
         # (the replay's out_of_support is 0 on padding frames already)
         unsupported = jnp.max(out_of_support.astype(dtype), initial=0.0)
-        failed = 1 - (1 - lost_any.astype(dtype)) * (1 - broken.astype(dtype))
+        lost = lost_any.astype(dtype) if strict else 0.0
+        failed = 1 - (1 - lost) * (1 - broken.astype(dtype))
         failed, included = support_outcome(unsupported, failed, config, hard)
         # failed is 1 where the RMSE is not finite; 0 x NaN would still be NaN.
-        loss = failed * config.failure_penalty + (1 - failed) * jnp.where(non_finite, 0.0, rmse)
+        loss = failed * config.failure_penalty + (1 - failed) * tracked_loss(
+            jnp.where(non_finite, 0.0, rmse), config
+        )
     return RunLoss(
         loss=loss,
         rmse=rmse,
@@ -264,7 +313,7 @@ def replay_losses(
     return jax.vmap(kernel)(
         result.position,
         result.quaternion if with_q else None,
-        result.has_estimate,
+        result.in_trajectory,
         result.out_of_support,
         result.lost_any,
         batch.gt_p,

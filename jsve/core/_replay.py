@@ -6,6 +6,11 @@ ORB-SLAM3 v1.0 does) or ORB-SLAM3's IMU prediction from the previous replayed st
 jsve.core._imu). Every map start (the replay's own, or one of the recorded run) begins a new, unaligned
 segment; a reset before inertial BA2 takes the estimates of its map's frames away. One `lax.scan` over
 frames with all runs as vector lanes.
+
+The trajectory a run is scored on is the one the front-end saves (docs/state-machine.md, "Scoring a
+run"): its frames with an estimate whose recorded pose belongs to the saved map (LogBatch.in_saved),
+outside the maps the replay started itself after a loss the recorded run did not have (`own_map`: their
+keyframes are not in the log, and their frames belong to no recorded map).
 """
 
 from __future__ import annotations
@@ -53,6 +58,10 @@ class ReplayResult(eqx.Module):
         segment: index of the replay's map the frame belongs to (int32; -1 before the first map).
         reset: the replay reset its map at this frame (before inertial BA2; ORB-SLAM3 logs the frame
             as RECENTLY_LOST, l.2149-2155, and its map's frames lose their estimates).
+        own_map: the frame belongs to a map the replay started itself, after a loss of its own (not at a
+            recorded map start).
+        in_trajectory: the frame is in the trajectory the run is scored on: has_estimate, in the saved
+            map (LogBatch.in_saved), not own_map.
         lost_any: [runs] the run lost tracking at least once (a reset, an expiry, a recorded map loss).
     In a relaxed replay (SoftLogic) the flags are probabilities.
     """
@@ -67,6 +76,8 @@ class ReplayResult(eqx.Module):
     mode: Int[Array, "R F"]
     segment: Array
     reset: Array
+    own_map: Array
+    in_trajectory: Array
     lost_any: Array
 
 
@@ -152,13 +163,15 @@ def _scan_frames(
     # tracking, as a machine state of its own from which every loss is dropped, so that
     # lost_any = 1 - its mass is the probability of ever having lost tracking.
     never = jnp.zeros(batch_shape, dtype) if hard else init
-    start = (init, vis_p[0], vis_v[0], vis_q[0], never)
+    start = (init, vis_p[0], vis_v[0], vis_q[0], never, jnp.zeros(batch_shape, dtype))
 
     def step(carry, x):
-        state, p, v, q, never = carry
+        state, p, v, q, never, own = carry
         sc, fd, vp, vq, vv, dt, dp, dv, dq = x
         args = (sc, fd, run, thresholds, time_recently_lost)
         state, decision = machine_step(logic, state, *args)
+        # A map the replay starts after its own loss is its own until the recorded run starts one.
+        own = (1 - fd.rec_start) * (own + (1 - own) * decision.new_map)
         posed = fd.has_pose
         if coast:
             pp, pv, pq = imu_predict(p, v, q, dt, dp, dv, dq, gravity)
@@ -196,16 +209,16 @@ def _scan_frames(
                                 (nxt.ok * keep, nxt.recently_lost * keep, nxt.lost * keep))  # fmt: skip
             lost_any = 1 - (never.ok + never.recently_lost + never.lost)
         out = (p2, q2, v2, decision.tracked, decision.coasting, estimate, out_of_support, mode, state.segment,
-               decision.reset, lost_any)  # fmt: skip
-        return (state, p2, v2, q2, never), out
+               decision.reset, own, lost_any)  # fmt: skip
+        return (state, p2, v2, q2, never, own), out
 
     _, out = jax.lax.scan(step, start, (score, data) + tuple(logged))
-    p, q, v, tracked, coasting, estimate, out_of_support, mode, segment, reset, lost_any = out
+    p, q, v, tracked, coasting, estimate, out_of_support, mode, segment, reset, own, lost_any = out
     validf = valid.astype(dtype)
     return dict(
         position=p, quaternion=q, velocity=v, accepted=tracked * validf, coasting=coasting * validf,
         has_estimate=estimate * validf, out_of_support=out_of_support * validf, mode=mode, segment=segment,
-        reset=reset * validf, lost_any=jnp.max(lost_any * validf, axis=0),
+        reset=reset * validf, own_map=own * validf, lost_any=jnp.max(lost_any * validf, axis=0),
     )  # fmt: skip
 
 
@@ -268,18 +281,21 @@ def replay(
     mode = jnp.where(batch.valid, jnp.round(out["mode"]).astype(jnp.int8), jnp.int8(-1))
     if isinstance(logic, HardLogic):
         has_estimate = jax.vmap(_erase_reset_maps)(out["has_estimate"] > 0.5, out["segment"], out["reset"])
+        own = out["own_map"] > 0.5
         return ReplayResult(
             position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
             accepted=out["accepted"] > 0.5, coasting=out["coasting"] > 0.5, has_estimate=has_estimate,
             out_of_support=out["out_of_support"] > 0.5, mode=mode, segment=out["segment"].astype(jnp.int32),
-            reset=out["reset"] > 0.5, lost_any=lost_any > 0.5,
+            reset=out["reset"] > 0.5, own_map=own, in_trajectory=has_estimate & batch.in_saved & ~own,
+            lost_any=lost_any > 0.5,
         )  # fmt: skip
-    # Relaxed: a reset's erasure of earlier frames is left out; it only concerns runs that lost
-    # tracking, which the objective charges the failure penalty (docs/state-machine.md).
+    # Relaxed: a reset's erasure of earlier frames is left out (docs/state-machine.md, "The relaxation").
+    in_saved = batch.in_saved.astype(dtype)
     return ReplayResult(
         position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],
         accepted=out["accepted"], coasting=out["coasting"], has_estimate=out["has_estimate"],
         out_of_support=out["out_of_support"], mode=mode, segment=out["segment"], reset=out["reset"],
+        own_map=out["own_map"], in_trajectory=out["has_estimate"] * in_saved * (1 - out["own_map"]),
         lost_any=lost_any,
     )  # fmt: skip
 

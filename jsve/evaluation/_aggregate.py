@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, check_support
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, check_loss, check_support
 from jsve.core._trajectory import RunError, failure_reason
 
 STAT_COLUMNS: tuple[str, ...] = ("rmse", "mean", "median", "std", "min", "max", "sse", "count")
@@ -66,16 +66,24 @@ def per_run_table(run_errors: RunError, meta: pd.DataFrame) -> pd.DataFrame:
     return table
 
 
-def run_loss(table: pd.DataFrame, failure_penalty: float = DEFAULT_FAILURE_PENALTY_M) -> pd.Series:
+def run_loss(
+    table: pd.DataFrame, failure_penalty: float = DEFAULT_FAILURE_PENALTY_M, loss: str = "bounded"
+) -> pd.Series:
     """Each run's loss in the objective the fit minimises (jsve.core._objective, the hard replay): its
-    ATE RMSE (metres) when it succeeded, `failure_penalty` (metres) when it failed, has no finite RMSE,
-    or left the log's support (`unsupported_fraction` > 0, where the table has that column).
+    ATE RMSE (metres) when it succeeded, capped at `failure_penalty` under loss="bounded", and
+    `failure_penalty` (metres) when it failed, has no finite RMSE, or left the log's support
+    (`unsupported_fraction` > 0, where the table has that column).
 
     Arguments:
         table: a per-run table (per_run_table, jsve.evaluation.evaluate).
         failure_penalty: metres charged for a failed run (ObjectiveConfig's default).
+        loss: "bounded" (default) or "raw" (jsve.core._objective.LOSSES).
     """
-    return table["rmse"].astype(float).where(~_charged(table), float(failure_penalty))
+    check_loss(loss)
+    rmse = table["rmse"].astype(float)
+    if loss == "bounded":
+        rmse = rmse.clip(upper=float(failure_penalty))
+    return rmse.where(~_charged(table), float(failure_penalty))
 
 
 def _charged(table: pd.DataFrame) -> pd.Series:
@@ -173,6 +181,7 @@ def aggregate(
     seed: int = 0,
     failure_penalty: float = DEFAULT_FAILURE_PENALTY_M,
     support: str = "penalise",
+    loss: str = "bounded",
 ) -> pd.DataFrame:
     """Summarise per-run errors per group: the objective, with failure and coverage next to every error.
 
@@ -186,6 +195,7 @@ def aggregate(
         failure_penalty: metres charged for a failed (or unsupported) run in `objective`.
         support: "penalise" or "exclude", the objective's policy for runs that left the log's support
             (jsve.core._objective.SUPPORT_POLICIES).
+        loss: "bounded" (default: a tracked run costs at most the penalty) or "raw" (`run_loss`).
 
     Returns:
         One row per group (the `by` columns first), with
@@ -194,6 +204,8 @@ def aggregate(
             computes it with equal weights (under "exclude" the mean over the supported runs, the
             penalty when there is none); share_penalised: the share of runs charged the penalty
             (failed, non-finite or unsupported);
+        mean_resets, mean_new_maps: the replay's map resets and new maps per run, where the table has
+            them (events: a run fails by its coverage, not by them);
         mean_changed, mean_unsupported, share_unsupported_runs: when the table has the support columns
             of jsve.evaluation._evaluate (the mean share of frames whose replayed mode differs from the
             recorded state, the mean share out of the log's support, the share of runs with any);
@@ -216,7 +228,7 @@ def aggregate(
     # study with one group per run and setting (thousands) pays in minutes.
     col = {c: table[c].to_numpy(np.float64) for c in ("rmse", "mean", "sse", "count", "coverage")}
     failed_all = table["failed"].to_numpy(bool)
-    loss_all = run_loss(table, failure_penalty).to_numpy(np.float64)
+    loss_all = run_loss(table, failure_penalty, loss).to_numpy(np.float64)
     charged_all = _charged(table).to_numpy(bool)
     support_columns = "changed_fraction" in table
     if support_columns:
@@ -237,6 +249,9 @@ def aggregate(
             scored = scored[~(unsupported_all[idx] > 0)]
         row["objective"] = float(scored.mean()) if len(scored) else float(failure_penalty)
         row["share_penalised"] = float(charged_all[idx].mean())
+        for event in ("resets", "new_maps"):
+            if event in table:  # events of the replay, never failures by themselves
+                row[f"mean_{event}"] = float(table[event].to_numpy(np.float64)[idx].mean())
         if support_columns:
             row["mean_changed"] = float(changed_all[idx].mean())
             row["mean_unsupported"] = float(unsupported_all[idx].mean())

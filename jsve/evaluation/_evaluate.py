@@ -23,7 +23,13 @@ from tqdm.auto import tqdm
 from jsve._memory import RELEASE_ABOVE_BYTES, release_memory, resident_bytes
 from jsve.core._batch import LogBatch, iter_chunks, ladder_chunk_size, runs_per_chunk_for
 from jsve.core._machine import TIME_RECENTLY_LOST_S
-from jsve.core._objective import ObjectiveConfig, RunLoss, replay_losses
+from jsve.core._objective import (
+    DEFAULT_MIN_COVERAGE,
+    FAILURE_DEFINITIONS,
+    ObjectiveConfig,
+    RunLoss,
+    replay_losses,
+)
 from jsve.core._replay import as_logged_mode, batch_features, replay
 from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
@@ -31,23 +37,30 @@ from jsve.core._trajectory import RunError, batched_run_error
 from jsve.evaluation._aggregate import per_run_table
 from jsve.io._batching import Bucket, recorded_mode
 
-LOST_REASON = "lost tracking (a reset, an expiry to LOST or a recorded map loss)"
-"""The failure_reason of a run that lost tracking in the replay, before the trajectory's own causes."""
+LOST_REASON = "lost tracking (a reset, an expiry to LOST or a recorded map loss; failure='strict')"
+"""The failure_reason of a run that lost tracking in the replay under failure="strict", before the
+trajectory's own causes."""
 
 
 class Evaluation(eqx.Module):
     """Per-run outcome of one rule (leaves of shape [R]).
 
     Attributes:
-        error: APE statistics, coverage, segments (jsve.core._trajectory.RunError).
+        error: APE statistics and coverage of the saved trajectory (jsve.core._trajectory.RunError; one
+            segment: ReplayResult.in_trajectory).
         accepted_fraction: share of valid frames tracked (OK with a tracked pose).
         coasting_fraction: share of valid frames in RECENTLY_LOST with an estimate (the logged pose
             under the "orbslam3" switch model, the IMU prediction under "imu-coast").
         changed_fraction: share of valid frames whose replayed mode differs from the recorded state.
         unsupported_fraction: share of valid frames where the replay needs a recorded pose that does
             not exist (the rule kept tracking where the recorded run had lost its map).
-        lost_any: tracking was lost at least once (a reset, an expiry, a recorded map loss).
-        failed: error.failed or lost_any: the run is a tracking failure, whatever its error.
+        resets: [R] int, the replay's map resets (before inertial BA2).
+        new_maps: [R] int, maps the replay started after its first (after an expiry to LOST, a reset,
+            or where the recorded run started one).
+        lost_any: tracking was lost at least once (a reset, an expiry, a recorded map loss): an event,
+            a failure only under failure="strict".
+        failed: error.failed (no saved trajectory, coverage below min_coverage, ...), or lost_any under
+            failure="strict".
         objective: the run's term in the fit's objective (jsve.core._objective.replay_losses) from the
             same replay, where `evaluate_batch` was given an ObjectiveConfig; else None.
     """
@@ -57,6 +70,8 @@ class Evaluation(eqx.Module):
     coasting_fraction: Float[Array, " R"]
     changed_fraction: Float[Array, " R"]
     unsupported_fraction: Float[Array, " R"]
+    resets: Array
+    new_maps: Array
     lost_any: Bool[Array, " R"]
     failed: Bool[Array, " R"]
     objective: RunLoss | None = None
@@ -69,8 +84,8 @@ def evaluate_batch(
     *,
     align: str = "se3",
     n_first: int | None = None,
-    segments: str = "largest",
-    min_coverage: float = 0.0,
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
+    failure: str = "coverage",
     time_recently_lost: float = TIME_RECENTLY_LOST_S,
     switch_model: str = "orbslam3",
     objective: ObjectiveConfig | None = None,
@@ -81,14 +96,19 @@ def evaluate_batch(
         batch: padded logs. rule: any jsve rule (array leaves; a new value does not recompile). It is
             checked here, on the host (Rule.check_defined), not inside the compiled call.
         features: the batch's FrameFeatures when already computed (sweeps share them).
-        align, n_first, segments, min_coverage: see jsve.core._trajectory.run_error.
+        align, n_first, min_coverage: see jsve.core._trajectory.run_error (min_coverage: the share of
+            frames with ground truth the saved trajectory must cover, DEFAULT_MIN_COVERAGE).
+        failure: "coverage" (default) or "strict" (also fail every run that lost tracking once;
+            jsve.core._objective.FAILURE_DEFINITIONS).
         switch_model: "orbslam3" or "imu-coast" (docs/state-machine.md).
         objective: also score each run as the fit's objective does (Evaluation.objective), from the
             same replay: its switch model and time_recently_lost must be the evaluation's.
     """
     rule.check_defined()
     _check_objective(objective, switch_model, time_recently_lost)
-    return _evaluate_compiled(batch, rule, features, align=align, n_first=n_first, segments=segments,
+    if failure not in FAILURE_DEFINITIONS:
+        raise ValueError(f"failure must be one of {FAILURE_DEFINITIONS}, got {failure!r}")
+    return _evaluate_compiled(batch, rule, features, align=align, n_first=n_first, failure=failure,
                               min_coverage=min_coverage, time_recently_lost=time_recently_lost,
                               switch_model=switch_model, objective=objective)  # fmt: skip
 
@@ -107,7 +127,7 @@ def _check_objective(objective: ObjectiveConfig | None, switch_model: str, time_
 
 @functools.partial(
     jax.jit,
-    static_argnames=("align", "n_first", "segments", "time_recently_lost", "switch_model", "objective"),
+    static_argnames=("align", "n_first", "failure", "time_recently_lost", "switch_model", "objective"),
 )
 def _evaluate_compiled(
     batch,
@@ -116,7 +136,7 @@ def _evaluate_compiled(
     *,
     align,
     n_first,
-    segments,
+    failure,
     min_coverage,
     time_recently_lost,
     switch_model,
@@ -128,10 +148,11 @@ def _evaluate_compiled(
     # (`evaluate`), and the replay's segment ids lie in [0, T) by construction.
     result = replay(batch, rule, features, switch_model=switch_model, time_recently_lost=time_recently_lost,
                     checked=False)  # fmt: skip
+    # The saved trajectory is in one world frame (its map's), whatever replay segments it spans.
     error = batched_run_error(
-        result.position, result.quaternion, result.has_estimate, result.segment,
+        result.position, result.quaternion, result.in_trajectory, jnp.zeros_like(result.segment),
         batch.gt_p, batch.gt_q, batch.gt_valid, batch.valid,
-        align=align, n_first=n_first, segments=segments, min_coverage=min_coverage, check_segments=False,
+        align=align, n_first=n_first, min_coverage=min_coverage, check_segments=False,
     )  # fmt: skip
     n_valid = jnp.maximum(jnp.sum(batch.valid, axis=-1), 1)
     share = lambda flags: jnp.sum(flags & batch.valid, axis=-1) / n_valid  # noqa: E731
@@ -141,8 +162,10 @@ def _evaluate_compiled(
         coasting_fraction=share(result.coasting),
         changed_fraction=share(as_logged_mode(result) != recorded_mode(batch.state)),
         unsupported_fraction=share(result.out_of_support),
+        resets=jnp.sum(result.reset & batch.valid, axis=-1),
+        new_maps=jnp.maximum(jnp.max(result.segment, axis=-1), 0),
         lost_any=result.lost_any,
-        failed=error.failed | result.lost_any,
+        failed=error.failed | (result.lost_any & (failure == "strict")),
         objective=None if objective is None else replay_losses(result, batch, objective),
     )
 
@@ -154,8 +177,8 @@ def evaluate(
     rule_name: str = "rule",
     align: str = "se3",
     n_first: int | None = None,
-    segments: str = "largest",
-    min_coverage: float = 0.0,
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
+    failure: str = "coverage",
     switch_model: str = "orbslam3",
     runs_per_chunk: int | None = None,
     progress: bool = True,
@@ -178,7 +201,7 @@ def evaluate(
         '' when not failed), accepted_fraction, coasting_fraction, changed_fraction,
         unsupported_fraction, lost_any.
     """
-    return evaluate_rules(buckets, [(rule_name, rule)], align=align, n_first=n_first, segments=segments,
+    return evaluate_rules(buckets, [(rule_name, rule)], align=align, n_first=n_first, failure=failure,
                           min_coverage=min_coverage, switch_model=switch_model, runs_per_chunk=runs_per_chunk,
                           progress=progress, n_runs=n_runs)  # fmt: skip
 
@@ -189,8 +212,8 @@ def evaluate_rules(
     *,
     align: str = "se3",
     n_first: int | None = None,
-    segments: str = "largest",
-    min_coverage: float = 0.0,
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
+    failure: str = "coverage",
     switch_model: str = "orbslam3",
     runs_per_chunk: int | None = None,
     progress: bool = True,
@@ -250,7 +273,7 @@ def evaluate_rules(
                     on_chunk(bucket.meta.iloc[runs.start : runs.start + n], chunk, features)
                 for k, (_, rule) in enumerate(rules):
                     ev = evaluate_batch(chunk, rule, features, align=align, n_first=n_first,
-                                        segments=segments, min_coverage=min_coverage,
+                                        failure=failure, min_coverage=min_coverage,
                                         switch_model=switch_model, objective=objective)  # fmt: skip
                     # At most two computations in flight, whatever the number of rules: each holds a
                     # chunk's working set (runs_per_chunk_for's budget), and the CPU runs dispatched
@@ -259,7 +282,7 @@ def evaluate_rules(
                     in_flight.append((parts[k], ev, n))
         collect()
     tables = [
-        _run_table(jax.tree.map(lambda *xs: np.concatenate(xs), *parts[k]), meta, name, switch_model)
+        _run_table(jax.tree.map(lambda *xs: np.concatenate(xs), *parts[k]), meta, name, switch_model, failure)
         for k, (name, _) in enumerate(rules)
         for meta, parts in done
     ]
@@ -274,19 +297,24 @@ def in_run_order(per_run: pd.DataFrame, position) -> pd.DataFrame:
     return per_run.iloc[order].reset_index(drop=True)
 
 
-def _run_table(ev: Evaluation, meta: pd.DataFrame, rule_name: str, switch_model: str) -> pd.DataFrame:
+def _run_table(
+    ev: Evaluation, meta: pd.DataFrame, rule_name: str, switch_model: str, failure: str
+) -> pd.DataFrame:
     """One row per run of `meta`: its metadata, the rule, the errors and the decisions."""
     table = per_run_table(ev.error, meta)
     table.insert(len(meta.columns), "rule", rule_name)
     table.insert(len(meta.columns) + 1, "switch_model", switch_model)
     table["failed"] = np.asarray(ev.failed)
     lost = np.asarray(ev.lost_any)
+    lost_failed = lost & (failure == "strict")
     table["failure_reason"] = [
         "; ".join(filter(None, (LOST_REASON if lost_k else "", reason)))
-        for lost_k, reason in zip(lost, table["failure_reason"], strict=True)
+        for lost_k, reason in zip(lost_failed, table["failure_reason"], strict=True)
     ]
     for column in ("accepted", "coasting", "changed", "unsupported"):
         table[f"{column}_fraction"] = np.asarray(getattr(ev, f"{column}_fraction"))
+    table["resets"] = np.asarray(ev.resets).astype(np.int64)
+    table["new_maps"] = np.asarray(ev.new_maps).astype(np.int64)
     table["lost_any"] = np.asarray(ev.lost_any)
     if ev.objective is not None:
         terms = ev.objective
@@ -309,10 +337,10 @@ OBJECTIVE_COLUMNS = (
     "objective_included",
 )
 """The run's term in the fit's objective (jsve.core._objective), which `evaluate_rules(objective=...)` adds:
-its loss (metres; the penalty where the objective fails it), its RMSE over every frame with an estimate
-(NaN where failed), failed, coverage, whether its replay left the log's support and whether the support
-policy keeps it in the mean. The objective aligns all of a run's estimated frames, the evaluation its
-largest segment (`rmse`, `coverage`): they differ on runs that lost tracking."""
+its loss (metres; the penalty where the objective fails it, its bounded or raw RMSE otherwise), its RMSE
+over the saved trajectory (NaN where failed), failed, coverage, whether its replay left the log's support
+and whether the support policy keeps it in the mean. Both score the same saved trajectory, so `rmse`
+and `objective_rmse` agree wherever neither failed."""
 
 
 def _holds_too_much() -> bool:

@@ -7,8 +7,8 @@ instead of assuming jsve's defaults. A folder written before the record existed 
 `read_evaluation_record` returns None and the reader says it falls back to the defaults.
 
     {
-      "align": "se3", "n_to_align": null, "segments": "largest", "min_coverage": 0.0,
-      "switch_model": "orbslam3", "failure_penalty": 1.0, "support": "penalise",
+      "align": "se3", "n_to_align": null, "segments": "saved", "min_coverage": 0.5, "failure": "coverage",
+      "loss": "bounded", "switch_model": "orbslam3", "failure_penalty": 1.0, "support": "penalise",
       "by": ["sequence", "disturbance", "level", "rule"], "float64": false, "logs": "study.parquet",
       "rules": [{"name": "orbslam3", "file": null, "rule": {"kind": "inliers", "thresholds": {...}}}, ...]
     }
@@ -23,7 +23,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE
 from jsve.core._rules import PRESETS, Rule, rule_to_dict
 from jsve.io._atomic import write_json
 
@@ -54,8 +54,12 @@ class EvaluationRecord:
     Attributes:
         align: alignment to the ground truth (jsve.core._align.ALIGN_METHODS).
         n_to_align: frames the alignment used (the first N evaluated ones); None: all.
-        segments: which map segment of a run was scored (jsve.core._trajectory.SEGMENT_MODES).
-        min_coverage: share of frames (0 to 1) with a replayed pose below which a run counted as failed.
+        segments: what of a run was scored: "saved", the trajectory the front-end saves (records written
+            before it was scored: a map segment, jsve.core._trajectory.SEGMENT_MODES).
+        min_coverage: share of frames (0 to 1) the scored trajectory must cover, else the run failed.
+        failure: what failed a run (jsve.core._objective.FAILURE_DEFINITIONS; records without the key
+            were written under "strict").
+        loss: a tracked run's loss, "bounded" or "raw" (records without the key: "raw").
         switch_model: the replay's switch model (jsve.core._machine.SWITCH_MODELS).
         failure_penalty: metres charged for a failed run in the objective.
         support: what the objective did with a run out of the log's support, "penalise" or "exclude".
@@ -67,8 +71,10 @@ class EvaluationRecord:
 
     align: str = "se3"
     n_to_align: int | None = None
-    segments: str = "largest"
-    min_coverage: float = 0.0
+    segments: str = "saved"
+    min_coverage: float = DEFAULT_MIN_COVERAGE
+    failure: str = "coverage"
+    loss: str = "bounded"
     switch_model: str = "orbslam3"
     failure_penalty: float = DEFAULT_FAILURE_PENALTY_M
     support: str = "penalise"
@@ -89,6 +95,12 @@ class EvaluationRecord:
         if unknown := sorted(set(spec) - known):
             raise ValueError(f"{source}: unknown keys {unknown}; known: {sorted(known)}")
         values = dict(spec)
+        # Records of an earlier jsve scored a map segment, strictly, with the raw loss and no floor.
+        if "failure" not in values:
+            values.setdefault("segments", "largest")
+            values.setdefault("min_coverage", 0.0)
+            values.setdefault("loss", "raw")
+            values["failure"] = "strict"
         if "by" in values:
             values["by"] = tuple(values["by"])
         if "rules" in values:

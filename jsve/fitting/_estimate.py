@@ -669,7 +669,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             rule = preset(BASELINES.get("sve", "orbslam3"))
             run = functools.partial(
                 evaluate_batch, chunk, rule, align=config.align, min_coverage=config.min_coverage,
-                switch_model=config.switch_model, objective=config.objective(),
+                failure=config.failure, switch_model=config.switch_model, objective=config.objective(),
             )  # fmt: skip
             compile_s["evaluate", ""], s = _twice(run, spent)
             seconds["evaluate", ""] = s / (per_chunk * batch.n_frames)

@@ -22,8 +22,12 @@ with A = I - cR, the alignment residual is
 
 a sum of small terms (A is of the order of the error over the trajectory's extent), so float32 keeps it
 to ~1e-5 relative where the textbook form sum|y|^2 + sum|x|^2 - 2 tr(...) would cancel to ~1e-2.
-A run that never reached LOST is aligned over all its frames with an estimate and ground truth, as in
-jsve.evaluation._evaluate; a run that did is failed and costs the penalty. The support policy of the
+A run is aligned over the frames of its saved trajectory with ground truth (jsve.core._replay's
+in_trajectory: frames with an estimate in the saved map, outside maps the replay started itself), as in
+jsve.evaluation._evaluate: the sums of a replayed map are kept apart until the map ends (a reset erases
+them, as ORB-SLAM3 marks a reset map's frames lost), and a frame's sums count only where the frame is in
+the saved map. A run fails as jsve.core._objective says (ObjectiveConfig.failure), and a tracked run's loss
+is capped there (ObjectiveConfig.loss). The support policy of the
 objective (ObjectiveConfig.support: a run whose replay needs a recorded pose that does not exist is
 penalised or excluded) is jsve.core._objective.support_outcome, applied to the same per-frame
 out-of-support flag as the replay's. tests/test_search.py checks the kernel against
@@ -55,7 +59,7 @@ from jsve.core._align import ALIGNERS, MIN_ALIGNMENT_FRAMES, Moments, fit_moment
 from jsve.core._batch import LogBatch
 from jsve.core._imu import imu_predict_columns
 from jsve.core._machine import FrameData, HardLogic, RunConstants, initial_state, machine_step
-from jsve.core._objective import ObjectiveConfig, support_outcome
+from jsve.core._objective import ObjectiveConfig, support_outcome, tracked_loss
 from jsve.core._replay import frame_data, run_constants
 from jsve.core._rules import InlierRule, Rule
 from jsve.core._sve import FrameFeatures, combination_from_logs, feature_logs
@@ -96,7 +100,8 @@ class SearchBatch(eqx.Module):
     run: RunConstants  # [R] leaves
     valid: Array  # bool
     gt: Array  # bool: frame exists and has ground truth
-    weight: Array  # bool: ... and a recorded pose: the frames the alignment statistics are fixed for
+    saved: Array  # bool: the frame's recorded pose belongs to the saved map (LogBatch.in_saved)
+    weight: Array  # bool: gt, saved and a recorded pose: the frames the alignment statistics are fixed for
     vis_p: tuple
     g_c: tuple  # ground truth less its mean over the weight frames; 0 where gt is 0
     gravity: tuple  # [R] each
@@ -124,8 +129,8 @@ class SearchBatch(eqx.Module):
 class ImuColumns(eqx.Module):
     """What ORB-SLAM3's IMU prediction reads per frame ([F, R] columns): the visual velocity and
     orientation it starts from and the preintegration from the previous frame (s, m, m/s, wxyz).
-    Only the "imu-coast" switch model uses them: without them a frame's kernel inputs are 69 bytes
-    instead of 141 in float32 (tests/test_search.py; 230 when every column was a float32)."""
+    Only the "imu-coast" switch model uses them: without them a frame's kernel inputs are 70 bytes
+    instead of 142 in float32 (tests/test_search.py)."""
 
     vis_q: tuple
     vis_v: tuple
@@ -158,7 +163,7 @@ def prepare(batch: LogBatch, features: FrameFeatures, *, imu: bool = True) -> Se
     # Frames a run that keeps tracking usually has an estimate on: posed by the recorded run (a lane
     # whose estimates differ from these frames corrects the statistics in search_chunk).
     gt = batch.valid & batch.gt_valid
-    weight = gt & batch.has_pose  # [R, F]
+    weight = gt & batch.has_pose & batch.in_saved  # [R, F]
     gt_f, weight_f = gt.astype(dtype), weight.astype(dtype)
     n = jnp.sum(weight_f, axis=1)
     n_safe = jnp.maximum(n, 1.0)
@@ -191,6 +196,7 @@ def prepare(batch: LogBatch, features: FrameFeatures, *, imu: bool = True) -> Se
         run=run_constants(batch),
         valid=swap(batch.valid),
         gt=swap(gt),
+        saved=swap(batch.in_saved),
         weight=swap(weight),
         vis_p=cols(batch.vis_p),
         g_c=cols(g_c),
@@ -290,9 +296,9 @@ class _LaneSums(eqx.Module):
 
     lost: Array  # ever lost tracking (0 / 1)
     unsupported: Array  # ever out of the log's support (0 / 1)
-    n_closed: Array  # estimates with ground truth in closed maps
+    n_closed: Array  # saved estimates with ground truth in closed maps
     n_map: Array  # ... in the current map
-    moments: tuple  # _MOMENTS sums over the estimated frames
+    moments: tuple  # _MOMENTS sums over the saved estimated frames
     corrections: tuple  # _CORRECTIONS sums over (estimated - weight) frames (0 when not accumulated)
     n_off: Array  # frames off the weight frames (accumulated when the corrections are not)
 
@@ -314,22 +320,24 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
     first = lambda cols: tuple(jnp.broadcast_to(c[0], lanes) for c in cols)  # noqa: E731
     zeros = jnp.zeros(lanes, dtype)
     counts = (zeros, zeros)  # estimates in closed maps, in the current map
-    flags = (zeros, zeros, zeros)  # ever lost, ever out of support, frames off the weight frames
+    # ever lost, ever out of support, frames off the weight frames, in a map of the replay's own
+    flags = (zeros, zeros, zeros, zeros)
+    # Sums over the counted frames: the moments and, when exact, their count, sum g_c, sum g_c g_c^T.
     n_sums = _MOMENTS + (_CORRECTIONS if exact else 0)
     # Only the IMU prediction reads the velocity and orientation: without it the pose is the position.
     pose0 = (first(sb.vis_p), first(sb.imu.vis_v), first(sb.imu.vis_q)) if coast else first(sb.vis_p)
-    start = (state0, pose0, flags, counts, (zeros,) * n_sums)
+    start = (state0, pose0, flags, counts, ((zeros,) * n_sums, (zeros,) * n_sums))
     features = (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c)
     imu = sb.imu if coast else None
-    xs = (sb.n_inliers, features, sb.data, sb.valid, sb.gt, sb.weight, sb.vis_p, sb.g_c, imu)
+    xs = (sb.n_inliers, features, sb.data, sb.valid, sb.gt, sb.saved, sb.weight, sb.vis_p, sb.g_c, imu)
     # e = p - (g + o) = (p - (g_mean + o)) - g_c on frames with ground truth (where it counts)
     base = tuple(sb.g_mean[i] + sb.offset[i] for i in range(3))
     logic = HardLogic()
 
     def step(carry, x):
-        state, pose, (lost, unsupported, n_off), (n_closed, n_map), mom = carry
-        n_inl, feats, fd, valid, gt, w, vp, g_c, imu = x
-        valid, gt, w = (f.astype(dtype) for f in (valid, gt, w))
+        state, pose, (lost, unsupported, n_off, own), (n_closed, n_map), (closed, current) = carry
+        n_inl, feats, fd, valid, gt, saved, w, vp, g_c, imu = x
+        valid, gt, saved, w = (f.astype(dtype) for f in (valid, gt, saved, w))
         fd = _expanded(fd, dtype)
         score = score_columns(rule, n_inl, *feats)
         state, decision = machine_step(
@@ -354,35 +362,47 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
             est = (needs_pose & posed).astype(dtype)
         lost = jnp.maximum(lost, decision.loss * valid)
         unsupported = jnp.maximum(unsupported, (needs_pose & ~posed).astype(dtype) * valid)
-        # Coverage follows the replay: a new map closes the current one; a reset takes its estimates away.
-        counted = est * gt
         # (padding frames at the end run the machine too: their resets and map starts are not the run's)
         new_map, reset = decision.new_map * valid, decision.reset * valid
+        # A map the replay starts after its own loss is its own until the recorded run starts one.
+        own = (1 - fd.rec_start) * jnp.maximum(own, new_map)
+        # The saved trajectory's frames (jsve.core._replay's in_trajectory): a new map closes the current
+        # one's sums; a reset erases them, this frame's with them.
+        counted = est * gt * saved * (1 - own)
         n_closed = n_closed + new_map * n_map
-        n_map = (1 - new_map) * (1 - reset) * n_map + counted
+        n_off = n_off + reset * n_map  # erased estimates are off the weight frames
+        n_map = (1 - reset) * ((1 - new_map) * n_map + counted)
         e = [counted * ((p2[i] - base[i]) - g_c[i]) for i in range(3)]
-        off = counted - w  # +1 / -1 on frames off those the statistics were fixed for; usually 0
         new = [
             *e,
             *(e[j] * g_c[i] for j in range(3) for i in range(3)),
             e[0] * e[0] + e[1] * e[1] + e[2] * e[2],
         ]
         if exact:
-            off_g = [off * g_c[i] for i in range(3)]
-            new += [off] + off_g + [off_g[i] * g_c[j] for i, j in _PAIRS]
+            cg = [counted * g_c[i] for i in range(3)]
+            new += [counted] + cg + [cg[i] * g_c[j] for i, j in _PAIRS]
         else:
-            n_off = n_off + jnp.abs(off)
-        mom = tuple(acc + d for acc, d in zip(mom, new, strict=True))
-        return (state, pose, (lost, unsupported, n_off), (n_closed, n_map), mom), None
+            n_off = n_off + jnp.abs(counted - w)  # +1 / -1 off the frames the statistics were fixed for
+        closed = tuple(c + new_map * m for c, m in zip(closed, current, strict=True))
+        current = tuple((1 - reset) * ((1 - new_map) * m + d) for m, d in zip(current, new, strict=True))
+        return (state, pose, (lost, unsupported, n_off, own), (n_closed, n_map), (closed, current)), None
 
-    (_, _, (lost, unsupported, n_off), (n_closed, n_map), mom), _ = jax.lax.scan(step, start, xs)
+    (_, _, (lost, unsupported, n_off, _), (n_closed, n_map), (closed, current)), _ = jax.lax.scan(
+        step, start, xs
+    )
+    mom = tuple(c + m for c, m in zip(closed, current, strict=True))
+    if exact:  # sums over the counted frames less those over the weight frames (sum g_c is 0 there)
+        weight_sums = [sb.n_eval] + [0.0] * 3 + [sb.gram[i, j] for i, j in _PAIRS]
+        corrections = tuple(s - w for s, w in zip(mom[_MOMENTS:], weight_sums, strict=True))
+    else:
+        corrections = (jnp.zeros(lanes, dtype),) * _CORRECTIONS
     return _LaneSums(
         lost=lost,
         unsupported=unsupported,
         n_closed=n_closed,
         n_map=n_map,
         moments=mom[:_MOMENTS],
-        corrections=mom[_MOMENTS:] if exact else (jnp.zeros(lanes, dtype),) * _CORRECTIONS,
+        corrections=corrections,
         n_off=n_off,
     )
 
@@ -431,10 +451,14 @@ def _exact_from_start(sb: SearchBatch, config: ObjectiveConfig) -> bool:
     return config.switch_model == "imu-coast" and bool(np.any(np.asarray(sb.gt) & ~np.asarray(sb.weight)))
 
 
-def _needs_corrections(fast: _LaneSums) -> bool:
-    """Some lane that never lost tracking has estimated frames off its posed ones (host sync; on the
-    host, since an eager jnp test would compile per shape)."""
-    return bool(np.any((np.asarray(fast.lost) < 0.5) & (np.asarray(fast.n_off) > 0.5)))
+def _needs_corrections(fast: _LaneSums, config: ObjectiveConfig) -> bool:
+    """Some lane that can be scored (under failure="strict": one that never lost tracking) has counted
+    frames off its weight frames (host sync; on the host, since an eager jnp test would compile per
+    shape)."""
+    off = np.asarray(fast.n_off) > 0.5
+    if config.failure == "strict":
+        off &= np.asarray(fast.lost) < 0.5
+    return bool(np.any(off))
 
 
 def _traced_lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSums:
@@ -445,7 +469,8 @@ def _traced_lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> 
 
     def fast_then_exact():
         fast = _scan(sb, rule, config, exact=False)
-        inexact = jnp.any((fast.lost < 0.5) & (fast.n_off > 0.5))
+        off = fast.n_off > 0.5
+        inexact = jnp.any(off & (fast.lost < 0.5) if config.failure == "strict" else off)
         return jax.lax.cond(inexact, exact, lambda: fast)
 
     if config.switch_model == "imu-coast":
@@ -460,7 +485,7 @@ def _lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSu
     if _exact_from_start(sb, config):
         return _scan_sums(sb, rules, config, exact=True)
     fast = _scan_sums(sb, rules, config, exact=False)
-    return _scan_sums(sb, rules, config, exact=True) if _needs_corrections(fast) else fast
+    return _scan_sums(sb, rules, config, exact=True) if _needs_corrections(fast, config) else fast
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -473,11 +498,12 @@ def _chunk_result(sb: SearchBatch, sums: _LaneSums, config: ObjectiveConfig) -> 
     n_gt = sb.n_gt
     coverage = jnp.where(n_gt > 0, (sums.n_closed + sums.n_map) / jnp.maximum(n_gt, 1.0), 0.0)
     # An RMSE that is not finite (an overflow in the sums) fails the run, as in run_losses.
-    failed = (sums.lost > 0.5) | degenerate | (n < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage)
-    failed = failed | ~jnp.isfinite(rmse)
+    failed = degenerate | (n < MIN_ALIGNMENT_FRAMES) | (coverage < config.min_coverage) | ~jnp.isfinite(rmse)
+    if config.failure == "strict":
+        failed = failed | (sums.lost > 0.5)
     unsupported = sums.unsupported > 0.5
     failed, included = support_outcome(unsupported, failed, config, hard=True)
-    loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), rmse)
+    loss = jnp.where(failed, jnp.asarray(config.failure_penalty, dtype), tracked_loss(rmse, config))
     return ChunkResult(
         loss=loss,
         failed=failed,
@@ -675,7 +701,7 @@ def search(
 
     def collect(calls: list, bar) -> None:
         for p, sl, n_real, part, rules, exact, sums in calls:
-            if not exact and _needs_corrections(sums):
+            if not exact and _needs_corrections(sums, config):
                 sums = _scan_sums(part, rules, config, exact=True)
             res = jax.block_until_ready(_chunk_result(part, sums, config))
             n = sl.stop - sl.start

@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 from jsve._memory import peak_resident_bytes, release_memory
-from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE, ObjectiveConfig
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination
 from jsve.evaluation._aggregate import aggregate, group_weights
@@ -95,9 +95,10 @@ class StudyConfig:
         families: the rule families to fit ("sve", "inliers"); spaces: their ParamSpace descriptions
             (None: the defaults of jsve.fitting._space).
         balance_by: metadata columns whose groups count equally in the objective ([]: every run 1).
-        failure_penalty, align, min_coverage, switch_model, support: the objective
-            (jsve.core._objective.ObjectiveConfig; switch_model: docs/state-machine.md; support: what
-            the fit does with a run whose replay leaves the log's support, "penalise" or "exclude").
+        failure_penalty, align, min_coverage, failure, loss, switch_model, support: the objective
+            (jsve.core._objective.ObjectiveConfig; failure: what fails a run, "coverage" or "strict";
+            loss: "bounded" or "raw"; switch_model: docs/state-machine.md; support: what the fit does
+            with a run whose replay leaves the log's support, "penalise" or "exclude").
         fit: jsve.fitting._fit.FitConfig.
         kfold: folds of the k-fold cross-validation (0: none); leave_one_out: metadata columns to leave
             out one value at a time (skipped when a column has a single value; default none, THOROUGH
@@ -119,7 +120,9 @@ class StudyConfig:
     balance_by: tuple[str, ...] = GROUP_COLUMNS
     failure_penalty: float = DEFAULT_FAILURE_PENALTY_M
     align: str = "se3"
-    min_coverage: float = 0.0
+    min_coverage: float = DEFAULT_MIN_COVERAGE
+    failure: str = "coverage"
+    loss: str = "bounded"
     switch_model: str = "orbslam3"
     support: str = "penalise"
     fit: FitConfig = FitConfig()
@@ -147,6 +150,8 @@ class StudyConfig:
             failure_penalty=self.failure_penalty,
             align=self.align,
             min_coverage=self.min_coverage,
+            failure=self.failure,
+            loss=self.loss,
             switch_model=self.switch_model,
             support=self.support,
         )
@@ -556,6 +561,7 @@ def run_study(
     eval_kwargs = dict(
         align=config.align,
         min_coverage=config.min_coverage,
+        failure=config.failure,
         switch_model=config.switch_model,
         progress=progress,
     )

@@ -17,8 +17,8 @@ import pandas as pd
 from jsve.core._batch import LADDER_RATIO, LogBatch, bucket_by_ladder, ladder, padded_length
 from jsve.core._machine import MODE_LOST, MODE_OK, MODE_RECENTLY_LOST
 from jsve.io import _schema as schema
+from jsve.io._saved_trajectory import SAVED_COLUMN, in_saved_frame
 from jsve.io._schema import RunLog
-from jsve.io._world import in_one_world_frame
 
 
 @dataclass(frozen=True)
@@ -92,8 +92,9 @@ def from_runs(
     """Stack runs into one padded LogBatch.
 
     Arguments:
-        runs: parsed logs (validated by jsve.io._logs); poses of logs with world_* columns are
-            re-expressed in one world frame per recorded segment (jsve.io._world).
+        runs: parsed logs (validated by jsve.io._logs); poses of v3 logs with ORB-SLAM3's trailer are
+            those of its saved trajectory, of others with world_* columns re-expressed in one world
+            frame per recorded segment (jsve.io._saved_trajectory.in_saved_frame).
         n_frames: padded length; default: the longest run rounded up to `pad_multiple`.
         dtype: float dtype of the arrays (float64 needs jax_enable_x64).
     Returns:
@@ -116,7 +117,7 @@ def from_runs(
 
     t, valid = alloc((), fdt), alloc((), bool, False)
     state, imu_init, imu_ba2 = alloc((), np.int8), alloc((), bool, False), alloc((), bool, False)
-    map_id, has_pose = alloc((), np.int32), alloc((), bool, False)
+    map_id, has_pose, in_saved = alloc((), np.int32), alloc((), bool, False), alloc((), bool, False)
     n_ext, n_inl, n_fru = alloc((), np.int32), alloc((), np.int32), alloc((), np.int32)
     bins = alloc((schema.N_BINS,), np.uint16)
     vis_p, vis_v, imu_dp, imu_dv, gt_p = (alloc((3,), fdt) for _ in range(5))
@@ -129,8 +130,8 @@ def from_runs(
     delay, ba2_delay = np.zeros(R, fdt), np.zeros(R, fdt)
     n_features, stereo = np.zeros(R, fdt), np.zeros(R, bool)
     for i, run in enumerate(runs):
-        # One world frame per recorded map segment, where the log says how the front-end re-expressed it.
-        f = in_one_world_frame(run).frames
+        # The saved trajectory's frame (v3), or one world frame per recorded map segment.
+        f = in_saved_frame(run).frames
         n = len(f)
         stamps = f["t_ns"].to_numpy(np.int64)
         t[i, :n] = (stamps - stamps[0]) / 1e9  # int64 difference first: exact, then to seconds
@@ -140,6 +141,7 @@ def from_runs(
         ba2 = f["imu_ba2"].to_numpy() != 0
         posed = np.isfinite(f[list(schema.VIS_POSITION)].to_numpy()).all(axis=1)  # NaN: no pose (v2)
         imu_init[i, :n], imu_ba2[i, :n], has_pose[i, :n] = init, ba2, posed
+        in_saved[i, :n] = f[SAVED_COLUMN].to_numpy() != 0
         map_id[i, :n] = map_ranks(f["map_id"].to_numpy())
         # Delays from the recorded run's first map (its first posed frame), as a new map needs them.
         t_first = t[i, int(np.argmax(posed))] if posed.any() else 0.0
@@ -175,6 +177,7 @@ def from_runs(
         imu_ba2=jnp.asarray(imu_ba2),
         map_id=jnp.asarray(map_id),
         has_pose=jnp.asarray(has_pose),
+        in_saved=jnp.asarray(in_saved),
         n_extracted=jnp.asarray(n_ext),
         n_inliers=jnp.asarray(n_inl),
         n_frustum=jnp.asarray(n_fru),

@@ -41,6 +41,7 @@ from jsve.io._groundtruth import GroundTruth, GroundTruthSpec, apply_ground_trut
 from jsve.io._log_batches import iter_parsed
 from jsve.io._logs import (
     PARTIAL_SUFFIX,
+    TRAILERS_KEY,
     LogFormatError,
     LogIncompleteError,
     read_log_table,
@@ -49,6 +50,7 @@ from jsve.io._logs import (
     unreadable,
     with_v1_defaults,
 )
+from jsve.io._saved_trajectory import SAVED_COLUMN, in_saved_frame
 from jsve.io._schema import RunLog
 from jsve.io._stream import (
     PARQUET_FORMAT_KEY,
@@ -239,12 +241,15 @@ def _read_rows_one(path: str, ground_truth) -> tuple[_LogRows, int] | LogFormatE
 def _log_rows(path: str, meta: dict, version: int, table: pa.Table, ground_truth) -> tuple[_LogRows, int]:
     """(_LogRows, version) of a parsed log (read_log_table). A v2 log without ground truth to associate
     goes from Arrow's parse to the layout with no pandas frame."""
-    if version == 2 and ground_truth is None:
+    saved = TRAILERS_KEY in (table.schema.metadata or {}) and schema.KEYFRAME_COLUMNS[0] in table.column_names
+    if version >= 2 and ground_truth is None and not saved:
         columns = {c: table.column(c) for c in table.column_names}
     else:
         run = run_from_table(meta, version, table, path)
         if ground_truth is not None:
             run = apply_ground_truth(run, ground_truth)  # adds gt_* and their metadata
+        if saved:  # the saved trajectory's poses and in_saved (jsve.io._saved_trajectory)
+            run = in_saved_frame(run)
         meta, columns = run.meta, {c: run.frames[c].to_numpy() for c in run.frames.columns}
     entry = {
         "run_id": schema.run_id(meta),
@@ -715,6 +720,11 @@ def _read_parquet(path: str | os.PathLike, *, stacklevel: int) -> list[RunLog]:
     required = schema.required_columns(version)
     world = [c for c in schema.WORLD_COLUMNS if c in table.column_names]
     columns = {c: table.column(c).to_numpy() for c in required + schema.GT_COLUMNS + tuple(world)}
+    saved = (
+        table.column(SAVED_COLUMN).to_numpy(zero_copy_only=False).astype(np.float64)
+        if SAVED_COLUMN in table.column_names
+        else None
+    )
     runs = []
     for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
         has_world = bool(e.get("has_world_frame", False))
@@ -722,6 +732,8 @@ def _read_parquet(path: str | os.PathLike, *, stacklevel: int) -> list[RunLog]:
         frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
         if version == 1:
             frames = with_v1_defaults(frames)
+        if saved is not None and not np.isnan(saved[start]):  # poses of the saved trajectory's frame
+            frames[SAVED_COLUMN] = saved[start:stop].astype(np.int64)
         runs.append(RunLog(meta=e["meta"], frames=frames, source=e["source"]))
     if version == 1:
         warnings.warn(

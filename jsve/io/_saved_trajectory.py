@@ -217,3 +217,118 @@ def euroc_ate(reference, estimate, align: str = "se3") -> tuple[float, int]:
         return float(np.asarray(result.errors.stats.rmse)[0]), int(valid.sum())
     finally:
         jax.config.update("jax_enable_x64", previous)
+
+
+SAVED_COLUMN = "in_saved"
+"""The per-frame flag `in_saved_frame` adds: the frame's pose belongs to the saved trajectory when a
+rule tracks the frame (jsve.core._batch.LogBatch.in_saved)."""
+
+
+def largest_map_frames(
+    posed: np.ndarray, map_id: np.ndarray, run_start: np.ndarray | None = None
+) -> np.ndarray:
+    """SaveTrajectoryEuRoC's choice of map where a log has no keyframe table (v1, v2, simulated): per run,
+    the frames of the recorded map with the most posed frames since its last reset (posed frames stand
+    in for keyframes; a reset detaches the earlier frames' keyframes from the map). Ties go to the map
+    that comes first.
+
+    Arguments:
+        posed: [F] bool. map_id: [F] int. run_start: [F] bool, the frame starts a run, where several
+            runs lie end to end (None: one run).
+    Returns:
+        [F] bool.
+    """
+    posed = np.asarray(posed, bool)
+    map_id = np.asarray(map_id, np.int64)
+    n = len(posed)
+    run = np.zeros(n, np.int64) if run_start is None else np.cumsum(np.asarray(run_start, bool)) - 1
+    prev_posed = np.concatenate([[False], posed[:-1]])
+    prev_map = np.concatenate([map_id[:1], map_id[:-1]])
+    prev_run = np.concatenate([[-1], run[:-1]])
+    start = posed & (~prev_posed | (map_id != prev_map) | (run != prev_run))
+    segment = np.cumsum(start) - 1  # recorded segments, numbered over all runs
+    out = np.zeros(n, bool)
+    if not posed.any():
+        return out
+    idx = np.flatnonzero(posed)
+    seg, m, r = segment[idx], map_id[idx], run[idx]
+    # The last segment of each (run, map): earlier ones were reset away.
+    key = np.stack([r, m], axis=1)
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    last = np.full(inverse.max() + 1, -1)
+    np.maximum.at(last, inverse, seg)
+    alive = seg == last[inverse]
+    counts = np.bincount(seg[alive], minlength=segment.max() + 1)
+    # Per run, the segment with most frames (first on ties: segments are numbered in time order).
+    best = {}
+    for s in np.unique(seg[alive]):
+        run_of = int(r[np.argmax(seg == s)])
+        if run_of not in best or counts[s] > counts[best[run_of]]:
+            best[run_of] = s
+    chosen = np.array([best.get(int(x), -2) for x in r])
+    out[idx] = seg == chosen
+    return out
+
+
+def in_saved_frame(run: RunLog) -> RunLog:
+    """The run as ORB-SLAM3's saved trajectory sees it (docs/state-machine.md, "Scoring a run"), with a
+    `in_saved` column (0/1) and without the world_* and keyframe columns.
+
+    A v3 log with the `orbslam3` trailer: vis_p and vis_q of each posed frame become its pose in the
+    saved map's world frame (the saved trajectory's pose, exactly, for the frames ORB-SLAM3 saved; for
+    another posed frame, its logged T_cr on its reference keyframe's final pose), vis_v rotated with
+    them; in_saved marks the frames whose keyframe resolves into the saved map and whose entry (if any)
+    was not marked lost. Any other log: poses in one world frame per recorded segment
+    (jsve.io._world.in_one_world_frame) and in_saved from `largest_map_frames`.
+    """
+    from jsve.io._world import in_one_world_frame
+
+    if SAVED_COLUMN in run.frames.columns:  # converted already (a study read back from Parquet)
+        return run
+    trailer = (run.trailers or {}).get(schema.ORBSLAM3_TRAILER)
+    drop = [c for c in schema.KEYFRAME_COLUMNS if c in run.frames.columns]
+    if trailer is None or not run.has_keyframes:
+        out = in_one_world_frame(run)
+        f = out.frames.drop(columns=drop)
+        posed = np.isfinite(f[list(schema.VIS_POSITION)].to_numpy()).all(axis=1)
+        f[SAVED_COLUMN] = largest_map_frames(posed, f["map_id"].to_numpy()).astype(np.int64)
+        return RunLog(meta=out.meta, frames=f, source=out.source, trailers=out.trailers)
+    f = run.frames
+    n = len(f)
+    saved = saved_map_id(trailer["maps"])
+    kfs = _Keyframes(trailer["keyframes"], run.source)
+    t_bc = _poses([trailer["t_bc"]])[0]
+    ref = f["ref_kf"].to_numpy().copy()
+    t_cr = np.concatenate(
+        [f[list(schema.REL_QUATERNION)].to_numpy(), f[list(schema.REL_POSITION)].to_numpy()], 1
+    )
+    lost = np.zeros(n, bool)
+    traj = trailer["trajectory"]
+    rows = np.asarray(traj["row"], np.int64)
+    entry = rows >= 0
+    # The trailer's entries are the final ones (UpdateFrameIMU rescales them after the frame was logged).
+    ref[rows[entry]] = np.asarray(traj["ref_kf"], np.int64)[entry]
+    t_cr[rows[entry]] = _poses(traj["t_cr"])[entry]
+    lost[rows[entry]] = np.asarray(traj["lost"], bool)[entry]
+    posed = np.isfinite(f[list(schema.VIS_POSITION)].to_numpy()).all(axis=1)
+    p = f[list(schema.VIS_POSITION)].to_numpy().copy()
+    q = f[list(schema.VIS_QUATERNION)].to_numpy().copy()
+    v = f[list(schema.VIS_VELOCITY)].to_numpy().copy()
+    in_saved = np.zeros(n, bool)
+    for k in np.flatnonzero(posed & (ref >= 0)):
+        found = kfs.resolve(ref[k])
+        if found is None:
+            continue
+        i, chain = found
+        t_wb = invert(compose(compose(t_bc, t_cr[k]), compose(chain, kfs.t_cw[i])))
+        correction = quat_mul(t_wb[:4], quat_conj(q[k], xp=np), xp=np)
+        v[k] = quat_rotate(correction, v[k], xp=np)
+        q[k], p[k] = t_wb[:4], t_wb[4:]
+        in_saved[k] = saved is not None and kfs.map_id[i] == saved and not lost[k]
+    out = f.drop(columns=drop + [c for c in schema.WORLD_COLUMNS if c in f.columns])
+    out[list(schema.VIS_POSITION)] = np.where(posed[:, None], p, np.nan)
+    out[list(schema.VIS_QUATERNION)] = np.where(posed[:, None], q, np.nan)
+    out[list(schema.VIS_VELOCITY)] = np.where(posed[:, None], v, np.nan)
+    out[SAVED_COLUMN] = in_saved.astype(np.int64)
+    return RunLog(meta=run.meta, frames=out, source=run.source, trailers=run.trailers)

@@ -37,16 +37,18 @@ from jsve.core._batch import (
 from jsve.io import _schema as schema
 from jsve.io._batching import Bucket, meta_table
 from jsve.io._errors import LogFormatError
+from jsve.io._saved_trajectory import SAVED_COLUMN, largest_map_frames
 from jsve.io._world import segment_last_frame, to_last_world_frame
 
 PARQUET_RUNS_KEY = b"jsve.runs"
 """Parquet key-value metadata key: a JSON list of {run_id, source, meta, n_frames, has_ground_truth}."""
 
 PARQUET_FORMAT_KEY = b"jsve.format"
-PARQUET_FORMAT_VERSION = 2
-"""The study layout written (its columns: format v2's; a v3 log's keyframe columns and trailers stay in
-the log)."""
-PARQUET_READ_VERSIONS = (1, 2)
+PARQUET_FORMAT_VERSION = 3
+"""The study layout written: format v2's columns, and `in_saved` for runs of v3 logs with ORB-SLAM3's
+trailer, whose poses are stored in the saved trajectory's frame (jsve.io._saved_trajectory); a log's
+keyframe columns and trailers themselves stay in the log."""
+PARQUET_READ_VERSIONS = (1, 2, 3)
 """Parquet key-value metadata key: the log format version of its columns, "2" (files written before v2
 say "1" and have no map_id / imu_ba2: read_parquet fills v1 defaults)."""
 
@@ -298,6 +300,7 @@ def _frame_values(study: ParquetStudy, block: _Block, fdt) -> dict[str, np.ndarr
         "imu_ba2": np.asarray(ba2) != 0,
         "map_id": _map_ranks(run_of, map_id),
         "has_pose": posed,
+        "in_saved": _in_saved(c, posed, map_id, run_start),
         "n_extracted": c["n_extracted"].astype(np.int32),
         "n_inliers": c["n_inliers"].astype(np.int32),
         "n_frustum": c["n_frustum"].astype(np.int32),
@@ -314,6 +317,17 @@ def _frame_values(study: ParquetStudy, block: _Block, fdt) -> dict[str, np.ndarr
         "gt_valid": gt_ok,
         "t0_ns": t0,
     }
+
+
+def _in_saved(c, posed, map_id, run_start) -> np.ndarray:
+    """The block's LogBatch.in_saved: the stored column where a run has one (v3 logs with ORB-SLAM3's
+    trailer, jsve.io._saved_trajectory.in_saved_frame), else largest_map_frames."""
+    default = largest_map_frames(posed, map_id, run_start)
+    stored = c.get(SAVED_COLUMN)
+    if stored is None:
+        return default
+    stored = np.asarray(stored, np.float64)  # null (NaN) for runs without it
+    return np.where(np.isnan(stored), default, stored != 0)
 
 
 def _map_ranks(run_of: np.ndarray, map_id: np.ndarray) -> np.ndarray:
@@ -356,9 +370,9 @@ def _in_one_world_frame(c, entries, world, run_of, run_start, posed, map_id, p, 
 class _Chunk:
     """A chunk of one bucket being filled: [capacity, n_frames] arrays and the runs' metadata."""
 
-    FRAME_LEAVES = ("t", "state", "imu_init", "imu_ba2", "map_id", "has_pose", "n_extracted", "n_inliers",
-                    "n_frustum", "bins", "vis_p", "vis_q", "vis_v", "imu_dt", "imu_dp", "imu_dv", "imu_dq",
-                    "gt_p", "gt_q", "gt_valid")  # fmt: skip
+    FRAME_LEAVES = ("t", "state", "imu_init", "imu_ba2", "map_id", "has_pose", "in_saved", "n_extracted",
+                    "n_inliers", "n_frustum", "bins", "vis_p", "vis_q", "vis_v", "imu_dt", "imu_dp", "imu_dv",
+                    "imu_dq", "gt_p", "gt_q", "gt_valid")  # fmt: skip
 
     def __init__(self, capacity: int, n_frames: int, like: dict[str, np.ndarray]):
         self.capacity, self.n_frames, self.n = capacity, n_frames, 0
@@ -488,8 +502,10 @@ def iter_buckets(
         return
     fdt = np.dtype(jnp.dtype(dtype).name)
     bucket_of, n_frames, sizes = chunk_plan(study.lengths, ratio=ratio, host_budget=host_budget, fdt=fdt)
-    columns = [c for c in schema.required_columns(study.version) + schema.GT_COLUMNS + schema.WORLD_COLUMNS
-               if c in study.columns]  # fmt: skip
+    wanted = (
+        schema.required_columns(study.version) + schema.GT_COLUMNS + schema.WORLD_COLUMNS + (SAVED_COLUMN,)
+    )
+    columns = [c for c in wanted if c in study.columns]
     plan = _reading_by_length(study, bucket_of) if by_length else None
     if plan is None:
         yield from _fill(study, _blocks(study, columns, batch_rows), bucket_of, n_frames, sizes, fdt)

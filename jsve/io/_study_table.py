@@ -28,6 +28,7 @@ _RUN_FIELDS = (
     + [pa.field(c, pa.float64(), nullable=False) for c in schema.FLOAT_COLUMNS]
     + [pa.field(c, pa.float64(), nullable=True) for c in schema.GT_COLUMNS]
     + [pa.field(c, pa.float64(), nullable=True) for c in schema.WORLD_COLUMNS]
+    + [pa.field("in_saved", pa.int8(), nullable=True)]
 )
 _RUN_SCHEMA = pa.schema(_RUN_FIELDS)
 

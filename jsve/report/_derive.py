@@ -57,21 +57,24 @@ class Scoring:
         support: "penalise" (a run out of the log's support counts as failed) or "exclude" (it leaves
             the mean).
         balance_by: metadata columns whose groups count equally ([]: every run 1).
+        loss: "bounded" (a tracked run costs at most the penalty) or "raw" (jsve.core._objective.LOSSES).
     """
 
     penalty: float
     support: str
     balance_by: tuple[str, ...]
+    loss: str = "bounded"
 
 
 def scored_runs(runs: pd.DataFrame, scoring: Scoring) -> pd.DataFrame:
     """The per-run table with `objective_failed` (failed, or out of the log's support), `loss` (metres:
-    the penalty where objective_failed, else the ATE RMSE), `included` (False for a run out of support
+    the penalty where objective_failed, else the ATE RMSE, capped at the penalty under loss="bounded"),
+    `included` (False for a run out of support
     under "exclude") and `weight` (group weights within each rule's runs, jsve.evaluation.group_weights)."""
     out = runs.copy()
     unsupported = out["unsupported_fraction"] > 0 if "unsupported_fraction" in out else False
     out["objective_failed"] = out["failed"].astype(bool) | unsupported
-    out["loss"] = run_loss(out.assign(failed=out["objective_failed"]), scoring.penalty)
+    out["loss"] = run_loss(out.assign(failed=out["objective_failed"]), scoring.penalty, scoring.loss)
     out["included"] = ~unsupported if scoring.support == "exclude" else True
     by = [c for c in scoring.balance_by if c in out.columns]
     out["weight"] = np.nan

@@ -65,6 +65,7 @@ def _scoring(record: EvaluationRecord | None, runs: pd.DataFrame) -> derive.Scor
         penalty=record.failure_penalty if record else DEFAULT_FAILURE_PENALTY_M,
         support=record.support if record else "penalise",
         balance_by=tuple(c for c in GROUP_COLUMNS if c in runs.columns),
+        loss=record.loss if record else "bounded",
     )
 
 
@@ -150,6 +151,7 @@ def _method(record: EvaluationRecord | None, scoring: derive.Scoring, models: li
 
 
 SEGMENTS_TEXT = {
+    "saved": "the trajectory the front-end saves: its saved map's frames (docs/state-machine.md)",
     "largest": "each run's largest map segment (the one with most evaluable frames)",
     "first": "each run's first map segment",
     "all": "every map segment of a run, each aligned on its own, errors pooled",

@@ -136,6 +136,7 @@ def read_study(out: Path) -> StudyFolder:
         penalty=float(cfg.get("failure_penalty", DEFAULT_FAILURE_PENALTY_M)),
         support=str(cfg.get("support", "penalise")),
         balance_by=tuple(study.get("balance_by", GROUP_COLUMNS)),
+        loss=str(cfg.get("loss", "raw" if "failure" not in cfg else "bounded")),
     )
     scored = derive.scored_runs(runs, scoring)
     param_table, notes = derive.parameter_table(params, fitted) if params is not None else (None, [])
