@@ -59,6 +59,12 @@ Modelling choices of docs/state-machine.md (and the precisions the JAX machine s
       (decided on the frame: a later reset's erasure leaves the flag).
     - The pose state that `imu-coast` predicts from is the previous frame's: its estimate, or, on a
       frame without one, the IMU prediction carried forward (ReplayResult's documented contents).
+    - The trajectory the run is scored on is what System::SaveTrajectoryEuRoC (System.cc l.662-777)
+      writes: frames stored in the trajectory (l.2300-2320) and not marked lost, whose reference
+      keyframe ends in the map with the most keyframes. The log says which recorded frames that is
+      (`in_saved`); a map the replay initialises itself after a loss the recorded run did not have
+      has no keyframes in the log, so its frames are not in the trajectory (docs/state-machine.md,
+      "Scoring a run").
 """
 
 from __future__ import annotations
@@ -166,7 +172,8 @@ class OracleResult:
     replay's map index (-1 before the first map; LOST frames keep the last map's index).
     position, quaternion, velocity: float64, NaN where has_estimate is False. out_of_support: the
     estimate would be the logged pose and the log has none. lost_any: the run entered LOST (a
-    reset, an expiry, or a recorded map start after the replay's first map).
+    reset, an expiry, or a recorded map start after the replay's first map). own_map: the frame is in
+    a map the replay initialised itself. in_trajectory: has_estimate, in_saved, not own_map.
     events: (frame, name) in order; names "recorded_start", "recorded_reset", "natural_init",
     "reset", "erase" (once per reset that erased earlier frames), "expiry", "ok_to_rl", "recovery",
     "rl_no_imu", "out_of_support", "predicted".
@@ -181,6 +188,8 @@ class OracleResult:
     out_of_support: np.ndarray
     lost_any: bool
     events: list
+    own_map: np.ndarray
+    in_trajectory: np.ndarray
 
     def count(self, name: str) -> int:
         return sum(1 for _, e in self.events if e == name)
@@ -211,6 +220,7 @@ def replay_run(
     thresholds,
     switch_model: str = "orbslam3",
     time_recently_lost: float = TIME_RECENTLY_LOST_S,
+    in_saved=None,
 ) -> OracleResult:
     """Replay one run of n frames (arrays [n, ...], no padding) frame by frame.
 
@@ -224,6 +234,7 @@ def replay_run(
             (inf if never). stereo: IMU_STEREO / IMU_RGBD rather than IMU_MONOCULAR.
         thresholds: imu_init, not_init, reloc, recovery (mapping or attributes).
         switch_model: "orbslam3" or "imu-coast". time_recently_lost: s (ORB-SLAM3: 5).
+        in_saved: the recorded frames whose pose the saved trajectory holds (default: every posed frame).
     """
     if switch_model not in SWITCH_MODELS:
         raise ValueError(f"switch_model must be one of {SWITCH_MODELS}, got {switch_model!r}")
@@ -244,6 +255,9 @@ def replay_run(
     stereo = bool(stereo)
     imu_init_delay, ba2_delay = float(imu_init_delay), float(ba2_delay)
 
+    in_saved = list(has_pose) if in_saved is None else [bool(x) for x in in_saved]
+    own = False  # the replay's current map is one it initialised itself
+    own_out = np.zeros(n, bool)
     mode_out = np.full(n, LOST, np.int8)
     has_est = np.zeros(n, bool)
     segment_out = np.full(n, -1, np.int32)
@@ -284,6 +298,7 @@ def replay_run(
                 lost_any = True
             rec_start_t = t[k]
             ready = False
+            own = False
             segment += 1
             map_start_k, map_start_t = k, t[k]
             mode = OK
@@ -354,6 +369,7 @@ def replay_run(
                 events.append((k, "reference_dropped"))
             if initialises:
                 ready = False
+                own = True
                 segment += 1
                 map_start_k, map_start_t = k, t[k]
                 mode = OK
@@ -383,13 +399,16 @@ def replay_run(
         if has_est[k]:
             P[k], V[k], Q[k] = state[0], state[1], state[2]
         mode_out[k] = mode
+        own_out[k] = own
         segment_out[k] = segment
         if has_pose[k]:
             last_posed = k
 
     P[~has_est], V[~has_est], Q[~has_est] = np.nan, np.nan, np.nan  # frames a reset erased
+    in_trajectory = has_est & np.asarray(in_saved, bool) & ~own_out
     return OracleResult(mode=mode_out, has_estimate=has_est, segment=segment_out, position=P, quaternion=Q,
-                        velocity=V, out_of_support=oos, lost_any=lost_any, events=events)  # fmt: skip
+                        velocity=V, out_of_support=oos, lost_any=lost_any, events=events, own_map=own_out,
+                        in_trajectory=in_trajectory)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------

@@ -603,6 +603,10 @@ def build_log(spec: dict) -> dict:
         ba2_delay=ba2_delay,
         stereo=stereo,
     )
+    # The saved map: every recorded map, or one of them (SaveTrajectoryEuRoC keeps the biggest).
+    maps = np.unique(map_id[has_pose]) if has_pose.any() else np.zeros(1, np.int64)
+    kept = maps if rng.random() < 0.5 else maps[rng.integers(len(maps))]
+    log["in_saved"] = has_pose & np.isin(map_id, kept)
     return drop_poses(log, ~has_pose)
 
 
@@ -759,7 +763,7 @@ def replay_jax(logs: list[dict], th: dict, switch_model: str, n_frames: int) -> 
     _, _, InlierRule, Thresholds, _ = _jax_api()
     res = _replay_jit(switch_model)(to_batch(logs, n_frames), InlierRule(Thresholds(**th)))
     keys = ("position", "quaternion", "velocity", "has_estimate", "mode", "segment", "lost_any",
-            "out_of_support")  # fmt: skip
+            "out_of_support", "own_map", "in_trajectory")  # fmt: skip
     return {k: np.asarray(getattr(res, k)) for k in keys}
 
 
@@ -772,7 +776,7 @@ def mismatches(got: dict, logs: list[dict], expected: list, label="") -> list[st
     for i, (log, ref) in enumerate(zip(logs, expected, strict=True)):
         n = len(log["t"])
         where = f"{label}run {i}"
-        for key in ("mode", "segment", "has_estimate", "out_of_support"):
+        for key in ("mode", "segment", "has_estimate", "out_of_support", "own_map", "in_trajectory"):
             value, want = got[key][i, :n], getattr(ref, key)
             if not np.array_equal(value.astype(want.dtype), want):
                 k = int(np.flatnonzero(value.astype(want.dtype) != want)[0])

@@ -40,6 +40,7 @@ from jsve.evaluation._evaluate import evaluate_batch as evaluate_batch
 from jsve.evaluation._evaluate import evaluate_rules as evaluate_rules
 from jsve.evaluation._evaluate import in_run_order as in_run_order
 from jsve.evaluation._identity import identity_table as identity_table
+from jsve.evaluation._identity import own_rule_table as own_rule_table
 from jsve.evaluation._record import EVALUATION_RECORD as EVALUATION_RECORD
 from jsve.evaluation._record import EvaluationRecord as EvaluationRecord
 from jsve.evaluation._record import RuleRecord as RuleRecord

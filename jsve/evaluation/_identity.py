@@ -99,3 +99,40 @@ def identity_table(runs: Sequence[RunLog], *, rule: str | None = None, dtype=jnp
                 flagged=agreement < IDENTITY_THRESHOLD,
             )
     return pd.DataFrame(rows)
+
+
+def own_rule_table(
+    runs: Sequence[RunLog],
+    *,
+    rule: str | None = None,
+    dtype=jnp.float64,
+    progress: bool = False,
+    **scoring,
+) -> pd.DataFrame:
+    """Every run scored under the rule and switch model its own front-end ran (its identity replay):
+    on a format-v3 log of ORB-SLAM3, the ATE of the trajectory ORB-SLAM3 saved, as `jsve ape` of its
+    saved file gives it (docs/state-machine.md, "Scoring a run").
+
+    Arguments:
+        runs: parsed logs with ground truth. rule: the preset to assume where a log names none.
+        dtype: float64 by default (evo's precision). scoring: jsve.evaluation.evaluate's keywords
+            (align, min_coverage, failure).
+    Returns:
+        evaluate's per-run table, rows in the order of `runs`.
+    """
+    from jsve.evaluation._evaluate import evaluate
+
+    groups: dict[tuple[str, str], list[int]] = {}
+    rules: dict[str, Rule] = {}
+    for i, run in enumerate(runs):
+        name, r = recorded_rule(run, rule)
+        rules[name] = r
+        groups.setdefault((name, recorded_switch_model(run)), []).append(i)
+    parts, order = [], []
+    for (name, model), index in groups.items():
+        bucket = from_runs([runs[i] for i in index], dtype=dtype)
+        parts.append(evaluate([bucket], rules[name], rule_name=name, switch_model=model, progress=progress,
+                              **scoring))  # fmt: skip
+        order += index
+    table = pd.concat(parts, ignore_index=True)
+    return table.iloc[np.argsort(order, kind="stable")].reset_index(drop=True)

@@ -40,6 +40,12 @@ from jsve.io._logs import read_log as read_log
 from jsve.io._logs import validate_run as validate_run
 from jsve.io._logs import write_log as write_log
 from jsve.io._rule_files import load_rules as load_rules
+from jsve.io._saved_trajectory import SavedTrajectory as SavedTrajectory
+from jsve.io._saved_trajectory import euroc_ate as euroc_ate
+from jsve.io._saved_trajectory import event_counts as event_counts
+from jsve.io._saved_trajectory import in_saved_frame as in_saved_frame
+from jsve.io._saved_trajectory import saved_trajectory as saved_trajectory
+from jsve.io._saved_trajectory import write_euroc as write_euroc
 from jsve.io._schema import RunLog as RunLog
 from jsve.io._schema import recorded_rule_label as recorded_rule_label
 from jsve.io._stream import ParquetStudy as ParquetStudy
