@@ -13,7 +13,9 @@ LOGDIR, the rules, the switch models, the re-runs planned and the ground truth. 
 switch model as `{switch_model}` (the fitted rule of each model is its own file); a rule file is named
 by its stem, as the front-end names its runs.
 
-Every finished log is a recording; a `record` run is one of the `record-<model>` protocol, any other
+Every loss is the bounded loss of jsve.core._objective (a run's saved-trajectory ATE capped at --penalty,
+the penalty for a failed run; failures by coverage), the default of every jsve table. Every finished
+log is a recording; a `record` run is one of the `record-<model>` protocol, any other
 rule's run one of `other-rules`. Each recording is replayed under each rule and switch model, except a
 rule's own runs under that rule (those are its re-runs, scored by replaying them under their own rule:
 jsve check shows that this reproduces the logged states). A run that ORB-SLAM3 crashed in (its

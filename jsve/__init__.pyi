@@ -97,8 +97,8 @@ from .io import ReadResult as ReadResult
 from .io import RunLog as RunLog
 from .io import SavedTrajectory as SavedTrajectory
 from .io import associate_ground_truth as associate_ground_truth
-from .io import event_counts as event_counts
 from .io import buckets as buckets
+from .io import event_counts as event_counts
 from .io import from_runs as from_runs
 from .io import in_saved_frame as in_saved_frame
 from .io import ingest as ingest
@@ -113,8 +113,8 @@ from .io import read_seed_sve_csv as read_seed_sve_csv
 from .io import read_sve_output as read_sve_output
 from .io import saved_trajectory as saved_trajectory
 from .io import validate_run as validate_run
-from .io import write_keypoints as write_keypoints
 from .io import write_euroc as write_euroc
+from .io import write_keypoints as write_keypoints
 from .io import write_log as write_log
 from .io import write_quarantine_report as write_quarantine_report
 from .masks import MotsMasks as MotsMasks

@@ -64,8 +64,10 @@ def register(subparsers) -> None:
         help="run the hooked ORB-SLAM3 over EuRoC-format datasets, N runs each, writing jsve logs",
         description="Run the driver of BUILD (IMU_MONOCULAR) over each DATASET (a EuRoC-format folder, e.g. "
         "from `jsve render` or `jsve disturb`) --runs times, writing OUT/<sequence>/<disturbance>-<level>/"
-        "run_<k>.csv (format-v2 log), run_<k>.orbslam3.txt (ORB-SLAM3's trajectory), run_<k>.summary.json "
-        "and run_<k>.console.txt. Resumable: complete logs of the same inputs are kept, and so are runs "
+        "run_<k>.csv (format-v3 log), run_<k>.orbslam3.txt (ORB-SLAM3's saved trajectory), "
+        "run_<k>.saved-from-log.txt (the same rebuilt from the log), run_<k>.summary.json (events, and the "
+        "ATE of both trajectories against the dataset's ground truth: a mismatch shows there) and "
+        "run_<k>.console.txt. Resumable: complete logs of the same inputs are kept, and so are runs "
         "that crashed or timed out (an outcome; --retry-failed runs them again); "
         "logs of other inputs stop the command unless --force. A downsampled dataset gets ORB-SLAM3 "
         "settings scaled to its image size.",
@@ -83,8 +85,9 @@ def register(subparsers) -> None:
         default="orbslam3",
         metavar="RULE",
         help="the success test in the loop: orbslam3 (ORB-SLAM3's own, default), record (fails "
-        "only frames without an inlier: logs that support every stricter rule), or a rule JSON "
-        "file of the inlier family (e.g. jsve fit's fitted_inliers.json)",
+        "only frames without an inlier: logs that support every stricter rule), another preset "
+        "(sve-option1, sve-option2, ...), or a rule JSON file of either family (e.g. jsve fit's "
+        "fitted_sve.json or fitted_inliers.json)",
     )
     r.add_argument(
         "--switch-model",

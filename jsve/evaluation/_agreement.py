@@ -8,9 +8,9 @@ Two per-run tables in `jsve.evaluation.evaluate`'s form (one row per run and rul
 
 ORB-SLAM3 is not deterministic (threads, RANSAC), so a replayed run is compared with the distribution
 of the rule's re-runs of the same setting, never with one run. Every number is on the run loss the fit
-minimises (jsve.evaluation._aggregate.run_loss, its one home): the ATE RMSE (m) of a run that
-succeeded, `penalty` for a failed one or one whose replay left the log's support (never a mean over
-the part a failed run tracked):
+minimises (jsve.evaluation._aggregate.run_loss, its one home), the bounded loss: the ATE RMSE (m) of
+a run's saved trajectory, capped at `penalty`, where the run succeeded, `penalty` for a failed one or
+one whose replay left the log's support (never a mean over the part a failed run tracked):
 
     d_i        = loss(replay_i) - mean loss(re-runs)            per replayed run of a (setting, rule)
     bias       = mean d_i;   limits of agreement = bias -+ 1.96 sd(d_i)       (Bland & Altman 1986)

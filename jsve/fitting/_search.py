@@ -451,11 +451,14 @@ def _exact_from_start(sb: SearchBatch, config: ObjectiveConfig) -> bool:
     return config.switch_model == "imu-coast" and bool(np.any(np.asarray(sb.gt) & ~np.asarray(sb.weight)))
 
 
-def _needs_corrections(fast: _LaneSums, config: ObjectiveConfig) -> bool:
-    """Some lane that can be scored (under failure="strict": one that never lost tracking) has counted
-    frames off its weight frames (host sync; on the host, since an eager jnp test would compile per
-    shape)."""
+def _needs_corrections(fast: _LaneSums, config: ObjectiveConfig, n_gt) -> bool:
+    """Some lane that can be scored has counted frames off its weight frames (host sync; on the host,
+    since an eager jnp test would compile per shape). A lane that fails whatever its alignment needs
+    none: below the coverage floor (its counts are exact without the corrections), or, under
+    failure="strict", one that lost tracking."""
     off = np.asarray(fast.n_off) > 0.5
+    counted = np.asarray(fast.n_closed) + np.asarray(fast.n_map)
+    off &= counted >= config.min_coverage * np.asarray(n_gt) - 0.5
     if config.failure == "strict":
         off &= np.asarray(fast.lost) < 0.5
     return bool(np.any(off))
@@ -469,7 +472,7 @@ def _traced_lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> 
 
     def fast_then_exact():
         fast = _scan(sb, rule, config, exact=False)
-        off = fast.n_off > 0.5
+        off = (fast.n_off > 0.5) & (fast.n_closed + fast.n_map >= config.min_coverage * sb.n_gt - 0.5)
         inexact = jnp.any(off & (fast.lost < 0.5) if config.failure == "strict" else off)
         return jax.lax.cond(inexact, exact, lambda: fast)
 
@@ -485,7 +488,7 @@ def _lane_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig) -> _LaneSu
     if _exact_from_start(sb, config):
         return _scan_sums(sb, rules, config, exact=True)
     fast = _scan_sums(sb, rules, config, exact=False)
-    return _scan_sums(sb, rules, config, exact=True) if _needs_corrections(fast, config) else fast
+    return _scan_sums(sb, rules, config, exact=True) if _needs_corrections(fast, config, sb.n_gt) else fast
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -701,7 +704,7 @@ def search(
 
     def collect(calls: list, bar) -> None:
         for p, sl, n_real, part, rules, exact, sums in calls:
-            if not exact and _needs_corrections(sums, config):
+            if not exact and _needs_corrections(sums, config, part.n_gt):
                 sums = _scan_sums(part, rules, config, exact=True)
             res = jax.block_until_ready(_chunk_result(part, sums, config))
             n = sl.stop - sl.start

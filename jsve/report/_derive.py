@@ -58,12 +58,14 @@ class Scoring:
             the mean).
         balance_by: metadata columns whose groups count equally ([]: every run 1).
         loss: "bounded" (a tracked run costs at most the penalty) or "raw" (jsve.core._objective.LOSSES).
+        failure: what failed a run, "coverage" or "strict" (jsve.core._objective.FAILURE_DEFINITIONS).
     """
 
     penalty: float
     support: str
     balance_by: tuple[str, ...]
     loss: str = "bounded"
+    failure: str = "coverage"
 
 
 def scored_runs(runs: pd.DataFrame, scoring: Scoring) -> pd.DataFrame:

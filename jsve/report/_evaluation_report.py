@@ -66,6 +66,7 @@ def _scoring(record: EvaluationRecord | None, runs: pd.DataFrame) -> derive.Scor
         support=record.support if record else "penalise",
         balance_by=tuple(c for c in GROUP_COLUMNS if c in runs.columns),
         loss=record.loss if record else "bounded",
+        failure=record.failure if record else "coverage",
     )
 
 

@@ -205,13 +205,20 @@ def scoring_bullets(
         scoring: the penalty (metres) and weighting. align: jsve.core._align's method name.
         min_coverage: the coverage floor, a share of frames (0: none).
     """
-    fails = "reaches LOST, its alignment is degenerate or fewer than 3 frames are evaluated"
+    strict = scoring.failure == "strict"
+    fails = "its alignment is degenerate or fewer than 3 frames are evaluated"
+    if strict:
+        fails = "loses tracking once (a reset, an expiry to LOST or a new map), " + fails
     if min_coverage > 0:
-        fails += f", or fewer than {percent(min_coverage)} of its frames with ground truth have an estimate"
+        share = percent(min_coverage)
+        fails += f", or its saved trajectory covers fewer than {share} of its frames with ground truth"
+    cap = f", capped at {metres(scoring.penalty)}" if scoring.loss == "bounded" else " (raw, uncapped)"
     items = [
-        f"Objective: the mean per-run ATE RMSE after {ALIGN_TEXT.get(align, align)} alignment, "
-        f"a failed run charged {metres(scoring.penalty)}. A run fails when it {fails}"
-        + ("; there is no coverage floor." if min_coverage <= 0 else "."),
+        f"Objective: the mean per-run ATE RMSE of the trajectory the front-end saves, after "
+        f"{ALIGN_TEXT.get(align, align)} alignment{cap}; a failed run charged {metres(scoring.penalty)}. "
+        f"A run fails when {'it ' if strict else ''}{fails}"
+        + ("; there is no coverage floor." if min_coverage <= 0 else ".")
+        + ("" if strict else " Resets, new maps and loop closures are events, not failures."),
         (
             f"Runs weighted so that every ({', '.join(scoring.balance_by)}) group counts equally."
             if scoring.balance_by
