@@ -62,6 +62,20 @@ def recorded_switch_model(run: RunLog, default: str = "orbslam3") -> str:
     return model
 
 
+def recorded_groups(
+    runs: Sequence[RunLog], rule: str | None = None
+) -> tuple[dict[tuple[str, str], list[int]], dict[str, Rule]]:
+    """The runs grouped by the rule and switch model their front-end ran: ({(rule name, switch model):
+    run indices}, {rule name: rule}); `rule` is the preset of logs that name none."""
+    groups: dict[tuple[str, str], list[int]] = {}
+    rules: dict[str, Rule] = {}
+    for i, run in enumerate(runs):
+        name, r = recorded_rule(run, rule)
+        rules[name] = r
+        groups.setdefault((name, recorded_switch_model(run)), []).append(i)
+    return groups, rules
+
+
 def identity_table(runs: Sequence[RunLog], *, rule: str | None = None, dtype=jnp.float32) -> pd.DataFrame:
     """One row per log: the share of frames whose replayed state equals the logged one.
 
@@ -71,12 +85,7 @@ def identity_table(runs: Sequence[RunLog], *, rule: str | None = None, dtype=jnp
         Columns run_id, source, rule, switch_model, n_frames, agreement (share in [0, 1]),
         first_mismatch (frame index, -1 if none), flagged (agreement < IDENTITY_THRESHOLD).
     """
-    groups: dict[tuple[str, str], list[int]] = {}
-    rules: dict[str, Rule] = {}
-    for i, run in enumerate(runs):
-        name, r = recorded_rule(run, rule)
-        rules[name] = r
-        groups.setdefault((name, recorded_switch_model(run)), []).append(i)
+    groups, rules = recorded_groups(runs, rule)
     rows: list[dict] = [{}] * len(runs)
     replay_jit = jax.jit(replay, static_argnames=("switch_model",))
     for (name, model), index in groups.items():
@@ -122,12 +131,7 @@ def own_rule_table(
     """
     from jsve.evaluation._evaluate import evaluate
 
-    groups: dict[tuple[str, str], list[int]] = {}
-    rules: dict[str, Rule] = {}
-    for i, run in enumerate(runs):
-        name, r = recorded_rule(run, rule)
-        rules[name] = r
-        groups.setdefault((name, recorded_switch_model(run)), []).append(i)
+    groups, rules = recorded_groups(runs, rule)
     parts, order = [], []
     for (name, model), index in groups.items():
         bucket = from_runs([runs[i] for i in index], dtype=dtype)

@@ -1,7 +1,7 @@
-"""The compiled front-end boundary: `jsve_log.hpp`, a header-only C++17 writer of log format v2.
+"""The compiled front-end boundary: `jsve_log.hpp`, a header-only C++17 writer of log format v3.
 
 A front-end (ORB-SLAM3 with the hooks of docs/frontend.md, or any other) includes the header and
-writes one format-v2 log per run; jsve reads it with `jsve.io._logs.read_log`. Compile with
+writes one format-v3 log per run; jsve reads it with `jsve.io._logs.read_log`. Compile with
 
     g++ -std=c++17 -I"$(jsve frontend-include)" ...        # or: python -m jsve.frontend --include
 """

@@ -10,7 +10,7 @@ from . import get_include, header_path
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m jsve.frontend", description="Locate jsve_log.hpp, the C++ writer of log format v2."
+        prog="python -m jsve.frontend", description="Locate jsve_log.hpp, the C++ writer of log format v3."
     )
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--include", action="store_true", help="print the directory to pass to -I")

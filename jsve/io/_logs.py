@@ -1,4 +1,4 @@
-"""Tracking logs, format v2 (v1 still read): write, read and validate one log.
+"""Tracking logs, format v3 (v2 and v1 still read): write, read and validate one log.
 
 The I/O edge of jsve (docs/log-format.md describes the format for people; jsve.io._schema is the one
 home of its names). Everything downstream receives `RunLog`s whose frames have been validated here:
@@ -577,7 +577,7 @@ def parse_trailers(lines: Sequence[tuple[int, str]], source: str) -> dict:
 
 
 def validate_run(run: RunLog) -> RunLog:
-    """Check an in-memory run against format v2 and return it in canonical form.
+    """Check an in-memory run against format v3 and return it in canonical form.
 
     Canonical form: columns in v2 order (schema.REQUIRED_COLUMNS, then GT_COLUMNS and WORLD_COLUMNS when
     present), int

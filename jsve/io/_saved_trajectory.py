@@ -219,6 +219,10 @@ def euroc_ate(reference, estimate, align: str = "se3") -> tuple[float, int]:
         jax.config.update("jax_enable_x64", previous)
 
 
+RECORDED_EVENTS = ("reset", "new_map", "merge", "loop")
+"""The recorded run's events that `in_saved_frame` adds to a v3 run's metadata as `recorded_<event>`
+counts (frames with the event)."""
+
 SAVED_COLUMN = "in_saved"
 """The per-frame flag `in_saved_frame` adds: the frame's pose belongs to the saved trajectory when a
 rule tracks the frame (jsve.core._batch.LogBatch.in_saved)."""
@@ -331,4 +335,6 @@ def in_saved_frame(run: RunLog) -> RunLog:
     out[list(schema.VIS_QUATERNION)] = np.where(posed[:, None], q, np.nan)
     out[list(schema.VIS_VELOCITY)] = np.where(posed[:, None], v, np.nan)
     out[SAVED_COLUMN] = in_saved.astype(np.int64)
-    return RunLog(meta=run.meta, frames=out, source=run.source, trailers=run.trailers)
+    # The recorded run's events, per run (metadata: they reach every per-run table as columns).
+    meta = {**run.meta, **{f"recorded_{k}": v for k, v in event_counts(run).items() if k in RECORDED_EVENTS}}
+    return RunLog(meta=meta, frames=out, source=run.source, trailers=run.trailers)

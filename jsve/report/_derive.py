@@ -106,6 +106,9 @@ def _overview(g: pd.DataFrame) -> dict:
         row["rejected"] = 1.0 - _wmean(g["accepted_fraction"], g["weight"])
     if "lost_any" in g:
         row["reached_lost"] = _wmean(g["lost_any"], g["weight"])
+    for event in ("resets", "new_maps"):
+        if event in g:  # events, never failures by themselves
+            row[event] = _wmean(g[event], g["weight"])
     if "unsupported_fraction" in g:
         row["unsupported_runs"] = _wmean(g["unsupported_fraction"] > 0, g["weight"])
     if "changed_fraction" in g:
@@ -125,8 +128,9 @@ def rule_overview(scored: pd.DataFrame) -> pd.DataFrame:
     """Per rule over all runs (weighted as the fit weighs them): n_runs, objective (m), failure_rate
     (failed or out of support), coverage, ate_tracking (m, mean ATE RMSE of the runs that kept tracking)
     and n_tracking, rejected (share of frames not tracked: 1 - accepted_fraction), reached_lost (share of
-    runs that reached LOST), unsupported_runs, changed (share of frames whose replayed state differs from
-    the recorded one: how far the replay reaches from what was recorded)."""
+    runs that reached LOST), resets and new_maps (the replay's, per run), unsupported_runs, changed
+    (share of frames whose replayed state differs from the recorded one: how far the replay reaches from
+    what was recorded)."""
     rows = [{"rule": rule, **_overview(g)} for rule, g in scored.groupby("rule", sort=False)]
     table = pd.DataFrame(rows)
     return table.set_index("rule").loc[rule_order(table["rule"])].reset_index()

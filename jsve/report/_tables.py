@@ -80,6 +80,9 @@ def overview_table(overview: pd.DataFrame, diffs: pd.DataFrame | None = None) ->
             row["frames rejected"] = percent(d["rejected"])
         if "reached_lost" in d:
             row["runs reaching LOST"] = percent(d["reached_lost"])
+        for event, name in (("resets", "resets per run"), ("new_maps", "new maps per run")):
+            if event in d:
+                row[name] = number(d[event], 2)
         row["ATE RMSE of runs that kept tracking, cm"] = (
             f"{cm(d['ate_tracking'])} (n = {d['n_tracking']})" if d["n_tracking"] else "- (n = 0)"
         )

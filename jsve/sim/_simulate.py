@@ -1,4 +1,4 @@
-"""The simulator: a stand-in front-end that writes format-v2 tracking logs as ORB-SLAM3 + logger would.
+"""The simulator: a stand-in front-end that writes format-v3 tracking logs as ORB-SLAM3 + logger would.
 
 For any set of sequences x disturbance settings x runs, deterministically under a seed:
 
@@ -1062,7 +1062,7 @@ def write_study(
     force: bool = False,
     scheduler: str | None = None,
 ) -> StudyResult:
-    """Simulate a study and write one format-v2 log per run under out_dir (see log_path).
+    """Simulate a study and write one format-v3 log per run under out_dir (see log_path).
 
     Resumable: a complete log is kept when it was simulated under the same generator key (generator_key:
     seed, model, SimConfig, input files' content; recorded in its metadata), so a re-run after an

@@ -1,4 +1,4 @@
-// jsve's hook for ORB-SLAM3 v1.0: one format-v2 log row per frame, written through jsve_log.hpp.
+// jsve's hook for ORB-SLAM3 v1.0: one format-v3 log row per frame (and the trailer at the end), written through jsve_log.hpp.
 //
 // `jsve frontend build` copies ORB-SLAM3, includes this header in src/Tracking.cc (with
 // JSVE_HOOK_IMPLEMENTATION defined) and adds four one-line calls at anchored places
@@ -68,7 +68,7 @@ HookState& state();
 // An event of ORB-SLAM3 (any thread): set on the next logged frame's `events`.
 inline void event(std::uint32_t bit) { state().pending_events.fetch_or(bit); }
 
-// Opens `path` (format v2, via jsve::LogWriter; refuses an existing file unless `overwrite`).
+// Opens `path` (format v3, via jsve::LogWriter; refuses an existing file unless `overwrite`).
 // Returns false with `*error` set on failure.
 bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error);
 
