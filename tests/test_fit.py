@@ -60,7 +60,9 @@ def test_fitting_orbslam3_thresholds_recovers_k(counts_data):
     assert result.objective < 0.25 * own, (result.objective, own)
     # the stages record a non-increasing objective, and the result is the hard objective of the values
     assert result.stages[1]["objective"] <= result.stages[0]["objective"] + 1e-7
-    assert result.objective == pytest.approx(hard_objective(counts_data, space, result.values), rel=1e-6)
+    # rel 1e-5: float32 alignment sums (kept per replayed map) over 8,000 frames, scanned for 1 or for
+    # many settings at once (a different vectorisation, so a different rounding: ~1e-6 seen)
+    assert result.objective == pytest.approx(hard_objective(counts_data, space, result.values), rel=1e-5)
     # one inlier on either side is measurably worse
     for delta in (-1.0, 1.0):
         shifted = np.array(result.values)

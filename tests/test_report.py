@@ -686,8 +686,9 @@ def test_report_of_an_evaluate_folder_scores_as_evaluate_recorded(tmp_path):
     assert "charged 0.5 m" in head and "1 m" not in head
     assert "| sve-option2 | 8 | 8.4 [" in _section(md, "All runs, per rule")
     method = _section(md, "Method")
-    assert "after Sim(3) alignment, a failed run charged 0.5 m" in method
-    assert "fewer than 25.0 % of its frames with ground truth have an estimate" in method
+    assert "after Sim(3) alignment, capped at 0.5 m; a failed run charged 0.5 m" in method
+    assert "its saved trajectory covers fewer than 25.0 % of its frames with ground truth" in method
+    assert "Resets, new maps and loop closures are events, not failures" in method
     assert "Switch model `imu-coast`" in method and "Support policy `penalise`" in method
     assert (
         "| fitted-sve | fit/fitted_sve.json | inliers | imu_init 7.5, not_init 30, reloc 30, recovery 5 | - |"

@@ -322,11 +322,14 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
     counts = (zeros, zeros)  # estimates in closed maps, in the current map
     # ever lost, ever out of support, frames off the weight frames, in a map of the replay's own
     flags = (zeros, zeros, zeros, zeros)
-    # Sums over the counted frames: the moments and, when exact, their count, sum g_c, sum g_c g_c^T.
     n_sums = _MOMENTS + (_CORRECTIONS if exact else 0)
+    # The moments per map (closed, current; a reset erases the current map's); when exact, the
+    # corrections over (counted - weight) frames, closed and current, and the current map's weight
+    # terms, which a reset turns into -1 corrections (its frames lose their estimates).
     # Only the IMU prediction reads the velocity and orientation: without it the pose is the position.
     pose0 = (first(sb.vis_p), first(sb.imu.vis_v), first(sb.imu.vis_q)) if coast else first(sb.vis_p)
-    start = (state0, pose0, flags, counts, ((zeros,) * n_sums, (zeros,) * n_sums))
+    n_w = _CORRECTIONS if exact else 0
+    start = (state0, pose0, flags, counts, ((zeros,) * n_sums, (zeros,) * n_sums, (zeros,) * n_w))
     features = (sb.log_ratio, sb.log_s_b, sb.log_s_c, sb.pos_ratio, sb.pos_s_b, sb.pos_s_c)
     imu = sb.imu if coast else None
     xs = (sb.n_inliers, features, sb.data, sb.valid, sb.gt, sb.saved, sb.weight, sb.vis_p, sb.g_c, imu)
@@ -335,7 +338,7 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
     logic = HardLogic()
 
     def step(carry, x):
-        state, pose, (lost, unsupported, n_off, own), (n_closed, n_map), (closed, current) = carry
+        state, pose, (lost, unsupported, n_off, own), (n_closed, n_map), (closed, current, w_map) = carry
         n_inl, feats, fd, valid, gt, saved, w, vp, g_c, imu = x
         valid, gt, saved, w = (f.astype(dtype) for f in (valid, gt, saved, w))
         fd = _expanded(fd, dtype)
@@ -378,24 +381,34 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
             *(e[j] * g_c[i] for j in range(3) for i in range(3)),
             e[0] * e[0] + e[1] * e[1] + e[2] * e[2],
         ]
+        off = counted - w  # +1 / -1 on frames off those the statistics were fixed for; usually 0
+        erased = (0.0,) * n_w
         if exact:
-            cg = [counted * g_c[i] for i in range(3)]
-            new += [counted] + cg + [cg[i] * g_c[j] for i, j in _PAIRS]
+            new += _correction_terms(off, g_c)
+            w_new = _correction_terms(w, g_c)
+            # A reset erases the current map, this frame included: its weight frames become -1s.
+            erased = tuple(-(m + d) for m, d in zip(w_map, w_new, strict=True))
+            w_map = tuple((1 - reset) * ((1 - new_map) * m + d) for m, d in zip(w_map, w_new, strict=True))
         else:
-            n_off = n_off + jnp.abs(counted - w)  # +1 / -1 off the frames the statistics were fixed for
-        closed = tuple(c + new_map * m for c, m in zip(closed, current, strict=True))
+            n_off = n_off + jnp.abs(off)
+        to_close = tuple(new_map * m for m in current[:_MOMENTS]) + tuple(
+            new_map * m + reset * x for m, x in zip(current[_MOMENTS:], erased, strict=True)
+        )
+        closed = tuple(c + d for c, d in zip(closed, to_close, strict=True))
         current = tuple((1 - reset) * ((1 - new_map) * m + d) for m, d in zip(current, new, strict=True))
-        return (state, pose, (lost, unsupported, n_off, own), (n_closed, n_map), (closed, current)), None
+        return (
+            state,
+            pose,
+            (lost, unsupported, n_off, own),
+            (n_closed, n_map),
+            (closed, current, w_map),
+        ), None
 
-    (_, _, (lost, unsupported, n_off, _), (n_closed, n_map), (closed, current)), _ = jax.lax.scan(
+    (_, _, (lost, unsupported, n_off, _), (n_closed, n_map), (closed, current, _)), _ = jax.lax.scan(
         step, start, xs
     )
     mom = tuple(c + m for c, m in zip(closed, current, strict=True))
-    if exact:  # sums over the counted frames less those over the weight frames (sum g_c is 0 there)
-        weight_sums = [sb.n_eval] + [0.0] * 3 + [sb.gram[i, j] for i, j in _PAIRS]
-        corrections = tuple(s - w for s, w in zip(mom[_MOMENTS:], weight_sums, strict=True))
-    else:
-        corrections = (jnp.zeros(lanes, dtype),) * _CORRECTIONS
+    corrections = mom[_MOMENTS:] if exact else (jnp.zeros(lanes, dtype),) * _CORRECTIONS
     return _LaneSums(
         lost=lost,
         unsupported=unsupported,
@@ -405,6 +418,13 @@ def _scan(sb: SearchBatch, rule, config: ObjectiveConfig, exact: bool) -> _LaneS
         corrections=corrections,
         n_off=n_off,
     )
+
+
+def _correction_terms(a, g_c) -> list:
+    """A frame's terms of the corrections, weighted by a (+1 / -1 / 0): a, a g_c (3), a g_c g_c^T
+    (the _PAIRS entries)."""
+    ag = [a * g_c[i] for i in range(3)]
+    return [a] + ag + [ag[i] * g_c[j] for i, j in _PAIRS]
 
 
 def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = ObjectiveConfig()) -> ChunkResult:  # noqa: B008

@@ -27,6 +27,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import json
+import os
 import subprocess
 import time
 from collections.abc import Sequence
@@ -238,15 +239,25 @@ def saved_trajectory_scores(log: Path, dataset: Path) -> dict:
     the hook or the rebuild), the share of frames saved and the run's events.
 
     Returns:
-        {} where the log is incomplete; else `events` and, as far as they exist, `saved_coverage`,
-        `ate_saved_file_m`, `ate_from_log_m`, `ate_difference_m` (None where a part is missing).
+        {} where the log is incomplete; `saved_trajectory_error` where the log or a trajectory cannot be
+        read; else `events` and, as far as they exist, `saved_coverage`, `ate_saved_file_m`,
+        `ate_from_log_m`, `ate_difference_m` (None where a part is missing).
     """
+    from jsve.io._errors import LogFormatError, TrajectoryFileError
     from jsve.io._logs import read_log
-    from jsve.io._saved_trajectory import euroc_ate, event_counts, saved_trajectory, write_euroc
 
     if not log.is_file():
         return {}
-    run = read_log(log)
+    try:
+        return _scores(read_log(log), log, dataset)
+    except (LogFormatError, TrajectoryFileError) as error:  # an outcome of the run, recorded, never a crash
+        # named by the log's file name: a summary reads the same wherever the run's folder is
+        return {"saved_trajectory_error": str(error).replace(f"{log.parent}{os.sep}", "")}
+
+
+def _scores(run, log: Path, dataset: Path) -> dict:
+    from jsve.io._saved_trajectory import euroc_ate, event_counts, saved_trajectory, write_euroc
+
     out: dict = {"events": event_counts(run)}
     if not run.has_keyframes or run.trailers is None:
         return out
