@@ -385,7 +385,9 @@ def _headline(s: StudyFolder) -> list:
     source = (study.get("data") or {}).get("source", "not described")
     blocks.append(
         f"**What was fitted.** {_capital(words_list(what))}. Each fit minimises the objective, the mean "
-        f"per-run ATE RMSE with a failed run charged {metres(scoring.penalty)}, over "
+        f"per-run ATE RMSE of the trajectory the front-end saves"
+        f"{f', capped at {metres(scoring.penalty)},' if scoring.loss == 'bounded' else ''} "
+        f"with a failed run charged {metres(scoring.penalty)}, over "
         f"{number(study.get('n_runs'))} runs ({number(study.get('n_frames'))} frames; data: {source})."
     )
     if rec is None or heldout_summary is None:
