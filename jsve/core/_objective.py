@@ -17,7 +17,7 @@ less than `min_coverage` of the frames with ground truth (none at all included),
 degenerate, fewer than 3 frames were evaluated, or its RMSE is not finite (an overflow or a NaN reached
 it: `RunLoss.non_finite`; it costs the penalty, never a number). Resets, new maps and merges are events,
 not failures. failure="strict" also fails every run that lost tracking once (a reset, an expiry or a
-recorded map loss), the definition jsve used before it scored the saved trajectory. The hard objective
+recorded map loss). The hard objective
 is exactly mean(loss) of `jsve.evaluation._evaluate`'s per-run table (tests/test_objective.py).
 
 The bounded loss makes a diverged run cost what a failed one costs: without the cap one run tracked

@@ -289,7 +289,7 @@ def replay(
             reset=out["reset"] > 0.5, own_map=own, in_trajectory=has_estimate & batch.in_saved & ~own,
             lost_any=lost_any > 0.5,
         )  # fmt: skip
-    # Relaxed: a reset's erasure of earlier frames is left out (docs/state-machine.md, "The relaxation").
+    # Relaxed: a reset's erasure of earlier frames is left out (docs/state-machine.md, "The relaxed machine").
     in_saved = batch.in_saved.astype(dtype)
     return ReplayResult(
         position=out["position"], quaternion=out["quaternion"], velocity=out["velocity"],

@@ -95,7 +95,7 @@ class EvaluationRecord:
         if unknown := sorted(set(spec) - known):
             raise ValueError(f"{source}: unknown keys {unknown}; known: {sorted(known)}")
         values = dict(spec)
-        # Records of an earlier jsve scored a map segment, strictly, with the raw loss and no floor.
+        # A record without `failure` scored a map segment, strictly, with the raw loss and no floor.
         if "failure" not in values:
             values.setdefault("segments", "largest")
             values.setdefault("min_coverage", 0.0)
