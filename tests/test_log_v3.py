@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -182,3 +183,19 @@ def test_the_saved_map_is_the_first_with_most_keyframes_and_none_without_keyfram
 def test_a_log_without_the_trailer_cannot_give_a_saved_trajectory():
     with pytest.raises(LogFormatError, match="no 'orbslam3' trailer"):
         saved_trajectory(_v3_run())
+
+
+def test_the_headers_event_bits_are_the_schemas():
+    """jsve_log.hpp's jsve::Event and schema.EVENTS name the same bits (the writer and the reader share
+    one schema): kEventResetAll is "reset_all", 1u << 1, and so on."""
+    import re
+
+    import jsve.frontend
+
+    text = Path(jsve.frontend.header_path()).read_text()
+    found = {
+        re.sub(r"(?<!^)([A-Z])", r"_\1", name).lower(): 1 << int(shift)
+        for name, shift in re.findall(r"kEvent(\w+) = 1u << (\d+),", text)
+    }
+    assert found == schema.EVENTS
+    assert f"kEventMask = (1u << {len(schema.EVENTS)}) - 1" in text
