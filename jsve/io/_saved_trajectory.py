@@ -105,6 +105,28 @@ class _Keyframes:
                 return None
 
 
+def _keyframe_poses(kfs: _Keyframes, refs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For reference keyframe ids `refs` [N]: (found [N] bool, the map of the good keyframe each
+    resolves to [N] (-1 where not found), T_rw [N, 7] = its T_cp chain o its final T_cw). Each distinct
+    keyframe is resolved once."""
+    unique, inverse = np.unique(np.asarray(refs, np.int64), return_inverse=True)
+    found = np.zeros(len(unique), bool)
+    maps = np.full(len(unique), -1, np.int64)
+    t_rw = np.tile(IDENTITY, (len(unique), 1))
+    for u, kf in enumerate(unique):
+        resolved = kfs.resolve(kf) if kf >= 0 else None
+        if resolved is not None:
+            i, chain = resolved
+            found[u], maps[u], t_rw[u] = True, kfs.map_id[i], compose(chain, kfs.t_cw[i])
+    inverse = inverse.reshape(-1)
+    return found[inverse], maps[inverse], t_rw[inverse]
+
+
+def _body_in_world(t_bc: np.ndarray, t_cr: np.ndarray, t_rw: np.ndarray) -> np.ndarray:
+    """T_wb = (T_bc T_cr T_rw)^-1 of frames [N, 7] (SaveTrajectoryEuRoC's composition)."""
+    return invert(compose(compose(np.broadcast_to(t_bc, t_cr.shape), t_cr), t_rw))
+
+
 def _poses(values) -> np.ndarray:
     p = np.asarray(values, np.float64).reshape(-1, 7)
     return np.concatenate([quat_normalize(p[:, :4], xp=np), p[:, 4:]], axis=1)
@@ -158,19 +180,12 @@ def saved_trajectory(run: RunLog) -> SavedTrajectory | None:
     # T_w b0 = T_wc T_cb of that keyframe (KeyFrame::GetImuPose).
     t_wb0 = compose(invert(kfs.t_cw[first]), invert(t_bc))
     t_cr = _poses(traj["t_cr"])
-    keep, out = [], []
-    for k, (row, ref, lost) in enumerate(zip(rows, traj["ref_kf"], traj["lost"], strict=True)):
-        if lost or ref < 0 or row < 0:
-            continue
-        found = kfs.resolve(ref)
-        if found is None or kfs.map_id[found[0]] != saved:
-            continue
-        i, chain = found
-        t_rw = compose(compose(chain, kfs.t_cw[i]), t_wb0)
-        out.append(invert(compose(compose(t_bc, t_cr[k]), t_rw)))
-        keep.append(row)
-    pose = np.array(out).reshape(-1, 7)
-    rows_kept = np.asarray(keep, np.int64)
+    refs = np.asarray(traj["ref_kf"], np.int64)
+    found, maps, t_rw = _keyframe_poses(kfs, refs)
+    keep = ~np.asarray(traj["lost"], bool) & (rows >= 0) & found & (maps == saved)
+    # T_rw T_w b0: the keyframe's pose relative to the saved map's first body (the file's frame).
+    pose = _body_in_world(t_bc, t_cr[keep], compose(t_rw[keep], np.broadcast_to(t_wb0, t_rw[keep].shape)))
+    rows_kept = rows[keep]
     return SavedTrajectory(
         rows=rows_kept,
         t_ns=run.frames["t_ns"].to_numpy()[rows_kept],
@@ -320,16 +335,14 @@ def in_saved_frame(run: RunLog) -> RunLog:
     q = f[list(schema.VIS_QUATERNION)].to_numpy().copy()
     v = f[list(schema.VIS_VELOCITY)].to_numpy().copy()
     in_saved = np.zeros(n, bool)
-    for k in np.flatnonzero(posed & (ref >= 0)):
-        found = kfs.resolve(ref[k])
-        if found is None:
-            continue
-        i, chain = found
-        t_wb = invert(compose(compose(t_bc, t_cr[k]), compose(chain, kfs.t_cw[i])))
-        correction = quat_mul(t_wb[:4], quat_conj(q[k], xp=np), xp=np)
-        v[k] = quat_rotate(correction, v[k], xp=np)
-        q[k], p[k] = t_wb[:4], t_wb[4:]
-        in_saved[k] = saved is not None and kfs.map_id[i] == saved and not lost[k]
+    k = np.flatnonzero(posed & (ref >= 0))
+    found, maps, t_rw = _keyframe_poses(kfs, ref[k])
+    k, maps = k[found], maps[found]
+    t_wb = _body_in_world(t_bc, t_cr[k], t_rw[found])
+    correction = quat_mul(t_wb[:, :4], quat_conj(q[k], xp=np), xp=np)  # online -> saved rotation
+    v[k] = quat_rotate(correction, v[k], xp=np)
+    q[k], p[k] = t_wb[:, :4], t_wb[:, 4:]
+    in_saved[k] = (maps == saved) & ~lost[k] if saved is not None else False
     out = f.drop(columns=drop + [c for c in schema.WORLD_COLUMNS if c in f.columns])
     out[list(schema.VIS_POSITION)] = np.where(posed[:, None], p, np.nan)
     out[list(schema.VIS_QUATERNION)] = np.where(posed[:, None], q, np.nan)
