@@ -199,3 +199,27 @@ def test_the_headers_event_bits_are_the_schemas():
     }
     assert found == schema.EVENTS
     assert f"kEventMask = (1u << {len(schema.EVENTS)}) - 1" in text
+
+
+@pytest.mark.parametrize(
+    ("broken", "message"),
+    [
+        (lambda t: t.pop("maps"), "'maps' must be an object with id, keyframes"),
+        (lambda t: t["keyframes"]["bad"].pop(), "'keyframes' columns differ in length"),
+        (lambda t: t.update(t_bc=[1.0, 0.0]), "'t_bc' must be 7 numbers"),
+        (lambda t: t["trajectory"].update(t_cr=[[1.0, 0.0, 0.0]]), "'trajectory.t_cr' must hold poses of 7"),
+    ],
+)
+def test_a_malformed_trailer_is_refused_naming_the_log_and_field(broken, message):
+    trailer = {
+        "t_bc": [1.0, 0, 0, 0, 0, 0, 0],
+        "maps": {"id": [0], "keyframes": [1]},
+        "keyframes": {"id": [0], "map_id": [0], "bad": [0], "parent": [-1], "t_cw": [[1.0, 0, 0, 0, 0, 0, 0]],
+                      "t_cp": [[1.0, 0, 0, 0, 0, 0, 0]]},
+        "trajectory": {"row": [0], "ref_kf": [0], "lost": [0], "t_cr": [[1.0, 0, 0, 0, 0, 0, 0]]},
+    }  # fmt: skip
+    assert saved_trajectory(_v3_run(trailers={"orbslam3": json.loads(json.dumps(trailer))})) is not None
+    broken(trailer)
+    with pytest.raises(LogFormatError, match=message) as error:
+        saved_trajectory(_v3_run(trailers={"orbslam3": trailer}))
+    assert str(error.value).startswith("<v3>")

@@ -152,7 +152,39 @@ def _trailer(run: RunLog) -> dict:
             f"no '{schema.ORBSLAM3_TRAILER}' trailer: ORB-SLAM3's saved trajectory can be rebuilt only from "
             "a format-v3 log of jsve's hook (a run that ended normally)",
         )
+    check_trailer(trailer, run.source)
     return trailer
+
+
+TRAILER_FIELDS = {
+    "maps": ("id", "keyframes"),
+    "keyframes": ("id", "map_id", "bad", "parent", "t_cw", "t_cp"),
+    "trajectory": ("row", "ref_kf", "lost", "t_cr"),
+}
+"""The `orbslam3` trailer's tables and their columns (docs/log-format.md, "Format v3"); with `t_bc`."""
+
+
+def check_trailer(trailer, source: str) -> None:
+    """Raise LogFormatError naming the log and the field where the `orbslam3` trailer lacks a table or a
+    column, has columns of different lengths, or a pose that is not 7 numbers."""
+
+    def fail(reason):
+        raise LogFormatError(source, None, f"trailer '{schema.ORBSLAM3_TRAILER}': {reason}")
+
+    if not isinstance(trailer, dict):
+        fail("not a JSON object")
+    if np.shape(trailer.get("t_bc")) != (7,):
+        fail("'t_bc' must be 7 numbers [qw, qx, qy, qz, tx, ty, tz]")
+    for table, columns in TRAILER_FIELDS.items():
+        part = trailer.get(table)
+        if not isinstance(part, dict) or any(c not in part for c in columns):
+            fail(f"'{table}' must be an object with {', '.join(columns)}")
+        lengths = {c: len(part[c]) for c in columns}
+        if len(set(lengths.values())) > 1:
+            fail(f"'{table}' columns differ in length: {lengths}")
+        for c in ("t_cw", "t_cp", "t_cr"):
+            if c in part and len(part[c]) and np.shape(part[c])[1:] != (7,):
+                fail(f"'{table}.{c}' must hold poses of 7 numbers")
 
 
 def saved_trajectory(run: RunLog) -> SavedTrajectory | None:
@@ -306,6 +338,8 @@ def in_saved_frame(run: RunLog) -> RunLog:
     if SAVED_COLUMN in run.frames.columns:  # converted already (a study read back from Parquet)
         return run
     trailer = (run.trailers or {}).get(schema.ORBSLAM3_TRAILER)
+    if trailer is not None:
+        check_trailer(trailer, run.source)
     drop = [c for c in schema.KEYFRAME_COLUMNS if c in run.frames.columns]
     if trailer is None or not run.has_keyframes:
         out = in_one_world_frame(run)
