@@ -81,6 +81,10 @@ def test_plan_keeps_complete_logs_of_the_same_key_and_stops_at_others(tmp_path):
     assert todo[0].log == tmp_path / "logs" / "V101" / "none-0" / "run_000.csv"
     key = todo[0].meta["generator"]
     todo[0].log.write_text("# jsve-log v2 " + json.dumps({"generator": key}) + "\n")
+    # A complete log without its summary: the command was killed before the run finished.
+    todo, done = plan(build, [ds], **kw)
+    assert [j.run for j in todo] == [0, 1] and done == []
+    todo[0].log.with_suffix(".summary.json").write_text(json.dumps({"exit_code": 0, "generator": key}))
     todo, done = plan(build, [ds], **kw)
     assert [j.run for j in todo] == [1] and len(done) == 1
     (ds / "mav0" / "imu0" / "data.csv").write_text("#t,wx,wy,wz,ax,ay,az\n1,0,0,0,0,0,9.80\n")

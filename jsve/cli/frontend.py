@@ -67,8 +67,9 @@ def register(subparsers) -> None:
         "run_<k>.csv (format-v3 log), run_<k>.orbslam3.txt (ORB-SLAM3's saved trajectory), "
         "run_<k>.saved-from-log.txt (the same rebuilt from the log), run_<k>.summary.json (events, and the "
         "ATE of both trajectories against the dataset's ground truth: a mismatch shows there) and "
-        "run_<k>.console.txt. Resumable: complete logs of the same inputs are kept, and so are runs "
-        "that crashed or timed out (an outcome; --retry-failed runs them again); "
+        "run_<k>.console.txt. Resumable after a kill at any moment: a run is done once its summary is "
+        "written; runs that crashed, timed out or hit a closed lockstep gate are outcomes and kept "
+        "(--retry-failed runs them again); "
         "logs of other inputs stop the command unless --force. A downsampled dataset gets ORB-SLAM3 "
         "settings scaled to its image size.",
     )
@@ -116,11 +117,36 @@ def register(subparsers) -> None:
         help="run again the runs whose attempt crashed or timed out (default: keep them: a crash is an "
         "outcome of a non-deterministic system, and re-running until success biases the failure rate)",
     )
-    r.add_argument(
+    from jsve.frontend import DEFAULT_GATE_TIMEOUT_S
+
+    pace = r.add_mutually_exclusive_group()
+    pace.add_argument(
         "--no-wait",
         action="store_true",
         help="feed frames as fast as tracking takes them "
         "(default: at the camera's rate, as a live camera; local mapping then keeps up)",
+    )
+    pace.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="deterministic runs: after each frame local mapping, then loop closing, run alone until "
+        "their queues are empty; never paced. Run k draws from seed --seed + k; repeats are "
+        "byte-identical (docs/frontend.md, Lockstep runs)",
+    )
+    r.add_argument(
+        "--seed",
+        type=int,
+        metavar="S",
+        help="run k seeds ORB-SLAM3's random draws (RANSAC) with S + k (default with --lockstep: 0; "
+        "else ORB-SLAM3's own seed, 0, for every run)",
+    )
+    r.add_argument(
+        "--gate-timeout",
+        type=float,
+        default=DEFAULT_GATE_TIMEOUT_S,
+        metavar="S",
+        help="with --lockstep: seconds a frame waits for local mapping and loop closing before the run "
+        f"ends as outcome gate_timeout (default: {DEFAULT_GATE_TIMEOUT_S:g})",
     )
     common.add_progress_option(r)
     r.set_defaults(func=run_runs)
@@ -181,6 +207,7 @@ def run_runs(args: argparse.Namespace) -> int:
             build, [Path(d) for d in args.datasets], runs=args.runs, out=out,
             vocabulary=Path(args.vocabulary), settings=Path(args.settings), rule=rule,
             switch_model=args.switch_model, force=args.force, retry_failed=args.retry_failed,
+            mode="lockstep" if args.lockstep else ("no-wait" if args.no_wait else "paced"), seed=args.seed,
         )  # fmt: skip
     except (ValueError, OSError) as err:
         return common.fail("frontend run", err)
@@ -194,12 +221,13 @@ def run_runs(args: argparse.Namespace) -> int:
     )
     try:
         results = run_all(build, todo, Path(args.vocabulary), workers=args.workers, timeout_s=args.timeout,
-                          wait=not args.no_wait, progress=not args.no_progress,
-                          scheduler=args.scheduler)  # fmt: skip
+                          progress=not args.no_progress, scheduler=args.scheduler,
+                          gate_timeout_s=args.gate_timeout)  # fmt: skip
     except SchedulerError as err:
         return common.fail("frontend run", err)
     failed = [r for r in results if r.get("exit_code") != 0]
     for r in failed:
-        print(f"{r['log']}: driver exit {r.get('exit_code')} (see its .console.txt)", file=sys.stderr)
+        print(f"{r['log']}: {r.get('outcome')} (driver exit {r.get('exit_code')}; see its .console.txt)",
+              file=sys.stderr)  # fmt: skip
     print(f"jsve frontend run: {len(results) - len(failed)} runs done, {len(failed)} failed; logs in {out}")
     return 1 if failed else 0

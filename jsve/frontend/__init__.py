@@ -10,6 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+DEFAULT_GATE_TIMEOUT_S = 120.0
+"""How long a lockstep run of `jsve frontend run` waits for LocalMapping or LoopClosing to park after a
+frame before it ends as outcome "gate_timeout" (a global BA of a few hundred keyframes takes seconds)."""
+
 HEADER_NAME = "jsve_log.hpp"
 """File name of the header inside `get_include()`."""
 

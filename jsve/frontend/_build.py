@@ -9,7 +9,12 @@ and the copy is patched by anchored edits that fail loudly when an anchor is not
   * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and six calls;
   * src/Map.cc, src/LocalMapping.cc: the hook header and calls where ORB-SLAM3 re-expresses a map
     without a new id (ApplyScaledRotation; IMU initialisation and scale refinement with their inertial
-    BA): the log's world_* columns.
+    BA): the log's world_* columns;
+  * src/LocalMapping.cc, src/LoopClosing.cc: the lockstep parks (jsve_orbslam3_lockstep.hpp) before
+    the final sleep of each Run() loop, which return at once unless the driver runs in lockstep;
+    src/TwoViewReconstruction.cc: in lockstep the homography and fundamental-matrix RANSACs run in
+    the calling thread, one after the other, instead of in two threads (threads that allocate at once
+    make the heap's later addresses, by which ORB-SLAM3 orders keyframes and points, differ by run).
 Then Pangolin (when not installed), DBoW2, g2o, the library and the driver are built with CMake in
 BUILD/build/*. Layout of BUILD:
 
@@ -62,6 +67,21 @@ _SCALE_REFINED = (
     "    // To perform pose-inertial opt w.r.t. last keyframe\n"
     "    mpCurrentKeyFrame->GetMap()->IncreaseChangeIndex();\n"
 )  # the end of LocalMapping::ScaleRefinement
+
+_INITIALISER_THREADS = (
+    "        thread threadH(&TwoViewReconstruction::FindHomography,this,ref(vbMatchesInliersH), ref(SH), ref(H));\n"
+    "        thread threadF(&TwoViewReconstruction::FindFundamental,this,ref(vbMatchesInliersF), ref(SF), ref(F));\n"
+    "\n"
+    "        // Wait until both threads have finished\n"
+    "        threadH.join();\n"
+    "        threadF.join();\n"
+)  # TwoViewReconstruction::Reconstruct runs its homography and fundamental-matrix RANSACs in two threads
+_LOCAL_MAPPING_LOOP_END = (
+    "        if(CheckFinish())\n            break;\n\n        usleep(3000);\n    }\n\n    SetFinish();\n"
+)  # the end of LocalMapping::Run's loop
+_LOOP_CLOSING_LOOP_END = (
+    "        if(CheckFinish()){\n            break;\n        }\n\n        usleep(5000);\n    }\n\n    SetFinish();\n"
+)  # the end of LoopClosing::Run's loop
 
 EDITS = (
     Edit("CMakeLists.txt", '"${CMAKE_CXX_FLAGS} -std=c++11")', '"${CMAKE_CXX_FLAGS} -std=c++17")'),
@@ -192,6 +212,35 @@ EDITS = (
         "void LoopClosing::MergeLocal2()\n{\n",
         "void LoopClosing::MergeLocal2()\n{\n    JSVE_HOOK_EVENT(kEventMerge);" + HOOK_TAG + "\n",
     ),
+    # Lockstep (jsve_orbslam3_lockstep.hpp): each worker parks at the final sleep of its Run() loop;
+    # the monocular initialiser's two RANSACs run in the tracking thread, one after the other.
+    Edit(
+        "src/TwoViewReconstruction.cc",
+        '#include "TwoViewReconstruction.h"\n',
+        '#include "TwoViewReconstruction.h"\n#include "jsve_orbslam3_lockstep.hpp"' + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/TwoViewReconstruction.cc",
+        _INITIALISER_THREADS,
+        "        if (::jsve_hook::lockstep_on()) {" + HOOK_TAG + ": the same two calls, in this thread\n"
+        "            FindHomography(vbMatchesInliersH, SH, H);" + HOOK_TAG + "\n"
+        "            FindFundamental(vbMatchesInliersF, SF, F);" + HOOK_TAG + "\n"
+        "        } else {" + HOOK_TAG + "\n" + _INITIALISER_THREADS + "        }" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        _LOCAL_MAPPING_LOOP_END,
+        _LOCAL_MAPPING_LOOP_END.replace(
+            "        usleep(3000);\n", "        JSVE_LOCKSTEP_PARK_LOCAL_MAPPING();" + HOOK_TAG + "\n        usleep(3000);\n"
+        ),
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        _LOOP_CLOSING_LOOP_END,
+        _LOOP_CLOSING_LOOP_END.replace(
+            "        usleep(5000);\n", "        JSVE_LOCKSTEP_PARK_LOOP_CLOSING();" + HOOK_TAG + "\n        usleep(5000);\n"
+        ),
+    ),
 )  # fmt: skip
 """The anchored edits, in order. Anchors are ORB-SLAM3 v1.0 (@4452a3c) lines; see docs/frontend.md."""
 
@@ -283,7 +332,8 @@ def stage_source(orbslam3: Path, dest: Path) -> list[str]:
             data = patch_text(rel, data.decode("utf-8"), source=str(orbslam3)).encode("utf-8")
         if _write_if_changed(dest / rel, data):
             changed.append(rel)
-    for header in (HOOK_DIR / "jsve_orbslam3_hook.hpp", Path(get_include()) / "jsve_log.hpp"):
+    headers = ("jsve_orbslam3_hook.hpp", "jsve_orbslam3_lockstep.hpp")
+    for header in (*(HOOK_DIR / h for h in headers), Path(get_include()) / "jsve_log.hpp"):
         if _write_if_changed(dest / "include" / header.name, header.read_bytes()):
             changed.append(f"include/{header.name}")
     return changed

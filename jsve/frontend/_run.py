@@ -8,36 +8,53 @@ OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
     run_<k>.orbslam3-euroc.txt   the same as a EuRoC CSV (int ns, p, q wxyz), for `jsve ape --format
                               euroc` against the dataset's state_groundtruth_estimate0/data.csv
     run_<k>.saved-from-log.txt   the same trajectory rebuilt from the log alone (jsve.io._saved_trajectory)
-    run_<k>.summary.json      the driver's summary: frames, tracking and hook seconds, exit status; the
-                              events, and the ATE of both trajectories (saved_trajectory_scores)
+    run_<k>.summary.json      the run's outcome and where its time went (the driver's summary), its
+                              events, and the ATE of both trajectories (saved_trajectory_scores);
+                              written last, atomically: a run is finished exactly when it exists
     run_<k>.console.txt       ORB-SLAM3's console output
 
-Runs are resumable: a complete log whose metadata `generator` equals the run's key (driver build, hook,
-dataset, settings and vocabulary content) is kept; a log of another key stops the command unless
-`force`. ORB-SLAM3 is not deterministic (threads, RANSAC): N runs of one dataset differ, which is the
-point of running N. For the same reason a run that ended in a crash or a timeout is an outcome, not a
-gap: its attempt (a summary with a non-zero exit_code, made under the same key) is kept and not run
-again unless `retry_failed`, since re-running crashes until they succeed would bias the failure rate
-towards zero. Only an attempt that never finished (the process killed: no summary) is run again.
+Modes (docs/frontend.md): `paced` feeds frames at the camera's rate, as a live camera does; `no-wait`
+as fast as tracking takes them; `lockstep` as fast as possible with ORB-SLAM3's three threads taking
+turns, so that a run depends only on its inputs and its seed (run k draws its RANSAC samples from
+seed S + k). Paced and no-wait runs are not repeatable: N of them differ by the threads' timing.
+
+Runs are resumable after the command is killed at any moment: a run counts as done only once its
+summary is written under the run's key (driver build, hook, dataset, settings, vocabulary content,
+rule, mode and seed); a run without one is cleared and run again. A complete log of another key stops
+the command unless `force`. A run that ended in a crash, a timeout or a lockstep gate that never opened
+is an outcome, not a gap: its summary (`outcome` not "ok") is kept and not run again unless
+`retry_failed`, since re-running crashes until they succeed would bias the failure rate towards zero.
+Each run holds `run_<k>.lock` (shared with its driver, which also dies with its parent), so an attempt
+left running by a killed command never overlaps its retry.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import fcntl
 import functools
 import json
 import os
+import signal
 import subprocess
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from jsve.frontend import DEFAULT_GATE_TIMEOUT_S
 from jsve.io import _scheduler
 from jsve.io._resume import StaleOutputError, differences, file_digest, fingerprint
 
 FRONTEND = "ORB-SLAM3 v1.0 + jsve hook"
 """The logs' `frontend` metadata."""
+
+MODES = ("paced", "no-wait", "lockstep")
+"""How the driver feeds frames (module docstring)."""
+
+RUN_FILES = (".csv", ".csv.partial", ".orbslam3.txt", ".orbslam3-euroc.txt", ".saved-from-log.txt",
+             ".summary.json", ".console.txt")  # fmt: skip
+"""The files of one run (suffixes of run_<k>), cleared before it runs again."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,6 +201,28 @@ class RunJob:
     settings: Path
     meta: dict
     rule_args: tuple[str, ...] = ()
+    mode: str = "paced"
+    seed: int | None = None  # the driver's --seed; None: ORB-SLAM3's own (0)
+
+
+def driver_args(job: RunJob, gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S) -> list[str]:
+    """The driver's options for the job's mode and seed."""
+    args = {"paced": [], "no-wait": ["--no-wait"], "lockstep": ["--lockstep", "--gate-timeout", repr(gate_timeout_s)]}
+    return args[job.mode] + ([] if job.seed is None else ["--seed", str(job.seed)])
+
+
+def outcome(exit_code: int, timed_out: bool = False) -> str:
+    """What a driver's exit status says of its run: ok, failed (the run or its log), bad_input,
+    gate_timeout (lockstep), timeout (stopped by `timeout_s`), or the signal that ended it
+    (SIGKILL: e.g. the kernel's out-of-memory killer; SIGSEGV, SIGABRT: a crash)."""
+    if timed_out:
+        return "timeout"
+    if exit_code < 0:
+        try:
+            return signal.Signals(-exit_code).name
+        except ValueError:
+            return f"signal {-exit_code}"
+    return {0: "ok", 1: "failed", 2: "bad_input", 3: "gate_timeout"}.get(exit_code, f"exit {exit_code}")
 
 
 def _meta_args(meta: dict) -> list[str]:
@@ -200,36 +239,73 @@ def _meta_args(meta: dict) -> list[str]:
 
 
 def run_one(
-    driver: Path, vocabulary: Path, job: RunJob, timeout_s: float | None = None, wait: bool = True
+    driver: Path,
+    vocabulary: Path,
+    job: RunJob,
+    timeout_s: float | None = None,
+    wait: bool = True,
+    gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S,
 ) -> dict:
-    """One run of the driver; returns its summary (plus `wall_seconds` and `log`). `wait`: frames at the
-    camera's rate (the driver's default), else as fast as tracking takes them."""
+    """One run of the driver; returns its summary (plus `outcome`, `exit_code`, `wall_seconds`, `log`).
+
+    The run holds run_<k>.lock, which its driver inherits: an earlier attempt still running (its
+    command killed) is waited for, never overlapped. The run's old files are cleared first, and the
+    summary is written last, atomically. `wait` False turns a paced job into a no-wait one (the
+    mode's default is the job's).
+    """
     stem = job.log.with_suffix("")
     summary_path = stem.with_suffix(".summary.json")
+    mode = "no-wait" if (job.mode == "paced" and not wait) else job.mode
     cmd = [
         str(driver), "--vocabulary", str(vocabulary), "--settings", str(job.settings),
         "--sequence", str(job.dataset.path), "--log", str(job.log), "--overwrite",
         "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path),
         *_meta_args(job.meta), *job.rule_args,
-    ] + ([] if wait else ["--no-wait"])  # fmt: skip
-    # A summary on disk says an attempt finished (resume keeps a failed one): a stale one must not
-    # speak for this attempt if it is killed.
-    summary_path.unlink(missing_ok=True)
-    start = time.monotonic()
-    with open(f"{stem}.console.txt", "w") as out:
-        try:
-            code = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, timeout=timeout_s).returncode
-        except subprocess.TimeoutExpired:
-            code = -1
-    trajectory = Path(f"{stem}.orbslam3.txt")
-    if trajectory.is_file():
-        write_euroc_trajectory(trajectory, Path(f"{stem}.orbslam3-euroc.txt"))
-    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    summary.update(exit_code=code, wall_seconds=round(time.monotonic() - start, 2), log=str(job.log),
-                   generator=job.meta["generator"])  # fmt: skip
-    summary.update(saved_trajectory_scores(job.log, job.dataset.path))
-    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+        *driver_args(dataclasses.replace(job, mode=mode), gate_timeout_s),
+    ]  # fmt: skip
+    lock = os.open(f"{stem}.lock", os.O_CREAT | os.O_RDWR, 0o644)
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for suffix in RUN_FILES:
+            Path(f"{stem}{suffix}").unlink(missing_ok=True)
+        start = time.monotonic()
+        timed_out = False
+        with open(f"{stem}.console.txt", "w") as out:
+            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, pass_fds=(lock,))
+            try:
+                code = proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                code, timed_out = proc.wait(), True
+        summary = _driver_summary(summary_path)
+        summary.update(outcome=outcome(code, timed_out), exit_code=code,
+                       wall_seconds=round(time.monotonic() - start, 2), log=str(job.log),
+                       generator=job.meta["generator"])  # fmt: skip
+        trajectory = Path(f"{stem}.orbslam3.txt")
+        if code == 0 and trajectory.is_file():
+            write_euroc_trajectory(trajectory, Path(f"{stem}.orbslam3-euroc.txt"))
+        summary.update(saved_trajectory_scores(job.log, job.dataset.path))
+        _write_atomically(summary_path, json.dumps(summary, indent=2) + "\n")
+    finally:
+        os.close(lock)
     return summary
+
+
+def _driver_summary(path: Path) -> dict:
+    """The driver's summary; {} when it wrote none or was stopped while writing it."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as stream:
+        stream.write(text)
+        stream.flush()
+        os.fsync(stream.fileno())
+    tmp.replace(path)
 
 
 def saved_trajectory_scores(log: Path, dataset: Path) -> dict:
@@ -307,25 +383,25 @@ def _recorded_generator(log: Path) -> str | None:
         return None
 
 
-def failed_attempt(log: Path, key: str) -> dict | None:
-    """The summary of a finished, failed attempt at `log` under `key`, or None.
+def finished_summary(log: Path, key: str) -> dict | None:
+    """The summary of a finished run at `log` under `key`, or None when the run is still to do.
 
-    A failed attempt leaves `<log>.partial` (or no log, when the driver died before its first frame)
-    and a summary whose exit_code is not 0. Its key is the summary's `generator`; summaries written
-    before they carried one are matched by the generator in the partial log's first line.
+    A run is finished once run_one has written its summary (last, atomically; the driver's own
+    summary, in the same file until then, has no `exit_code`) and it names `key`; a successful one
+    also has its complete log. Summaries written before they carried the key
+    are matched by the generator in the log's (or the partial log's) first line.
     """
-    summary_path = log.with_suffix(".summary.json")
-    if log.is_file() or not summary_path.is_file():
-        return None
-    try:
-        summary = json.loads(summary_path.read_text())
-    except json.JSONDecodeError:
-        return None  # a summary cut short: the attempt did not finish
-    if summary.get("exit_code", 0) == 0:
-        return None
+    summary = _driver_summary(log.with_suffix(".summary.json"))
+    if "exit_code" not in summary:
+        return None  # none, or only the driver's own (run_one had not yet added the outcome)
     partial = log.with_name(log.name + ".partial")
-    recorded = summary.get("generator") or (_recorded_generator(partial) if partial.is_file() else None)
-    return summary if recorded == key else None
+    header = log if log.is_file() else partial
+    recorded = summary.get("generator") or (_recorded_generator(header) if header.is_file() else None)
+    if recorded != key:
+        return None
+    if summary.get("exit_code", 0) == 0 and not log.is_file():
+        return None  # a summary without its log: not a finished run
+    return summary
 
 
 def plan(
@@ -340,10 +416,15 @@ def plan(
     switch_model: str = "orbslam3",
     force: bool = False,
     retry_failed: bool = False,
+    mode: str = "paced",
+    seed: int | None = None,
 ) -> tuple[list[RunJob], list[Path]]:
-    """The runs still to do and the runs already done under the same key: complete logs, and the logs
-    of attempts that ended in a crash or a timeout (`failed_attempt`; their `.csv` path, which does not
-    exist), which are outcomes and run again only with `retry_failed`.
+    """The runs still to do and the runs already done under the same key (`finished_summary`): complete
+    logs, and the logs of attempts that ended in a crash, a timeout or a closed gate (their `.csv`
+    path, which does not exist), which are outcomes and run again only with `retry_failed`.
+
+    `mode`: one of MODES. `seed`: run k draws from seed + k (lockstep's default: 0, so that run k has
+    seed k); None outside lockstep keeps ORB-SLAM3's own seed for every run.
 
     `rule`: (name, jsve Rule) run in the loop (default: ORB-SLAM3's own); `switch_model` "orbslam3" or
     "imu-coast" (a failed frame keeps the pose TrackLocalMap started from). Logs go under
@@ -359,6 +440,12 @@ def plan(
     from jsve.core._rules import preset
 
     check_switch_model(switch_model)
+    if mode not in MODES:
+        raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
+    if mode == "lockstep" and seed is None:
+        seed = 0
+    if seed is not None and seed < 0:
+        raise ValueError(f"seed {seed}: expected a non-negative integer")
     name, rule_obj = rule if rule is not None else ("orbslam3", preset("orbslam3"))
     settings_text = settings.read_text()
     n_features = orb_features(settings_text)
@@ -371,6 +458,8 @@ def plan(
         "rule": rule_meta,
         "switch_model": switch_model,
     }
+    if mode == "lockstep" or seed is not None:  # paced runs of ORB-SLAM3's own seed keep their keys
+        base_key.update(mode=mode, seed=seed)
     t_bc = camera_in_body(settings_text)
     todo, done = [], []
     folders: dict[Path, Path] = {}
@@ -399,16 +488,12 @@ def plan(
         key = fingerprint({**base_key, "data": data_key, "dataset": str(ds.path.resolve())})
         for k in range(runs):
             log = folder / f"run_{k:03d}.csv"
-            if log.is_file():
-                recorded = _recorded_generator(log)
-                if recorded == key:
-                    done.append(log)
-                    continue
-                if not force:
-                    raise StaleOutputError(
-                        folder, differences({"generator": recorded}, {"generator": key}) + f" in {log.name}"
-                    )
-            elif not retry_failed and failed_attempt(log, key) is not None:
+            if log.is_file() and (recorded := _recorded_generator(log)) != key and not force:
+                raise StaleOutputError(
+                    folder, differences({"generator": recorded}, {"generator": key}) + f" in {log.name}"
+                )
+            finished = finished_summary(log, key)
+            if finished is not None and (finished.get("exit_code", 0) == 0 or not retry_failed):
                 done.append(log)
                 continue
             meta = {
@@ -417,9 +502,12 @@ def plan(
                 "disturbance": ds.disturbance, "level": ds.level, "rule": rule_meta,
                 "switch_model": switch_model, "rule_name": name, "generator": key,
             }  # fmt: skip
+            if seed is not None:
+                meta.update(mode=mode, seed=seed + k)
             if t_bc is not None:
                 meta["camera_in_body"] = t_bc
-            todo.append(RunJob(ds, k, log, run_settings, meta, tuple(rule_args)))
+            todo.append(RunJob(ds, k, log, run_settings, meta, tuple(rule_args), mode,
+                               None if seed is None else seed + k))  # fmt: skip
     return todo, done
 
 
@@ -433,6 +521,7 @@ def run_all(
     wait: bool = True,
     progress: bool = True,
     scheduler: str | None = None,
+    gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S,
 ) -> list[dict]:
     """Run `jobs` with `workers` drivers at once (each ORB-SLAM3 runs three threads); summaries in order.
 
@@ -461,7 +550,9 @@ def run_all(
         ]
     results: list[dict] = [{} for _ in jobs]
     with _scheduler.executor(max(1, workers), scheduler, threads=True) as pool:
-        run = functools.partial(run_one, driver, vocabulary, timeout_s=timeout_s, wait=wait)
+        run = functools.partial(
+            run_one, driver, vocabulary, timeout_s=timeout_s, wait=wait, gate_timeout_s=gate_timeout_s
+        )
         futures = {pool.submit(run, job): i for i, job in enumerate(tasks)}
         with tqdm(total=len(jobs), desc="frontend runs", unit="run", disable=not progress) as bar:
             for future in concurrent.futures.as_completed(futures):

@@ -4,6 +4,10 @@
 //   jsve_orbslam3 --vocabulary VOC.txt --settings EuRoC.yaml --sequence DIR --log OUT.csv
 //                 [--trajectory OUT.txt] [--summary OUT.json] [--meta KEY=VALUE]... [--overwrite]
 //                 [--no-wait]   (default: frames paced at the camera's rate, as ORB-SLAM3's examples do)
+//                 [--lockstep [--gate-timeout SECONDS]]   (threads take turns: a run depends only on its
+//                               inputs and seed; never paced; jsve_orbslam3_lockstep.hpp)
+//                 [--seed S]    (seeds the process's rand() stream, which every RANSAC of ORB-SLAM3
+//                               draws from; default: ORB-SLAM3's own seed, 0)
 //                 [--rule-inliers IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]   (default: ORB-SLAM3's test)
 //                 [--rule-sve INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]
 //                 [--n-features N]   (ORBextractor.nFeatures, S_a of the authors' Eq.1; default 1000)
@@ -15,7 +19,16 @@
 // `run=3` an integer, `fps=20.0` a float, `image_size=[752,480]` a list, `key="..."` a string (so a
 // hash of digits stays one), anything else a string too.
 // Exit status: 0 on success, 1 when the run or its log failed (the log then stays `.partial`), 2 on
-// bad arguments or input. It is jsve's own program, not one of ORB-SLAM3's examples.
+// bad arguments or input, 3 when a lockstep gate did not open within --gate-timeout (the summary says
+// so). The driver dies with the process that started it (a killed `jsve frontend run` leaves no run
+// behind). It is jsve's own program, not one of ORB-SLAM3's examples.
+#include <malloc.h>
+#include <signal.h>
+#include <sys/personality.h>
+#include <sys/prctl.h>
+#include <sys/resource.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -28,10 +41,12 @@
 #include <thread>
 #include <vector>
 
+#include <opencv2/core/utility.hpp>
 #include <opencv2/imgcodecs.hpp>
 
 #include "ImuTypes.h"
 #include "System.h"
+#include "Thirdparty/DBoW2/DUtils/Random.h"
 #include "jsve_orbslam3_hook.hpp"
 
 namespace {
@@ -43,6 +58,10 @@ struct Args {
     bool wait = true;  // pace frames at the camera's rate, as a live camera (and ORB-SLAM3's examples) do
     bool has_rule = false, coast = false;
     jsve_hook::Rule rule;
+    bool lockstep = false;
+    double gate_timeout_s = 60.0;
+    bool has_seed = false;
+    long long seed = 0;
 };
 
 [[noreturn]] void usage_error(const std::string& message) {
@@ -82,6 +101,18 @@ Args parse_args(int argc, char** argv) {
         else if (key == "--overwrite") a.overwrite = true;
         else if (key == "--no-wait") a.wait = false;
         else if (key == "--coast") a.coast = true;
+        else if (key == "--lockstep") a.lockstep = true;
+        else if (key == "--gate-timeout") {
+            const std::string v = value();
+            if (!parse_double(v, &a.gate_timeout_s) || !(a.gate_timeout_s > 0.0))
+                usage_error("--gate-timeout wants a positive number of seconds, got '" + v + "'");
+        }
+        else if (key == "--seed") {
+            const std::string v = value();
+            if (!parse_int(v, &a.seed) || a.seed < 0 || a.seed > 4294967295LL)
+                usage_error("--seed wants an integer in [0, 2^32), got '" + v + "'");
+            a.has_seed = true;
+        }
         else if (key == "--rule-inliers" || key == "--rule-sve") {
             if (a.has_rule) usage_error("one rule: --rule-inliers or --rule-sve, once");
             std::string error;
@@ -102,6 +133,7 @@ Args parse_args(int argc, char** argv) {
     }
     if (a.vocabulary.empty() || a.settings.empty() || a.sequence.empty() || a.log.empty())
         usage_error("--vocabulary, --settings, --sequence and --log are required");
+    if (a.lockstep) a.wait = false;
     return a;
 }
 
@@ -183,10 +215,50 @@ std::vector<ORB_SLAM3::IMU::Point> read_imu(const std::string& dir) {
     return samples;
 }
 
+double seconds_since(std::chrono::steady_clock::time_point start) {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+// The driver ends with the process that started it: a `jsve frontend run` killed with SIGKILL leaves no
+// run writing behind it (its resumed command would otherwise run the same log twice).
+void die_with_parent() {
+    const pid_t parent = getppid();
+    prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (getppid() != parent) std::_Exit(1);  // the parent died before the request took effect
+}
+
+// Lockstep removes what makes the heap's addresses differ between runs, since ORB-SLAM3 orders and
+// hashes keyframes and map points by address: the process re-executes itself once without address-space
+// randomisation (personality(2); where the kernel refuses, the run goes on with it and the summary
+// says `aslr: true`), and every thread allocates from one malloc arena, in the order lockstep fixes.
+bool fix_addresses(char** argv) {
+    const int current = personality(0xffffffff);
+    if (current != -1 && !(current & ADDR_NO_RANDOMIZE) && !std::getenv("JSVE_NO_REEXEC")) {
+        if (personality(current | ADDR_NO_RANDOMIZE) != -1) {
+            setenv("JSVE_NO_REEXEC", "1", 1);
+            execv("/proc/self/exe", argv);  // returns only on failure: go on with randomisation
+        }
+    }
+    mallopt(M_ARENA_MAX, 1);
+    const int now = personality(0xffffffff);
+    return now == -1 || !(now & ADDR_NO_RANDOMIZE);
+}
+
+double cpu_seconds() {
+    rusage usage{};
+    getrusage(RUSAGE_SELF, &usage);
+    return usage.ru_utime.tv_sec + usage.ru_stime.tv_sec + 1e-6 * (usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
+    const auto started = std::chrono::steady_clock::now();
+    die_with_parent();
     const Args args = parse_args(argc, argv);
+    const bool aslr = args.lockstep ? fix_addresses(argv) : true;
+    if (args.lockstep) cv::setNumThreads(0);  // OpenCV's workers would allocate concurrently
+    if (args.has_seed) DUtils::Random::SeedRandOnce(static_cast<int>(static_cast<unsigned>(args.seed)));
     const std::vector<Image> images = read_images(args.sequence);
     const std::vector<ORB_SLAM3::IMU::Point> imu = read_imu(args.sequence);
 
@@ -199,17 +271,24 @@ int main(int argc, char** argv) {
     }
 
     if (args.coast && !args.has_rule) usage_error("--coast needs --rule-inliers or --rule-sve");
+    if (args.lockstep) jsve_hook::enable_lockstep(args.gate_timeout_s);
+    const double setup_seconds = seconds_since(started);
+    const auto system_start = std::chrono::steady_clock::now();
     ORB_SLAM3::System slam(args.vocabulary, args.settings, ORB_SLAM3::System::IMU_MONOCULAR, false);
+    const double system_seconds = seconds_since(system_start);
     if (args.has_rule) jsve_hook::set_rule(args.rule, args.coast);
     // IMU samples up to the first image start nothing: ORB-SLAM3's first frame has no preintegration.
     std::size_t next = 0;
     while (next < imu.size() && imu[next].t <= double(images[0].t_ns) * 1e-9) ++next;
-    double track_seconds = 0.0;
-    bool ever_tracked = false;
+    double track_seconds = 0.0, decode_seconds = 0.0, pace_seconds = 0.0;
+    bool ever_tracked = false, gates_open = true;
     int status = 0;
+    std::size_t frames_done = 0;
     try {
-        for (std::size_t i = 0; i < images.size(); ++i) {
+        for (std::size_t i = 0; i < images.size() && gates_open; ++i) {
+            const auto decode_start = std::chrono::steady_clock::now();
             const cv::Mat im = cv::imread(images[i].path, cv::IMREAD_UNCHANGED);
+            decode_seconds += seconds_since(decode_start);
             if (im.empty()) throw std::runtime_error("cannot read image " + images[i].path);
             const double t = double(images[i].t_ns) * 1e-9;
             std::vector<ORB_SLAM3::IMU::Point> between;
@@ -217,21 +296,54 @@ int main(int argc, char** argv) {
                 while (next < imu.size() && imu[next].t <= t) between.push_back(imu[next++]);
             const auto start = std::chrono::steady_clock::now();
             slam.TrackMonocular(im, t, between, images[i].path);
-            const double took = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+            const double took = seconds_since(start);
             track_seconds += took;
+            gates_open = jsve_hook::settle_frame();
             // Local mapping runs in its own thread: without waiting out the frame interval it would fall
             // behind the tracker, which a live run never lets it do.
             if (args.wait && i + 1 < images.size()) {
                 const double gap = double(images[i + 1].t_ns - images[i].t_ns) * 1e-9;
+                const auto pace = std::chrono::steady_clock::now();
                 if (took < gap) std::this_thread::sleep_for(std::chrono::duration<double>(gap - took));
+                pace_seconds += seconds_since(pace);
             }
             ever_tracked = ever_tracked || slam.GetTrackingState() == 2;  // OK
+            ++frames_done;
         }
     } catch (const std::exception& e) {
         std::cerr << "jsve_orbslam3: " << args.sequence << ": " << e.what() << "\n";
         status = 1;
     }
-    const double log_seconds = jsve_hook::state().log_seconds;
+    const jsve_hook::Lockstep& gates = jsve_hook::lockstep();
+    auto write_summary = [&](bool save, bool trailer, double finish_seconds) {
+        if (args.summary.empty()) return;
+        const jsve_hook::HookState& hook = jsve_hook::state();
+        std::ofstream out(args.summary);
+        out << "{\"frames\": " << images.size() << ", \"frames_done\": " << frames_done
+            << ", \"track_seconds\": " << track_seconds << ", \"hook_seconds\": " << hook.log_seconds
+            << ", \"imu_invalid_frames\": " << hook.imu_invalid_frames
+            << ", \"pose_invalid_frames\": " << hook.pose_invalid_frames
+            << ", \"keyframes_at_end\": " << hook.keyframes << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
+            << ", \"trajectory_saved\": " << (save ? "true" : "false")
+            << ", \"trailer_written\": " << (trailer ? "true" : "false") << ", \"status\": " << status
+            << ", \"mode\": \"" << (args.lockstep ? "lockstep" : (args.wait ? "paced" : "no-wait")) << "\""
+            << ", \"seed\": " << (args.has_seed ? std::to_string(args.seed) : std::string("null"))
+            << ", \"aslr\": " << (aslr ? "true" : "false") << ", \"gates_open\": " << (gates_open ? "true" : "false")
+            << ", \"time\": {\"setup_s\": " << setup_seconds << ", \"system_s\": " << system_seconds
+            << ", \"decode_s\": " << decode_seconds << ", \"track_s\": " << track_seconds
+            << ", \"settle_s\": " << gates.settle_s << ", \"local_mapping_s\": " << gates.busy_s[jsve_hook::kLocalMapping]
+            << ", \"loop_closing_s\": " << gates.busy_s[jsve_hook::kLoopClosing] << ", \"gba_wait_s\": " << gates.gba_wait_s
+            << ", \"pace_s\": " << pace_seconds << ", \"finish_s\": " << finish_seconds
+            << ", \"main_s\": " << seconds_since(started) << ", \"cpu_s\": " << cpu_seconds() << "}}\n";
+    };
+    if (!gates_open) {
+        // A worker never parked again: the run cannot go on in lockstep, and its threads may never end.
+        status = 3;
+        std::cerr << "jsve_orbslam3: a lockstep gate did not open within " << args.gate_timeout_s << " s\n";
+        write_summary(false, false, 0.0);
+        std::_Exit(3);
+    }
+    const auto finish_start = std::chrono::steady_clock::now();
     slam.Shutdown();
     // The trailer (format v3) records what SaveTrajectoryEuRoC reads, once LocalMapping and LoopClosing
     // have finished; a run without it still closes its log (`trailer_written` false in the summary).
@@ -243,17 +355,8 @@ int main(int argc, char** argv) {
     }
     // SaveTrajectoryEuRoC crashes ORB-SLAM3 when the active map has no keyframe (never built, or reset
     // at the end of the run): skip it then, and write the summary first, so that it says so.
-    const jsve_hook::HookState& hook = jsve_hook::state();
-    const bool save = status == 0 && ever_tracked && hook.keyframes > 0 && !args.trajectory.empty();
-    if (!args.summary.empty()) {
-        std::ofstream out(args.summary);
-        out << "{\"frames\": " << images.size() << ", \"track_seconds\": " << track_seconds
-            << ", \"hook_seconds\": " << log_seconds << ", \"imu_invalid_frames\": " << hook.imu_invalid_frames
-            << ", \"pose_invalid_frames\": " << hook.pose_invalid_frames
-            << ", \"keyframes_at_end\": " << hook.keyframes << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
-            << ", \"trajectory_saved\": " << (save ? "true" : "false")
-            << ", \"trailer_written\": " << (trailer ? "true" : "false") << ", \"status\": " << status << "}\n";
-    }
+    const bool save = status == 0 && ever_tracked && jsve_hook::state().keyframes > 0 && !args.trajectory.empty();
+    write_summary(save, trailer, seconds_since(finish_start));
     if (save) slam.SaveTrajectoryEuRoC(args.trajectory);
     return status;
 }

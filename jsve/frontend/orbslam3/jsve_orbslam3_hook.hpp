@@ -45,6 +45,7 @@
 #include <vector>
 
 #include "jsve_log.hpp"
+#include "jsve_orbslam3_lockstep.hpp"
 
 namespace jsve_hook {
 
@@ -332,6 +333,11 @@ std::set<ORB_SLAM3::KeyFrame*>& logged_references() {
 HookState& state() {
     static HookState s;
     return s;
+}
+
+bool settle_frame() {
+    ORB_SLAM3::LoopClosing* loop_closing = tracker_view().loop_closing;
+    return loop_closing == nullptr || settle(loop_closing);
 }
 
 bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error) {

@@ -1,0 +1,205 @@
+// jsve's lockstep gates for ORB-SLAM3 v1.0: Tracking, LocalMapping and LoopClosing take turns, so that
+// a run depends only on its inputs and its seed (docs/frontend.md, "Lockstep runs").
+//
+// ORB-SLAM3 runs its three threads concurrently and lets them read each other's state: whether
+// LocalMapping accepts keyframes (Tracking::NeedNewKeyFrame), whether a local BA is aborted
+// (mbAbortBA), when a loop is corrected relative to the frames being tracked. Lockstep replaces this
+// interleaving by one fixed order per frame:
+//   1. Tracking processes the frame (System::TrackMonocular) while LocalMapping and LoopClosing are
+//      parked at the end of their Run() loops (accepting keyframes, queues empty);
+//   2. `settle` grants LocalMapping turns until its queue is empty, then LoopClosing turns until its
+//      queue is empty, then waits for a global BA it started; each thread runs alone.
+// The parks are anchored insertions at the final sleep of LocalMapping::Run and LoopClosing::Run
+// (jsve/frontend/_build.py); ORB-SLAM3's own logic is unchanged. A parked thread still serves the
+// requests ORB-SLAM3 makes of it and busy-waits for (a stop requested by LoopClosing or the global
+// BA, a reset requested by Tracking, the finish requested by System::Shutdown): it leaves the park
+// for one loop iteration, which is where ORB-SLAM3 serves them.
+//
+// Without `enable` the parks return at once: a stock or paced run is untouched.
+#pragma once
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <mutex>
+#include <thread>
+
+namespace jsve_hook {
+
+enum Worker { kLocalMapping = 0, kLoopClosing = 1 };
+
+// The turn-taking state shared by the tracker (the driver's thread) and the two workers.
+struct Lockstep {
+    std::atomic<bool> on{false};
+    double timeout_s = 60.0;  // how long `settle` waits for a worker before it gives up (a gate that never opens)
+    std::mutex m;
+    std::condition_variable cv;
+    std::uint64_t granted[2] = {0, 0};  // turns given to each worker
+    std::uint64_t served[2] = {0, 0};   // turns each worker has finished (it parked after them)
+    bool parked[2] = {false, false};
+    bool queue_empty[2] = {true, true};  // the worker's keyframe queue when it last parked
+    // Time accounting (s): each worker's time out of its park, the tracker's time in `settle`.
+    double busy_s[2] = {0.0, 0.0};
+    double settle_s = 0.0, gba_wait_s = 0.0;
+    std::chrono::steady_clock::time_point left[2];
+    // LoopClosing's global-BA thread (LoopClosing::mpThreadGBA, published at its park). ORB-SLAM3
+    // clears its running flag before the thread exits; `settle` joins it, so that its exit (which
+    // frees memory) never overlaps the next frame.
+    std::thread* gba_thread = nullptr;
+};
+
+// The process's lockstep state (defined in Tracking.cc's translation unit).
+Lockstep& lockstep();
+
+// Turns the parks on (before System starts its threads); `timeout_s` bounds each wait of `settle`.
+void enable_lockstep(double timeout_s);
+
+// The driver calls this after each System::TrackMonocular: LocalMapping, then LoopClosing, each alone
+// until its queue is empty, then any global BA to its end, and both workers parked again. False when
+// a wait ran past the timeout (the run is no longer in lockstep; the driver records that and stops).
+// True at once when lockstep is off.
+bool settle_frame();
+
+// Called by a worker at the end of its Run() loop. `requested()`: ORB-SLAM3 asks something of this
+// worker (stop, reset, finish); `queue_empty()`: its keyframe queue is empty. Returns when the
+// worker has a turn or a request to serve (true: the loop goes on at once, without its sleep), or
+// at once (false: the loop sleeps as ORB-SLAM3 does) when lockstep is off.
+template <class Requested, class QueueEmpty>
+bool park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thread* gba_thread = nullptr) {
+    Lockstep& L = lockstep();
+    if (!L.on.load(std::memory_order_acquire)) return false;
+    const bool empty = queue_empty();
+    std::unique_lock<std::mutex> lock(L.m);
+    if (gba_thread != nullptr) L.gba_thread = gba_thread;
+    const auto now = std::chrono::steady_clock::now();
+    if (L.left[who].time_since_epoch().count() != 0)
+        L.busy_s[who] += std::chrono::duration<double>(now - L.left[who]).count();
+    L.served[who] = L.granted[who];
+    L.parked[who] = true;
+    L.queue_empty[who] = empty;
+    L.cv.notify_all();
+    while (L.granted[who] == L.served[who]) {
+        // ORB-SLAM3 sets its request flags without notifying this condition variable: poll them
+        // (outside the lock: they take ORB-SLAM3's own mutexes).
+        lock.unlock();
+        const bool serve = requested();
+        lock.lock();
+        if (serve) break;
+        L.cv.wait_for(lock, std::chrono::milliseconds(1));
+    }
+    L.parked[who] = false;
+    L.left[who] = std::chrono::steady_clock::now();
+    return true;
+}
+
+// Inside LocalMapping::Run's loop (its protected members are visible there), before its sleep.
+#define JSVE_LOCKSTEP_PARK_LOCAL_MAPPING()                                                           \
+    if (::jsve_hook::park(                                                                             \
+        ::jsve_hook::kLocalMapping,                                                                  \
+        [this] {                                                                                     \
+            bool reset;                                                                              \
+            {                                                                                        \
+                std::unique_lock<std::mutex> lock_(mMutexReset);                                     \
+                reset = mbResetRequested || mbResetRequestedActiveMap;                               \
+            }                                                                                        \
+            return reset || CheckFinish() || (stopRequested() && !isStopped());                      \
+        },                                                                                           \
+        [this] { return KeyframesInQueue() == 0; }))                                             \
+        continue
+
+// Inside LoopClosing::Run's loop, before its sleep.
+#define JSVE_LOCKSTEP_PARK_LOOP_CLOSING()                                                            \
+    if (::jsve_hook::park(                                                                             \
+        ::jsve_hook::kLoopClosing,                                                                   \
+        [this] {                                                                                     \
+            bool reset;                                                                              \
+            {                                                                                        \
+                std::unique_lock<std::mutex> lock_(mMutexReset);                                     \
+                reset = mbResetRequested || mbResetActiveMapRequested;                               \
+            }                                                                                        \
+            return reset || CheckFinish();                                                           \
+        },                                                                                           \
+        [this] { return !CheckNewKeyFrames(); }, mpThreadGBA))                                   \
+        continue
+
+// True in a lockstep run (TwoViewReconstruction::Reconstruct then runs its two RANSACs in one thread).
+inline bool lockstep_on() { return lockstep().on.load(std::memory_order_acquire); }
+
+}  // namespace jsve_hook
+
+#ifdef JSVE_HOOK_IMPLEMENTATION
+
+namespace jsve_hook {
+
+Lockstep& lockstep() {
+    static Lockstep L;
+    return L;
+}
+
+void enable_lockstep(double timeout_s) {
+    lockstep().timeout_s = timeout_s;
+    lockstep().on.store(true, std::memory_order_release);
+}
+
+namespace detail {
+
+template <class Done>
+bool wait_until(Lockstep& L, std::unique_lock<std::mutex>& lock, Done&& done,
+                std::chrono::steady_clock::time_point deadline) {
+    while (!done()) {
+        if (L.cv.wait_until(lock, std::min(deadline, std::chrono::steady_clock::now() + std::chrono::milliseconds(1))) ==
+                std::cv_status::timeout &&
+            std::chrono::steady_clock::now() >= deadline)
+            return done();
+    }
+    return true;
+}
+
+// One turn of `who`: wait until it is parked, grant it a turn, wait until it has parked again.
+inline bool turn(Lockstep& L, Worker who, std::chrono::steady_clock::time_point deadline) {
+    std::unique_lock<std::mutex> lock(L.m);
+    if (!wait_until(L, lock, [&] { return L.parked[who]; }, deadline)) return false;
+    const std::uint64_t mine = ++L.granted[who];
+    L.cv.notify_all();
+    return wait_until(L, lock, [&] { return L.served[who] >= mine && L.parked[who]; }, deadline);
+}
+
+}  // namespace detail
+
+// settle_frame's work, given the run's LoopClosing (the hook's TrackerView knows it).
+template <class LoopClosingT>
+bool settle(LoopClosingT* loop_closing) {
+    Lockstep& L = lockstep();
+    if (!L.on.load()) return true;
+    const auto start = std::chrono::steady_clock::now();
+    const auto deadline = start + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                      std::chrono::duration<double>(L.timeout_s));
+    bool ok = true;
+    for (int round = 0; ok; ++round) {
+        ok = detail::turn(L, kLocalMapping, deadline) && detail::turn(L, kLoopClosing, deadline);
+        if (!ok) break;
+        const auto gba = std::chrono::steady_clock::now();
+        while (loop_closing->isRunningGBA() && std::chrono::steady_clock::now() < deadline)
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        ok = !loop_closing->isRunningGBA();
+        std::thread* gba_thread = nullptr;
+        {
+            std::unique_lock<std::mutex> lock(L.m);
+            std::swap(gba_thread, L.gba_thread);
+        }
+        if (ok && gba_thread != nullptr && gba_thread->joinable()) gba_thread->join();
+        L.gba_wait_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - gba).count();
+        std::unique_lock<std::mutex> lock(L.m);
+        ok = ok && detail::wait_until(L, lock, [&] { return L.parked[kLocalMapping] && L.parked[kLoopClosing]; },
+                                      deadline);
+        if (ok && L.queue_empty[kLocalMapping] && L.queue_empty[kLoopClosing]) break;
+    }
+    L.settle_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    return ok;
+}
+
+}  // namespace jsve_hook
+
+#endif  // JSVE_HOOK_IMPLEMENTATION
