@@ -50,6 +50,27 @@ def test_hook_edits_apply_once_each_to_v1(orbslam3, tmp_path):
     assert not (tmp_path / "ORB_SLAM3" / "Examples").exists()
 
 
+def test_lockstep_gates_add_lines_and_keep_every_line_of_orbslam3(orbslam3, tmp_path):
+    stage_source(orbslam3, tmp_path / "ORB_SLAM3")
+    for name, gates in (
+        ("src/LocalMapping.cc", ["JSVE_LOCKSTEP_PARK_LOCAL_MAPPING();", "SetAcceptKeyFrames(false);",
+                                 "JSVE_LOCKSTEP_SKIP_SLEEP();", "usleep(3000);\n    }\n\n    SetFinish();"]),
+        ("src/LoopClosing.cc", ["JSVE_LOCKSTEP_PARK_LOOP_CLOSING();", "if(CheckNewKeyFrames())",
+                                "JSVE_LOCKSTEP_SKIP_SLEEP();", "usleep(5000);\n    }\n\n    SetFinish();",
+                                "RunGlobalBundleAdjustment(Map* pActiveMap", "wait_workers_parked();"]),
+        ("src/TwoViewReconstruction.cc", ["lockstep_on()", "FindFundamental(vbMatchesInliersF, SF, F);",
+                                          "thread threadH("]),
+    ):  # fmt: skip
+        patched = (tmp_path / "ORB_SLAM3" / name).read_text()
+        original = (orbslam3 / name).read_text()
+        kept = [line for line in patched.splitlines() if HOOK_TAG not in line and "jsve build" not in line]
+        assert kept == [line for line in original.splitlines() if "mnFullBAIdx++" not in line], name
+        # each gate where it belongs: the park first in the loop, the skipped sleep right before it
+        where = [patched.index(g) for g in gates]
+        assert where == sorted(where), name
+    assert (tmp_path / "ORB_SLAM3" / "include" / "jsve_orbslam3_lockstep.hpp").is_file()
+
+
 def test_staging_twice_rewrites_nothing(orbslam3, tmp_path):
     stage_source(orbslam3, tmp_path / "t")
     mtimes = {p: p.stat().st_mtime_ns for p in (tmp_path / "t").rglob("*") if p.is_file()}

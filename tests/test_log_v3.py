@@ -53,6 +53,21 @@ def test_header_writes_the_keyframe_columns_and_a_trailer_that_jsve_reads_back(b
     }
 
 
+@needs_cxx
+def test_a_log_continued_in_a_forked_child_keeps_the_rows_before_the_fork(build, tmp_path):  # noqa: F811
+    exe = build("write_branch.cpp")
+    parent, child = tmp_path / "parent.csv", tmp_path / "branch.csv"  # one length: no allocation
+    done = subprocess.run([str(exe), str(parent), str(child)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["exists file exists", "length I/O error", "child 0"]
+    a, b = read_log(parent).frames, read_log(child).frames
+    np.testing.assert_array_equal(a["n_inliers"], [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(b["n_inliers"], [0, 1, 2, 103, 104, 105])
+    head = parent.read_text().splitlines()[:5]  # magic, header, the three rows before the fork
+    assert child.read_text().splitlines()[:5] == head
+    assert not Path(f"{parent}.partial").exists() and not Path(f"{child}.partial").exists()
+
+
 # --------------------------------------------------------------------------------------------------
 # jsve's writer and reader
 

@@ -10,8 +10,9 @@ and the copy is patched by anchored edits that fail loudly when an anchor is not
   * src/Map.cc, src/LocalMapping.cc: the hook header and calls where ORB-SLAM3 re-expresses a map
     without a new id (ApplyScaledRotation; IMU initialisation and scale refinement with their inertial
     BA): the log's world_* columns;
-  * src/LocalMapping.cc, src/LoopClosing.cc: the lockstep parks (jsve_orbslam3_lockstep.hpp) before
-    the final sleep of each Run() loop, which return at once unless the driver runs in lockstep;
+  * src/LocalMapping.cc, src/LoopClosing.cc: the lockstep gates (jsve_orbslam3_lockstep.hpp): a park
+    at the top of each Run() loop, a skipped sleep at its end and, in RunGlobalBundleAdjustment, a
+    wait for both workers to park; all return at once unless the driver runs in lockstep;
     src/TwoViewReconstruction.cc: in lockstep the homography and fundamental-matrix RANSACs run in
     the calling thread, one after the other, instead of in two threads (threads that allocate at once
     make the heap's later addresses, by which ORB-SLAM3 orders keyframes and points, differ by run).
@@ -76,6 +77,11 @@ _INITIALISER_THREADS = (
     "        threadH.join();\n"
     "        threadF.join();\n"
 )  # TwoViewReconstruction::Reconstruct runs its homography and fundamental-matrix RANSACs in two threads
+_LOCAL_MAPPING_LOOP_TOP = (
+    "    while(1)\n    {\n        // Tracking will see that Local Mapping is busy\n        SetAcceptKeyFrames(false);\n"
+)  # the top of LocalMapping::Run's loop
+_LOOP_CLOSING_LOOP_TOP = "    mbFinished =false;\n\n    while(1)\n    {\n"  # the top of LoopClosing::Run's loop
+_GLOBAL_BA_START = "void LoopClosing::RunGlobalBundleAdjustment(Map* pActiveMap, unsigned long nLoopKF)\n{  \n"
 _LOCAL_MAPPING_LOOP_END = (
     "        if(CheckFinish())\n            break;\n\n        usleep(3000);\n    }\n\n    SetFinish();\n"
 )  # the end of LocalMapping::Run's loop
@@ -212,8 +218,40 @@ EDITS = (
         "void LoopClosing::MergeLocal2()\n{\n",
         "void LoopClosing::MergeLocal2()\n{\n    JSVE_HOOK_EVENT(kEventMerge);" + HOOK_TAG + "\n",
     ),
-    # Lockstep (jsve_orbslam3_lockstep.hpp): each worker parks at the final sleep of its Run() loop;
-    # the monocular initialiser's two RANSACs run in the tracking thread, one after the other.
+    # Lockstep (jsve_orbslam3_lockstep.hpp): each worker parks at the top of its Run() loop and skips
+    # the loop's sleep; the global BA starts once both are parked; the monocular initialiser's two
+    # RANSACs run in the tracking thread, one after the other.
+    Edit(
+        "src/LocalMapping.cc",
+        _LOCAL_MAPPING_LOOP_TOP,
+        _LOCAL_MAPPING_LOOP_TOP.replace(
+            "    {\n", "    {\n        JSVE_LOCKSTEP_PARK_LOCAL_MAPPING();" + HOOK_TAG + "\n", 1
+        ),
+    ),
+    Edit(
+        "src/LocalMapping.cc",
+        _LOCAL_MAPPING_LOOP_END,
+        _LOCAL_MAPPING_LOOP_END.replace(
+            "        usleep(3000);\n", "        JSVE_LOCKSTEP_SKIP_SLEEP();" + HOOK_TAG + "\n        usleep(3000);\n"
+        ),
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        _LOOP_CLOSING_LOOP_TOP,
+        _LOOP_CLOSING_LOOP_TOP + "        JSVE_LOCKSTEP_PARK_LOOP_CLOSING();" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        _LOOP_CLOSING_LOOP_END,
+        _LOOP_CLOSING_LOOP_END.replace(
+            "        usleep(5000);\n", "        JSVE_LOCKSTEP_SKIP_SLEEP();" + HOOK_TAG + "\n        usleep(5000);\n"
+        ),
+    ),
+    Edit(
+        "src/LoopClosing.cc",
+        _GLOBAL_BA_START,
+        _GLOBAL_BA_START + "    ::jsve_hook::wait_workers_parked();" + HOOK_TAG + "\n",
+    ),
     Edit(
         "src/TwoViewReconstruction.cc",
         '#include "TwoViewReconstruction.h"\n',
@@ -226,20 +264,6 @@ EDITS = (
         "            FindHomography(vbMatchesInliersH, SH, H);" + HOOK_TAG + "\n"
         "            FindFundamental(vbMatchesInliersF, SF, F);" + HOOK_TAG + "\n"
         "        } else {" + HOOK_TAG + "\n" + _INITIALISER_THREADS + "        }" + HOOK_TAG + "\n",
-    ),
-    Edit(
-        "src/LocalMapping.cc",
-        _LOCAL_MAPPING_LOOP_END,
-        _LOCAL_MAPPING_LOOP_END.replace(
-            "        usleep(3000);\n", "        JSVE_LOCKSTEP_PARK_LOCAL_MAPPING();" + HOOK_TAG + "\n        usleep(3000);\n"
-        ),
-    ),
-    Edit(
-        "src/LoopClosing.cc",
-        _LOOP_CLOSING_LOOP_END,
-        _LOOP_CLOSING_LOOP_END.replace(
-            "        usleep(5000);\n", "        JSVE_LOCKSTEP_PARK_LOOP_CLOSING();" + HOOK_TAG + "\n        usleep(5000);\n"
-        ),
     ),
 )  # fmt: skip
 """The anchored edits, in order. Anchors are ORB-SLAM3 v1.0 (@4452a3c) lines; see docs/frontend.md."""

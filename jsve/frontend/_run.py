@@ -31,6 +31,7 @@ left running by a killed command never overlaps its retry.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import fcntl
 import functools
@@ -38,8 +39,9 @@ import json
 import os
 import signal
 import subprocess
+import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from jsve.frontend import DEFAULT_GATE_TIMEOUT_S
@@ -211,6 +213,20 @@ def driver_args(job: RunJob, gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S) -> 
     return args[job.mode] + ([] if job.seed is None else ["--seed", str(job.seed)])
 
 
+def driver_command(
+    driver: Path, vocabulary: Path, job: RunJob, gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S
+) -> list[str]:
+    """The driver's command line for `job`: its files beside the log (run_<k>.orbslam3.txt,
+    run_<k>.summary.json), metadata, rule, mode and seed."""
+    stem = job.log.with_suffix("")
+    return [
+        str(driver), "--vocabulary", str(vocabulary), "--settings", str(job.settings),
+        "--sequence", str(job.dataset.path), "--log", str(job.log), "--overwrite",
+        "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(stem.with_suffix(".summary.json")),
+        *_meta_args(job.meta), *job.rule_args, *driver_args(job, gate_timeout_s),
+    ]  # fmt: skip
+
+
 def outcome(exit_code: int, timed_out: bool = False) -> str:
     """What a driver's exit status says of its run: ok, failed (the run or its log), bad_input,
     gate_timeout (lockstep), timeout (stopped by `timeout_s`), or the signal that ended it
@@ -256,13 +272,7 @@ def run_one(
     stem = job.log.with_suffix("")
     summary_path = stem.with_suffix(".summary.json")
     mode = "no-wait" if (job.mode == "paced" and not wait) else job.mode
-    cmd = [
-        str(driver), "--vocabulary", str(vocabulary), "--settings", str(job.settings),
-        "--sequence", str(job.dataset.path), "--log", str(job.log), "--overwrite",
-        "--trajectory", f"{stem}.orbslam3.txt", "--summary", str(summary_path),
-        *_meta_args(job.meta), *job.rule_args,
-        *driver_args(dataclasses.replace(job, mode=mode), gate_timeout_s),
-    ]  # fmt: skip
+    cmd = driver_command(driver, vocabulary, dataclasses.replace(job, mode=mode), gate_timeout_s)
     lock = os.open(f"{stem}.lock", os.O_CREAT | os.O_RDWR, 0o644)
     try:
         fcntl.flock(lock, fcntl.LOCK_EX)
@@ -270,8 +280,8 @@ def run_one(
             Path(f"{stem}{suffix}").unlink(missing_ok=True)
         start = time.monotonic()
         timed_out = False
-        with open(f"{stem}.console.txt", "w") as out:
-            proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, pass_fds=(lock,))
+        with open(f"{stem}.console.txt", "w") as out, canonical_paths(cmd) as (cwd, canonical):
+            proc = subprocess.Popen(canonical, stdout=out, stderr=subprocess.STDOUT, pass_fds=(lock,), cwd=cwd)
             try:
                 code = proc.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
@@ -289,6 +299,33 @@ def run_one(
     finally:
         os.close(lock)
     return summary
+
+
+PATH_OPTIONS = {"--vocabulary": "v", "--settings": "s", "--sequence": "d"}
+"""The driver's input paths and their names in `canonical_paths`' folder; the outputs go under "o"."""
+
+
+@contextlib.contextmanager
+def canonical_paths(cmd: list[str]) -> Iterator[tuple[str, list[str]]]:
+    """The driver's command with every path of the same length wherever the files are: a fresh folder of
+    fixed-length name holds links v, s, d (vocabulary, settings, dataset) and o (the output folder), and
+    the driver runs there. A lockstep run's heap, by whose addresses ORB-SLAM3 orders keyframes and map
+    points, then does not depend on where its inputs and outputs are (docs/frontend.md)."""
+    out_options = ("--log", "--trajectory", "--summary", "--branch-log", "--branch-summary")  # one folder
+    with tempfile.TemporaryDirectory(prefix="jsve-run-") as tmp:
+        folder = Path(tmp)
+        canonical = list(cmd)
+        for i, arg in enumerate(cmd[:-1]):
+            if arg in PATH_OPTIONS:
+                name = PATH_OPTIONS[arg] + Path(cmd[i + 1]).suffix  # OpenCV reads settings by their suffix
+                (folder / name).symlink_to(Path(cmd[i + 1]).absolute())
+                canonical[i + 1] = name
+            elif arg in out_options:
+                out = folder / "o"
+                if not out.exists():
+                    out.symlink_to(Path(cmd[i + 1]).parent.absolute())
+                canonical[i + 1] = str(Path("o") / Path(cmd[i + 1]).name)
+        yield tmp, canonical
 
 
 def _driver_summary(path: Path) -> dict:

@@ -86,6 +86,10 @@
 #include <type_traits>
 #include <utility>
 #include <vector>
+#if defined(__unix__) || defined(__APPLE__)
+#include <fcntl.h>
+#include <unistd.h>
+#endif
 
 #if !defined(JSVE_LOG_USE_SNPRINTF) && defined(__cpp_lib_to_chars) && __cpp_lib_to_chars >= 201611L
 #define JSVE_LOG_HAVE_FP_TO_CHARS 1
@@ -670,6 +674,55 @@ public:
             return fail(Status::kIoError, partial_ + ": cannot rename to " + path_ + ": " + errno_text());
         }
         return Status::kOk;
+    }
+
+    // Writes out what the stdio buffer holds (before fork(): a child must not inherit unwritten lines).
+    Status flush() {
+        if (file_ == nullptr) return fail(Status::kNotOpen, "flush(): the writer is not open");
+        if (std::fflush(file_) != 0) return io_failure("cannot flush");
+        return Status::kOk;
+    }
+
+    // In a process forked from the writer's (after flush()): the log goes on as a copy at `path`, whose
+    // `<path>.partial` starts with every line written so far; the original file is left to the parent.
+    // `path` must not exist unless Options::overwrite was set, and must be as long as the current path:
+    // the switch then allocates nothing on the heap (a lockstep branch must leave its heap as the
+    // parent's, docs/frontend.md). POSIX only. A failure fails the writer.
+    Status continue_as(const std::string& path) {
+        if (file_ == nullptr) return fail(Status::kNotOpen, "continue_as(): the writer is not open");
+        if (failed_ != Status::kOk) return fail(Status::kFailed, partial_ + ": writer failed earlier: " + error_);
+        if (path == path_ || path.size() != path_.size())
+            return fail(Status::kIoError, "continue_as(\"" + path + "\"): not a new path of the current path's length");
+#if defined(__unix__) || defined(__APPLE__)
+        char partial[4096];
+        if (path.size() + std::strlen(kPartialSuffix) + 1 > sizeof partial)
+            return fail(Status::kIoError, "continue_as(): path too long");
+        std::snprintf(partial, sizeof partial, "%s%s", path.c_str(), kPartialSuffix);
+        if (::access(path.c_str(), F_OK) == 0) {
+            if (!options_.overwrite) return fail(Status::kExists, path + ": exists (set Options::overwrite to replace it)");
+            if (std::remove(path.c_str()) != 0) return fail(Status::kIoError, path + ": cannot remove: " + errno_text());
+        }
+        const int source = ::open(partial_.c_str(), O_RDONLY);
+        const int copy = ::open(partial, O_WRONLY | O_CREAT | O_TRUNC, 0644);
+        bool ok = source >= 0 && copy >= 0;
+        char block[1 << 14];
+        for (ssize_t n = 0; ok && (n = ::read(source, block, sizeof block)) != 0;)
+            ok = n > 0 && ::write(copy, block, static_cast<std::size_t>(n)) == n;
+        if (source >= 0) ::close(source);
+        if (copy >= 0) ok = ::close(copy) == 0 && ok;
+        if (!ok) return io_failure(std::string("cannot copy the log so far to ") + partial);
+        // The same FILE on the copy (this process's descriptor of the parent's file is closed).
+        if (std::freopen(partial, "ab", file_) == nullptr) {
+            file_ = nullptr;
+            return io_failure("cannot reopen");
+        }
+        std::setvbuf(file_, buffer_.get(), _IOFBF, kBufferSize);
+        path_.replace(0, path_.size(), path);              // same length: no allocation
+        partial_.replace(0, path_.size(), path);
+        return Status::kOk;
+#else
+        return fail(Status::kIoError, "continue_as(\"" + path + "\"): needs fork(), POSIX only");
+#endif
     }
 
     // Closes the file without finalising it: `<path>.partial` stays, reported as incomplete.

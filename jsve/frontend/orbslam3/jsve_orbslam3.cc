@@ -8,6 +8,12 @@
 //                               inputs and seed; never paced; jsve_orbslam3_lockstep.hpp)
 //                 [--seed S]    (seeds the process's rand() stream, which every RANSAC of ORB-SLAM3
 //                               draws from; default: ORB-SLAM3's own seed, 0)
+//                 [--branch-at K --branch-frames W --branch-log OUT.csv [--branch-summary OUT.json]
+//                  [--branch-rule-inliers ...|--branch-rule-sve ... [--branch-coast]]]   (with --lockstep:
+//                               before frame K, fork; the child goes on for W frames under the branch's
+//                               rule, default the run's own, writing its own log (a path as long as
+//                               --log's), which holds every row before K too; the parent waits for it,
+//                               then goes on)
 //                 [--rule-inliers IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]   (default: ORB-SLAM3's test)
 //                 [--rule-sve INPUTS,W_A,U_B,P,Q,RHO,IMU_INIT,NOT_INIT,RELOC,RECOVERY [--coast]]
 //                 [--n-features N]   (ORBextractor.nFeatures, S_a of the authors' Eq.1; default 1000)
@@ -23,10 +29,12 @@
 // so). The driver dies with the process that started it (a killed `jsve frontend run` leaves no run
 // behind). It is jsve's own program, not one of ORB-SLAM3's examples.
 #include <malloc.h>
+#include <pthread.h>
 #include <signal.h>
 #include <sys/personality.h>
 #include <sys/prctl.h>
 #include <sys/resource.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -62,6 +70,10 @@ struct Args {
     double gate_timeout_s = 60.0;
     bool has_seed = false;
     long long seed = 0;
+    long long branch_at = -1, branch_frames = 0;
+    std::string branch_log, branch_summary;
+    bool branch_has_rule = false, branch_coast = false;
+    jsve_hook::Rule branch_rule;
 };
 
 [[noreturn]] void usage_error(const std::string& message) {
@@ -107,6 +119,24 @@ Args parse_args(int argc, char** argv) {
             if (!parse_double(v, &a.gate_timeout_s) || !(a.gate_timeout_s > 0.0))
                 usage_error("--gate-timeout wants a positive number of seconds, got '" + v + "'");
         }
+        else if (key == "--branch-at" || key == "--branch-frames") {
+            const std::string v = value();
+            long long n = 0;
+            if (!parse_int(v, &n) || n < (key == "--branch-at" ? 1 : 1))
+                usage_error(key + " wants a positive integer, got '" + v + "'");
+            (key == "--branch-at" ? a.branch_at : a.branch_frames) = n;
+        }
+        else if (key == "--branch-log") a.branch_log = value();
+        else if (key == "--branch-summary") a.branch_summary = value();
+        else if (key == "--branch-coast") a.branch_coast = true;
+        else if (key == "--branch-rule-inliers" || key == "--branch-rule-sve") {
+            if (a.branch_has_rule) usage_error("one branch rule: --branch-rule-inliers or --branch-rule-sve, once");
+            std::string error;
+            if (!jsve_hook::parse_rule(key == "--branch-rule-sve" ? "--rule-sve" : "--rule-inliers", value(),
+                                       &a.branch_rule, &error))
+                usage_error(error);
+            a.branch_has_rule = true;
+        }
         else if (key == "--seed") {
             const std::string v = value();
             if (!parse_int(v, &a.seed) || a.seed < 0 || a.seed > 4294967295LL)
@@ -134,6 +164,10 @@ Args parse_args(int argc, char** argv) {
     if (a.vocabulary.empty() || a.settings.empty() || a.sequence.empty() || a.log.empty())
         usage_error("--vocabulary, --settings, --sequence and --log are required");
     if (a.lockstep) a.wait = false;
+    if (a.branch_at > 0 && (!a.lockstep || a.branch_frames < 1 || a.branch_log.size() != a.log.size()))
+        usage_error("--branch-at needs --lockstep, --branch-frames and a --branch-log as long as --log");
+    if (a.branch_coast && !a.branch_has_rule) usage_error("--branch-coast needs a --branch-rule-*");
+    a.branch_rule.n_features = a.rule.n_features;
     return a;
 }
 
@@ -227,21 +261,34 @@ void die_with_parent() {
     if (getppid() != parent) std::_Exit(1);  // the parent died before the request took effect
 }
 
-// Lockstep removes what makes the heap's addresses differ between runs, since ORB-SLAM3 orders and
-// hashes keyframes and map points by address: the process re-executes itself once without address-space
+// Lockstep removes what makes the heap's addresses differ between runs, since ORB-SLAM3 orders
+// keyframes and map points by address: the process re-executes itself once without address-space
 // randomisation (personality(2); where the kernel refuses, the run goes on with it and the summary
-// says `aslr: true`), and every thread allocates from one malloc arena, in the order lockstep fixes.
+// says `aslr: true`), and every thread allocates from one malloc arena without per-thread caches
+// (glibc's tunables), in the order lockstep fixes; a branch's new threads then find the heap as the
+// parent's threads left it.
 bool fix_addresses(char** argv) {
     const int current = personality(0xffffffff);
     if (current != -1 && !(current & ADDR_NO_RANDOMIZE) && !std::getenv("JSVE_NO_REEXEC")) {
         if (personality(current | ADDR_NO_RANDOMIZE) != -1) {
             setenv("JSVE_NO_REEXEC", "1", 1);
+            setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=1:glibc.malloc.tcache_count=0", 1);
             execv("/proc/self/exe", argv);  // returns only on failure: go on with randomisation
         }
     }
     mallopt(M_ARENA_MAX, 1);
     const int now = personality(0xffffffff);
     return now == -1 || !(now & ADDR_NO_RANDOMIZE);
+}
+
+// Thread stacks for a lockstep branch: a thread's TLS vector is allocated on the heap with a new stack
+// and kept with a cached one. Threads started and joined here leave their stacks in glibc's cache, so
+// that the threads the run starts later (LocalMapping, LoopClosing, global BA; in a branch, the child's
+// two workers) take cached stacks and allocate nothing: a branch's heap stays its parent's.
+void fill_stack_cache(int threads) {
+    std::vector<pthread_t> started(threads);
+    for (pthread_t& t : started) pthread_create(&t, nullptr, [](void*) -> void* { return nullptr; }, nullptr);
+    for (pthread_t& t : started) pthread_join(t, nullptr);
 }
 
 double cpu_seconds() {
@@ -257,7 +304,10 @@ int main(int argc, char** argv) {
     die_with_parent();
     const Args args = parse_args(argc, argv);
     const bool aslr = args.lockstep ? fix_addresses(argv) : true;
-    if (args.lockstep) cv::setNumThreads(0);  // OpenCV's workers would allocate concurrently
+    if (args.lockstep) {
+        cv::setNumThreads(0);  // OpenCV's workers would allocate concurrently
+        fill_stack_cache(4);
+    }
     if (args.has_seed) DUtils::Random::SeedRandOnce(static_cast<int>(static_cast<unsigned>(args.seed)));
     const std::vector<Image> images = read_images(args.sequence);
     const std::vector<ORB_SLAM3::IMU::Point> imu = read_imu(args.sequence);
@@ -281,11 +331,37 @@ int main(int argc, char** argv) {
     std::size_t next = 0;
     while (next < imu.size() && imu[next].t <= double(images[0].t_ns) * 1e-9) ++next;
     double track_seconds = 0.0, decode_seconds = 0.0, pace_seconds = 0.0;
-    bool ever_tracked = false, gates_open = true;
-    int status = 0;
-    std::size_t frames_done = 0;
+    bool ever_tracked = false, gates_open = true, in_branch = false;
+    int status = 0, branch_exit = 0;
+    std::size_t frames_done = 0, last = images.size();
+    double branch_seconds = 0.0;
+    const std::string* summary_path = &args.summary;  // a pointer: switching to the branch's allocates nothing
     try {
-        for (std::size_t i = 0; i < images.size() && gates_open; ++i) {
+        for (std::size_t i = 0; i < last && gates_open; ++i) {
+            if (!in_branch && args.branch_at >= 0 && i == static_cast<std::size_t>(args.branch_at)) {
+                const auto fork_start = std::chrono::steady_clock::now();
+                const int pid = jsve_hook::fork_parked();
+                if (pid == 0) {  // the branch: its own log, rule and summary, W frames from here
+                    in_branch = true;
+                    last = std::min(images.size(), i + static_cast<std::size_t>(args.branch_frames));
+                    track_seconds = decode_seconds = 0.0;
+                    frames_done = 0;
+                    summary_path = &args.branch_summary;
+                    if (args.branch_has_rule) jsve_hook::set_rule(args.branch_rule, args.branch_coast);
+                    if (!jsve_hook::continue_log_as(args.branch_log, &error)) {
+                        std::cerr << "jsve_orbslam3: branch: " << error << "\n";
+                        std::_Exit(1);
+                    }
+                } else if (pid > 0) {
+                    int wait_status = 0;
+                    waitpid(pid, &wait_status, 0);
+                    branch_exit = WIFEXITED(wait_status) ? WEXITSTATUS(wait_status) : -WTERMSIG(wait_status);
+                    branch_seconds = seconds_since(fork_start);
+                } else {
+                    std::cerr << "jsve_orbslam3: cannot branch at frame " << i << "\n";
+                    branch_exit = -1000;
+                }
+            }
             const auto decode_start = std::chrono::steady_clock::now();
             const cv::Mat im = cv::imread(images[i].path, cv::IMREAD_UNCHANGED);
             decode_seconds += seconds_since(decode_start);
@@ -316,9 +392,9 @@ int main(int argc, char** argv) {
     }
     const jsve_hook::Lockstep& gates = jsve_hook::lockstep();
     auto write_summary = [&](bool save, bool trailer, double finish_seconds) {
-        if (args.summary.empty()) return;
+        if (summary_path->empty()) return;
         const jsve_hook::HookState& hook = jsve_hook::state();
-        std::ofstream out(args.summary);
+        std::ofstream out(*summary_path);
         out << "{\"frames\": " << images.size() << ", \"frames_done\": " << frames_done
             << ", \"track_seconds\": " << track_seconds << ", \"hook_seconds\": " << hook.log_seconds
             << ", \"imu_invalid_frames\": " << hook.imu_invalid_frames
@@ -329,6 +405,10 @@ int main(int argc, char** argv) {
             << ", \"mode\": \"" << (args.lockstep ? "lockstep" : (args.wait ? "paced" : "no-wait")) << "\""
             << ", \"seed\": " << (args.has_seed ? std::to_string(args.seed) : std::string("null"))
             << ", \"aslr\": " << (aslr ? "true" : "false") << ", \"gates_open\": " << (gates_open ? "true" : "false")
+            << ", \"branch\": " << (args.branch_at < 0 ? std::string("null") :
+                "{\"at\": " + std::to_string(args.branch_at) + ", \"frames\": " + std::to_string(args.branch_frames) +
+                ", \"in_branch\": " + (in_branch ? "true" : "false") + ", \"exit\": " + std::to_string(branch_exit) +
+                ", \"seconds\": " + std::to_string(branch_seconds) + "}")
             << ", \"time\": {\"setup_s\": " << setup_seconds << ", \"system_s\": " << system_seconds
             << ", \"decode_s\": " << decode_seconds << ", \"track_s\": " << track_seconds
             << ", \"settle_s\": " << gates.settle_s << ", \"local_mapping_s\": " << gates.busy_s[jsve_hook::kLocalMapping]
@@ -355,8 +435,13 @@ int main(int argc, char** argv) {
     }
     // SaveTrajectoryEuRoC crashes ORB-SLAM3 when the active map has no keyframe (never built, or reset
     // at the end of the run): skip it then, and write the summary first, so that it says so.
-    const bool save = status == 0 && ever_tracked && jsve_hook::state().keyframes > 0 && !args.trajectory.empty();
+    const bool save = status == 0 && ever_tracked && jsve_hook::state().keyframes > 0 && !args.trajectory.empty() &&
+                      !in_branch;
     write_summary(save, trailer, seconds_since(finish_start));
+    if (in_branch) {  // the parent owns everything else this process inherited
+        std::fflush(nullptr);
+        std::_Exit(status);
+    }
     if (save) slam.SaveTrajectoryEuRoC(args.trajectory);
     return status;
 }

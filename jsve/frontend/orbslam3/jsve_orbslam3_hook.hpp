@@ -76,6 +76,9 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
 // Closes the log: writes the end marker and renames `<path>.partial` to `<path>`.
 bool close_log(std::string* error);
 
+// In a child of fork_parked: the log goes on at `path` (a copy of every row so far; LogWriter::continue_as).
+bool continue_log_as(const std::string& path, std::string* error);
+
 // Format v3's `orbslam3` trailer: what System::SaveTrajectoryEuRoC reads at the end of the run (the
 // trajectory lists, the keyframes they and the logged frames reference, the maps). Call after
 // System::Shutdown and before close_log; it first waits (up to `timeout_s`) for LocalMapping and
@@ -338,6 +341,23 @@ HookState& state() {
 bool settle_frame() {
     ORB_SLAM3::LoopClosing* loop_closing = tracker_view().loop_closing;
     return loop_closing == nullptr || settle(loop_closing);
+}
+
+int fork_parked() {
+    const TrackerView& v = tracker_view();
+    HookState& s = state();
+    if (s.log && s.log->flush() != jsve::Status::kOk) return -1;
+    std::fflush(nullptr);  // a child must not write this process's buffered console output again
+    return fork_parked(v.local_mapping, v.loop_closing);
+}
+
+bool continue_log_as(const std::string& path, std::string* error) {
+    HookState& s = state();
+    if (!s.log || s.log->continue_as(path) != jsve::Status::kOk) {
+        if (error) *error = s.log ? s.log->last_error() : "no log is open";
+        return false;
+    }
+    return true;
 }
 
 bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error) {

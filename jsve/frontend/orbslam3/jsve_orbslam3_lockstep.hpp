@@ -9,21 +9,33 @@
 //      parked at the end of their Run() loops (accepting keyframes, queues empty);
 //   2. `settle` grants LocalMapping turns until its queue is empty, then LoopClosing turns until its
 //      queue is empty, then waits for a global BA it started; each thread runs alone.
-// The parks are anchored insertions at the final sleep of LocalMapping::Run and LoopClosing::Run
-// (jsve/frontend/_build.py); ORB-SLAM3's own logic is unchanged. A parked thread still serves the
-// requests ORB-SLAM3 makes of it and busy-waits for (a stop requested by LoopClosing or the global
-// BA, a reset requested by Tracking, the finish requested by System::Shutdown): it leaves the park
-// for one loop iteration, which is where ORB-SLAM3 serves them.
+// The gates are anchored insertions (jsve/frontend/_build.py): a park at the top of LocalMapping::Run's
+// and LoopClosing::Run's loops (their sleep at the loop's end is skipped), and a wait at the start of
+// the global BA's thread until both workers are parked; ORB-SLAM3's own logic is unchanged. A parked
+// thread still serves the requests ORB-SLAM3 makes of it and busy-waits for (a stop requested by
+// LoopClosing or the global BA, a reset requested by Tracking, the finish requested by
+// System::Shutdown): it leaves the park for one loop iteration, which is where ORB-SLAM3 serves them.
+// Only one thread allocates at a time, so the heap's addresses, by which ORB-SLAM3 orders keyframes
+// and map points, are the same in every repeat.
 //
 // Without `enable` the parks return at once: a stock or paced run is untouched.
+//
+// Exact branches: with every thread parked between two frames, `fork_parked` forks the process; the
+// child continues the same run under another rule (or the same one, which must then write the
+// parent's log byte for byte), on copies of the maps, with LocalMapping and LoopClosing started again.
 #pragma once
+
+#include <pthread.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <cstdlib>
 #include <mutex>
+#include <new>
 #include <thread>
 
 namespace jsve_hook {
@@ -56,22 +68,31 @@ Lockstep& lockstep();
 // Turns the parks on (before System starts its threads); `timeout_s` bounds each wait of `settle`.
 void enable_lockstep(double timeout_s);
 
+// Right after `settle_frame`, with every thread parked: fork()s the run. The child, where only the
+// calling thread exists, starts LocalMapping and LoopClosing again on its copies (threads created
+// without allocating, so that its heap stays the parent's) and continues the run from the next frame;
+// its time accounting restarts at zero. Returns fork()'s value (0 in the child, the child's pid in the
+// parent), or -1 when lockstep is off, a worker is not parked or fork fails.
+int fork_parked();
+
 // The driver calls this after each System::TrackMonocular: LocalMapping, then LoopClosing, each alone
 // until its queue is empty, then any global BA to its end, and both workers parked again. False when
 // a wait ran past the timeout (the run is no longer in lockstep; the driver records that and stops).
 // True at once when lockstep is off.
 bool settle_frame();
 
-// Called by a worker at the end of its Run() loop. `requested()`: ORB-SLAM3 asks something of this
-// worker (stop, reset, finish); `queue_empty()`: its keyframe queue is empty. Returns when the
-// worker has a turn or a request to serve (true: the loop goes on at once, without its sleep), or
-// at once (false: the loop sleeps as ORB-SLAM3 does) when lockstep is off.
+// Called by a worker at the top of its Run() loop. `requested()`: ORB-SLAM3 asks something of this
+// worker (stop, reset, finish); `queue_empty()`: its keyframe queue is empty. Returns when the worker
+// has a turn or a request to serve; at once when lockstep is off. A worker thus never runs an
+// iteration of its own accord, not even its first one while System is still being constructed.
 template <class Requested, class QueueEmpty>
-bool park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thread* gba_thread = nullptr) {
+void park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thread* gba_thread = nullptr) {
     Lockstep& L = lockstep();
-    if (!L.on.load(std::memory_order_acquire)) return false;
-    const bool empty = queue_empty();
+    if (!L.on.load(std::memory_order_acquire)) return;
+    // ORB-SLAM3's own mutexes are taken only under L.m here, so that `fork_parked` (which holds L.m)
+    // never copies a worker inside one of them.
     std::unique_lock<std::mutex> lock(L.m);
+    const bool empty = queue_empty();
     if (gba_thread != nullptr) L.gba_thread = gba_thread;
     const auto now = std::chrono::steady_clock::now();
     if (L.left[who].time_since_epoch().count() != 0)
@@ -80,23 +101,31 @@ bool park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thre
     L.parked[who] = true;
     L.queue_empty[who] = empty;
     L.cv.notify_all();
-    while (L.granted[who] == L.served[who]) {
-        // ORB-SLAM3 sets its request flags without notifying this condition variable: poll them
-        // (outside the lock: they take ORB-SLAM3's own mutexes).
-        lock.unlock();
-        const bool serve = requested();
-        lock.lock();
-        if (serve) break;
-        L.cv.wait_for(lock, std::chrono::milliseconds(1));
-    }
+    // ORB-SLAM3 sets its request flags without notifying this condition variable: poll them.
+    while (L.granted[who] == L.served[who] && !requested()) L.cv.wait_for(lock, std::chrono::milliseconds(1));
     L.parked[who] = false;
     L.left[who] = std::chrono::steady_clock::now();
-    return true;
 }
 
-// Inside LocalMapping::Run's loop (its protected members are visible there), before its sleep.
+// True in a lockstep run.
+inline bool lockstep_on() { return lockstep().on.load(std::memory_order_acquire); }
+
+// At the end of a worker's Run() loop, before its sleep: in lockstep the loop goes on to its park.
+#define JSVE_LOCKSTEP_SKIP_SLEEP() \
+    if (::jsve_hook::lockstep_on()) continue
+
+// At the start of LoopClosing::RunGlobalBundleAdjustment: in lockstep the global BA starts once both
+// workers are parked (LoopClosing launches it and goes on with its own iteration), so that it runs alone.
+inline void wait_workers_parked() {
+    Lockstep& L = lockstep();
+    if (!L.on.load(std::memory_order_acquire)) return;
+    std::unique_lock<std::mutex> lock(L.m);
+    while (!(L.parked[kLocalMapping] && L.parked[kLoopClosing])) L.cv.wait_for(lock, std::chrono::milliseconds(1));
+}
+
+// At the top of LocalMapping::Run's loop (its protected members are visible there).
 #define JSVE_LOCKSTEP_PARK_LOCAL_MAPPING()                                                           \
-    if (::jsve_hook::park(                                                                             \
+    ::jsve_hook::park(                                                                             \
         ::jsve_hook::kLocalMapping,                                                                  \
         [this] {                                                                                     \
             bool reset;                                                                              \
@@ -106,12 +135,11 @@ bool park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thre
             }                                                                                        \
             return reset || CheckFinish() || (stopRequested() && !isStopped());                      \
         },                                                                                           \
-        [this] { return KeyframesInQueue() == 0; }))                                             \
-        continue
+        [this] { return KeyframesInQueue() == 0; })
 
-// Inside LoopClosing::Run's loop, before its sleep.
+// At the top of LoopClosing::Run's loop.
 #define JSVE_LOCKSTEP_PARK_LOOP_CLOSING()                                                            \
-    if (::jsve_hook::park(                                                                             \
+    ::jsve_hook::park(                                                                             \
         ::jsve_hook::kLoopClosing,                                                                   \
         [this] {                                                                                     \
             bool reset;                                                                              \
@@ -121,11 +149,7 @@ bool park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thre
             }                                                                                        \
             return reset || CheckFinish();                                                           \
         },                                                                                           \
-        [this] { return !CheckNewKeyFrames(); }, mpThreadGBA))                                   \
-        continue
-
-// True in a lockstep run (TwoViewReconstruction::Reconstruct then runs its two RANSACs in one thread).
-inline bool lockstep_on() { return lockstep().on.load(std::memory_order_acquire); }
+        [this] { return !CheckNewKeyFrames(); }, mpThreadGBA)
 
 }  // namespace jsve_hook
 
@@ -167,6 +191,52 @@ inline bool turn(Lockstep& L, Worker who, std::chrono::steady_clock::time_point 
 }
 
 }  // namespace detail
+
+namespace detail {
+
+template <class Worker>
+void* run_worker(void* worker) {
+    static_cast<Worker*>(worker)->Run();
+    return nullptr;
+}
+
+// A detached thread running `worker->Run()`, made with pthread_create: std::thread would allocate its
+// state on the heap, and the child's heap must stay the parent's.
+template <class Worker>
+bool start_worker(Worker* worker) {
+    pthread_t thread;
+    if (pthread_create(&thread, nullptr, &run_worker<Worker>, worker) != 0) return false;
+    pthread_detach(thread);
+    return true;
+}
+
+}  // namespace detail
+
+// fork_parked's work, given the run's LocalMapping and LoopClosing (the hook's TrackerView knows them).
+template <class LocalMappingT, class LoopClosingT>
+int fork_parked(LocalMappingT* local_mapping, LoopClosingT* loop_closing) {
+    Lockstep& L = lockstep();
+    if (!L.on.load() || local_mapping == nullptr || loop_closing == nullptr) return -1;
+    std::unique_lock<std::mutex> lock(L.m);
+    if (!L.parked[kLocalMapping] || !L.parked[kLoopClosing]) return -1;
+    const pid_t pid = fork();
+    if (pid != 0) return pid;
+    // The child: L.m is held by this thread, and L.cv may count waiters that do not exist here.
+    lock.release();
+    new (&L.m) std::mutex();
+    new (&L.cv) std::condition_variable();
+    for (int w = 0; w < 2; ++w) {
+        L.granted[w] = L.served[w] = 0;
+        L.parked[w] = false;
+        L.queue_empty[w] = true;
+        L.busy_s[w] = 0.0;
+        L.left[w] = std::chrono::steady_clock::time_point();
+    }
+    L.settle_s = L.gba_wait_s = 0.0;
+    L.gba_thread = nullptr;
+    if (!detail::start_worker(local_mapping) || !detail::start_worker(loop_closing)) std::_Exit(4);
+    return 0;
+}
 
 // settle_frame's work, given the run's LoopClosing (the hook's TrackerView knows it).
 template <class LoopClosingT>

@@ -1,0 +1,171 @@
+"""The lockstep study's tables (docs/frontend.md, "Lockstep runs"), from the folder sweeps/lockstep_study.sh
+wrote: repeats byte for byte, distinct seeds, where a run's time goes, lockstep against paced runs, and
+how two rules pair across seeds.
+
+    python analysis/lockstep_study.py OUT [--csv docs/data/lockstep_runs.csv]
+
+Every run is scored as `jsve evaluate` scores a real run: failed when it ended in anything but "ok", saved
+no trajectory, or covers less than DEFAULT_MIN_COVERAGE of its frames; its loss is the failure penalty
+then, else min(ATE, penalty) (the bounded loss) with ATE that of ORB-SLAM3's saved trajectory rebuilt
+from the log (SE(3) alignment, metres).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE
+
+RESOLVE_M = 0.05
+"""The difference between two rules the pairing table sizes a study for (metres)."""
+
+
+def _sha(path: Path) -> str | None:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else None
+
+
+def run_table(out: Path) -> pd.DataFrame:
+    """One row per finished run under OUT/{lockstep,paced,repeats/rep<i>}: its study, dataset, rule,
+    seed, outcome, scores, events, time breakdown (s) and the digests of its log and trajectory."""
+    rows = []
+    for summary_path in sorted(out.rglob("run_*.summary.json")):
+        s = json.loads(summary_path.read_text())
+        if "exit_code" not in s:
+            continue  # not finished
+        rel = summary_path.relative_to(out).parts
+        study = "/".join(rel[:2]) if rel[0] == "repeats" else rel[0]
+        tail = rel[2:] if rel[0] == "repeats" else rel[1:]
+        sequence, level = tail[0], tail[1]
+        rule = tail[2] if len(tail) > 4 else "orbslam3-orbslam3"
+        stem = summary_path.with_name(summary_path.name.removesuffix(".summary.json"))
+        t = s.get("time", {})
+        coverage, ate = s.get("saved_coverage"), s.get("ate_from_log_m")
+        failed = s["outcome"] != "ok" or coverage is None or coverage < DEFAULT_MIN_COVERAGE or ate is None
+        events = s.get("events") or {}
+        rows.append({
+            "study": study, "sequence": sequence, "level": level, "rule": rule, "run": stem.name,
+            "mode": s.get("mode"), "seed": s.get("seed"), "outcome": s["outcome"], "failed": failed,
+            "ate_m": ate, "coverage": coverage,
+            "loss_m": DEFAULT_FAILURE_PENALTY_M if failed else min(ate, DEFAULT_FAILURE_PENALTY_M),
+            "resets": events.get("reset", 0) + events.get("reset_all", 0), "loops": events.get("loop", 0),
+            "merges": events.get("merge", 0), "keyframes": s.get("keyframes_at_end"),
+            "wall_s": s.get("wall_seconds"), "cpu_s": t.get("cpu_s"), "start_s": t.get("setup_s", 0) + t.get("system_s", 0),
+            "decode_s": t.get("decode_s"), "track_s": t.get("track_s"), "local_mapping_s": t.get("local_mapping_s"),
+            "loop_closing_s": t.get("loop_closing_s"), "gba_s": t.get("gba_wait_s"),
+            "gates_s": (t.get("settle_s", 0) - t.get("local_mapping_s", 0) - t.get("loop_closing_s", 0)
+                        - t.get("gba_wait_s", 0)),
+            "pace_s": t.get("pace_s"), "finish_s": t.get("finish_s"), "main_s": t.get("main_s"),
+            "log_sha": _sha(stem.with_suffix(".csv")), "trajectory_sha": _sha(Path(f"{stem}.orbslam3.txt")),
+        })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Per (dataset, rule, seed) repeated under OUT/repeats: how many repeats, and how many distinct
+    logs and trajectories they wrote (1 and 1: byte-identical), with the run's events."""
+    rep = runs[runs.study.str.startswith("repeats/")]
+    return (
+        rep.groupby(["sequence", "level", "rule", "seed"])
+        .agg(repeats=("run", "size"), distinct_logs=("log_sha", "nunique"),
+             distinct_trajectories=("trajectory_sha", "nunique"), resets=("resets", "max"),
+             loops=("loops", "max"), ate_m=("ate_m", "first"), outcome=("outcome", "first"))  # fmt: skip
+        .reset_index()
+    )
+
+
+def seeds_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Per lockstep dataset and rule: runs, distinct logs among its seeds, and the events seen."""
+    lock = runs[runs.study == "lockstep"]
+    return (
+        lock.groupby(["sequence", "level", "rule"])
+        .agg(seeds=("seed", "nunique"), distinct_logs=("log_sha", "nunique"),
+             runs_with_reset=("resets", lambda x: int((x > 0).sum())),
+             runs_with_loop=("loops", lambda x: int((x > 0).sum())), failed=("failed", "sum"))  # fmt: skip
+        .reset_index()
+    )
+
+
+TIME_COLUMNS = ["start_s", "decode_s", "track_s", "local_mapping_s", "loop_closing_s", "gba_s", "gates_s",
+                "pace_s", "finish_s", "wall_s", "cpu_s"]  # fmt: skip
+
+
+def time_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Mean seconds per run by mode and sequence (ORB-SLAM3's rule), and runs per core-hour: each batch
+    ran one driver per core, so a run's wall time is the core-seconds it held."""
+    own = runs[(runs.rule == "orbslam3-orbslam3") & runs.study.isin(["lockstep", "paced"])]
+    table = own.groupby(["mode", "sequence"])[TIME_COLUMNS].mean()
+    table["runs_per_core_hour"] = 3600.0 / table["wall_s"]
+    return table.reset_index()
+
+
+def gap_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Lockstep against paced runs of ORB-SLAM3's rule per dataset: failures, median ATE of the runs
+    that did not fail, mean bounded loss, and a two-sided Mann-Whitney U test of the losses (the runs
+    are not paired: a paced run's threads are not controlled by its seed)."""
+    own = runs[(runs.rule == "orbslam3-orbslam3") & runs.study.isin(["lockstep", "paced"])]
+    rows = []
+    for (sequence, level), g in own.groupby(["sequence", "level"]):
+        lock, paced = g[g["mode"] == "lockstep"], g[g["mode"] == "paced"]
+        if lock.empty or paced.empty:
+            continue
+        test = stats.mannwhitneyu(lock.loss_m, paced.loss_m, alternative="two-sided")
+        rows.append({
+            "sequence": sequence, "level": level, "runs": f"{len(lock)} / {len(paced)}",
+            "failed_lockstep": int(lock.failed.sum()), "failed_paced": int(paced.failed.sum()),
+            "median_ate_lockstep_m": lock.ate_m[~lock.failed].median(), "median_ate_paced_m": paced.ate_m[~paced.failed].median(),
+            "mean_loss_lockstep_m": lock.loss_m.mean(), "mean_loss_paced_m": paced.loss_m.mean(),
+            "mann_whitney_p": test.pvalue,
+        })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def pairing(runs: pd.DataFrame, rule_a: str = "orbslam3-orbslam3", rule_b: str = "sve-option2-orbslam3") -> dict:
+    """How two rules' lockstep losses pair across (dataset, seed): their correlation, the spread of the
+    paired differences, and the runs a two-sided test at alpha 0.05 with power 0.8 needs to resolve
+    RESOLVE_M: paired n = ((z_a + z_b) sd_d / delta)^2, unpaired n per rule = 2 ((z_a + z_b) sd / delta)^2."""
+    lock = runs[runs.study == "lockstep"]
+    a = lock[lock.rule == rule_a].set_index(["sequence", "level", "seed"]).loss_m
+    b = lock[lock.rule == rule_b].set_index(["sequence", "level", "seed"]).loss_m
+    both = pd.concat({"a": a, "b": b}, axis=1).dropna()
+    if len(both) < 3:
+        return {}
+    d = both.b - both.a
+    z = stats.norm.ppf(0.975) + stats.norm.ppf(0.8)
+    sd = np.sqrt((both.a.var() + both.b.var()) / 2)
+    wilcoxon = stats.wilcoxon(d) if (d != 0).any() else None
+    return {
+        "pairs": len(both), "pearson_r": stats.pearsonr(both.a, both.b)[0],
+        "spearman_r": stats.spearmanr(both.a, both.b)[0], "mean_difference_m": d.mean(), "sd_difference_m": d.std(),
+        "sd_loss_m": sd, "n_paired": int(np.ceil((z * d.std() / RESOLVE_M) ** 2)),
+        "n_unpaired_per_rule": int(np.ceil(2 * (z * sd / RESOLVE_M) ** 2)),
+        "wilcoxon_p": None if wilcoxon is None else wilcoxon.pvalue,
+    }  # fmt: skip
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path, help="the study's folder (sweeps/lockstep_study.sh OUT)")
+    parser.add_argument("--csv", type=Path, help="write every run's row here")
+    args = parser.parse_args()
+    runs = run_table(args.out)
+    if args.csv:
+        runs.to_csv(args.csv, index=False)
+    pd.set_option("display.width", 200)
+    for title, table in (("Repeats", repeats_table(runs)), ("Seeds", seeds_table(runs)),
+                         ("Time per run (s)", time_table(runs)), ("Lockstep against paced", gap_table(runs))):  # fmt: skip
+        print(f"\n## {title}\n")
+        print(table.to_markdown(index=False, floatfmt=".4g") if len(table) else "(no runs)")
+    print("\n## Pairing (lockstep, orbslam3 against sve-option2)\n")
+    print(json.dumps(pairing(runs), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
