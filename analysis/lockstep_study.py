@@ -2,7 +2,8 @@
 wrote: repeats byte for byte, distinct seeds, where a run's time goes, lockstep against paced runs, and
 how two rules pair across seeds.
 
-    python analysis/lockstep_study.py OUT [--csv docs/data/lockstep_runs.csv]
+    python analysis/lockstep_study.py OUT [--csv docs/data/lockstep_runs.csv] \
+        [--figure docs/figures/lockstep_vs_paced.png]
 
 Every run is scored as `jsve evaluate` scores a real run: failed when it ended in anything but "ok", saved
 no trajectory, or covers less than DEFAULT_MIN_COVERAGE of its frames; its loss is the failure penalty
@@ -23,6 +24,9 @@ from scipy import stats
 
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE
 
+REPEAT_FOLDERS = ("repeats", "rules")
+"""Study folders whose rep<i> subfolders repeat the same runs (ORB-SLAM3's rule; other rules and modes)."""
+
 RESOLVE_M = 0.05
 """The difference between two rules the pairing table sizes a study for (metres)."""
 
@@ -32,7 +36,7 @@ def _sha(path: Path) -> str | None:
 
 
 def run_table(out: Path) -> pd.DataFrame:
-    """One row per finished run under OUT/{lockstep,paced,repeats/rep<i>}: its study, dataset, rule,
+    """One row per finished run under OUT/{lockstep,paced,repeats/rep<i>,rules/rep<i>}: its study, dataset, rule,
     seed, outcome, scores, events, time breakdown (s) and the digests of its log and trajectory."""
     rows = []
     for summary_path in sorted(out.rglob("run_*.summary.json")):
@@ -40,8 +44,9 @@ def run_table(out: Path) -> pd.DataFrame:
         if "exit_code" not in s:
             continue  # not finished
         rel = summary_path.relative_to(out).parts
-        study = "/".join(rel[:2]) if rel[0] == "repeats" else rel[0]
-        tail = rel[2:] if rel[0] == "repeats" else rel[1:]
+        repeated = rel[0] in REPEAT_FOLDERS
+        study = "/".join(rel[:2]) if repeated else rel[0]
+        tail = rel[2:] if repeated else rel[1:]
         sequence, level = tail[0], tail[1]
         rule = tail[2] if len(tail) > 4 else "orbslam3-orbslam3"
         stem = summary_path.with_name(summary_path.name.removesuffix(".summary.json"))
@@ -70,9 +75,9 @@ def run_table(out: Path) -> pd.DataFrame:
 def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
     """Per (dataset, rule, seed) repeated under OUT/repeats: how many repeats, and how many distinct
     logs and trajectories they wrote (1 and 1: byte-identical), with the run's events."""
-    rep = runs[runs.study.str.startswith("repeats/")]
+    rep = runs[runs.study.str.contains("/")].assign(folder=lambda r: r.study.str.split("/").str[0])
     return (
-        rep.groupby(["sequence", "level", "rule", "seed"])
+        rep.groupby(["folder", "sequence", "level", "rule", "seed"])
         .agg(repeats=("run", "size"), distinct_logs=("log_sha", "nunique"),
              distinct_trajectories=("trajectory_sha", "nunique"), resets=("resets", "max"),
              loops=("loops", "max"), ate_m=("ate_m", "first"), outcome=("outcome", "first"))  # fmt: skip
@@ -149,14 +154,45 @@ def pairing(runs: pd.DataFrame, rule_a: str = "orbslam3-orbslam3", rule_b: str =
     }  # fmt: skip
 
 
+def gap_figure(runs: pd.DataFrame, path: Path) -> None:
+    """Every run's bounded loss by dataset, lockstep beside paced (ORB-SLAM3's rule); failures at the
+    penalty, marked x."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    own = runs[(runs.rule == "orbslam3-orbslam3") & runs.study.isin(["lockstep", "paced"])]
+    groups = sorted(own.groupby(["sequence", "level"]).groups)
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for i, key in enumerate(groups):
+        g = own[(own.sequence == key[0]) & (own.level == key[1])]
+        for j, (mode, colour) in enumerate((("lockstep", "tab:blue"), ("paced", "tab:orange"))):
+            m = g[g["mode"] == mode]
+            x = i + (j - 0.5) * 0.3 + np.linspace(-0.06, 0.06, max(len(m), 1))[: len(m)]
+            ok = ~m.failed.to_numpy()
+            ax.scatter(x[ok], m.loss_m[ok] * 100, s=14, color=colour, label=mode if i == 0 else None)
+            ax.scatter(x[~ok], m.loss_m[~ok] * 100, s=24, marker="x", color=colour)
+    ax.set_xticks(range(len(groups)), [f"{s}\n{lv}" for s, lv in groups])
+    ax.set_yscale("log")
+    ax.set_ylabel("bounded loss: ATE of the saved trajectory (cm); x = failed (penalty)")
+    ax.set_title("ORB-SLAM3's rule, 10 seeds: lockstep against paced runs")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="the study's folder (sweeps/lockstep_study.sh OUT)")
     parser.add_argument("--csv", type=Path, help="write every run's row here")
+    parser.add_argument("--figure", type=Path, help="write the lockstep-against-paced figure here (PNG)")
     args = parser.parse_args()
     runs = run_table(args.out)
     if args.csv:
         runs.to_csv(args.csv, index=False)
+    if args.figure:
+        gap_figure(runs, args.figure)
     pd.set_option("display.width", 200)
     for title, table in (("Repeats", repeats_table(runs)), ("Seeds", seeds_table(runs)),
                          ("Time per run (s)", time_table(runs)), ("Lockstep against paced", gap_table(runs))):  # fmt: skip

@@ -12,12 +12,13 @@ import random
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
-from jsve.frontend._run import driver_args, outcome, plan, run_all
+from jsve.frontend._run import canonical_paths, driver_args, driver_command, outcome, plan, run_all
 from tests.test_frontend_run import SETTINGS, make_build, make_dataset
 
 # Writes the log in steps (`.partial`, renamed when complete), then the driver's summary and ORB-SLAM3's
@@ -162,3 +163,22 @@ def test_kill_9_at_random_moments_loses_duplicates_and_half_writes_no_run(job_in
     # The finished command found every run done: nothing ran twice after it finished.
     again = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0 and "5 runs done already" in again.stderr and "0 to run" in again.stderr
+
+
+def test_a_run_sees_the_same_paths_wherever_its_inputs_and_outputs_are(job_inputs, tmp_path):
+    # A lockstep run's heap (by whose addresses ORB-SLAM3 orders keyframes and points) depends on the
+    # lengths of the strings the driver holds: every path reaches it with one length.
+    build, ds, voc, settings = job_inputs
+    seen = []
+    for out in (tmp_path / "o", tmp_path / "a" / "much" / "longer" / "output" / "folder"):
+        [job], _ = plan(build, [ds], runs=1, out=out, vocabulary=voc, settings=settings, mode="lockstep")
+        cmd = driver_command(build / "bin" / "jsve_orbslam3", voc, job)
+        with canonical_paths(cmd) as (cwd, canonical):
+            assert len(Path(cwd).name) == len(Path(tempfile.mkdtemp(prefix="jsve-run-")).name)
+            for name in ("v.txt", "s.yaml", "d", "o"):
+                assert (Path(cwd) / name).resolve().exists()
+            assert (Path(cwd) / "o").resolve() == job.log.parent.resolve()
+            seen.append(canonical[1:])  # all but the driver itself
+        assert not Path(cwd).exists()
+    assert seen[0] == seen[1]
+    assert "o/run_000.csv" in seen[0] and "d" in seen[0] and "v.txt" in seen[0]

@@ -314,7 +314,7 @@ def canonical_paths(cmd: list[str]) -> Iterator[tuple[str, list[str]]]:
     out_options = ("--log", "--trajectory", "--summary", "--branch-log", "--branch-summary")  # one folder
     with tempfile.TemporaryDirectory(prefix="jsve-run-") as tmp:
         folder = Path(tmp)
-        canonical = list(cmd)
+        canonical = [str(Path(cmd[0]).absolute()), *cmd[1:]]  # the driver runs in the folder
         for i, arg in enumerate(cmd[:-1]):
             if arg in PATH_OPTIONS:
                 name = PATH_OPTIONS[arg] + Path(cmd[i + 1]).suffix  # OpenCV reads settings by their suffix

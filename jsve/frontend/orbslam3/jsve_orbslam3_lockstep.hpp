@@ -37,6 +37,7 @@
 #include <mutex>
 #include <new>
 #include <thread>
+#include <type_traits>
 
 namespace jsve_hook {
 
@@ -56,6 +57,11 @@ struct Lockstep {
     double busy_s[2] = {0.0, 0.0};
     double settle_s = 0.0, gba_wait_s = 0.0;
     std::chrono::steady_clock::time_point left[2];
+    // Each worker as its park records it, for `fork_parked`: its thread, the object, and a function that
+    // clears the flags ORB-SLAM3's finish leaves set (so that Run() can start again).
+    pthread_t thread[2] = {};
+    void* worker[2] = {nullptr, nullptr};
+    void (*revive[2])(void*) = {nullptr, nullptr};
     // LoopClosing's global-BA thread (LoopClosing::mpThreadGBA, published at its park). ORB-SLAM3
     // clears its running flag before the thread exits; `settle` joins it, so that its exit (which
     // frees memory) never overlaps the next frame.
@@ -86,14 +92,16 @@ bool settle_frame();
 // has a turn or a request to serve; at once when lockstep is off. A worker thus never runs an
 // iteration of its own accord, not even its first one while System is still being constructed.
 template <class Requested, class QueueEmpty>
-void park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, std::thread* gba_thread = nullptr) {
+void park(Worker who, Requested&& requested, QueueEmpty&& queue_empty, void* self, void (*revive)(void*),
+          std::thread* gba_thread = nullptr) {
     Lockstep& L = lockstep();
     if (!L.on.load(std::memory_order_acquire)) return;
-    // ORB-SLAM3's own mutexes are taken only under L.m here, so that `fork_parked` (which holds L.m)
-    // never copies a worker inside one of them.
     std::unique_lock<std::mutex> lock(L.m);
     const bool empty = queue_empty();
     if (gba_thread != nullptr) L.gba_thread = gba_thread;
+    L.thread[who] = pthread_self();
+    L.worker[who] = self;
+    L.revive[who] = revive;
     const auto now = std::chrono::steady_clock::now();
     if (L.left[who].time_since_epoch().count() != 0)
         L.busy_s[who] += std::chrono::duration<double>(now - L.left[who]).count();
@@ -123,33 +131,51 @@ inline void wait_workers_parked() {
     while (!(L.parked[kLocalMapping] && L.parked[kLoopClosing])) L.cv.wait_for(lock, std::chrono::milliseconds(1));
 }
 
-// At the top of LocalMapping::Run's loop (its protected members are visible there).
+// At the top of LocalMapping::Run's loop (its protected members are visible there, and to a lambda
+// defined there: `revive` clears what LocalMapping::SetFinish leaves set).
 #define JSVE_LOCKSTEP_PARK_LOCAL_MAPPING()                                                           \
-    ::jsve_hook::park(                                                                             \
-        ::jsve_hook::kLocalMapping,                                                                  \
-        [this] {                                                                                     \
-            bool reset;                                                                              \
-            {                                                                                        \
-                std::unique_lock<std::mutex> lock_(mMutexReset);                                     \
-                reset = mbResetRequested || mbResetRequestedActiveMap;                               \
-            }                                                                                        \
-            return reset || CheckFinish() || (stopRequested() && !isStopped());                      \
-        },                                                                                           \
-        [this] { return KeyframesInQueue() == 0; })
+    do {                                                                                             \
+        using jsve_self_t = std::remove_pointer_t<decltype(this)>;                                   \
+        ::jsve_hook::park(                                                                           \
+            ::jsve_hook::kLocalMapping,                                                              \
+            [this] {                                                                                 \
+                bool reset;                                                                          \
+                {                                                                                    \
+                    std::unique_lock<std::mutex> lock_(mMutexReset);                                 \
+                    reset = mbResetRequested || mbResetRequestedActiveMap;                           \
+                }                                                                                    \
+                return reset || CheckFinish() || (stopRequested() && !isStopped());                  \
+            },                                                                                       \
+            [this] { return KeyframesInQueue() == 0; }, this, +[](void* self_) {                     \
+                jsve_self_t* w_ = static_cast<jsve_self_t*>(self_);                                  \
+                std::unique_lock<std::mutex> finish_(w_->mMutexFinish);                              \
+                std::unique_lock<std::mutex> stop_(w_->mMutexStop);                                  \
+                w_->mbFinishRequested = w_->mbFinished = w_->mbStopped = false;                      \
+            });                                                                                      \
+    } while (0)
 
 // At the top of LoopClosing::Run's loop.
 #define JSVE_LOCKSTEP_PARK_LOOP_CLOSING()                                                            \
-    ::jsve_hook::park(                                                                             \
-        ::jsve_hook::kLoopClosing,                                                                   \
-        [this] {                                                                                     \
-            bool reset;                                                                              \
-            {                                                                                        \
-                std::unique_lock<std::mutex> lock_(mMutexReset);                                     \
-                reset = mbResetRequested || mbResetActiveMapRequested;                               \
-            }                                                                                        \
-            return reset || CheckFinish();                                                           \
-        },                                                                                           \
-        [this] { return !CheckNewKeyFrames(); }, mpThreadGBA)
+    do {                                                                                             \
+        using jsve_self_t = std::remove_pointer_t<decltype(this)>;                                   \
+        ::jsve_hook::park(                                                                           \
+            ::jsve_hook::kLoopClosing,                                                               \
+            [this] {                                                                                 \
+                bool reset;                                                                          \
+                {                                                                                    \
+                    std::unique_lock<std::mutex> lock_(mMutexReset);                                 \
+                    reset = mbResetRequested || mbResetActiveMapRequested;                           \
+                }                                                                                    \
+                return reset || CheckFinish();                                                       \
+            },                                                                                       \
+            [this] { return !CheckNewKeyFrames(); }, this,                                           \
+            +[](void* self_) {                                                                       \
+                jsve_self_t* w_ = static_cast<jsve_self_t*>(self_);                                  \
+                std::unique_lock<std::mutex> finish_(w_->mMutexFinish);                              \
+                w_->mbFinishRequested = w_->mbFinished = false;                                      \
+            },                                                                                       \
+            mpThreadGBA);                                                                            \
+    } while (0)
 
 }  // namespace jsve_hook
 
@@ -213,29 +239,42 @@ bool start_worker(Worker* worker) {
 }  // namespace detail
 
 // fork_parked's work, given the run's LocalMapping and LoopClosing (the hook's TrackerView knows them).
+// Both processes end up alike: the workers finish (ORB-SLAM3's own finish request, one after the other,
+// each joined), their flags are cleared, the process forks with the tracker as its only thread, and
+// each side starts the workers again on stacks glibc has cached and waits until they park. The parent
+// thus takes the same steps as its child, which is what makes a branch under the parent's rule equal
+// the parent's log; both differ from a run without the branch, whose workers live on.
 template <class LocalMappingT, class LoopClosingT>
 int fork_parked(LocalMappingT* local_mapping, LoopClosingT* loop_closing) {
     Lockstep& L = lockstep();
     if (!L.on.load() || local_mapping == nullptr || loop_closing == nullptr) return -1;
-    std::unique_lock<std::mutex> lock(L.m);
-    if (!L.parked[kLocalMapping] || !L.parked[kLoopClosing]) return -1;
+    {
+        std::unique_lock<std::mutex> lock(L.m);
+        if (!L.parked[kLocalMapping] || !L.parked[kLoopClosing]) return -1;
+    }
+    auto retire = [&](Worker who, auto* worker) {
+        worker->RequestFinish();
+        pthread_join(L.thread[who], nullptr);
+        L.revive[who](L.worker[who]);
+        L.parked[who] = false;
+    };
+    retire(kLocalMapping, local_mapping);
+    retire(kLoopClosing, loop_closing);
     const pid_t pid = fork();
-    if (pid != 0) return pid;
-    // The child: L.m is held by this thread, and L.cv may count waiters that do not exist here.
-    lock.release();
-    new (&L.m) std::mutex();
-    new (&L.cv) std::condition_variable();
+    if (pid < 0) return pid;
     for (int w = 0; w < 2; ++w) {
         L.granted[w] = L.served[w] = 0;
-        L.parked[w] = false;
         L.queue_empty[w] = true;
         L.busy_s[w] = 0.0;
         L.left[w] = std::chrono::steady_clock::time_point();
     }
     L.settle_s = L.gba_wait_s = 0.0;
-    L.gba_thread = nullptr;
     if (!detail::start_worker(local_mapping) || !detail::start_worker(loop_closing)) std::_Exit(4);
-    return 0;
+    std::unique_lock<std::mutex> lock(L.m);
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+    if (!detail::wait_until(L, lock, [&] { return L.parked[kLocalMapping] && L.parked[kLoopClosing]; }, deadline))
+        return -1;
+    return pid;
 }
 
 // settle_frame's work, given the run's LoopClosing (the hook's TrackerView knows it).
