@@ -48,7 +48,7 @@ def run_table(out: Path) -> pd.DataFrame:
         study = "/".join(rel[:2]) if repeated else rel[0]
         tail = rel[2:] if repeated else rel[1:]
         sequence, level = tail[0], tail[1]
-        rule = tail[2] if len(tail) > 4 else "orbslam3-orbslam3"
+        rule = tail[2] if len(tail) == 4 else "orbslam3-orbslam3"
         stem = summary_path.with_name(summary_path.name.removesuffix(".summary.json"))
         t = s.get("time", {})
         coverage, ate = s.get("saved_coverage"), s.get("ate_from_log_m")

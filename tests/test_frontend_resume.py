@@ -154,7 +154,7 @@ def test_kill_9_at_random_moments_loses_duplicates_and_half_writes_no_run(job_in
         assert summary["outcome"] == "ok" and summary["seed"] == k
         lines = log.read_text().splitlines()
         assert lines[1:] == [f"{k},{i}" for i in range(20)]  # whole, and written once
-    assert not list(folder.glob("*.partial")) and not list(folder.glob("*.tmp"))
+    assert not list(folder.glob("*.partial")) and not list(folder.glob("*.tmp")) and not list(folder.glob("*.lock"))
     # An attempt orphaned by a kill never overlaps the attempt that replaces it.
     for log, attempts in _attempts(ledger).items():
         attempts.sort()
@@ -182,3 +182,24 @@ def test_a_run_sees_the_same_paths_wherever_its_inputs_and_outputs_are(job_input
         assert not Path(cwd).exists()
     assert seen[0] == seen[1]
     assert "o/run_000.csv" in seen[0] and "d" in seen[0] and "v.txt" in seen[0]
+
+
+def test_two_commands_on_one_folder_run_each_run_once(job_inputs, tmp_path, monkeypatch):
+    # The second command planned the runs while the first was running them: it waits for each run's
+    # lock and finds it finished.
+    import threading
+
+    build, ds, voc, settings = job_inputs
+    ledger = tmp_path / "ledger"
+    monkeypatch.setenv("FAKE_LEDGER", str(ledger))
+    todo, _ = plan(build, [ds], runs=3, out=tmp_path / "logs", vocabulary=voc, settings=settings, mode="lockstep")
+    results: list[list[dict]] = []
+    threads = [threading.Thread(target=lambda: results.append(run_all(build, todo, voc, progress=False)))
+               for _ in range(2)]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    starts = [line.split()[1] for line in ledger.read_text().splitlines() if line.startswith("start")]
+    assert sorted(starts) == sorted(str(Path("o") / job.log.name) for job in todo)  # once each
+    assert [r["outcome"] for r in results[0]] == [r["outcome"] for r in results[1]] == ["ok"] * 3

@@ -335,4 +335,4 @@ def test_frontend_run_on_a_cluster_writes_what_local_threads_write(cluster, tmp_
         assert [r["log"] for r in results[name]] == [str(job.log) for job in todo]  # as planned: relative
     assert _tasks_run(cluster).get("jsve_run_one") == 3
     local, on_cluster = _files(Path("local")), _files(Path("cluster"))
-    assert len(local) == 3 * 6 and _without_timing(on_cluster) == _without_timing(local)  # 5 files and a lock
+    assert len(local) == 3 * 5 and _without_timing(on_cluster) == _without_timing(local)

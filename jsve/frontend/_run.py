@@ -24,8 +24,9 @@ rule, mode and seed); a run without one is cleared and run again. A complete log
 the command unless `force`. A run that ended in a crash, a timeout or a lockstep gate that never opened
 is an outcome, not a gap: its summary (`outcome` not "ok") is kept and not run again unless
 `retry_failed`, since re-running crashes until they succeed would bias the failure rate towards zero.
-Each run holds `run_<k>.lock` (shared with its driver, which also dies with its parent), so an attempt
-left running by a killed command never overlaps its retry.
+Each run holds `run_<k>.lock` while it runs (shared with its driver, which also dies with its parent),
+so an attempt left running by a killed command never overlaps its retry; the lock goes once the run
+is finished.
 """
 
 from __future__ import annotations
@@ -265,17 +266,21 @@ def run_one(
     """One run of the driver; returns its summary (plus `outcome`, `exit_code`, `wall_seconds`, `log`).
 
     The run holds run_<k>.lock, which its driver inherits: an earlier attempt still running (its
-    command killed) is waited for, never overlapped. The run's old files are cleared first, and the
-    summary is written last, atomically. `wait` False turns a paced job into a no-wait one (the
+    command killed) is waited for, never overlapped, and a run another command finished meanwhile is
+    not run again. The run's old files are cleared first, and the summary is written last, atomically. `wait` False turns a paced job into a no-wait one (the
     mode's default is the job's).
     """
     stem = job.log.with_suffix("")
     summary_path = stem.with_suffix(".summary.json")
     mode = "no-wait" if (job.mode == "paced" and not wait) else job.mode
     cmd = driver_command(driver, vocabulary, dataclasses.replace(job, mode=mode), gate_timeout_s)
-    lock = os.open(f"{stem}.lock", os.O_CREAT | os.O_RDWR, 0o644)
+    lock_path = Path(f"{stem}.lock")
+    lock = os.open(lock_path, os.O_CREAT | os.O_RDWR, 0o644)
     try:
         fcntl.flock(lock, fcntl.LOCK_EX)
+        finished = finished_summary(job.log, job.meta["generator"])
+        if finished is not None and finished.get("exit_code") == 0:
+            return finished  # finished while this run waited for the lock (another command's attempt)
         for suffix in RUN_FILES:
             Path(f"{stem}{suffix}").unlink(missing_ok=True)
         start = time.monotonic()
@@ -296,6 +301,7 @@ def run_one(
             write_euroc_trajectory(trajectory, Path(f"{stem}.orbslam3-euroc.txt"))
         summary.update(saved_trajectory_scores(job.log, job.dataset.path))
         _write_atomically(summary_path, json.dumps(summary, indent=2) + "\n")
+        lock_path.unlink(missing_ok=True)  # still held: a waiter on it finds the run finished
     finally:
         os.close(lock)
     return summary
