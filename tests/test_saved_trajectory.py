@@ -168,3 +168,29 @@ def test_the_search_kernel_scores_real_runs_as_the_replay_objective_does(runs, s
         np.testing.assert_allclose(np.asarray(kernel.loss[s]), np.asarray(ref.loss), atol=1e-9)
     # the thresholds exercise what they are meant to: failures and tracked runs both
     assert np.asarray(kernel.failed).any() and not np.asarray(kernel.failed).all()
+
+
+def test_euroc_ate_computes_in_float64_in_its_own_thread_only(files, monkeypatch):
+    # `jsve frontend run --workers N` scores runs from N threads: a process-wide float64 switch, turned
+    # off by one thread while another traced, crashed a run; the switch must hold in the caller alone.
+    import threading
+
+    import jax
+
+    import jsve.core._pose_error as pose_error
+
+    seen = {}
+    real = pose_error.batched_ape
+
+    def spy(*args, **kwargs):
+        seen["caller"] = jax.numpy.zeros(()).dtype
+        other = threading.Thread(target=lambda: seen.update(other=jax.numpy.zeros(()).dtype))
+        other.start()
+        other.join()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pose_error, "batched_ape", spy)
+    name = SAVED[0]
+    with jax.enable_x64(False):
+        euroc_ate(files / f"{name}.groundtruth.csv", files / f"{name}.orbslam3-euroc.txt")
+    assert seen == {"caller": np.float64, "other": np.float32}

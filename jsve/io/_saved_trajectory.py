@@ -257,13 +257,9 @@ def euroc_ate(reference, estimate, align: str = "se3") -> tuple[float, int]:
 
     pair = read_pose_pairs(reference, [estimate], "euroc")
     est, ref, valid = stack_pose_pairs(pair)
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    try:
+    with jax.enable_x64(True):  # this thread only: `jsve frontend run` scores runs from several threads
         result = batched_ape(est, ref, valid, align=align)
         return float(np.asarray(result.errors.stats.rmse)[0]), int(valid.sum())
-    finally:
-        jax.config.update("jax_enable_x64", previous)
 
 
 RECORDED_EVENTS = ("reset", "new_map", "merge", "loop")
