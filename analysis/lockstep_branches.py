@@ -6,9 +6,10 @@ rule against a full run.
     python analysis/lockstep_branches.py BUILD DATASET --vocabulary voc.txt --settings S.yaml -o OUT \\
         [--seed 3] [--at 150 300] [--frames 100] [--rule sve-option2]
 
-Prints one row per branch point: whether the parent equals the same run without a branch, whether the
-own-rule branch equals it (and the first frame where it differs), the first frame where the other rule's
-branch differs from the own-rule branch, and the branch's time against a full run's.
+Prints one row per branch point: whether the parent equals the same run without a branch (it does not:
+both processes restart their workers at the fork), whether the own-rule branch equals its parent (and
+the first frame where it differs), the first frame where the other rule's branch differs from the
+own-rule branch, and the branch's time against a full run's.
 """
 
 from __future__ import annotations
@@ -28,10 +29,14 @@ from jsve.io import load_rules
 def _first_difference(a: Path, b: Path) -> int | None:
     """The first data row (0-based frame) where two logs differ; None when one is a prefix of the other."""
     rows_a, rows_b = a.read_text().splitlines()[2:], b.read_text().splitlines()[2:]
-    for k, (x, y) in enumerate(zip(rows_a, rows_b)):
+    for k, (x, y) in enumerate(zip(rows_a, rows_b, strict=False)):
         if x != y:
             return k
     return None
+
+
+def _same(a: Path, b: Path) -> bool:
+    return a.read_bytes() == b.read_bytes()
 
 
 def run_branch(base: list[str], out: Path, at: int, frames: int, rule: list[str]) -> dict:
@@ -78,18 +83,18 @@ def main() -> int:
     full_s, n = full["parent"]["time"]["main_s"], full["parent"]["frames"]
     rows = []
     for at in args.at:
-        own = run_branch(base, out / f"own-{at}", at, n - at, [])
-        other = run_branch(base, out / f"alt-{at}", at, args.frames, branch_rule)
-        same = lambda a, b: a.read_bytes() == b.read_bytes()  # noqa: E731
+        own, alt = out / f"own-{at}", out / f"alt-{at}"
+        run_branch(base, own, at, n - at, [])
+        other = run_branch(base, alt, at, args.frames, branch_rule)
+        seconds = other["parent"]["branch"]["seconds"]
         rows.append({
             "branch_at": at,
-            "parent_equals_unbranched_run": same(out / f"own-{at}" / "run.csv", out / "full" / "run.csv"),
-            "own_rule_branch_equals_run": same(out / f"own-{at}" / "brn.csv", out / "full" / "run.csv"),
-            "own_rule_branch_first_difference": _first_difference(out / f"own-{at}" / "brn.csv", out / "full" / "run.csv"),
-            f"{name}_branch_first_difference": _first_difference(out / f"alt-{at}" / "brn.csv", out / f"own-{at}" / "brn.csv"),
-            "full_run_s": full_s, f"{name}_branch_frames": args.frames,
-            f"{name}_branch_s": other["parent"]["branch"]["seconds"],
-            "branch_share_of_full_run": other["parent"]["branch"]["seconds"] / full_s,
+            "parent_equals_unbranched_run": _same(own / "run.csv", out / "full" / "run.csv"),
+            "own_rule_branch_equals_parent": _same(own / "brn.csv", own / "run.csv"),
+            "own_rule_branch_first_difference": _first_difference(own / "brn.csv", own / "run.csv"),
+            f"{name}_branch_first_difference": _first_difference(alt / "brn.csv", own / "brn.csv"),
+            "full_run_s": full_s, f"{name}_branch_frames": args.frames, f"{name}_branch_s": seconds,
+            "branch_share_of_full_run": seconds / full_s,
         })  # fmt: skip
     table = pd.DataFrame(rows)
     table.to_csv(out / "branches.csv", index=False)

@@ -36,7 +36,8 @@ def _sha(path: Path) -> str | None:
 
 
 def run_table(out: Path) -> pd.DataFrame:
-    """One row per finished run under OUT/{lockstep,paced,repeats/rep<i>,rules/rep<i>}: its study, dataset, rule,
+    """One row per finished run under OUT/{lockstep,paced,repeats/rep<i>,rules/rep<i>}: its study, dataset,
+    rule,
     seed, outcome, scores, events, time breakdown (s) and the digests of its log and trajectory."""
     rows = []
     for summary_path in sorted(out.rglob("run_*.summary.json")):
@@ -61,8 +62,9 @@ def run_table(out: Path) -> pd.DataFrame:
             "loss_m": DEFAULT_FAILURE_PENALTY_M if failed else min(ate, DEFAULT_FAILURE_PENALTY_M),
             "resets": events.get("reset", 0) + events.get("reset_all", 0), "loops": events.get("loop", 0),
             "merges": events.get("merge", 0), "keyframes": s.get("keyframes_at_end"),
-            "wall_s": s.get("wall_seconds"), "cpu_s": t.get("cpu_s"), "start_s": t.get("setup_s", 0) + t.get("system_s", 0),
-            "decode_s": t.get("decode_s"), "track_s": t.get("track_s"), "local_mapping_s": t.get("local_mapping_s"),
+            "wall_s": s.get("wall_seconds"), "cpu_s": t.get("cpu_s"),
+            "start_s": t.get("setup_s", 0) + t.get("system_s", 0), "decode_s": t.get("decode_s"),
+            "track_s": t.get("track_s"), "local_mapping_s": t.get("local_mapping_s"),
             "loop_closing_s": t.get("loop_closing_s"), "gba_s": t.get("gba_wait_s"),
             "gates_s": (t.get("settle_s", 0) - t.get("local_mapping_s", 0) - t.get("loop_closing_s", 0)
                         - t.get("gba_wait_s", 0)),
@@ -78,9 +80,15 @@ def repeats_table(runs: pd.DataFrame) -> pd.DataFrame:
     rep = runs[runs.study.str.contains("/")].assign(folder=lambda r: r.study.str.split("/").str[0])
     return (
         rep.groupby(["folder", "sequence", "level", "rule", "seed"])
-        .agg(repeats=("run", "size"), distinct_logs=("log_sha", "nunique"),
-             distinct_trajectories=("trajectory_sha", "nunique"), resets=("resets", "max"),
-             loops=("loops", "max"), ate_m=("ate_m", "first"), outcome=("outcome", "first"))  # fmt: skip
+        .agg(
+            repeats=("run", "size"),
+            distinct_logs=("log_sha", "nunique"),
+            distinct_trajectories=("trajectory_sha", "nunique"),
+            resets=("resets", "max"),
+            loops=("loops", "max"),
+            ate_m=("ate_m", "first"),
+            outcome=("outcome", "first"),
+        )  # fmt: skip
         .reset_index()
     )
 
@@ -90,9 +98,13 @@ def seeds_table(runs: pd.DataFrame) -> pd.DataFrame:
     lock = runs[runs.study == "lockstep"]
     return (
         lock.groupby(["sequence", "level", "rule"])
-        .agg(seeds=("seed", "nunique"), distinct_logs=("log_sha", "nunique"),
-             runs_with_reset=("resets", lambda x: int((x > 0).sum())),
-             runs_with_loop=("loops", lambda x: int((x > 0).sum())), failed=("failed", "sum"))  # fmt: skip
+        .agg(
+            seeds=("seed", "nunique"),
+            distinct_logs=("log_sha", "nunique"),
+            runs_with_reset=("resets", lambda x: int((x > 0).sum())),
+            runs_with_loop=("loops", lambda x: int((x > 0).sum())),
+            failed=("failed", "sum"),
+        )  # fmt: skip
         .reset_index()
     )
 
@@ -124,14 +136,17 @@ def gap_table(runs: pd.DataFrame) -> pd.DataFrame:
         rows.append({
             "sequence": sequence, "level": level, "runs": f"{len(lock)} / {len(paced)}",
             "failed_lockstep": int(lock.failed.sum()), "failed_paced": int(paced.failed.sum()),
-            "median_ate_lockstep_m": lock.ate_m[~lock.failed].median(), "median_ate_paced_m": paced.ate_m[~paced.failed].median(),
+            "median_ate_lockstep_m": lock.ate_m[~lock.failed].median(),
+            "median_ate_paced_m": paced.ate_m[~paced.failed].median(),
             "mean_loss_lockstep_m": lock.loss_m.mean(), "mean_loss_paced_m": paced.loss_m.mean(),
             "mann_whitney_p": test.pvalue,
         })  # fmt: skip
     return pd.DataFrame(rows)
 
 
-def pairing(runs: pd.DataFrame, rule_a: str = "orbslam3-orbslam3", rule_b: str = "sve-option2-orbslam3") -> dict:
+def pairing(
+    runs: pd.DataFrame, rule_a: str = "orbslam3-orbslam3", rule_b: str = "sve-option2-orbslam3"
+) -> dict:
     """How two rules' lockstep losses pair across (dataset, seed): their correlation, the spread of the
     paired differences, and the runs a two-sided test at alpha 0.05 with power 0.8 needs to resolve
     RESOLVE_M: paired n = ((z_a + z_b) sd_d / delta)^2, unpaired n per rule = 2 ((z_a + z_b) sd / delta)^2."""
@@ -147,7 +162,8 @@ def pairing(runs: pd.DataFrame, rule_a: str = "orbslam3-orbslam3", rule_b: str =
     wilcoxon = stats.wilcoxon(d) if (d != 0).any() else None
     return {
         "pairs": len(both), "pearson_r": stats.pearsonr(both.a, both.b)[0],
-        "spearman_r": stats.spearmanr(both.a, both.b)[0], "mean_difference_m": d.mean(), "sd_difference_m": d.std(),
+        "spearman_r": stats.spearmanr(both.a, both.b)[0], "mean_difference_m": d.mean(),
+        "sd_difference_m": d.std(),
         "sd_loss_m": sd, "n_paired": int(np.ceil((z * d.std() / RESOLVE_M) ** 2)),
         "n_unpaired_per_rule": int(np.ceil(2 * (z * sd / RESOLVE_M) ** 2)),
         "wilcoxon_p": None if wilcoxon is None else wilcoxon.pvalue,
@@ -182,6 +198,25 @@ def gap_figure(runs: pd.DataFrame, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
+def divergence_table(out: Path, rule_b: str = "sve-option2-orbslam3") -> pd.DataFrame:
+    """Per (dataset, seed) run in lockstep under ORB-SLAM3's rule and `rule_b`: the first frame where the
+    two logs differ and the first where their tracking state differs. Where the logs differ first in
+    anything but a decision, something besides the rule (the heap the metadata leaves) set them apart."""
+    rows = []
+    for b in sorted((out / "lockstep").glob(f"*/*/{rule_b}/run_*.csv")):
+        a = b.parent.parent / b.name
+        if not a.is_file():
+            continue
+        lines_a, lines_b = a.read_text().splitlines()[2:], b.read_text().splitlines()[2:]
+        pairs = list(zip(lines_a, lines_b, strict=False))
+        first = next((k for k, (x, y) in enumerate(pairs) if x != y), None)
+        state = next((k for k, (x, y) in enumerate(pairs)
+                      if x.split(",", 2)[1] != y.split(",", 2)[1]), None)  # fmt: skip
+        rows.append({"sequence": a.parts[-3], "level": a.parts[-2], "run": a.stem, "frames": len(lines_a),
+                     "first_difference": first, "first_state_difference": state})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="the study's folder (sweeps/lockstep_study.sh OUT)")
@@ -194,10 +229,15 @@ def main() -> int:
     if args.figure:
         gap_figure(runs, args.figure)
     pd.set_option("display.width", 200)
-    for title, table in (("Repeats", repeats_table(runs)), ("Seeds", seeds_table(runs)),
-                         ("Time per run (s)", time_table(runs)), ("Lockstep against paced", gap_table(runs))):  # fmt: skip
+    tables = {"Repeats": repeats_table(runs), "Seeds": seeds_table(runs),
+              "Time per run (s)": time_table(runs),
+              "Lockstep against paced": gap_table(runs)}  # fmt: skip
+    for title, table in tables.items():
         print(f"\n## {title}\n")
         print(table.to_markdown(index=False, floatfmt=".4g") if len(table) else "(no runs)")
+    print("\n## Where orbslam3 and sve-option2 runs of one seed part (lockstep)\n")
+    div = divergence_table(args.out)
+    print(div.to_markdown(index=False) if len(div) else "(no pairs)")
     print("\n## Pairing (lockstep, orbslam3 against sve-option2)\n")
     print(json.dumps(pairing(runs), indent=2))
     return 0

@@ -24,7 +24,7 @@ from tests.test_frontend_run import SETTINGS, make_build, make_dataset
 # Writes the log in steps (`.partial`, renamed when complete), then the driver's summary and ORB-SLAM3's
 # trajectory, as jsve_orbslam3 does; every start and end goes to a ledger. Its content is a function of
 # the seed alone, as a lockstep run's is. FAKE_EXIT / FAKE_SLEEP make it end as told.
-FAKE_DRIVER = r'''#!{python}
+FAKE_DRIVER = r"""#!{python}
 import json, os, sys, time
 args = sys.argv[1:]
 opt = lambda k: args[args.index(k) + 1] if k in args else None
@@ -37,7 +37,8 @@ note("start")
 if os.environ.get("FAKE_SLEEP"):
     time.sleep(float(os.environ["FAKE_SLEEP"]))
 code = int(os.environ.get("FAKE_EXIT", "0"))
-header = "# jsve-log v3 " + json.dumps({{"generator": opt("--meta") and [a for a in args if a.startswith("generator=")][0][11:-1]}})
+key = [a for a in args if a.startswith("generator=")][0][len('generator="'):-1]
+header = "# jsve-log v3 " + json.dumps({{"generator": key}})
 with open(log + ".partial", "w") as f:
     f.write(header + "\n")
     for i in range(int(os.environ.get("FAKE_STEPS", "6"))):
@@ -47,10 +48,11 @@ with open(log + ".partial", "w") as f:
 if code == 0:
     os.replace(log + ".partial", log)
 with open(summary, "w") as f:
-    json.dump({{"status": code, "seed": int(seed) if seed else None, "mode": "lockstep" if "--lockstep" in args else "paced"}}, f)
+    mode = "lockstep" if "--lockstep" in args else "paced"
+    json.dump({{"status": code, "seed": int(seed) if seed else None, "mode": mode}}, f)
 note("end")
 sys.exit(code)
-'''
+"""
 
 
 def make_fake_build(root: Path) -> Path:
@@ -97,7 +99,9 @@ def test_outcomes_name_what_ended_a_run():
     "env, expected",
     [({"FAKE_EXIT": "3"}, "gate_timeout"), ({"FAKE_EXIT": "1"}, "failed"), ({"FAKE_SLEEP": "30"}, "timeout")],
 )
-def test_a_closed_gate_a_failure_and_a_timeout_end_as_kept_outcomes(job_inputs, tmp_path, monkeypatch, env, expected):
+def test_a_closed_gate_a_failure_and_a_timeout_end_as_kept_outcomes(
+    job_inputs, tmp_path, monkeypatch, env, expected
+):
     build, ds, voc, settings = job_inputs
     monkeypatch.setenv("FAKE_LEDGER", str(tmp_path / "ledger"))
     for key, value in env.items():
@@ -131,7 +135,8 @@ def test_kill_9_at_random_moments_loses_duplicates_and_half_writes_no_run(job_in
     build, ds, voc, settings = job_inputs
     out, ledger = tmp_path / "logs", tmp_path / "ledger"
     env = {**os.environ, "FAKE_LEDGER": str(ledger), "FAKE_STEPS": "20"}
-    cmd = [sys.executable, "-c", "import sys; from jsve.cli import main; sys.exit(main())", "frontend", "run", str(build), str(ds), "--vocabulary", str(voc),
+    cli = "import sys; from jsve.cli import main; sys.exit(main())"
+    cmd = [sys.executable, "-c", cli, "frontend", "run", str(build), str(ds), "--vocabulary", str(voc),
            "--settings", str(settings), "--runs", "5", "--workers", "2", "--lockstep", "-o", str(out),
            "--no-progress"]  # fmt: skip
     rng = random.Random(7)
@@ -154,11 +159,15 @@ def test_kill_9_at_random_moments_loses_duplicates_and_half_writes_no_run(job_in
         assert summary["outcome"] == "ok" and summary["seed"] == k
         lines = log.read_text().splitlines()
         assert lines[1:] == [f"{k},{i}" for i in range(20)]  # whole, and written once
-    assert not list(folder.glob("*.partial")) and not list(folder.glob("*.tmp")) and not list(folder.glob("*.lock"))
+    assert (
+        not list(folder.glob("*.partial"))
+        and not list(folder.glob("*.tmp"))
+        and not list(folder.glob("*.lock"))
+    )
     # An attempt orphaned by a kill never overlaps the attempt that replaces it.
     for log, attempts in _attempts(ledger).items():
         attempts.sort()
-        for (_, end), (start, _) in zip(attempts, attempts[1:]):
+        for (_, end), (start, _) in zip(attempts, attempts[1:], strict=False):
             assert end <= start, f"{log}: attempts overlap"
     # The finished command found every run done: nothing ran twice after it finished.
     again = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
@@ -192,7 +201,9 @@ def test_two_commands_on_one_folder_run_each_run_once(job_inputs, tmp_path, monk
     build, ds, voc, settings = job_inputs
     ledger = tmp_path / "ledger"
     monkeypatch.setenv("FAKE_LEDGER", str(ledger))
-    todo, _ = plan(build, [ds], runs=3, out=tmp_path / "logs", vocabulary=voc, settings=settings, mode="lockstep")
+    todo, _ = plan(
+        build, [ds], runs=3, out=tmp_path / "logs", vocabulary=voc, settings=settings, mode="lockstep"
+    )
     results: list[list[dict]] = []
     threads = [threading.Thread(target=lambda: results.append(run_all(build, todo, voc, progress=False)))
                for _ in range(2)]  # fmt: skip

@@ -70,23 +70,29 @@ _SCALE_REFINED = (
 )  # the end of LocalMapping::ScaleRefinement
 
 _INITIALISER_THREADS = (
-    "        thread threadH(&TwoViewReconstruction::FindHomography,this,ref(vbMatchesInliersH), ref(SH), ref(H));\n"
-    "        thread threadF(&TwoViewReconstruction::FindFundamental,this,ref(vbMatchesInliersF), ref(SF), ref(F));\n"
+    "        thread threadH(&TwoViewReconstruction::FindHomography,this,"
+    "ref(vbMatchesInliersH), ref(SH), ref(H));\n"
+    "        thread threadF(&TwoViewReconstruction::FindFundamental,this,"
+    "ref(vbMatchesInliersF), ref(SF), ref(F));\n"
     "\n"
     "        // Wait until both threads have finished\n"
     "        threadH.join();\n"
     "        threadF.join();\n"
 )  # TwoViewReconstruction::Reconstruct runs its homography and fundamental-matrix RANSACs in two threads
 _LOCAL_MAPPING_LOOP_TOP = (
-    "    while(1)\n    {\n        // Tracking will see that Local Mapping is busy\n        SetAcceptKeyFrames(false);\n"
+    "    while(1)\n    {\n"
+    "        // Tracking will see that Local Mapping is busy\n        SetAcceptKeyFrames(false);\n"
 )  # the top of LocalMapping::Run's loop
-_LOOP_CLOSING_LOOP_TOP = "    mbFinished =false;\n\n    while(1)\n    {\n"  # the top of LoopClosing::Run's loop
-_GLOBAL_BA_START = "void LoopClosing::RunGlobalBundleAdjustment(Map* pActiveMap, unsigned long nLoopKF)\n{  \n"
-_LOCAL_MAPPING_LOOP_END = (
+_LOOP_CLOSING_LOOP_TOP = "    mbFinished =false;\n\n    while(1)\n    {\n"  # LoopClosing::Run's loop
+_GLOBAL_BA_START = (
+    "void LoopClosing::RunGlobalBundleAdjustment(Map* pActiveMap, unsigned long nLoopKF)\n{  \n"
+)
+_LOCAL_MAPPING_LOOP_END = (  # the end of LocalMapping::Run's loop
     "        if(CheckFinish())\n            break;\n\n        usleep(3000);\n    }\n\n    SetFinish();\n"
-)  # the end of LocalMapping::Run's loop
+)
 _LOOP_CLOSING_LOOP_END = (
-    "        if(CheckFinish()){\n            break;\n        }\n\n        usleep(5000);\n    }\n\n    SetFinish();\n"
+    "        if(CheckFinish()){\n            break;\n        }\n\n"
+    "        usleep(5000);\n    }\n\n    SetFinish();\n"
 )  # the end of LoopClosing::Run's loop
 
 EDITS = (
@@ -232,7 +238,8 @@ EDITS = (
         "src/LocalMapping.cc",
         _LOCAL_MAPPING_LOOP_END,
         _LOCAL_MAPPING_LOOP_END.replace(
-            "        usleep(3000);\n", "        JSVE_LOCKSTEP_SKIP_SLEEP();" + HOOK_TAG + "\n        usleep(3000);\n"
+            "        usleep(3000);\n",
+            "        JSVE_LOCKSTEP_SKIP_SLEEP();" + HOOK_TAG + "\n        usleep(3000);\n",
         ),
     ),
     Edit(
@@ -244,7 +251,8 @@ EDITS = (
         "src/LoopClosing.cc",
         _LOOP_CLOSING_LOOP_END,
         _LOOP_CLOSING_LOOP_END.replace(
-            "        usleep(5000);\n", "        JSVE_LOCKSTEP_SKIP_SLEEP();" + HOOK_TAG + "\n        usleep(5000);\n"
+            "        usleep(5000);\n",
+            "        JSVE_LOCKSTEP_SKIP_SLEEP();" + HOOK_TAG + "\n        usleep(5000);\n",
         ),
     ),
     Edit(

@@ -210,7 +210,11 @@ class RunJob:
 
 def driver_args(job: RunJob, gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S) -> list[str]:
     """The driver's options for the job's mode and seed."""
-    args = {"paced": [], "no-wait": ["--no-wait"], "lockstep": ["--lockstep", "--gate-timeout", repr(gate_timeout_s)]}
+    args = {
+        "paced": [],
+        "no-wait": ["--no-wait"],
+        "lockstep": ["--lockstep", "--gate-timeout", repr(gate_timeout_s)],
+    }
     return args[job.mode] + ([] if job.seed is None else ["--seed", str(job.seed)])
 
 
@@ -267,8 +271,8 @@ def run_one(
 
     The run holds run_<k>.lock, which its driver inherits: an earlier attempt still running (its
     command killed) is waited for, never overlapped, and a run another command finished meanwhile is
-    not run again. The run's old files are cleared first, and the summary is written last, atomically. `wait` False turns a paced job into a no-wait one (the
-    mode's default is the job's).
+    not run again. The run's old files are cleared first, and the summary is written last, atomically.
+    `wait` False turns a paced job into a no-wait one (the mode's default is the job's).
     """
     stem = job.log.with_suffix("")
     summary_path = stem.with_suffix(".summary.json")
@@ -286,7 +290,9 @@ def run_one(
         start = time.monotonic()
         timed_out = False
         with open(f"{stem}.console.txt", "w") as out, canonical_paths(cmd) as (cwd, canonical):
-            proc = subprocess.Popen(canonical, stdout=out, stderr=subprocess.STDOUT, pass_fds=(lock,), cwd=cwd)
+            proc = subprocess.Popen(
+                canonical, stdout=out, stderr=subprocess.STDOUT, pass_fds=(lock,), cwd=cwd
+            )
             try:
                 code = proc.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
