@@ -52,6 +52,9 @@ from jsve.io._resume import StaleOutputError, differences, file_digest, fingerpr
 FRONTEND = "ORB-SLAM3 v1.0 + jsve hook"
 """The logs' `frontend` metadata."""
 
+MAX_SEED = 2**32 - 2
+"""The largest seed the driver takes (it seeds glibc's rand with seed + 1: srand treats 0 as 1)."""
+
 MODES = ("paced", "no-wait", "lockstep")
 """How the driver feeds frames (module docstring)."""
 
@@ -493,8 +496,8 @@ def plan(
         raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
     if mode == "lockstep" and seed is None:
         seed = 0
-    if seed is not None and seed < 0:
-        raise ValueError(f"seed {seed}: expected a non-negative integer")
+    if seed is not None and not 0 <= seed <= MAX_SEED - max(runs - 1, 0):
+        raise ValueError(f"seed {seed}: runs 0..{runs - 1} need seeds in [0, {MAX_SEED}]")
     name, rule_obj = rule if rule is not None else ("orbslam3", preset("orbslam3"))
     settings_text = settings.read_text()
     n_features = orb_features(settings_text)

@@ -7,7 +7,7 @@
 //                 [--lockstep [--gate-timeout SECONDS]]   (threads take turns: a run depends only on its
 //                               inputs and seed; never paced; jsve_orbslam3_lockstep.hpp)
 //                 [--seed S]    (seeds the process's rand() stream, which every RANSAC of ORB-SLAM3
-//                               draws from; default: ORB-SLAM3's own seed, 0)
+//                               draws from, with S + 1; default and S = 0: ORB-SLAM3's own draws)
 //                 [--branch-at K --branch-frames W --branch-log OUT.csv [--branch-summary OUT.json]
 //                  [--branch-rule-inliers ...|--branch-rule-sve ... [--branch-coast]]]   (with --lockstep:
 //                               before frame K, fork; the child goes on for W frames under the branch's
@@ -139,8 +139,8 @@ Args parse_args(int argc, char** argv) {
         }
         else if (key == "--seed") {
             const std::string v = value();
-            if (!parse_int(v, &a.seed) || a.seed < 0 || a.seed > 4294967295LL)
-                usage_error("--seed wants an integer in [0, 2^32), got '" + v + "'");
+            if (!parse_int(v, &a.seed) || a.seed < 0 || a.seed > 4294967294LL)
+                usage_error("--seed wants an integer in [0, 2^32 - 1), got '" + v + "'");
             a.has_seed = true;
         }
         else if (key == "--rule-inliers" || key == "--rule-sve") {
@@ -308,7 +308,9 @@ int main(int argc, char** argv) {
         cv::setNumThreads(0);  // OpenCV's workers would allocate concurrently
         fill_stack_cache(4);
     }
-    if (args.has_seed) DUtils::Random::SeedRandOnce(static_cast<int>(static_cast<unsigned>(args.seed)));
+    // glibc's srand treats seed 0 as 1: seed S seeds S + 1, so that every S draws its own stream and S = 0
+    // draws what ORB-SLAM3's own SeedRandOnce(0) does.
+    if (args.has_seed) DUtils::Random::SeedRandOnce(static_cast<int>(static_cast<unsigned>(args.seed + 1)));
     const std::vector<Image> images = read_images(args.sequence);
     const std::vector<ORB_SLAM3::IMU::Point> imu = read_imu(args.sequence);
 
