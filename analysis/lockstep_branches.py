@@ -98,7 +98,7 @@ def main() -> int:
         })  # fmt: skip
     table = pd.DataFrame(rows)
     table.to_csv(out / "branches.csv", index=False)
-    print(table.to_markdown(index=False, floatfmt=".3g"))
+    print(table.to_string(index=False))
     return 0
 
 
