@@ -264,15 +264,14 @@ void die_with_parent() {
 // Lockstep removes what makes the heap's addresses differ between runs, since ORB-SLAM3 orders
 // keyframes and map points by address: the process re-executes itself once without address-space
 // randomisation (personality(2); where the kernel refuses, the run goes on with it and the summary
-// says `aslr: true`), and every thread allocates from one malloc arena without per-thread caches
-// (glibc's tunables), in the order lockstep fixes; a branch's new threads then find the heap as the
-// parent's threads left it.
+// says `aslr: true`), and every thread allocates from one malloc arena (glibc's tunables), in the order
+// lockstep fixes.
 bool fix_addresses(char** argv) {
     const int current = personality(0xffffffff);
     if (current != -1 && !(current & ADDR_NO_RANDOMIZE) && !std::getenv("JSVE_NO_REEXEC")) {
         if (personality(current | ADDR_NO_RANDOMIZE) != -1) {
             setenv("JSVE_NO_REEXEC", "1", 1);
-            setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=1:glibc.malloc.tcache_count=0", 1);
+            setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=1", 1);
             execv("/proc/self/exe", argv);  // returns only on failure: go on with randomisation
         }
     }

@@ -6,7 +6,7 @@
 // (mbAbortBA), when a loop is corrected relative to the frames being tracked. Lockstep replaces this
 // interleaving by one fixed order per frame:
 //   1. Tracking processes the frame (System::TrackMonocular) while LocalMapping and LoopClosing are
-//      parked at the end of their Run() loops (accepting keyframes, queues empty);
+//      parked at the top of their Run() loops (accepting keyframes, queues empty);
 //   2. `settle` grants LocalMapping turns until its queue is empty, then LoopClosing turns until its
 //      queue is empty, then waits for a global BA it started; each thread runs alone.
 // The gates are anchored insertions (jsve/frontend/_build.py): a park at the top of LocalMapping::Run's
@@ -21,8 +21,9 @@
 // Without `enable` the parks return at once: a stock or paced run is untouched.
 //
 // Exact branches: with every thread parked between two frames, `fork_parked` forks the process; the
-// child continues the same run under another rule (or the same one, which must then write the
-// parent's log byte for byte), on copies of the maps, with LocalMapping and LoopClosing started again.
+// child continues the same run under another rule (or the same one, which then writes the parent's
+// log byte for byte), on copies of the maps. Both processes finish their LocalMapping and LoopClosing
+// threads before the fork and start them again after it, so that they take the same steps.
 #pragma once
 
 #include <pthread.h>
@@ -46,7 +47,7 @@ enum Worker { kLocalMapping = 0, kLoopClosing = 1 };
 // The turn-taking state shared by the tracker (the driver's thread) and the two workers.
 struct Lockstep {
     std::atomic<bool> on{false};
-    double timeout_s = 60.0;  // how long `settle` waits for a worker before it gives up (a gate that never opens)
+    double timeout_s = 60.0;  // how long `settle` waits for a worker (s) before it gives up
     std::mutex m;
     std::condition_variable cv;
     std::uint64_t granted[2] = {0, 0};  // turns given to each worker
@@ -74,11 +75,11 @@ Lockstep& lockstep();
 // Turns the parks on (before System starts its threads); `timeout_s` bounds each wait of `settle`.
 void enable_lockstep(double timeout_s);
 
-// Right after `settle_frame`, with every thread parked: fork()s the run. The child, where only the
-// calling thread exists, starts LocalMapping and LoopClosing again on its copies (threads created
-// without allocating, so that its heap stays the parent's) and continues the run from the next frame;
-// its time accounting restarts at zero. Returns fork()'s value (0 in the child, the child's pid in the
-// parent), or -1 when lockstep is off, a worker is not parked or fork fails.
+// Right after `settle_frame`, with every thread parked: fork()s the run. LocalMapping and LoopClosing
+// finish before the fork and start again after it in both processes (threads on cached stacks, which
+// allocate nothing), so that the child, which continues the run from the next frame, and the parent
+// take the same steps; the time accounting restarts at zero. Returns fork()'s value (0 in the child,
+// the child's pid in the parent), or -1 when lockstep is off, a worker is not parked or fork fails.
 int fork_parked();
 
 // The driver calls this after each System::TrackMonocular: LocalMapping, then LoopClosing, each alone
