@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from jsve.frontend._run import canonical_paths, driver_command, driver_rule, orb_features, plan
+from jsve.frontend import canonical_paths, driver_command, driver_rule, orb_features, plan
 from jsve.io import load_rules
 
 

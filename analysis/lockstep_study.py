@@ -22,7 +22,10 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE
+from jsve import ObjectiveConfig
+
+DEFAULT_FAILURE_PENALTY_M = ObjectiveConfig().failure_penalty
+DEFAULT_MIN_COVERAGE = ObjectiveConfig().min_coverage
 
 REPEAT_FOLDERS = ("repeats", "rules")
 """Study folders whose rep<i> subfolders repeat the same runs (ORB-SLAM3's rule; other rules and modes)."""

@@ -3,18 +3,20 @@
 # gap to paced runs, and how well two rules pair across seeds. Every command is resumable (re-run this
 # script after a stop); then `python analysis/lockstep_study.py OUT --csv docs/data/lockstep_runs.csv`.
 #
-#   REPEAT_SEEDS="DATASET:SEED ..." sweeps/lockstep_study.sh BUILD DATA OUT
+#   REPEAT_SEEDS=$'DATASET SEED [OPTIONS]\n...' sweeps/lockstep_study.sh BUILD DATA OUT
 #
 # BUILD: `jsve frontend build`'s folder; DATA: voc.txt and the rendered EuRoC-format sequences V1_01,
 # MH_01 and V2_02 (`jsve render`, docs/frontend.md); OUT: the study's folder. ORB-SLAM3's settings come
 # from $SETTINGS (default: ../shared/data/euroc/orbslam3_config/Monocular-Inertial.yaml). REPEAT_SEEDS
-# names the (dataset, seed) pairs repeated five times, chosen from step 1 so that one run has a reset at
+# names the runs repeated five times, one per line, chosen from step 1 so that one has a reset at
 # initialisation and one a loop closure (default: seed 3 of each undisturbed sequence).
 set -euo pipefail
 BUILD=$1 DATA=$2 OUT=$3
 SETTINGS=${SETTINGS:-../shared/data/euroc/orbslam3_config/Monocular-Inertial.yaml}
 SEEDS=${SEEDS:-10} REPEATS=${REPEATS:-5} WORKERS=${WORKERS:-2}
-REPEAT_SEEDS=${REPEAT_SEEDS:-"$DATA/V1_01:3 $DATA/MH_01:3 $DATA/V2_02:3"}
+REPEAT_SEEDS=${REPEAT_SEEDS:-"$DATA/V1_01 3
+$DATA/MH_01 3
+$DATA/V2_02 3"}
 run() {  # one `jsve frontend run` batch, WORKERS drivers at once (one per core)
     jsve frontend run "$BUILD" "$@" --vocabulary "$DATA/voc.txt" --settings "$SETTINGS" \
         --workers "$WORKERS" --no-progress
@@ -30,12 +32,18 @@ run "${datasets[@]}" --lockstep --runs "$SEEDS" -o "$OUT/lockstep"
 # 2. Paced runs of ORB-SLAM3's rule (the same RANSAC seeds; their threads' timing still varies), on an
 # otherwise idle machine: a paced run's outcome depends on the CPU time it gets.
 run "${datasets[@]}" --seed 0 --runs "$SEEDS" -o "$OUT/paced"
-# 3. Lockstep runs of sve-option2 on the seeds of step 1, paired with them.
-run "$DATA/V1_01" "$OUT/disturbed/V1_01/blur-20" "$OUT/disturbed/MH_01/blur-20" --lockstep --runs "$SEEDS" \
-    --rule sve-option2 -o "$OUT/lockstep"
-# 4. Repeats, byte for byte: each (dataset, seed) of REPEAT_SEEDS five times, in folders of their own.
+# 3. Lockstep runs of sve-option2 on the seeds of step 1 (V1_01, both levels), paired with them.
+run "$DATA/V1_01" "$OUT/disturbed/V1_01/blur-20" --lockstep --runs "$SEEDS" --rule sve-option2 -o "$OUT/lockstep"
+# 4. Rules in the loop and record mode in lockstep, twice each.
+for r in 0 1; do
+    run "$DATA/V1_01" --lockstep --seed 4 --runs 1 --rule record -o "$OUT/rules/rep$r"
+    run "$DATA/V1_01" --lockstep --seed 4 --runs 1 --rule sve-option2 --switch-model imu-coast -o "$OUT/rules/rep$r"
+done
+# 5. Repeats, byte for byte: each line of REPEAT_SEEDS ("DATASET SEED [OPTIONS]") five times, in folders
+# of their own.
 for r in $(seq 0 $((REPEATS - 1))); do
-    for pair in $REPEAT_SEEDS; do
-        run "${pair%%:*}" --lockstep --seed "${pair##*:}" --runs 1 -o "$OUT/repeats/rep$r"
-    done
+    while read -r dataset seed options; do
+        # shellcheck disable=SC2086
+        run "$dataset" --lockstep --seed "$seed" --runs 1 $options -o "$OUT/repeats/rep$r"
+    done <<<"$REPEAT_SEEDS"
 done

@@ -17,9 +17,9 @@ import time
 from pathlib import Path
 
 import pytest
+from test_frontend_run import SETTINGS, make_build, make_dataset
 
 from jsve.frontend._run import canonical_paths, driver_args, driver_command, outcome, plan, run_all
-from tests.test_frontend_run import SETTINGS, make_build, make_dataset
 
 # Writes the log in steps (`.partial`, renamed when complete), then the driver's summary and ORB-SLAM3's
 # trajectory, as jsve_orbslam3 does; every start and end goes to a ledger. Its content is a function of

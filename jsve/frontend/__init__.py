@@ -30,3 +30,20 @@ def get_include() -> str:
 def header_path() -> str:
     """Absolute path of `jsve_log.hpp` itself."""
     return str(Path(get_include()) / HEADER_NAME)
+
+
+_RUN_NAMES = ("MODES", "plan", "run_all", "canonical_paths", "driver_command", "driver_rule", "orb_features")
+"""`jsve frontend run`'s building blocks (jsve.frontend._run), loaded on first use: importing this package
+stays as light as the header's path needs."""
+
+
+def __getattr__(name: str):
+    if name in _RUN_NAMES:
+        from jsve.frontend import _run
+
+        return getattr(_run, name)
+    raise AttributeError(f"module 'jsve.frontend' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_RUN_NAMES])
