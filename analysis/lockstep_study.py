@@ -195,11 +195,16 @@ def gap_figure(runs: pd.DataFrame, path: Path) -> None:
             ax.scatter(x[~ok], m.loss_m[~ok] * 100, s=24, marker="x", color=colour)
     ax.set_xticks(range(len(groups)), [f"{s}\n{lv}" for s, lv in groups])
     ax.set_yscale("log")
-    ax.set_ylabel("bounded loss: ATE of the saved trajectory (cm); x = failed (penalty)")
-    ax.set_title("ORB-SLAM3's rule, 10 seeds: lockstep against paced runs")
+    ax.set_ylabel("bounded loss (cm)")
+    ax.set_title("ORB-SLAM3's rule, 10 seeds: ATE of the saved trajectory; x: failed run (the penalty)")
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def _frame_rows(log: Path) -> list[str]:
+    """A log's frame rows: after its two header lines, before its trailer and end marker."""
+    return [line for line in log.read_text().splitlines()[2:] if not line.startswith("#")]
 
 
 def divergence_table(out: Path, rule_b: str = "sve-option2-orbslam3") -> pd.DataFrame:
@@ -211,7 +216,7 @@ def divergence_table(out: Path, rule_b: str = "sve-option2-orbslam3") -> pd.Data
         a = b.parent.parent / b.name
         if not a.is_file():
             continue
-        lines_a, lines_b = a.read_text().splitlines()[2:], b.read_text().splitlines()[2:]
+        lines_a, lines_b = _frame_rows(a), _frame_rows(b)
         pairs = list(zip(lines_a, lines_b, strict=False))
         first = next((k for k, (x, y) in enumerate(pairs) if x != y), None)
         state = next((k for k, (x, y) in enumerate(pairs)

@@ -32,8 +32,8 @@ run "${datasets[@]}" --lockstep --runs "$SEEDS" -o "$OUT/lockstep"
 # 2. Paced runs of ORB-SLAM3's rule (the same RANSAC seeds; their threads' timing still varies), on an
 # otherwise idle machine: a paced run's outcome depends on the CPU time it gets.
 run "${datasets[@]}" --seed 0 --runs "$SEEDS" -o "$OUT/paced"
-# 3. Lockstep runs of sve-option2 on the seeds of step 1 (V1_01, both levels), paired with them.
-run "$DATA/V1_01" "$OUT/disturbed/V1_01/blur-20" --lockstep --runs "$SEEDS" --rule sve-option2 -o "$OUT/lockstep"
+# 3. Lockstep runs of sve-option2 on the seeds of step 1 (V1_01 blurred), paired with them.
+run "$OUT/disturbed/V1_01/blur-20" --lockstep --runs "$SEEDS" --rule sve-option2 -o "$OUT/lockstep"
 # 4. Rules in the loop and record mode in lockstep, twice each.
 for r in 0 1; do
     run "$DATA/V1_01" --lockstep --seed 4 --runs 1 --rule record -o "$OUT/rules/rep$r"
