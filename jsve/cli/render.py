@@ -94,6 +94,30 @@ def register(subparsers) -> None:
     p.add_argument(
         "--exposure-ms", type=float, default=8.0, metavar="MS", help="exposure time for motion blur, ms"
     )
+    p.add_argument(
+        "--cars", type=int, default=0, metavar="N", help="car-sized boxes moving through the room (default 0)"
+    )
+    p.add_argument(
+        "--pedestrians",
+        type=int,
+        default=0,
+        metavar="N",
+        help="pedestrian-sized columns moving through the room (default 0)",
+    )
+    p.add_argument(
+        "--parked",
+        default="0",
+        metavar="K|all",
+        help="how many of the objects stand still (cars first), or 'all': the same scene with every object "
+        "parked where it stands at the start (default 0)",
+    )
+    p.add_argument(
+        "--room-margin",
+        type=float,
+        metavar="M",
+        help="walls this far beyond the camera centres' horizontal extent, m (default 3, or 6 with objects: "
+        "their paths keep 2 m from every camera centre)",
+    )
     p.add_argument("--force", action="store_true", help="replace an OUT rendered with another configuration")
     common.add_progress_option(p)
     common.add_yes_option(p)
@@ -105,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
 
     from jsve.io._resume import StaleOutputError
     from jsve.io._scheduler import check_scheduler
-    from jsve.render import RenderConfig, render_sequence
+    from jsve.render import RenderConfig, SceneConfig, render_sequence
     from jsve.render._sequence import sequence_size
 
     if args.workers < 1:
@@ -117,7 +141,16 @@ def run(args: argparse.Namespace) -> int:
     from jsve.sim import ImuNoise
 
     noise = ImuNoise.datasheet() if args.imu_noise == "datasheet" else ImuNoise()
-    config = RenderConfig(seed=args.seed, imu_noise=noise)
+    try:
+        objects = _objects(args)
+    except ValueError as err:
+        return common.fail("render", err)
+    margin = args.room_margin if args.room_margin is not None else (6.0 if objects.count else 3.0)
+    if margin <= 0:
+        return common.fail("render", "--room-margin must be > 0")
+    config = RenderConfig(
+        seed=args.seed, imu_noise=noise, objects=objects, scene=SceneConfig(margin_m=margin)
+    )
     config = dataclasses.replace(
         config, sensor=dataclasses.replace(config.sensor, exposure_s=args.exposure_ms / 1000.0)
     )
@@ -151,8 +184,29 @@ def run(args: argparse.Namespace) -> int:
         print(f"{result.out}: already complete ({m['frames']} frames)")
         return 0
     rate = f", {m['frames_per_second']} frames/s" if m.get("frames_per_second") else ""
+    if "masks" in m:
+        share = m["masks"]
+        rate += (
+            f"; {len(m['objects'])} objects cover {100 * share['mask_share_mean']:.1f} % of the image on "
+            f"average (95th percentile {100 * share['mask_share_p95']:.1f} %, max "
+            f"{100 * share['mask_share_max']:.1f} %), masks in mav0/cam0/masks and {share['instances_txt']}"
+        )
     print(
         f"{result.out}: {m['frames']} frames ({result.rendered} rendered now, {result.kept} kept) in "
         f"{result.seconds:.1f} s{rate}; texture: {m['texture']}; IMU: {m['imu']}"
     )
     return 0
+
+
+def _objects(args: argparse.Namespace):
+    """ObjectsConfig of --cars, --pedestrians and --parked."""
+    from jsve.render import ObjectsConfig
+
+    if args.cars < 0 or args.pedestrians < 0:
+        raise ValueError("--cars and --pedestrians must be >= 0")
+    parked = args.parked
+    if parked != "all":
+        if not parked.isdigit():
+            raise ValueError(f"--parked must be a count or 'all', got {parked!r}")
+        parked = int(parked)
+    return ObjectsConfig(cars=args.cars, pedestrians=args.pedestrians, parked=parked)

@@ -517,7 +517,20 @@ def render_frame(
     sensor: SensorModel = SensorModel(),
     vignette: np.ndarray | None = None,
 ) -> np.ndarray:
-    """One 8-bit grey frame.
+    """One 8-bit grey frame [H, W] (render_frame_and_instances without the instance map)."""
+    return render_frame_and_instances(scene, rays, poses, gain, rng, sensor, vignette)[0]
+
+
+def render_frame_and_instances(
+    scene: Scene,
+    rays: CameraRays,
+    poses: tuple[np.ndarray, np.ndarray],
+    gain: float,
+    rng: np.random.Generator,
+    sensor: SensorModel = SensorModel(),
+    vignette: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One 8-bit grey frame and the object each pixel sees.
 
     The visible surface of every pixel is cast once, at the middle sub-exposure pose; every sub-exposure
     then intersects each pixel's ray with that surface's plane and samples the texture (trilinear, at the
@@ -528,13 +541,16 @@ def render_frame(
         gain: the frame's brightness factor (auto-exposure). rng: the frame's noise.
         vignette: vignetting_map(camera, sensor.vignetting), passed in to compute it once.
     Returns:
-        [H, W] uint8.
+        ([H, W] uint8 image, [H, W] uint16 instance map: the KITTI MOTS object id (Scene.instance_ids) of
+        the surface each pixel sees at the middle sub-exposure, 0 for the room and its furniture).
     """
     r_wc, p_wc = poses
     h, w = rays.xn.shape
     middle = len(r_wc) // 2
     tables = _Surfaces.of(scene)
-    planes = _Planes.of(tables, rays, visible_surfaces(scene, rays, r_wc[middle], p_wc[middle]))
+    surfaces = visible_surfaces(scene, rays, r_wc[middle], p_wc[middle])
+    instances = np.take(scene.instance_ids(), surfaces // 6).reshape(h, w)
+    planes = _Planes.of(tables, rays, surfaces)
     x, y, t, along = _atlas_coords(scene, planes, r_wc[middle], p_wc[middle])
     mip = _MipMaps.of(scene, _level_of_detail(planes.footprint, scene.texel_m, t, along))
     n = h * w
@@ -575,4 +591,4 @@ def render_frame(
         np.float32(sensor.read_noise**2) + np.float32(sensor.shot_noise) * np.maximum(signal, 0.0)
     )
     noisy = signal + sigma * rng.standard_normal(signal.shape, dtype=np.float32)
-    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8), instances

@@ -14,6 +14,7 @@ every surface and the atlas's mip levels antialias it (jsve.render._raster).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from jsve.render._objects import MovingObjects, ObjectsConfig, place_objects
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
@@ -71,6 +74,9 @@ class Scene:
         mip_origin: [MIP_LEVELS, 2] float32 texel (x, y) of each level's corner in mip.
         atlas: [MIP_LEVELS] views of mip's levels (level l is level l - 1 smoothed and halved).
         texture_source: what the texels came from ("mosaic of N images in DIR" or "procedural").
+        objects: the dynamic objects, boxes n_static .. n_boxes - 1 (their lo and hi where they are at
+            t = 0; `at` moves them), or None.
+        n_static: boxes that never move (the room and its furniture).
     """
 
     lo: np.ndarray
@@ -82,10 +88,31 @@ class Scene:
     mip_origin: np.ndarray
     atlas: tuple[np.ndarray, ...]
     texture_source: str
+    objects: MovingObjects | None = None
+    n_static: int = 0
 
     @property
     def n_boxes(self) -> int:
         return len(self.lo)
+
+    def at(self, t_s: float) -> Scene:
+        """The scene with its objects where they are at t_s (s from the sequence's start); the faces keep
+        their texture rectangles, so an object's texture moves with it."""
+        if not self.objects:
+            return self
+        lo = self.lo.copy()
+        lo[self.n_static :] = self.objects.lo_at(t_s)
+        hi = lo.copy()
+        hi[: self.n_static] = self.hi[: self.n_static]
+        hi[self.n_static :] += self.objects.size
+        return dataclasses.replace(self, lo=lo, hi=hi)
+
+    def instance_ids(self) -> np.ndarray:
+        """[n_boxes] uint16 KITTI MOTS object id of every box, 0 for the room and the furniture."""
+        ids = np.zeros(self.n_boxes, np.uint16)
+        if self.objects:
+            ids[self.n_static :] = self.objects.obj_id
+        return ids
 
 
 # --------------------------------------------------------------------------------------------------
@@ -334,23 +361,50 @@ def mip_layout(height: int, width: int) -> np.ndarray:
     return np.array(origin, np.int64)
 
 
+def _paint_objects(
+    base: np.ndarray, origin: np.ndarray, extents: np.ndarray, rng: np.random.Generator
+) -> None:
+    """Give the faces' rectangles (origin, extents [R, 2], texels, padding included) a procedural texture
+    in place: the objects' own texture, distinct from the room's photographs."""
+    for (x, y), (w, h) in zip(origin, extents, strict=True):
+        x0, y0 = x - _PAD, y - _PAD
+        patch = procedural_texture((h + 2 * _PAD, w + 2 * _PAD), rng)
+        base[y0 : y0 + h + 2 * _PAD, x0 : x0 + w + 2 * _PAD] = np.clip(np.rint(patch), 0, 255)
+
+
+def with_objects(
+    positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator, objects: ObjectsConfig
+) -> tuple[np.ndarray, np.ndarray, MovingObjects]:
+    """The static boxes (lo, hi) followed by the objects' boxes at t = 0, and the objects."""
+    placed = place_objects(positions, lo[0], hi[0], (lo[1:], hi[1:]), rng, objects)
+    at_zero = placed.lo_at(0.0)
+    return np.vstack([lo, at_zero]), np.vstack([hi, at_zero + placed.size]), placed
+
+
 def make_scene(
     positions: np.ndarray,
     rng: np.random.Generator,
     textures: Sequence[np.ndarray] | None = None,
     config: SceneConfig = SceneConfig(),
     texture_source: str = "",
+    objects: ObjectsConfig | None = None,
+    objects_rng: np.random.Generator | None = None,
 ) -> Scene:
-    """The room, its furniture and their texture for camera centres [N, 3] (m, world frame).
+    """The room, its furniture, its dynamic objects and their texture for camera centres [N, 3] (m, world).
 
     Arguments:
         positions: where the camera goes (the furniture keeps config.clearance_m from every one).
         rng: draws the layout and the texture.
         textures: grey images (float or uint8) to build the mosaic from; None: procedural texture.
         texture_source: a description for the dataset's manifest.
+        objects, objects_rng: the dynamic objects and the generator that places and textures them.
     """
     lo, hi = layout(positions, rng, config)
-    extents = _face_extents(lo, hi, config.texel_m).reshape(-1, 2)
+    n_static, placed = len(lo), None
+    if objects is not None and objects.count:
+        lo, hi, placed = with_objects(positions, lo, hi, objects_rng, objects)
+    face_extents = _face_extents(lo, hi, config.texel_m)
+    extents = face_extents.reshape(-1, 2)
     origin, height = _pack(extents)
     shape = (height, ATLAS_WIDTH)
     if textures:
@@ -359,6 +413,9 @@ def make_scene(
     else:
         base = procedural_texture(shape, rng)
         source = "procedural (no --texture given)"
+    if placed is not None:
+        base = base if base.dtype == np.uint8 else np.clip(np.rint(base), 0, 255).astype(np.uint8)
+        _paint_objects(base, origin[6 * n_static :], extents[6 * n_static :], objects_rng)
     origins = mip_layout(height, ATLAS_WIDTH)
     mip = np.zeros((height, ATLAS_WIDTH * 3 // 2), np.uint8)  # 8 bits, as photographs: a quarter the memory
     mip[:, :ATLAS_WIDTH] = base if base.dtype == np.uint8 else np.clip(np.rint(base), 0, 255)
@@ -378,4 +435,6 @@ def make_scene(
         mip_origin=origins.astype(np.float32),
         atlas=tuple(levels),
         texture_source=source,
+        objects=placed,
+        n_static=n_static,
     )

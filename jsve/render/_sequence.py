@@ -40,12 +40,33 @@ import numpy as np
 
 from jsve.io import _scheduler, write_bytes, write_json, write_text
 from jsve.io._resume import StaleOutputError, differences, file_digest
-from jsve.render._raster import EUROC_CAM0, CameraRays, SensorModel, render_frame, vignetting_map
-from jsve.render._scene import Scene, SceneConfig, image_files, layout, load_texture_images, make_scene
+from jsve.render._objects import ObjectsConfig
+from jsve.render._raster import (
+    EUROC_CAM0,
+    CameraRays,
+    SensorModel,
+    render_frame_and_instances,
+    vignetting_map,
+)
+from jsve.render._scene import (
+    Scene,
+    SceneConfig,
+    image_files,
+    layout,
+    load_texture_images,
+    make_scene,
+    with_objects,
+)
 from jsve.sim import ImuNoise, load_euroc_trajectory, read_imu_stream, synthesize_imu
 from jsve.sim._motion import EUROC_CAM0_T_BS, GRAVITY, Trajectory, quat_to_matrix
 
 logger = logging.getLogger(__name__)
+
+MASKS_FOLDER = "masks"
+"""mav0/cam0/masks/<t_ns>.png: per frame, the KITTI MOTS object id each pixel sees (16-bit, 0 static)."""
+
+INSTANCES_NAME = "instances.txt"
+"""mav0/cam0/instances.txt: the masks as KITTI MOTS instances_txt (frame = index in cam0/data.csv)."""
 
 MANIFEST_NAME = "jsve_render.json"
 """Written last into a finished dataset; its presence marks it complete."""
@@ -88,6 +109,7 @@ class RenderConfig:
     gain: GainModel = GainModel()
     imu_noise: ImuNoise = ImuNoise()
     png_compression: int = 1
+    objects: ObjectsConfig = ObjectsConfig()
 
 
 @dataclass(frozen=True)
@@ -221,7 +243,13 @@ def _scene_of(setup: _Setup, trajectory: Trajectory) -> Scene:
     r, p = camera_poses(trajectory, trajectory.frame_ns, np.zeros(1))
     rng = np.random.default_rng([setup.config.seed, 0])
     source = f"mosaic of {len(textures)} images from {setup.texture}" if textures else ""
-    return make_scene(p[:, 0], rng, textures, setup.config.scene, texture_source=source)
+    return make_scene(p[:, 0], rng, textures, setup.config.scene, texture_source=source,
+                      objects=setup.config.objects, objects_rng=_objects_rng(setup.config))  # fmt: skip
+
+
+def _objects_rng(config: RenderConfig) -> np.random.Generator:
+    """The generator that places and textures the dynamic objects: (seed, 4)."""
+    return np.random.default_rng([config.seed, 4])
 
 
 def _scene_facts(setup: _Setup, trajectory: Trajectory) -> dict:
@@ -234,12 +262,16 @@ def _scene_facts(setup: _Setup, trajectory: Trajectory) -> dict:
         source = f"mosaic of {n_images} images from {setup.texture}"
     else:
         source = "procedural (no --texture given)"
-    return {
+    facts = {
         "texture": source,
         "room_lo_m": lo[0].round(3).tolist(),
         "room_hi_m": hi[0].round(3).tolist(),
         "furniture_boxes": len(lo) - 1,
     }
+    if setup.config.objects.count:
+        placed = with_objects(p[:, 0], lo, hi, _objects_rng(setup.config), setup.config.objects)[2]
+        facts["objects"] = placed.describe()
+    return facts
 
 
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3  # glibc's malloc.h
@@ -287,17 +319,31 @@ def _render_chunk(jobs: Sequence[tuple[int, float, str]]) -> int:
     """Render and write frames (t_ns, gain, path); returns how many."""
     setup: _Setup = _STATE["setup"]
     config = setup.config
+    trajectory: Trajectory = _STATE["trajectory"]
     for t_ns, gain, path in jobs:
-        offsets = subframe_offsets(_STATE["trajectory"], t_ns, config.sensor)
-        r_wc, p_wc = camera_poses(_STATE["trajectory"], np.array(t_ns), offsets)
+        offsets = subframe_offsets(trajectory, t_ns, config.sensor)
+        r_wc, p_wc = camera_poses(trajectory, np.array(t_ns), offsets)
         rng = np.random.default_rng([config.seed, 3, t_ns])
-        image = render_frame(_STATE["scene"], _STATE["rays"], (r_wc, p_wc), gain, rng, config.sensor,
-                             _STATE["vignette"])  # fmt: skip
-        ok, png = cv2.imencode(".png", image, _png_params(config.png_compression))
-        if not ok:
-            raise OSError(f"{path}: PNG encoding failed")
-        write_bytes(path, png.tobytes())
+        scene = _STATE["scene"].at(float(trajectory.seconds(np.array(t_ns))))
+        image, instances = render_frame_and_instances(scene, _STATE["rays"], (r_wc, p_wc), gain, rng,
+                                                      config.sensor, _STATE["vignette"])  # fmt: skip
+        if scene.objects:  # the mask first: the image marks the frame done
+            _write_png(mask_path(path), instances, config.png_compression)
+        _write_png(path, image, config.png_compression)
     return len(jobs)
+
+
+def _write_png(path: str | os.PathLike, image: np.ndarray, compression: int) -> None:
+    ok, png = cv2.imencode(".png", image, _png_params(compression))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    write_bytes(path, png.tobytes())
+
+
+def mask_path(image: str | os.PathLike) -> Path:
+    """DATASET/mav0/cam0/masks/<t_ns>.png, the instance map of DATASET/mav0/cam0/data/<t_ns>.png."""
+    image = Path(image)
+    return image.parent.parent / MASKS_FOLDER / image.name
 
 
 # --------------------------------------------------------------------------------------------------
@@ -391,6 +437,37 @@ def _write_side_files(
     return {"imu": imu.source, "imu_samples": len(imu.t_ns), "ground_truth_rows": len(t_ns)}
 
 
+def write_instances(cam0: Path, frames: np.ndarray) -> dict:
+    """cam0/instances.txt, the masks of cam0/masks/ as KITTI MOTS instances_txt (frame: the index in
+    cam0/data.csv; COCO RLE by pycocotools); returns how much of the image the objects cover.
+
+    Returns:
+        {"instances_txt", "mask_share_mean", "mask_share_p95", "mask_share_max" (share of the image's
+        pixels on an object, over all frames), "frames_with_objects" (share of frames)}.
+    """
+    from pycocotools import mask as mask_util
+
+    lines, share = [], np.zeros(len(frames))
+    for k, t in enumerate(frames):
+        path = cam0 / MASKS_FOLDER / f"{t}.png"
+        instances = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if instances is None:
+            raise FileNotFoundError(f"{path}: the frame's mask is missing or unreadable")
+        share[k] = np.count_nonzero(instances) / instances.size
+        for obj_id in np.unique(instances[instances > 0]):
+            rle = mask_util.encode(np.asfortranarray(instances == obj_id, dtype=np.uint8))
+            h, w = rle["size"]
+            lines.append(f"{k} {obj_id} {obj_id // 1000} {h} {w} {rle['counts'].decode('ascii')}\n")
+    write_text(cam0 / INSTANCES_NAME, "".join(lines))
+    return {
+        "instances_txt": f"mav0/cam0/{INSTANCES_NAME}",
+        "mask_share_mean": round(float(share.mean()), 4),
+        "mask_share_p95": round(float(np.percentile(share, 95)), 4),
+        "mask_share_max": round(float(share.max()), 4),
+        "frames_with_objects": round(float(np.mean(share > 0)), 4),
+    }
+
+
 # --------------------------------------------------------------------------------------------------
 # The sequence
 
@@ -405,8 +482,17 @@ def _key(trajectory: str, timestamps: str, imu: str | None, texture: str | None,
         "imu": file_digest([imu]) if imu else None,
         "texture": file_digest(texture_files) if texture_files else None,
         "frames": [int(frames[0]), int(frames[-1]), len(frames)],
-        "config": json.loads(json.dumps(dataclasses.asdict(config))),
+        "config": _config_key(config),
     }
+
+
+def _config_key(config: RenderConfig) -> dict:
+    """The configuration as JSON; a scene without objects keeps the key it had before objects existed, so
+    datasets rendered then stay complete."""
+    key = json.loads(json.dumps(dataclasses.asdict(config)))
+    if not config.objects.count:
+        del key["objects"]
+    return key
 
 
 def _frames(traj: Trajectory, trajectory: str, timestamps: str | os.PathLike, frames: str | None):
@@ -495,6 +581,8 @@ def render_sequence(
     elif out.exists() and any(out.iterdir()) and not force:
         raise StaleOutputError(out, "a non-empty folder without a jsve render manifest")
 
+    setup = _Setup(trajectory, texture_dir, config)
+    scene_facts = _scene_facts(setup, traj)  # places the objects: one that finds no path fails here
     partial = out.with_name(out.name + ".partial")
     key_path = partial / KEY_NAME
     if partial.exists() and not (key_path.is_file() and json.loads(key_path.read_text()) == key):
@@ -502,6 +590,8 @@ def render_sequence(
         shutil.rmtree(partial)
     status = "resumed" if partial.exists() else "written"
     (partial / "mav0" / "cam0" / "data").mkdir(parents=True, exist_ok=True)
+    if config.objects.count:
+        (partial / "mav0" / "cam0" / MASKS_FOLDER).mkdir(exist_ok=True)
     write_json(key_path, key)
 
     gains = gain_curve(inside, config.gain, np.random.default_rng([config.seed, 2]))
@@ -510,15 +600,19 @@ def render_sequence(
     todo = [
         (int(t), gain_of[int(t)], str(data / f"{t}.png"))
         for t in selected
-        if not (data / f"{t}.png").is_file()
+        if not (
+            (data / f"{t}.png").is_file()
+            and (not config.objects.count or mask_path(data / f"{t}.png").is_file())
+        )
     ]
     kept = len(selected) - len(todo)
-    setup = _Setup(trajectory, texture_dir, config)
     render_start = time.perf_counter()
     _run(setup, todo, workers, progress, chunk, scheduler)
     render_s = time.perf_counter() - render_start
 
     facts = _write_side_files(partial, traj, selected, imu_path, config)
+    if config.objects.count:
+        facts["masks"] = write_instances(partial / "mav0" / "cam0", selected)
     manifest = {
         "key": key,
         "trajectory": trajectory,
@@ -526,7 +620,7 @@ def render_sequence(
         "frames": len(selected),
         "first_ns": int(selected[0]),
         "last_ns": int(selected[-1]),
-        **_scene_facts(setup, traj),
+        **scene_facts,
         "rendered_now": len(todo),
         "render_seconds": round(render_s, 2),
         "frames_per_second": round(len(todo) / render_s, 2) if todo and render_s > 0 else None,
