@@ -1,14 +1,12 @@
 """Giving memory back between the stages of a long computation.
 
-Measured on the 3,410-log study (8.2 M frames): after loading, live JAX arrays held 3.4 GB and stayed
-so to the end, yet the process grew by about 1 GB a minute through the fit's search, its Nelder-Mead
-polishes and the cross-validation folds, to 16-19 GB. What grew was not data but what finished work
-leaves behind: JAX's compiled executables (each length bucket, each subset of a halving rung, each
-packed polish is its own shape; clearing them after the search gave back 1.9 GB) and glibc's freed heap
-pages, which stay with the process until trimmed (0.5-1 GB after each stage). Loading alone left 4.7 GB
-resident for 1.7 GB of data, and `jsve fit`'s timing probe took it to 6.9 GB; a release then gave back
-4.5 GB (to 2.4 GB). `release_memory` drops both. JAX then compiles a shape seen before again, which
-the commands' persistent compilation cache (jsve._jax_cache) turns into a read from disk.
+A large fit's live JAX arrays stay about the size of its data from loading to the end, yet without a
+release its process grows through the search, the Nelder-Mead polishes and the cross-validation folds
+to several times that. What grows is not data but what finished work leaves behind: JAX's compiled
+executables (each length bucket, each subset of a halving rung, each packed polish is its own shape)
+and glibc's freed heap pages, which stay with the process until trimmed. `release_memory` drops both
+(the figures: docs/performance.md, `jsve fit`'s memory). JAX then compiles a shape seen before again,
+which the commands' persistent compilation cache (jsve._jax_cache) turns into a read from disk.
 """
 
 from __future__ import annotations

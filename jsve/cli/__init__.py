@@ -10,8 +10,9 @@ Subcommand modules import only the standard library and jsve.cli._common at top 
 (JAX, pandas, OpenCV, matplotlib, evo) is imported inside `run`, never by `register`: an option whose
 choices come from the library takes them as `_common.LibraryNames`, read when a value is checked or a
 help printed. `main` builds the full parser of the chosen subcommand only, so `jsve --help` lists every
-subcommand without importing any library, and a command pays for the imports it needs (measured in
-README, "Commands"; tests/test_cli.py checks that building every parser imports no library).
+subcommand without importing any library, and a command pays for the imports it needs (timings:
+docs/performance.md, "CLI start-up"; tests/test_cli.py checks that building every parser imports no
+library).
 Every parser is a `_common.ArgumentParser`, whose help shows each option's default.
 """
 

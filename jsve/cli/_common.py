@@ -354,7 +354,7 @@ def add_yes_option(parser: argparse.ArgumentParser) -> None:
 
 
 def plural(n: int, word: str) -> str:
-    """`1 log`, `3410 logs`."""
+    """`1 log`, `3 logs`."""
     return f"{n} {word}" if n == 1 else f"{n} {word}s"
 
 
@@ -401,7 +401,7 @@ def announce_size(
 
     Arguments:
         output: the file or folder the command writes. total: estimated bytes of the whole output.
-        detail: how total was estimated, e.g. "3410 logs x ~2600 frames x ~520 B".
+        detail: how total was estimated, e.g. "3400 logs x ~2600 frames x ~520 B".
         yes: --yes, write anyway.
     Returns:
         None to go on, or 2 (after printing why).

@@ -243,5 +243,5 @@ def runs_per_chunk_for(
     n_frames: int, *, bytes_budget: float = DEVICE_BUDGET_BYTES, bytes_per_frame: int = 600
 ) -> int:
     """How many runs of `n_frames` fit a device-memory budget, counting inputs, replay outputs and
-    temporaries at about `bytes_per_frame` (float32; measured by analysis/bench_replay.py)."""
+    temporaries at about `bytes_per_frame` (float32)."""
     return max(1, int(bytes_budget // (bytes_per_frame * max(n_frames, 1))))

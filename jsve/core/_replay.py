@@ -145,8 +145,8 @@ def _scan_frames(
     """The replay scan over a leading frames axis; per-frame slices carry the batch shape B = (runs,).
 
     Every scan step advances all runs at once as vector lanes: frames-major data make each step read
-    contiguous memory, which measured 2-4x faster on CPU than vmapping a per-run scan over runs-major
-    arrays (analysis/bench_evaluate.py).
+    contiguous memory, which on CPU is several times faster than vmapping a per-run scan over
+    runs-major arrays (analysis/bench_evaluate.py).
 
     Arguments:
         score: [F, *B]. data: FrameData with [F, *B] leaves. run: RunConstants with [*B] leaves.
@@ -303,10 +303,9 @@ def replay(
 def batch_features(batch: LogBatch) -> FrameFeatures:
     """FrameFeatures of every frame of the batch, computed once and shared by all rules.
 
-    Compiled once per batch shape: called eagerly, its array operations were compiled (or read back
-    from the persistent cache) one by one, 254 of them and 4.4 s of the 16 s that loading the
-    3,410-log study for `jsve fit` took (FitData.from_parquet; 12 s now, with its digest hashed on a
-    thread)."""
+    Compiled once per batch shape: called eagerly, its array operations (a few hundred) would each be
+    compiled (or read back from the persistent cache) one by one, a large share of the time that
+    loading a study for `jsve fit` takes (FitData.from_parquet)."""
     return _compiled_features(batch)
 
 

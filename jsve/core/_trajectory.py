@@ -494,7 +494,7 @@ def run_error(
 
 RUNS_PER_BLOCK = 32
 """Runs evaluated together inside `batched_run_error`: blocks this size keep each pass over the frames in
-cache (measured 2x faster than one vmap over 1,000 runs x 3,600 frames on CPU, analysis/bench_ape.py)."""
+cache, where one vmap over every run does not (analysis/bench_ape.py)."""
 
 
 @functools.partial(

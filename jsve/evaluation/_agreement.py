@@ -76,14 +76,14 @@ REPLAY_TRUSTED_CHANGED_SHARE = {"orbslam3": 0.001, "imu-coast": 0.01}
 agreed with re-runs of the real ORB-SLAM3 (`trusted_changed_share`), with recordings made in `record`
 mode under that switch model.
 
-Measured by the replay-vs-re-run validation study (issue 11, docs/validation.md: rendered V1_01 and
-V2_01, blur 0-40 and occlusion 200/350, 5 re-runs per setting; 2026-11-24: 140 recordings, 560 re-runs
-of 4 rules under 2 switch models, docs/data/validation_trust.csv):
+The replay-vs-re-run validation study sets them (docs/validation.md: rendered V1_01 and V2_01, blur
+0-40 and occlusion 200/350, 4 rules under 2 switch models, 5 re-runs per setting; its bins:
+docs/data/validation_trust.csv):
 - `orbslam3` (stock ORB-SLAM3 v1.0, the default): 0.1 %, less than one frame of a 700-frame run, so in
-  effect only a replay that changes no decision. Beyond it the 34 `record-orbslam3` replays landed in
-  the re-runs' band 0.74 times as often as another re-run, bias +133 cm.
+  effect only a replay that changes no decision. Beyond it the `record-orbslam3` replays land in the
+  re-runs' band less often than another re-run does, with a bias of about a metre.
 - `imu-coast` (the hooked front-end that coasts on the IMU): 1 % on its own recordings
-  (`record-imu-coast`; 0.1-1 % agreed, bins beyond it held too few replays to extend the region).
+  (`record-imu-coast`; the bins beyond it hold too few replays to extend the region).
 `jsve fit` warns, and its report says, when a fitted rule changes more than its switch model's share
 (`trusted_share`).
 """

@@ -277,7 +277,7 @@ def evaluate_rules(
                                         switch_model=switch_model, objective=objective)  # fmt: skip
                     # At most two computations in flight, whatever the number of rules: each holds a
                     # chunk's working set (runs_per_chunk_for's budget), and the CPU runs dispatched
-                    # ones side by side (6 rules dispatched at once peaked at 9.3 GB on 3,410 logs).
+                    # ones side by side (every rule dispatched at once would multiply the peak).
                     collect()
                     in_flight.append((parts[k], ev, n))
         collect()
@@ -345,9 +345,9 @@ and `objective_rmse` agree wherever neither failed."""
 
 def _holds_too_much() -> bool:
     """The process holds more than RELEASE_ABOVE_BYTES resident (jsve._memory). The executables of every
-    chunk shape and rule structure of a pass stay loaded until it ends: on the 3,410-log study they
-    took `jsve fit`'s evaluation of 8 rules from 2.3 to 4.8 GB; dropped where the frame length changes
-    once above the threshold, they cost a reload only where a length comes back (never when the
-    buckets come by length, as `jsve fit` streams them)."""
+    chunk shape and rule structure of a pass stay loaded until it ends: on a large study they double
+    what `jsve fit`'s evaluation holds; dropped where the frame length changes once above the
+    threshold, they cost a reload only where a length comes back (never when the buckets come by
+    length, as `jsve fit` streams them)."""
     held = resident_bytes()
     return held is not None and held > RELEASE_ABOVE_BYTES

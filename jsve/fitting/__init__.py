@@ -1,8 +1,9 @@
 """jsve.fitting: fitting rule weights and thresholds to minimise position error.
 
 The parameter space (bounds, transforms, presets as points), space-filling designs, the fused search
-kernel (replay + alignment statistics in one scan over many settings), Nelder-Mead and relaxed BFGS
-fits (optimistix), cross-validation with bootstrap CIs, and the resumable study behind `jsve fit`.
+kernel (replay + alignment statistics in one scan over many settings), Nelder-Mead fits (jsve's own
+lockstep driver) and relaxed BFGS fits (optimistix), cross-validation with bootstrap CIs, and the
+resumable study behind `jsve fit`.
 """
 
 from jsve.fitting._crossval import compare as compare

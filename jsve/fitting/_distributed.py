@@ -15,9 +15,9 @@ for bit (the same kernel on the same runs; tests/test_distributed_search.py).
 
 Used by `jsve fit --scheduler ...` for the search stages (exhaustive, the halving rungs, the folds'
 rungs); Nelder-Mead, the bootstrap and the heat map stay in the driver (a polish is sequential, the
-others score packed subsets). A worker holds the study's search layout (1.7 GB at 3,410 logs) on top
-of the driver's, so on one machine the in-process search, which already runs on every core, stays the
-default.
+others score packed subsets). A worker holds the study's search layout (about 70 bytes a frame in
+float32) on top of the driver's, so on one machine the in-process search, which already runs on every
+core, stays the default.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ from jsve.io import _scheduler
 
 SETTINGS_PER_TASK = 256
 """Settings per task: enough setting-runs for a task to outweigh its scheduling (a few ms) and the
-transfer of its [settings, R] results (256 x 3,410 runs x ~30 B = 26 MB), few enough that a design of
-2,048 settings keeps 8 workers busy."""
+transfer of its [settings, R] results (256 settings x 3,400 runs x ~30 B is about 26 MB), few enough
+that a design of 2,048 settings keeps 8 workers busy."""
 
 
 @functools.lru_cache(maxsize=1)

@@ -33,11 +33,11 @@ computations, each costing time in proportion to the frames it scans:
   points (subset_layout: in one part for a few simplexes, else by length class). Per
   step one search of their reflections and one of the NM_MOVED_SHARE of them that expand or contract;
   first the initial simplexes, d + 1 points each.
-  Without the stall test (nm_window = 0) they run to the step limit nm_steps (measured: every fit of
-  the studies in docs/fitting.md); with it, to `nm_expected_steps` (NM_STALL_WINDOWS windows). The
-  verdict on every run is a search as well: each fit's candidates (its search's best and each
-  polish's result), of all the cross-validation's folds at once (jsve.fitting._fit.judge), whose rows
-  also score each fold's fitted rule on its held-out runs.
+  Without the stall test (nm_window = 0) they run to the step limit nm_steps (the hard objective is
+  piecewise constant, so the convergence test rarely stops them); with it, to `nm_expected_steps`
+  (NM_STALL_WINDOWS windows). The verdict on every run is a search as well: each fit's candidates
+  (its search's best and each polish's result), of all the cross-validation's folds at once
+  (jsve.fitting._fit.judge), whose rows also score each fold's fitted rule on its held-out runs.
 - **objective** (`[fit] relaxed = true` only): the hard objective of one setting on every run
   (`_fit._hard_jit`), the relaxed fit's value after each temperature.
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
@@ -75,10 +75,9 @@ import numpy as np
 
 NM_STALL_WINDOWS = 1
 """Windows of moves a Nelder-Mead run with the stall test typically takes (jsve.fitting._simplex) after
-its initial simplex. Measured on the 3,410-log study of 2026-11-28: all 76 polishes of `jsve fit` (the
-full fits' and the 19 folds', both families) stopped after one window, 26 steps: none improved on its
-search's best. A polish that keeps improving takes more (on the study of 2026-11-24, with optimistix's
-NelderMead, every polish took two): the estimate is then low by up to a window a polish."""
+its initial simplex. A polish that starts from a search's best on a plateau of the hard objective
+improves nothing in its first window and stops there; one that keeps improving takes more, and the
+estimate is then low by up to a window a polish (docs/fitting.md, "How long a fit takes")."""
 
 
 def nm_expected_steps(fit) -> float:
@@ -91,24 +90,23 @@ def nm_expected_steps(fit) -> float:
 
 BOOTSTRAP_KEPT_SHARE = 0.7
 """Share of the settings left in the parameter bootstrap's race that a rung keeps (jsve.fitting.
-_crossval.bootstrap_race, plausible_winners). Measured on 3,410-log studies (n_local 1024, first rung
-512 runs): 531 and 428 of 1025 kept (sve, inliers; study of 2026-11-24), 831 and 1025 (study of
-2026-11-28); its later rungs: docs/fitting.md."""
+_crossval.bootstrap_race, plausible_winners). How many a rung keeps depends on how flat the local
+objective is: under half where it is sharp, all of them on a plateau, where almost any setting can
+win a resample; 0.7 lies between (docs/fitting.md, Validation)."""
 
 NM_MOVED_SHARE = 0.05
 """Share of Nelder-Mead steps whose reflection is followed by an expansion or a contraction (a second
-point scored); shrinks (d + 1 points) are left out. Measured on the 3,410-log study of 2026-11-28 (the
-19 folds' SVE polishes, 38 simplexes x 25 steps): 21 of 950 reflections (0.02), the objective flat
-around every start (a reflection that ties is taken as it is); a polish that descends expands or
-contracts on most of its steps (up to 1)."""
+point scored); shrinks (d + 1 points) are left out. Around a start on a plateau of the hard objective
+few steps do (a reflection that ties is taken as it is); a polish that descends expands or contracts on
+most of its steps, up to all of them (docs/fitting.md, "How long a fit takes")."""
 
 BFGS_EVALS_PER_STEP = 4.0
 """Relaxed-objective evaluations per BFGS step (value and gradient by reverse mode, about 3 values, and
-the line search's trial); not measured, the relaxed stage being off by default."""
+the line search's trial); an assumed figure, the relaxed stage being off by default."""
 
 BFGS_COMPILE = 4.0
 """Compile time of a family's annealed BFGS over that of its relaxed objective (the gradient through
-the scan); not measured, as BFGS_EVALS_PER_STEP."""
+the scan); an assumed figure, as BFGS_EVALS_PER_STEP."""
 
 STAGES = (
     "fit",
@@ -712,8 +710,8 @@ ACCELERATOR_CAVEAT = (
 
 
 def backend_caveat(backend: str) -> str:
-    """The caveat an estimate on JAX backend `backend` carries: none on CPU, where the cost model was
-    measured (actual / expected 0.78-1.30 at 100-3,410 logs), ACCELERATOR_CAVEAT elsewhere."""
+    """The caveat an estimate on JAX backend `backend` carries: none on CPU, where the cost model's
+    prices hold (docs/performance.md), ACCELERATOR_CAVEAT elsewhere."""
     return "" if backend == "cpu" else ACCELERATOR_CAVEAT.format(backend=backend)
 
 

@@ -5,8 +5,9 @@ Three stages, all on the same replay (docs/fitting.md):
 1. Batched search (jsve.fitting._search): a quasi-random design of thousands of settings (Sobol by default,
    the seed's presets added) evaluated on every run at once; the per-run loss matrix is kept, so that
    cross-validation folds and bootstrap resamples reweight it instead of replaying again.
-2. optimistix Nelder-Mead on the exact (hard) objective, started from the best searched points, in the
-   unconstrained coordinates of jsve.fitting._space (so every iterate is a valid rule).
+2. Nelder-Mead on the exact (hard) objective (jsve's own driver, jsve.fitting._simplex, moving many
+   simplexes in lockstep), started from the best searched points, in the unconstrained coordinates of
+   jsve.fitting._space (so every iterate is a valid rule).
 3. Optionally, optimistix BFGS on the relaxed objective (SoftLogic with a temperature, annealed towards
    0; jsve.core._objective), whose result is kept only when the hard objective agrees it is better.
 
@@ -119,8 +120,8 @@ class FitData:
 
     def iter_slim(self) -> Iterator[tuple[LogBatch, FrameFeatures, int]]:
         """(slim batch, its features, its real runs) per part in part order: those held, or the Parquet
-        study streamed again and cut as it was (about the loading's time: 30 s at 3,410 logs) where
-        they were not kept, one part in memory at a time."""
+        study streamed again and cut as it was (about the loading's time) where they were not kept,
+        one part in memory at a time."""
         if self.batches:
             yield from zip(self.batches, self.features, self.run_counts, strict=True)
             return
@@ -132,7 +133,8 @@ class FitData:
 
     def slim(self) -> tuple[list[LogBatch], list[FrameFeatures]]:
         """Every part's slim batch and features at once (the relaxed fit differentiates through all of
-        them): those held, else streamed again and held from now on (at 3,410 logs, 1.7 GB)."""
+        them): those held, else streamed again and held from then on (about the search layout's size
+        again)."""
         if not self.batches:
             held = list(self.iter_slim())
             self.batches, self.features = [b for b, _, _ in held], [f for _, f, _ in held]
@@ -174,7 +176,7 @@ class FitData:
 
         def hashed(chunks, hasher):
             # sha256 releases the GIL: a chunk is hashed on a thread of its own while the next one is
-            # read and its features computed (2 s of hashing on the 3,410-log study). One chunk at a
+            # read and its features computed, so hashing costs the loading no time. One chunk at a
             # time, in order.
             pending = None
             for bucket in chunks:
@@ -537,16 +539,15 @@ class FitConfig:
 SEARCH_METHODS = ("auto", "exhaustive", "halving")
 
 AUTO_HALVING_RUNS = 300
-"""search = "auto": the fewest runs it halves on. At 93-279 runs halving chose the exhaustive search's
-rules but, on a first run, was not faster (its rungs' compilations cost what it saved; docs/fitting.md),
-so below 300 runs "auto" is the exhaustive search."""
+"""search = "auto": the fewest runs it halves on. On a few hundred runs halving chooses the exhaustive
+search's rules but, on a first run, is no faster (its rungs' compilations cost what it saves;
+docs/fitting.md), so below 300 runs "auto" is the exhaustive search."""
 
 AUTO_FIRST_RUNG_RUNS = 40
-"""search = "auto": the fewest runs the halving's first rung screens every setting on. At 93-279 runs
-halving and the exhaustive search chose the same rules on every fold measured with first rungs of 10-31
-runs, and at 3,410 runs a first rung of 42 runs (1/81) fitted the rules and held-out objectives of one
-of 126 (1/27) in the full fit and all 38 fold fits, at 0.4x its setting-runs (docs/fitting.md,
-"Successive halving"); it was 100 until 2026-11-28."""
+"""search = "auto": the fewest runs the halving's first rung screens every setting on. A first rung of a
+few dozen runs already keeps the settings that the exhaustive search (or a larger first rung) would
+fit, in the full fit and in every fold, for a fraction of the setting-runs (docs/fitting.md,
+"Successive halving")."""
 
 
 def resolve_search(config: FitConfig, n_runs: int) -> FitConfig:
@@ -555,9 +556,9 @@ def resolve_search(config: FitConfig, n_runs: int) -> FitConfig:
     "auto" becomes the exhaustive search below AUTO_HALVING_RUNS runs, else halving with the smallest
     initial_fraction eta^-K (K >= 1) whose first rung still screens on AUTO_FIRST_RUNG_RUNS runs (the
     exhaustive search where no K >= 1 does); the cost of halving's search is then about (K + 1) / eta^K
-    of the exhaustive one's (3,410 runs, eta 3: K = 4, f0 = 1/81, 6 %). "exhaustive" and "halving" are
-    returned as given. Resolved on the study's runs (not a fold's), so that every fold halves on the
-    same rungs.
+    of the exhaustive one's (e.g. 4,000 runs, eta 3: K = 4, f0 = 1/81, about 6 %). "exhaustive" and
+    "halving" are returned as given. Resolved on the study's runs (not a fold's), so that every fold
+    halves on the same rungs.
     """
     if config.search != "auto":
         return config

@@ -66,8 +66,8 @@ def stratified_order(meta: pd.DataFrame | None, n_runs: int, *, seed: int = 0, s
     rng = np.random.default_rng(seed)
     columns = [c for c in strata if meta is not None and c in meta.columns]
     if columns:
-        # Each column as text, joined column by column (a row-wise join took 0.4 s a call at 3,410 runs,
-        # 4.5 s of a cross-validation that orders runs a dozen times); the same keys, so the same groups.
+        # Each column as text, joined column by column (a row-wise join is slow in pandas, and a
+        # cross-validation orders runs a dozen times); the same keys, so the same groups.
         text = meta[columns].astype(str)
         keys = text[columns[0]].to_numpy(dtype=object)
         for column in columns[1:]:

@@ -6,10 +6,10 @@ S_a at the combination's rho, S_b, S_c and the authors' unclamped variants).
 
 `SveLevelSums` accumulates it chunk by chunk, so that it rides on a pass over the study that happens
 anyway (`jsve fit`'s evaluation, jsve.evaluation._evaluate.evaluate_rules' `on_chunk`) instead of
-streaming the study again (18 s of the 3,410-log study's fit). A chunk gives per run, in one compiled
-call, the valid frames, the mean and the sum of squared deviations from that mean; runs are pooled on
-the host in float64 (Chan, Golub & LeVeque's pairwise update), which keeps the variance free of the
-cancellation of sum(x^2) - n mean^2 in float32.
+streaming the study again. A chunk gives per run, in one compiled call, the valid frames, the mean
+and the sum of squared deviations from that mean; runs are pooled on the host in float64 (Chan, Golub
+& LeVeque's pairwise update), which keeps the variance free of the cancellation of sum(x^2) - n mean^2
+in float32.
 """
 
 from __future__ import annotations

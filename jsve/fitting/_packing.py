@@ -1,10 +1,10 @@
 """Runs of many parts gathered into few parts of few shapes: how a search scores a subset of the runs.
 
 The search kernel compiles once per input shape (frames x runs x settings per call, per device). A study
-streamed from disk is cut into length buckets (27 on the 3,410-log EuRoC study), so a subset of its runs
+streamed from disk is cut into length buckets (a few dozen for a EuRoC study), so a subset of its runs
 taken part by part, as halving's rungs and the cross-validation folds' rungs take them, gives every
-part a shape of its own in every rung: 773 compilations for one family's halving search there (87 s of
-its 174 s, measured by analysis/profile_fit.py). Packing the subset's runs by length class instead
+part a shape of its own in every rung: hundreds of compilations for one family's halving search, about
+half its time (analysis/profile_fit.py counts them). Packing the subset's runs by length class instead
 (FRAME_CLASSES classes of about equal runs, each padded to its longest part's frames, each padded to a
 power of 2 of runs) leaves a few shapes per rung, and the same shapes recur in the next rung and fold.
 The padding costs frames: within a class the runs are at most one class's range shorter than its
@@ -173,7 +173,7 @@ def packing(
 class PackedParts(Sequence):
     """The kernel's parts of a `packing`, each gathered when it is read and not kept: `search` holds at
     most two parts at once, so a subset of most of the study costs two parts' copies, not a copy of the
-    study (on the 3,410-log study a halving rung's subset of 2,273 runs was 2.5 GB gathered at once)."""
+    study (a halving rung's subset of a large study, gathered at once, takes gigabytes)."""
 
     def __init__(self, parts: Sequence[SearchBatch], layout: Sequence[Packed]):
         self._parts, self._layout = parts, list(layout)
@@ -210,10 +210,9 @@ def subset_parts(
 
 SCAN_STEP_LANES = 1900
 """What a call of the search kernel costs per frame whatever its lanes, in lanes: a scan step of L lanes
-takes about 48 us + 0.025 us x L on the 2-core machine (measured on the 3,410-log study's 256 polish
-runs: 0.25 s for 2 settings in one part of 256 runs x 4,096 frames, 0.62 s for 10, 2.2 s for 38 in
-calls of 32; 0.86 s and 1.96 s for 10 and 38 in its 4 length classes), so a narrow call is dominated
-by its steps. `cheapest_layout` weighs calls by it."""
+takes about 48 us + 0.025 us x L on a 2-core CPU (analysis/bench_layout.py; docs/fitting.md,
+"Nelder-Mead on a subset of the runs"), so a narrow call is dominated by its steps. `cheapest_layout`
+weighs calls by it."""
 
 
 ONE_PART_RUNS = 512
@@ -238,8 +237,8 @@ def one_part_shape(parts: Sequence[tuple[int, int]], runs) -> tuple[int, int]:
 
 LAYOUT_CLASSES = (2, FRAME_CLASSES)
 """Length classes `cheapest_layout` weighs against one part. Two classes pad less than one part and
-call fewer times than four: 400 settings on 512 runs (the heat map) took 21.3 s in 2, 23.1 s in one
-part and 24.6 s in 4 (analysis/bench_layout.py)."""
+call fewer times than four, which makes them the faster layout for the heat map's 400 settings on 512
+runs (analysis/bench_layout.py; docs/fitting.md, "Nelder-Mead on a subset of the runs")."""
 
 
 def layout_shapes(
@@ -258,9 +257,9 @@ def cheapest_layout(
     """How n_settings settings on `runs` are scored fastest by `scan_cost`: 0 for one part (`pack_runs`:
     one call per settings chunk, every run padded to the longest part's frames), else the number of
     length classes (LAYOUT_CLASSES; `packing`: a call per class, less padding); the first of equals.
-    Few settings favour the one part (measured: 10 settings on 256 runs, 0.62 s against 0.86 s in 4
-    classes), many the classes (38: 2.2 s against 1.96 s). Never one part above ONE_PART_RUNS runs: it
-    pads every run to the study's longest."""
+    Few settings favour the one part (fewer calls, each dominated by its steps), many the classes
+    (less padding). Never one part above ONE_PART_RUNS runs: it pads every run to the study's
+    longest."""
     one_part = len(np.unique(np.asarray(runs, np.int64))) <= ONE_PART_RUNS
     candidates = ([0] if one_part else []) + list(LAYOUT_CLASSES)
     costs = [scan_cost(layout_shapes(run_counts, parts, runs, k), n_settings) for k in candidates]

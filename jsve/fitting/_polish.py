@@ -2,13 +2,13 @@
 of many fits move together.
 
 A Nelder-Mead run evaluates the hard objective of one setting at a time, 2-3 times a step, and a study
-polishes n_starts times per family for the full fit and every cross-validation fold: on a large study
-this was almost all of `jsve fit`'s time (jsve.fitting._estimate: 90 % of the 3,410-log study's
-estimate), each evaluation scanning every run of every part (27 length buckets there).
+polishes n_starts times per family for the full fit and every cross-validation fold: polishing on
+every run, each evaluation scanning every run of every part, would be almost all of `jsve fit`'s time
+on a large study (jsve.fitting._estimate says how much).
 
 With `FitConfig.polish_runs = N` and more than N training runs, a fit polishes on the first N training
 runs of the study's stratified order (jsve.fitting._halving.stratified_order, as balanced over sequence,
-disturbance and level as N runs can be): a cost that no longer grows with the study. The search that
+disturbance and level as N runs can be): a cost that does not grow with the study. The search that
 picks the starts has seen every training run, and `fit` keeps a polished setting only if its objective
 on every training run beats the search's best: the subset moves the optimiser, never the verdict. This
 is the multi-fidelity idea of the halving search (screen on few runs, decide on all) applied to the
@@ -47,8 +47,8 @@ def polish_runs(
 
     A cross-validation fold passes the study's weights as its pool: it polishes on the full fit's polish
     runs less its held-out ones (as its halving screens on the full fit's rungs less them), so the folds
-    moving in lockstep scan the full fit's n runs, not a union of n runs a fold (about 400 of the
-    3,410-log study's runs for n = 256)."""
+    moving in lockstep scan the full fit's n runs, not a union of n runs a fold (which on a large
+    study is well above n)."""
     weights = np.asarray(weights)
     pool = weights if pool is None else np.asarray(pool)
     if pool.shape != weights.shape:

@@ -34,8 +34,8 @@ out-of-support flag as the replay's. tests/test_search.py checks the kernel agai
 jsve.core._objective.run_losses setting by setting.
 
 Everything per frame is spelled out in coordinate columns ([F, R] arrays) rather than [..., 3] rows:
-XLA on CPU vectorises the former and not the latter (measured 2x for the pose update and 7x for the
-power means; analysis/bench_search.py).
+XLA on CPU vectorises the former and not the latter, which matters most for the pose update and the
+power means (analysis/bench_search.py).
 """
 
 from __future__ import annotations
@@ -441,10 +441,9 @@ def search_chunk(sb: SearchBatch, rules: Rule, config: ObjectiveConfig = Objecti
 
     Compiled calls decided on the host: the scan (`_lane_sums`: one, or two when the corrections turn
     out to be needed), then the alignment from its sums (`_chunk_result`), which `search` runs one at a
-    time (see there). The choice between the scans is made on the host because a `lax.cond` between
-    them doubled the scan's time (XLA on CPU, jaxlib 0.10.2: 1.13 s against 0.53 s for 256 settings x
-    74,400 frames with the cheap branch taken); under an enclosing trace (a jitted objective) the
-    `lax.cond` is used.
+    time (see there). The choice between the scans is made on the host because on CPU a `lax.cond`
+    between them about doubles the scan's time, even with the cheap branch taken; under an enclosing
+    trace (a jitted objective) the `lax.cond` is used.
     """
     _check_align(config)
     return _chunk_result(sb, _lane_sums(sb, rules, config), config)
@@ -613,14 +612,13 @@ RESULT_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included"
 
 LANES_PER_CALL = 8192
 """Settings x runs per kernel call on CPU: enough lanes to vectorise each frame step, few enough that the
-scan's carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (measured best of 4k-64k lanes,
-analysis/bench_search.py)."""
+scan's carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (`analysis/bench_search.py
+--lanes` compares widths)."""
 
 GPU_LANES_PER_CALL = 262144
 """Settings x runs per kernel call on an accelerator: a scan step costs a few kernel launches whatever its
-width, so a call must hold enough lanes to fill the chip. Measured on an NVIDIA H200 (4,096 settings on
-124 runs of 2,400 frames, analysis/bench_search.py --lanes): 32,768 lanes 1.4e9 / 7.8e8 frame-settings/s
-(inliers / SVE), 262,144 lanes 6.6e9 / 6.1e9; wider was not measured."""
+width, so a call must hold enough lanes to fill the chip (the rates at 32,768 and 262,144 lanes:
+docs/performance.md, "On a GPU")."""
 
 LANES_ENV = "JSVE_LANES_PER_CALL"
 """Environment variable that overrides the lanes per call (a positive integer), for benchmarks."""
@@ -640,7 +638,7 @@ def lanes_per_call() -> int:
 SETTINGS_STEP = 8
 """A search of fewer settings than a full call holds runs them as one call padded to a multiple of this
 many settings (or to the power of 2 at or above them, when smaller): Nelder-Mead's 38 reflections a
-step were scanned as 64 settings, now as 40. Few enough sizes that the compilations stay few."""
+step scan as 40 settings, not 64. Few enough sizes that the compilations stay few."""
 
 
 def call_size(n_runs: int, n_settings: int, settings_per_call: int | None = None) -> int:
@@ -735,7 +733,7 @@ def search(
     # while the bar stands at 0; then the rate and the ETA follow the results. At most two parts are in
     # flight: the next part's calls run while this one's results are collected, and a part's copies
     # on the other devices and its scan sums are freed once collected. (Dispatching every part first
-    # kept all of them alive at once: +3 GB on the 3,410-log study, 18.7 GB at its peak.)
+    # would keep all of them alive at once: gigabytes on a large study.)
     with tqdm(total=total, desc=desc, unit="setting-run", unit_scale=True, disable=not progress) as bar:
         in_flight: list[list] = []
         for p, (part, n_real) in enumerate(zip(parts, run_counts, strict=True)):
@@ -759,8 +757,8 @@ def search(
 
 @functools.partial(jax.jit, static_argnums=0)
 def _rules_of(space, values) -> Rule:
-    """space.rule(values), compiled once per space and shape: eagerly, its dozen array operations were
-    each dispatched (and, after jsve._memory drops executables, compiled again) one by one, 72 ms a
+    """space.rule(values), compiled once per space and shape: eagerly, its dozen array operations would
+    each be dispatched (and, after jsve._memory drops executables, compiled again) one by one, on every
     call of `search` in the cross-validation's Nelder-Mead steps."""
     return space.rule(values)
 

@@ -3,19 +3,18 @@ improving.
 
 The hard objective is piecewise constant in the thresholds (finitely many frames cross them), so a
 simplex rarely meets the usual test, which asks every vertex to lie within rtol/atol of the best point:
-it keeps finding steps of a few frames' worth and runs to its step limit (measured on every fit of
-docs/fitting.md). A stall test stops a run once its best value has improved by no more than `ftol`
-(metres of the objective) over `window` steps: a polish that has stopped paying.
+it keeps finding steps of a few frames' worth and runs to its step limit (docs/fitting.md). A stall
+test stops a run once its best value has improved by no more than `ftol` (metres of the objective)
+over `window` steps: a polish that has stopped paying.
 
-The step is optimistix.NelderMead's (v0.1.0), with two of its defects left out. Both were found when
-this driver was compared with it step for step (tests/test_simplex.py):
+The step is optimistix.NelderMead's (v0.1.0), with two of its defects left out; tests/test_simplex.py
+compares the two step for step:
 - its initial simplex for a vector y adds adelta at the wrong flat indices (it unravels vertex indices
   1..d into the [d + 1, d] array: row 0 gets columns 1..d-1, row 1 column 0, the other rows nothing),
-  so the simplex is degenerate and every move stays in a plane through the start (jsve's polishes used
-  it until 2026-11-28);
+  so the simplex is degenerate and every move stays in a plane through the start;
 - its best and worst vertices are read from the simplex before the step's update (`_structured_index(
   simplex, ...)` of the old simplex), so it reflects through a stale worst vertex and can return a
-  vertex other than its best (a smooth bowl: optimistix 0.0499 where its simplex held 0.0115).
+  vertex other than its best (on a smooth bowl it returns 0.0499 where its simplex holds 0.0115).
 `previous_simplex_vertices=True` keeps the second, to show that otherwise the steps are optimistix's.
 """
 
@@ -62,9 +61,10 @@ def lockstep_nelder_mead(
     unfinished run in one call.
 
     One simplex at a time, each objective call scores one setting: a scan over the polish's runs whose
-    lanes (settings x runs) are too few to fill a core (0.11 s for 1 setting on 256 runs, 1.3 s for 32:
-    analysis/profile_fit.py). A cross-validation polishes 2 starts x 19 folds; in lockstep their
-    reflections are one call, their expansions and contractions another, their shrinks a third.
+    lanes (settings x runs) are too few to fill a core, so one call of many settings costs a fraction
+    of as many calls of one (analysis/profile_fit.py). A cross-validation polishes 2 starts x 19 folds;
+    in lockstep their reflections are one call, their expansions and contractions another, their
+    shrinks a third.
 
     The step is optimistix.NelderMead's (moves from the worst vertex along the direction to the others'
     centroid: reflection 2, expansion 3, contractions 0.5 and 1.5; a shrink by 0.5 towards the best

@@ -80,7 +80,7 @@ STUDY_FILES = (
     "report.html",
     "report.json",
     "figures/*.png",
-    "runs_presets.parquet",  # written by studies before the presets and fitted rules shared one pass
+    "runs_presets.parquet",  # the presets' own table, which older versions of the study write
     "runs_presets.csv",
 )
 """Glob patterns of every file a study and its report write in their folder: what force=True deletes
@@ -201,8 +201,8 @@ class StudyConfig:
 THOROUGH = {"leave_one_out": ("sequence", "disturbance"), "n_local": 1024}
 """What `jsve fit --thorough` adds to the defaults: leave-one-sequence-out and leave-one-disturbance-out
 folds, and a parameter bootstrap whose refits also choose among 1,024 settings around the fit (finer
-intervals). On the 3,410-log study on 2 cores (docs/fitting.md) the default takes about half the time,
-with the same fitted rules and k-fold held-out objective."""
+intervals). The default takes about half the time, with the same fitted rules and k-fold held-out
+objective (docs/fitting.md, "The default study and `--thorough`")."""
 
 
 def fingerprint(obj) -> str:
@@ -539,7 +539,7 @@ def run_study(
     out = Path(out_dir)
     if data.config != config.objective():
         data = replace(data, config=config.objective())
-    release_memory()  # what came before (loading, `jsve fit`'s timing probe): measured 6.9 -> 2.4 GB
+    release_memory()  # what came before (loading, `jsve fit`'s timing probe) holds gigabytes
     meta = data.meta
     stages, summary = _open_stages(out, config, data, data_description, force=force)
     data_fp = summary["fingerprint"]

@@ -34,7 +34,7 @@ Parsed = tuple[dict, int, pa.Table]
 
 _INT_COLUMNS = frozenset(schema.INT_COLUMNS + schema.KEYFRAME_INT_COLUMNS)
 _ALONE_BYTES = (b"\r", b"x", b"X")  # a log holding one is read alone (module docstring)
-_BATCH_BYTES = 16 << 20  # logs validated together: ~9 EuRoC logs (8-64 MB measured: 16 MB as fast as any)
+_BATCH_BYTES = 16 << 20  # logs validated together: ~9 EuRoC logs (8-64 MB batches are about as fast)
 
 
 def _alone(source: str, data: bytes) -> Parsed | LogFormatError:

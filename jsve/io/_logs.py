@@ -995,7 +995,7 @@ _BARE_CR = re.compile(rb"\r(?!\n)")
 _HEX = re.compile(rb"[xX]")  # no number of a log has an x: a hexadecimal one, or garbage
 
 # Bytes without which each pattern cannot match: bytes.find runs at memchr speed, a regex over a
-# 2 MB region at a tenth of it (the three searches were 30 % of `jsve ingest`), so the regex runs
+# 2 MB region at a tenth of it (the three searches would be a large share of `jsve ingest`), so the regex runs
 # only where a needle is present and finds what it would have found anyway.
 _NEEDLES = {
     _BLANK_LINE: (b"\n\n", b"\n\r", b"\n ", b"\n\t"),

@@ -197,8 +197,8 @@ def _dask_client(scheduler: str, workers: int):
             # management (the pool has none; a worker's memory is the operating system's to limit). The
             # scheduler's HTTP routes always start: on a free loopback port, without the dashboard.
             # No pre-spawn environment, so a worker's is a pool worker's: Dask's one (one BLAS thread,
-            # MALLOC_TRIM_THRESHOLD_=65536, which also turns off glibc's adaptive mmap threshold) made
-            # the simulator's tasks 1.3-1.6x slower (measured), and the nannies set it here too.
+            # MALLOC_TRIM_THRESHOLD_=65536, which also turns off glibc's adaptive mmap threshold) makes
+            # the simulator's tasks markedly slower, and the nannies set it here too.
             with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
                 cluster = distributed.LocalCluster(
                     n_workers=workers,

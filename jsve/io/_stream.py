@@ -162,8 +162,8 @@ def _blocks(
     row_groups: read only these row groups of the file (sorted): the runs wholly inside each stretch
     of consecutive ones come, a run cut by a stretch's edge does not. None: every run of the file.
     """
-    # pre_buffer off: with it, Arrow's reader kept every row group it had read (1 GB per 60 batches of
-    # a 3,600-frame study: `jsve evaluate` of 10,230 logs grew to 7 GB); without it memory stays flat.
+    # pre_buffer off: with it, Arrow's reader keeps every row group it has read (about 1 GB per 60
+    # batches of a 3,600-frame study), so memory grows with the study; without it memory stays flat.
     pf = pq.ParquetFile(study.path, pre_buffer=False)
     first_row = _row_group_starts(pf)
     groups = list(range(pf.num_row_groups)) if row_groups is None else list(row_groups)

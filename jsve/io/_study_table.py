@@ -47,9 +47,10 @@ PARQUET_WRITE_OPTIONS: dict = {
 }
 """Encodings of a study file. Small integers (counts, bins, states, frame numbers) dictionary-encoded;
 stamps delta-encoded (unique, evenly spaced); floats split by byte (BYTE_STREAM_SPLIT) rather than
-dictionary-encoded: a pose rarely repeats, and a dictionary over floats tripled the decoding time of a
-row group. LZ4 (LZ4_RAW). Measured on 60 simulated EuRoC logs (111 MB of CSV): 22-24 MB like the
-earlier zstd with dictionaries everywhere, written 2.3x and decoded 6x faster."""
+dictionary-encoded: a pose rarely repeats, and a dictionary over floats triples the decoding time of a
+row group. LZ4 (LZ4_RAW): with these encodings the file is about as small as with zstd and
+dictionaries everywhere, and is written and decoded several times faster (docs/performance.md,
+"`jsve ingest`")."""
 
 
 def _as_arrow(values, field: pa.Field) -> pa.ChunkedArray:

@@ -137,7 +137,7 @@ def read_study(out: Path) -> StudyFolder:
         support=str(cfg.get("support", "penalise")),
         balance_by=tuple(study.get("balance_by", GROUP_COLUMNS)),
         loss=str(cfg.get("loss", "raw" if "failure" not in cfg else "bounded")),
-        failure=str(cfg.get("failure", "strict")),  # studies before the failure setting were strict
+        failure=str(cfg.get("failure", "strict")),  # a study that records no failure setting is strict
     )
     scored = derive.scored_runs(runs, scoring)
     param_table, notes = derive.parameter_table(params, fitted) if params is not None else (None, [])

@@ -988,8 +988,8 @@ def _sequence_size(spec: SequenceSpec, flight: FlightProfile = FlightProfile()) 
 
 
 LOG_BYTES_PER_FRAME = 515
-"""Bytes of a simulated log per frame, ground-truth columns included (measured: 4.26 MB for 3 logs of
-2761 frames of one procedural flight under blur and occlusion), for study_size."""
+"""Bytes of a simulated log per frame, ground-truth columns included (the size of the logs of a
+procedural flight under blur and occlusion), for study_size."""
 
 
 def study_size(

@@ -813,7 +813,7 @@ def extract(
             * real_share
             / (1.0 + np.minimum(rel_noise / params.match_noise, 1e6) ** params.match_gamma)
         )
-        # Localisation in the level's pixels, where ORB-SLAM3's gate is measured (its sigma is the
+        # Localisation in the level's pixels, in which ORB-SLAM3's gate applies (its sigma is the
         # level's scale): the blur shrinks by the scale, the localisation floor does not.
         loc = np.hypot(params.loc_floor, params.loc_per_blur * blur_eq / scale) * np.hypot(
             1.0, np.minimum(rel_noise, 1e6) / params.loc_noise
