@@ -64,7 +64,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="also leave out each sequence and each disturbance in turn, and refit each bootstrap "
         "resample among 1,024 settings around the fit too, for finer parameter intervals "
-        "(jsve.fitting.THOROUGH; 17.1 against 8.3 min on the 3,410-log study, docs/fitting.md); "
+        "(jsve.fitting.THOROUGH; about twice the time, docs/fitting.md); "
         "--config's settings override it (default: 5-fold only, and intervals from refits among the "
         "search's settings and the fit)",
     )
@@ -75,7 +75,7 @@ def register(subparsers) -> None:
         help="how the design is searched: 'halving' screens every setting on a stratified share of the "
         "runs and re-scores the best on more (about a third of the cost), 'exhaustive' scores every "
         "setting on every run, 'auto' is exhaustive below 300 runs and halving above, its first rung "
-        "on at least 100 runs (default: --config's [fit] search, else auto)",
+        "on at least 40 runs (default: --config's [fit] search, else auto)",
     )
     p.add_argument(
         "--eta",
@@ -107,8 +107,8 @@ def register(subparsers) -> None:
         "stream the Parquet study (LOGS must be a .parquet file): local, an embedded Dask cluster of "
         "--workers processes; processes, a process pool; or a running Dask cluster's scheduler address "
         "(tcp://host:8786) or scheduler file, whose workers must have the same jsve and see LOGS under the "
-        "same absolute path (docs/scaling.md). Each worker holds the study's search layout (1.7 GB at "
-        "3,410 logs). Default: in this process, on every core",
+        "same absolute path (docs/scaling.md). Each worker holds the study's search layout (about 70 bytes "
+        "a frame, docs/performance.md). Default: in this process, on every core",
     )
     common.add_progress_option(p)
     p.add_argument(
