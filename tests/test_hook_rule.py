@@ -132,3 +132,20 @@ def test_the_driver_reads_every_rule_jsve_frontend_run_passes(hook_rule):
     ):
         out = subprocess.run([str(hook_rule), "--parse", flag, text], capture_output=True, text=True)
         assert out.returncode == 1 and message in out.stdout, (text, out.stdout)
+
+
+def test_the_hook_logs_the_stamp_of_the_image_name(hook_rule):
+    """EuRoC names images by their 19-digit stamp: the log's t_ns is that stamp exactly, which the
+    double ORB-SLAM3 holds (1.4e9 s, spaced 2.4e-7 s) cannot give; other names fall back to it."""
+
+    def stamp(name: str, seconds: str) -> int:
+        out = subprocess.run([str(hook_rule), "--stamp", name, seconds], capture_output=True, text=True)
+        return int(out.stdout)
+
+    t = 1403715274612143104
+    assert stamp(f"d/mav0/cam0/data/{t}.png", repr(t * 1e-9)) == t
+    assert round(t * 1e-9 * 1e9) != t  # the double alone misses it
+    assert stamp("9223372036854775807.png", "1.5") == 2**63 - 1
+    assert stamp("9223372036854775808.png", "1.5") == 1_500_000_000  # beyond int64: the double
+    assert stamp("frame_0042.png", "2.25") == 2_250_000_000
+    assert stamp("42.png", "2.25") == 42

@@ -25,6 +25,11 @@ int parse(const std::string& flag, const std::string& text) {
 
 int main(int argc, char** argv) {
     if (argc == 4 && std::string(argv[1]) == "--parse") return parse(argv[2], argv[3]);
+    // `hook_rule --stamp NAME SECONDS`: the stamp the hook logs for an image of that name (jsve_hook::stamp_ns).
+    if (argc == 4 && std::string(argv[1]) == "--stamp") {
+        std::printf("%lld\n", static_cast<long long>(jsve_hook::stamp_ns(argv[2], std::stod(argv[3]))));
+        return 0;
+    }
     int kind = 0, inputs = 0;
     while (std::cin >> kind >> inputs) {
         jsve_hook::Rule r;

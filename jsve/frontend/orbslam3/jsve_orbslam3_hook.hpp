@@ -249,6 +249,20 @@ void map_snapshot(std::int64_t map_id, Centres centres);
 // centres onto these (Umeyama, over the keyframes in both) is one more change of the world frame.
 void map_changed(std::int64_t map_id, const Centres& centres);
 
+// The exact int64 stamp from an image named `<t_ns>.png` (EuRoC's stamps have 19 digits), else the
+// double stamp rounded (a double at 1.4e9 s is spaced 2.4e-7 s: the name is the exact source when
+// there is one).
+inline std::int64_t stamp_ns(const std::string& name, double t_s) {
+    const std::size_t slash = name.find_last_of('/');
+    std::string stem = name.substr(slash == std::string::npos ? 0 : slash + 1);
+    stem = stem.substr(0, stem.find('.'));
+    bool digits = !stem.empty() && stem.size() <= 19;
+    for (char c : stem) digits = digits && c >= '0' && c <= '9';
+    // 19 digits fit int64 up to its largest value; digit strings of one length compare as numbers
+    const bool fits = digits && (stem.size() < 19 || stem <= "9223372036854775807");
+    return fits ? std::stoll(stem) : std::llround(t_s * 1e9);
+}
+
 }  // namespace jsve_hook
 
 #define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
@@ -508,17 +522,6 @@ inline bool decide(ORB_SLAM3::Frame& frame, int inliers, bool in_reloc, bool rec
         if (r.has_velocity) frame.SetVelocity(r.velocity);
     }
     return ok;
-}
-
-// The exact int64 stamp from an image named `<t_ns>.png` (EuRoC), else the double stamp rounded
-// (a double at 1.4e9 s is spaced 2.4e-7 s: the name is the exact source when there is one).
-inline std::int64_t stamp_ns(const std::string& name, double t_s) {
-    const std::size_t slash = name.find_last_of('/');
-    std::string stem = name.substr(slash == std::string::npos ? 0 : slash + 1);
-    stem = stem.substr(0, stem.find('.'));
-    bool digits = !stem.empty() && stem.size() <= 18;
-    for (char c : stem) digits = digits && c >= '0' && c <= '9';
-    return digits ? std::stoll(stem) : std::llround(t_s * 1e9);
 }
 
 template <class Vec>
