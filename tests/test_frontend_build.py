@@ -97,3 +97,29 @@ def test_an_already_patched_file_is_refused(orbslam3):
 def test_not_an_orbslam3_tree(tmp_path):
     with pytest.raises(BuildError, match="not an ORB-SLAM3 source tree"):
         stage_source(tmp_path, tmp_path / "out")
+
+
+def test_masks_drop_keypoints_in_the_monocular_frame_right_after_extraction(orbslam3, tmp_path):
+    """The mask call sits in the one Frame constructor both MONOCULAR and IMU_MONOCULAR build their frames
+    with (Tracking::GrabImageMonocular), after ExtractORB and before N, the undistortion and the grid;
+    Frame.cc keeps every line of ORB-SLAM3's."""
+    stage_source(orbslam3, tmp_path / "ORB_SLAM3")
+    patched = (tmp_path / "ORB_SLAM3" / "src" / "Frame.cc").read_text()
+    original = (orbslam3 / "src" / "Frame.cc").read_text()
+    assert [line for line in patched.splitlines() if HOOK_TAG not in line] == original.splitlines()
+    assert patched.count("JSVE_HOOK_MASK_KEYPOINTS();") == 1
+    monocular = patched.index(
+        "Frame::Frame(const cv::Mat &imGray, const double &timeStamp, ORBextractor* extractor,"
+        "ORBVocabulary* voc, GeometricCamera* pCamera,"
+    )
+    steps = ["ExtractORB(0,imGray,0,1000);", "JSVE_HOOK_MASK_KEYPOINTS();", "N = mvKeys.size();",
+             "UndistortKeyPoints();", "AssignFeaturesToGrid();"]  # fmt: skip
+    where = [patched.index(s, monocular) for s in steps]
+    assert where == sorted(where)
+    assert where[-1] < patched.index("Frame::Frame(", monocular + 1)  # all within that constructor
+    tracking = (orbslam3 / "src" / "Tracking.cc").read_text()
+    grab = tracking[tracking.index("Sophus::SE3f Tracking::GrabImageMonocular") :]
+    grab = grab[: grab.index("\n}\n")]
+    # every frame of both monocular sensors comes from that constructor (its signature: image, stamp)
+    assert grab.count("mCurrentFrame = Frame(mImGray,timestamp,") == 4
+    assert (tmp_path / "ORB_SLAM3" / "include" / "jsve_keypoints.hpp").is_file()

@@ -7,6 +7,9 @@ and the copy is patched by anchored edits that fail loudly when an anchor is not
     in-tree g2o target are dropped (jsve builds its own driver, and g2o on its own as build.sh does);
   * src/LoopClosing.cc: `mnFullBAIdx++` on a bool (ill-formed in C++17) becomes `= true`, its C++14 meaning;
   * src/Tracking.cc: the hook (jsve/frontend/orbslam3/jsve_orbslam3_hook.hpp): one include and six calls;
+  * src/Frame.cc: the hook header and, in the monocular constructor right after ExtractORB, the call that
+    drops the keypoints on dynamic objects when the driver runs with masks (jsve_keypoints.hpp's
+    Algorithm 1), before ORB-SLAM3 counts, undistorts or grids them;
   * src/Map.cc, src/LocalMapping.cc: the hook header and calls where ORB-SLAM3 re-expresses a map
     without a new id (ApplyScaledRotation; IMU initialisation and scale refinement with their inertial
     BA): the log's world_* columns;
@@ -50,6 +53,10 @@ SKIPPED = {".git", "Examples", "Examples_old", "Vocabulary", "lib", "build", "ev
 """Top-level entries of an ORB-SLAM3 tree that the build does not need (or that are build outputs)."""
 
 
+_JSVE_HEADERS = tuple(Path(get_include()) / h for h in ("jsve_log.hpp", "jsve_keypoints.hpp"))
+"""jsve's standard-library headers the hook includes (the log and keypoint writers)."""
+
+
 class BuildError(RuntimeError):
     """A build step failed; the message names the step and, for a failed command, the log file."""
 
@@ -68,6 +75,19 @@ _SCALE_REFINED = (
     "    // To perform pose-inertial opt w.r.t. last keyframe\n"
     "    mpCurrentKeyFrame->GetMap()->IncreaseChangeIndex();\n"
 )  # the end of LocalMapping::ScaleRefinement
+
+_MONOCULAR_EXTRACTION = (
+    "    ExtractORB(0,imGray,0,1000);\n"
+    "#ifdef REGISTER_TIMES\n"
+    "    std::chrono::steady_clock::time_point time_EndExtORB = std::chrono::steady_clock::now();\n"
+    "\n"
+    "    mTimeORB_Ext = std::chrono::duration_cast<std::chrono::duration<double,std::milli> >"
+    "(time_EndExtORB - time_StartExtORB).count();\n"
+    "#endif\n"
+    "\n"
+    "\n"
+    "    N = mvKeys.size();\n"
+)  # Frame's monocular constructor (MONOCULAR and IMU_MONOCULAR): the extraction, then N
 
 _INITIALISER_THREADS = (
     "        thread threadH(&TwoViewReconstruction::FindHomography,this,"
@@ -132,6 +152,19 @@ EDITS = (
         "    lastID = mCurrentFrame.mnId;\n    Track();\n",
         "    lastID = mCurrentFrame.mnId;\n    JSVE_HOOK_BEGIN_FRAME();" + HOOK_TAG
         + "\n    Track();\n    JSVE_HOOK_LOG_FRAME();" + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Frame.cc",
+        '#include "Frame.h"\n',
+        '#include "Frame.h"\n#include "jsve_orbslam3_hook.hpp"' + HOOK_TAG + "\n",
+    ),
+    Edit(
+        "src/Frame.cc",
+        _MONOCULAR_EXTRACTION,
+        _MONOCULAR_EXTRACTION.replace(
+            "    N = mvKeys.size();\n",
+            "    JSVE_HOOK_MASK_KEYPOINTS();" + HOOK_TAG + "\n    N = mvKeys.size();\n",
+        ),
     ),
     Edit(
         "src/Map.cc",
@@ -365,7 +398,7 @@ def stage_source(orbslam3: Path, dest: Path) -> list[str]:
         if _write_if_changed(dest / rel, data):
             changed.append(rel)
     headers = ("jsve_orbslam3_hook.hpp", "jsve_orbslam3_lockstep.hpp")
-    for header in (*(HOOK_DIR / h for h in headers), Path(get_include()) / "jsve_log.hpp"):
+    for header in (*(HOOK_DIR / h for h in headers), *_JSVE_HEADERS):
         if _write_if_changed(dest / "include" / header.name, header.read_bytes()):
             changed.append(f"include/{header.name}")
     return changed
@@ -472,7 +505,7 @@ def build(
     staged.replace(driver)
     record = {
         "orbslam3": str(orbslam3),
-        "hook_sha256": _hash_files(sorted(HOOK_DIR.iterdir()) + [Path(get_include()) / "jsve_log.hpp"]),
+        "hook_sha256": _hash_files(sorted(HOOK_DIR.iterdir()) + list(_JSVE_HEADERS)),
         "restaged": changed,
         "pangolin_dir": str(pangolin_dir) if pangolin_dir else None,
         "driver": str(driver),

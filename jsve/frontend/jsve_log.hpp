@@ -234,16 +234,8 @@ void fill_bins_from_grid(Frame& f, CountFn&& count) {
 
 namespace detail {
 
-// Shortest round-trip text of a double; always contains '.', 'e' (or is "inf"/"nan", which the
-// writer never emits). Needs 26 chars at most.
-inline char* put_double(char* p, char* end, double v) {
-    char* q;
-#if JSVE_LOG_HAVE_FP_TO_CHARS
-    q = std::to_chars(p, end, v).ptr;
-#else
-    const int n = std::snprintf(p, static_cast<std::size_t>(end - p), "%.17g", v);
-    q = p + n;
-    // snprintf follows LC_NUMERIC; the file must not.
+// snprintf follows LC_NUMERIC; the file must not: the locale's decimal separator in [p, q) becomes '.'.
+inline char* c_decimal_point(char* p, char* q) {
     const char* dp = std::localeconv()->decimal_point;
     const std::size_t dn = std::strlen(dp);
     if (dn > 0 && !(dn == 1 && dp[0] == '.')) {
@@ -251,17 +243,43 @@ inline char* put_double(char* p, char* end, double v) {
             if (std::memcmp(s, dp, dn) == 0) {
                 *s = '.';
                 std::memmove(s + 1, s + dn, static_cast<std::size_t>(q - (s + dn)));
-                q -= dn - 1;
-                break;
+                return q - (dn - 1);
             }
         }
     }
-#endif
+    return q;
+}
+
+// Number text [p, q) marked as a float: ".0" appended unless it has '.', an exponent, or is inf/nan.
+inline char* float_marked(char* p, char* q) {
     for (const char* s = p; s < q; ++s)
         if (*s == '.' || *s == 'e' || *s == 'E' || *s == 'n' || *s == 'i') return q;
     q[0] = '.';
     q[1] = '0';
     return q + 2;
+}
+
+// Shortest round-trip text of a double; always contains '.', 'e' (or is "inf"/"nan", which the
+// writer never emits). Needs 26 chars at most.
+inline char* put_double(char* p, char* end, double v) {
+#if JSVE_LOG_HAVE_FP_TO_CHARS
+    return float_marked(p, std::to_chars(p, end, v).ptr);
+#else
+    const int n = std::snprintf(p, static_cast<std::size_t>(end - p), "%.17g", v);
+    return float_marked(p, c_decimal_point(p, p + n));
+#endif
+}
+
+// Text of a float that reads back, rounded to float, to the same bits: the shortest such text, or
+// "%.9g" (9 significant digits hold every float) without std::to_chars; marked as put_double's.
+// Needs 18 chars at most.
+inline char* put_float(char* p, char* end, float v) {
+#if JSVE_LOG_HAVE_FP_TO_CHARS
+    return float_marked(p, std::to_chars(p, end, v).ptr);
+#else
+    const int n = std::snprintf(p, static_cast<std::size_t>(end - p), "%.9g", static_cast<double>(v));
+    return float_marked(p, c_decimal_point(p, p + n));
+#endif
 }
 
 inline char* put_int(char* p, char* end, std::int64_t v) { return std::to_chars(p, end, v).ptr; }

@@ -1,8 +1,15 @@
-// jsve_orbslam3: runs ORB-SLAM3 v1.0 (IMU_MONOCULAR) over one EuRoC-format sequence and writes a
-// jsve tracking log through the hook (jsve_orbslam3_hook.hpp), plus ORB-SLAM3's own trajectory.
+// jsve_orbslam3: runs ORB-SLAM3 v1.0 (IMU_MONOCULAR or MONOCULAR) over one EuRoC-format sequence and
+// writes a jsve tracking log through the hook (jsve_orbslam3_hook.hpp), plus ORB-SLAM3's own trajectory.
 //
 //   jsve_orbslam3 --vocabulary VOC.txt --settings EuRoC.yaml --sequence DIR --log OUT.csv
 //                 [--trajectory OUT.txt] [--summary OUT.json] [--meta KEY=VALUE]... [--overwrite]
+//                 [--sensor imu-monocular|monocular]   (default imu-monocular; monocular tracks the
+//                               images alone, with ORB-SLAM3's own success test: no --rule-*)
+//                 [--masks]     (DIR/mav0/cam0/masks/<image name>.png, one 16-bit instance map per image,
+//                               pixel = obj_id = class * 1000 + instance: keypoints on cars (1) and
+//                               pedestrians (2) are dropped in ORB-SLAM3's Frame, Algorithm 1; the log's
+//                               `masks` trailer has the counts per frame)
+//                 [--keypoints] (every frame's keypoints in OUT.keypoints.csv, jsve's side file v1)
 //                 [--no-wait]   (default: frames paced at the camera's rate, as ORB-SLAM3's examples do)
 //                 [--lockstep [--gate-timeout SECONDS]]   (threads take turns: a run depends only on its
 //                               inputs and seed; never paced; jsve_orbslam3_lockstep.hpp)
@@ -20,12 +27,12 @@
 // INPUTS of an SVE rule: jsve, authors-eq1 or authors-option1 (jsve.core._sve.INPUTS; the authors'
 // inputs need P = Q = 1).
 //
-// DIR holds mav0/cam0/data.csv (`t_ns,file`), mav0/cam0/data/<file> and mav0/imu0/data.csv (`t_ns,
-// wx,wy,wz,ax,ay,az`, EuRoC's column order). --meta values are typed like JSON scalars and lists:
+// DIR holds mav0/cam0/data.csv (`t_ns,file`), mav0/cam0/data/<file> and (IMU_MONOCULAR) mav0/imu0/data.csv
+// (`t_ns,wx,wy,wz,ax,ay,az`, EuRoC's column order). --meta values are typed like JSON scalars and lists:
 // `run=3` an integer, `fps=20.0` a float, `image_size=[752,480]` a list, `key="..."` a string (so a
 // hash of digits stays one), anything else a string too.
 // Exit status: 0 on success, 1 when the run or its log failed (the log then stays `.partial`), 2 on
-// bad arguments or input, 3 when a lockstep gate did not open within --gate-timeout (the summary says
+// bad arguments or input (a mask missing, unreadable or not a 16-bit map of the image's size), 3 when a lockstep gate did not open within --gate-timeout (the summary says
 // so). The driver dies with the process that started it (a killed `jsve frontend run` leaves no run
 // behind). It is jsve's own program, not one of ORB-SLAM3's examples.
 #include <malloc.h>
@@ -52,6 +59,8 @@
 #include <opencv2/core/utility.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include <opencv2/core.hpp>
+
 #include "ImuTypes.h"
 #include "System.h"
 #include "Thirdparty/DBoW2/DUtils/Random.h"
@@ -74,6 +83,16 @@ struct Args {
     std::string branch_log, branch_summary;
     bool branch_has_rule = false, branch_coast = false;
     jsve_hook::Rule branch_rule;
+    bool imu = true;  // --sensor: IMU_MONOCULAR (true) or MONOCULAR
+    bool masks = false, keypoints = false;
+};
+
+// Where --masks finds an image's mask, relative to the dataset (the log's `masks` metadata says so).
+const char* const kMaskFolder = "mav0/cam0/masks";
+
+// A mask that is missing or unusable: bad input (exit 2), named by its file.
+struct BadInput : std::runtime_error {
+    using std::runtime_error::runtime_error;
 };
 
 [[noreturn]] void usage_error(const std::string& message) {
@@ -114,6 +133,14 @@ Args parse_args(int argc, char** argv) {
         else if (key == "--no-wait") a.wait = false;
         else if (key == "--coast") a.coast = true;
         else if (key == "--lockstep") a.lockstep = true;
+        else if (key == "--masks") a.masks = true;
+        else if (key == "--keypoints") a.keypoints = true;
+        else if (key == "--sensor") {
+            const std::string v = value();
+            if (v != "imu-monocular" && v != "monocular")
+                usage_error("--sensor wants imu-monocular or monocular, got '" + v + "'");
+            a.imu = v == "imu-monocular";
+        }
         else if (key == "--gate-timeout") {
             const std::string v = value();
             if (!parse_double(v, &a.gate_timeout_s) || !(a.gate_timeout_s > 0.0))
@@ -167,6 +194,11 @@ Args parse_args(int argc, char** argv) {
     if (a.branch_at > 0 && (!a.lockstep || a.branch_frames < 1 || a.branch_log.size() != a.log.size()))
         usage_error("--branch-at needs --lockstep, --branch-frames and a --branch-log as long as --log");
     if (a.branch_coast && !a.branch_has_rule) usage_error("--branch-coast needs a --branch-rule-*");
+    // jsve's rules replace ORB-SLAM3's IMU_MONOCULAR success test (its IMU-stage thresholds); MONOCULAR's
+    // own test and its recovery by relocalisation are another machine, which jsve does not model.
+    if (!a.imu && (a.has_rule || a.branch_has_rule || a.coast))
+        usage_error("--rule-*, --branch-rule-* and --coast need --sensor imu-monocular");
+    if (a.keypoints && a.branch_at > 0) usage_error("--keypoints does not go with --branch-at");
     a.branch_rule.n_features = a.rule.n_features;
     return a;
 }
@@ -217,7 +249,7 @@ std::vector<std::vector<std::string>> read_csv(const std::string& path) {
     return rows;
 }
 
-struct Image { long long t_ns; std::string path; };
+struct Image { long long t_ns; std::string path, name; };
 
 std::vector<Image> read_images(const std::string& dir) {
     std::vector<Image> images;
@@ -227,7 +259,7 @@ std::vector<Image> read_images(const std::string& dir) {
         if (row.size() < 2 || !parse_int(row[0], &t)) usage_error(csv + ": row without `t_ns,file`");
         std::string name = row[1];
         name.erase(0, name.find_first_not_of(' '));
-        images.push_back({t, dir + "/mav0/cam0/data/" + name});
+        images.push_back({t, dir + "/mav0/cam0/data/" + name, name});
     }
     if (images.empty()) usage_error(csv + ": no images");
     return images;
@@ -247,6 +279,31 @@ std::vector<ORB_SLAM3::IMU::Point> read_imu(const std::string& dir) {
     }
     if (samples.empty()) usage_error(csv + ": no samples");
     return samples;
+}
+
+// The mask of every image (--masks): DIR/mav0/cam0/masks/<the image's name, extension .png>. A missing
+// one stops the run before it starts (exit 2, naming it): a frame without its mask is not masked.
+std::vector<std::string> mask_paths(const std::string& dir, const std::vector<Image>& images) {
+    std::vector<std::string> paths;
+    paths.reserve(images.size());
+    for (const Image& image : images) {
+        const std::size_t dot = image.name.find_last_of('.');
+        paths.push_back(dir + "/" + kMaskFolder + "/" + image.name.substr(0, dot) + ".png");
+        if (access(paths.back().c_str(), R_OK) != 0) usage_error("--masks: no mask " + paths.back());
+    }
+    return paths;
+}
+
+// The instance map of one frame, checked: 16-bit, one channel, the image's size.
+cv::Mat read_mask(const std::string& path, const cv::Mat& image) {
+    cv::Mat mask = cv::imread(path, cv::IMREAD_UNCHANGED);
+    if (mask.empty()) throw BadInput("cannot read mask " + path);
+    if (mask.type() != CV_16UC1)
+        throw BadInput("mask " + path + ": not a 16-bit one-channel instance map (pixel = obj_id)");
+    if (mask.size() != image.size())
+        throw BadInput("mask " + path + ": " + std::to_string(mask.cols) + " x " + std::to_string(mask.rows) +
+                       " px, the image " + std::to_string(image.cols) + " x " + std::to_string(image.rows));
+    return mask;
 }
 
 double seconds_since(std::chrono::steady_clock::time_point start) {
@@ -311,21 +368,38 @@ int main(int argc, char** argv) {
     // draws what ORB-SLAM3's own SeedRandOnce(0) does.
     if (args.has_seed) DUtils::Random::SeedRandOnce(static_cast<int>(static_cast<unsigned>(args.seed + 1)));
     const std::vector<Image> images = read_images(args.sequence);
-    const std::vector<ORB_SLAM3::IMU::Point> imu = read_imu(args.sequence);
+    const std::vector<ORB_SLAM3::IMU::Point> imu = args.imu ? read_imu(args.sequence) : std::vector<ORB_SLAM3::IMU::Point>();
+    const std::vector<std::string> masks = args.masks ? mask_paths(args.sequence, images) : std::vector<std::string>();
+    const std::string mask_source = std::string("in-loop png:DATASET/") + kMaskFolder + " classes=[1, 2]";
 
     jsve::Metadata meta;
     for (const auto& [key, value] : args.meta) set_meta(meta, key, value);
+    meta.set("sensor", args.imu ? "imu_monocular" : "monocular");
+    if (args.masks) meta.set("masks", mask_source);
     std::string error;
     if (!jsve_hook::open_log(args.log, meta, args.overwrite, &error)) {
         std::cerr << "jsve_orbslam3: cannot open the log: " << error << "\n";
         return 2;
     }
+    if (args.keypoints) {  // the run id of the log, as jsve.io's reader matches them
+        jsve::Metadata kp;
+        for (const auto& [key, value] : args.meta)
+            if (key == "sequence" || key == "run" || key == "disturbance" || key == "level" || key == "frontend")
+                set_meta(kp, key, value);
+        if (args.masks) kp.set("masks", mask_source);
+        if (!jsve_hook::open_keypoints(jsve::keypoints_path(args.log), kp, args.overwrite, &error)) {
+            std::cerr << "jsve_orbslam3: cannot write the keypoints: " << error << "\n";
+            return 2;
+        }
+    }
+    if (args.masks) jsve_hook::enable_masks();
 
     if (args.coast && !args.has_rule) usage_error("--coast needs --rule-inliers or --rule-sve");
     if (args.lockstep) jsve_hook::enable_lockstep(args.gate_timeout_s);
     const double setup_seconds = seconds_since(started);
     const auto system_start = std::chrono::steady_clock::now();
-    ORB_SLAM3::System slam(args.vocabulary, args.settings, ORB_SLAM3::System::IMU_MONOCULAR, false);
+    ORB_SLAM3::System slam(args.vocabulary, args.settings,
+                           args.imu ? ORB_SLAM3::System::IMU_MONOCULAR : ORB_SLAM3::System::MONOCULAR, false);
     const double system_seconds = seconds_since(system_start);
     if (args.has_rule) jsve_hook::set_rule(args.rule, args.coast);
     // IMU samples up to the first image start nothing: ORB-SLAM3's first frame has no preintegration.
@@ -371,9 +445,19 @@ int main(int argc, char** argv) {
             std::vector<ORB_SLAM3::IMU::Point> between;
             if (i > 0)
                 while (next < imu.size() && imu[next].t <= t) between.push_back(imu[next++]);
+            cv::Mat mask;  // this frame's instance map, held until TrackMonocular returns
+            jsve::InstanceMask view;
+            if (args.masks) {
+                const auto mask_start = std::chrono::steady_clock::now();
+                mask = read_mask(masks[i], im);
+                decode_seconds += seconds_since(mask_start);
+                view = {mask.ptr<std::uint16_t>(), mask.cols, mask.rows, static_cast<std::ptrdiff_t>(mask.step1())};
+            }
+            jsve_hook::begin_input(im.cols, im.rows, view);
             const auto start = std::chrono::steady_clock::now();
             slam.TrackMonocular(im, t, between, images[i].path);
             const double took = seconds_since(start);
+            jsve_hook::end_input();
             track_seconds += took;
             gates_open = jsve_hook::settle_frame();
             // Local mapping runs in its own thread: without waiting out the frame interval it would fall
@@ -387,6 +471,9 @@ int main(int argc, char** argv) {
             ever_tracked = ever_tracked || slam.GetTrackingState() == 2;  // OK
             ++frames_done;
         }
+    } catch (const BadInput& e) {
+        std::cerr << "jsve_orbslam3: " << e.what() << "\n";
+        status = 2;
     } catch (const std::exception& e) {
         std::cerr << "jsve_orbslam3: " << args.sequence << ": " << e.what() << "\n";
         status = 1;
@@ -401,6 +488,11 @@ int main(int argc, char** argv) {
             << ", \"imu_invalid_frames\": " << hook.imu_invalid_frames
             << ", \"pose_invalid_frames\": " << hook.pose_invalid_frames
             << ", \"keyframes_at_end\": " << hook.keyframes << ", \"ever_tracked\": " << (ever_tracked ? "true" : "false")
+            << ", \"sensor\": \"" << (args.imu ? "imu-monocular" : "monocular") << "\""
+            << ", \"masks\": " << (args.masks ? "true" : "false")
+            << ", \"masked_keypoints\": " << jsve_hook::mask_state().total_removed
+            << ", \"keypoints\": " << (args.keypoints ? "true" : "false")
+            << ", \"keypoint_inlier_mismatch_frames\": " << hook.keypoint_inlier_mismatches
             << ", \"trajectory_saved\": " << (save ? "true" : "false")
             << ", \"trailer_written\": " << (trailer ? "true" : "false") << ", \"status\": " << status
             << ", \"mode\": \"" << (args.lockstep ? "lockstep" : (args.wait ? "paced" : "no-wait")) << "\""
@@ -430,6 +522,10 @@ int main(int argc, char** argv) {
     // have finished; a run without it still closes its log (`trailer_written` false in the summary).
     const bool trailer = status == 0 && jsve_hook::write_trailer(120.0, &error);
     if (status == 0 && !trailer) std::cerr << "jsve_orbslam3: no trailer: " << error << "\n";
+    if (status == 0 && args.masks && !jsve_hook::write_masks_trailer(mask_source, &error)) {
+        std::cerr << "jsve_orbslam3: cannot write the masks trailer: " << error << "\n";
+        status = 1;
+    }
     if (status == 0 && !jsve_hook::close_log(&error)) {
         std::cerr << "jsve_orbslam3: cannot close the log: " << error << "\n";
         status = 1;

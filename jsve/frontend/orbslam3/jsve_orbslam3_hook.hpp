@@ -7,6 +7,10 @@
 //   TrackLocalMap      JSVE_HOOK_SAVE_PREDICTION() at its start; JSVE_HOOK_INLIERS(mnMatchesInliers)
 //                      and JSVE_HOOK_DECIDE() after the count, before ORB-SLAM3's success test
 //   GrabImageMonocular JSVE_HOOK_BEGIN_FRAME() before Track(), JSVE_HOOK_LOG_FRAME() after it
+//   Frame (monocular)  JSVE_HOOK_MASK_KEYPOINTS() after ExtractORB, before N = mvKeys.size() (src/Frame.cc
+//                      includes this header without the implementation): with masks (begin_input), the
+//                      keypoints on dynamic objects and their descriptors go before ORB-SLAM3
+//                      undistorts, grids, matches or maps any of them
 // and, where ORB-SLAM3 re-expresses a map without a new id (src/Map.cc and src/LocalMapping.cc include
 // this header without the implementation):
 //   Map::ApplyScaledRotation     JSVE_HOOK_WORLD_CHANGE(mnId, T, s) after the map is moved
@@ -26,6 +30,11 @@
 // once the IMU is initialised). Logging after Track() returns catches every frame once, whichever
 // early return Track() took.
 //
+// With a keypoint side file (open_keypoints), every logged frame's keypoints follow its log row
+// (jsve_keypoints.hpp; docs/masks.md): where the masks apply (the input image's pixels), undistorted,
+// and whether each counted in mnMatchesInliers (flagged where JSVE_HOOK_INLIERS runs, by the same
+// condition).
+//
 // The driver (jsve_orbslam3.cc) opens and closes the log through open_log / close_log. One tracker
 // per process: the hook's state is a process-wide singleton, used from the tracking thread only,
 // except the world frames of the maps, which LocalMapping and LoopClosing change (under a mutex).
@@ -36,6 +45,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <locale>
 #include <map>
 #include <memory>
@@ -44,6 +54,7 @@
 #include <string>
 #include <vector>
 
+#include "jsve_keypoints.hpp"
 #include "jsve_log.hpp"
 #include "jsve_orbslam3_lockstep.hpp"
 
@@ -61,7 +72,84 @@ struct HookState {
     std::size_t entries_before = 0;  // length of Tracking::mlRelativeFramePoses before this frame's Track()
     std::vector<std::int64_t> entry_rows;  // the log row of each entry of Tracking::mlRelativeFramePoses
     std::string trailer_error;  // why the trailer was not written (empty: it was, or not yet asked)
+    // The keypoint side file (open_keypoints): created at the first frame with keypoints, when
+    // ORB-SLAM3 has computed the undistorted image bounds it records.
+    std::unique_ptr<jsve::KeypointWriter> keypoints;
+    std::string keypoints_path;
+    jsve::Metadata keypoints_meta;
+    std::vector<unsigned char> inlier_flags;  // per keypoint of this frame, set where TrackLocalMap counts
+    int input_size[2] = {0, 0};  // [width, height] of the image given to TrackMonocular, px (begin_input)
+    long keypoint_inlier_mismatches = 0;  // frames whose flags do not sum to n_inliers (see record_inliers)
 };
+
+// Dynamic-object masks in the loop: the driver sets each frame's instance map before TrackMonocular,
+// and Frame's monocular constructor drops the keypoints Algorithm 1 puts on a car or a pedestrian
+// (jsve::on_dynamic_object) before ORB-SLAM3 uses them (docs/masks.md, "Masks in the loop").
+struct MaskState {
+    bool on = false;            // every frame has a mask (the driver's --masks)
+    jsve::InstanceMask mask;    // this frame's; empty outside TrackMonocular
+    int n_before = 0;           // this frame's keypoints as extracted
+    int n_removed = 0;          // ... and how many of them were dropped
+    long total_removed = 0;
+    std::vector<std::int64_t> t_ns;   // per logged frame, for the `masks` trailer
+    std::vector<int> before, removed;
+};
+
+// The process's mask state (defined in Tracking.cc's translation unit).
+MaskState& mask_state();
+
+// Drops the keypoints on dynamic objects of `mask` and their descriptor rows, in place and in order,
+// so that keys[i] still goes with descriptor row i (ORBextractor writes them paired). The keypoints
+// are in an image of `width` x `height` px, the mask's image resized (jsve::source_coordinate). The
+// kept rows are a view of the first rows of the same matrix: nothing is allocated. Returns how many it
+// dropped. KeyPoints: a std::vector of cv::KeyPoint; Descriptors: cv::Mat (ptr, cols, elemSize, rowRange).
+template <class KeyPoints, class Descriptors>
+std::size_t drop_dynamic_keypoints(const jsve::InstanceMask& mask, KeyPoints& keys, Descriptors& descriptors,
+                                   int width, int height) {
+    const std::size_t row_bytes = static_cast<std::size_t>(descriptors.cols) * descriptors.elemSize();
+    std::size_t kept = 0;
+    for (std::size_t i = 0; i < keys.size(); ++i) {
+        const float x = jsve::source_coordinate(keys[i].pt.x, mask.width, width);
+        const float y = jsve::source_coordinate(keys[i].pt.y, mask.height, height);
+        if (jsve::on_dynamic_object(mask, static_cast<double>(x), static_cast<double>(y))) continue;
+        if (kept != i) {
+            keys[kept] = keys[i];
+            std::memcpy(descriptors.ptr(static_cast<int>(kept)), descriptors.ptr(static_cast<int>(i)), row_bytes);
+        }
+        ++kept;
+    }
+    const std::size_t dropped = keys.size() - kept;
+    if (dropped > 0) {
+        keys.erase(keys.begin() + static_cast<std::ptrdiff_t>(kept), keys.end());
+        descriptors = descriptors.rowRange(0, static_cast<int>(kept));
+    }
+    return dropped;
+}
+
+// JSVE_HOOK_MASK_KEYPOINTS: this frame's mask applied to Frame::mvKeys and mDescriptors, extracted
+// from an image of `width` x `height` px (nothing without masks); the counts kept for the log's
+// `masks` trailer.
+template <class KeyPoints, class Descriptors>
+void mask_keypoints(KeyPoints& keys, Descriptors& descriptors, int width, int height) {
+    MaskState& m = mask_state();
+    if (!m.on) return;
+    m.n_before = static_cast<int>(keys.size());
+    m.n_removed = static_cast<int>(drop_dynamic_keypoints(m.mask, keys, descriptors, width, height));
+    m.total_removed += m.n_removed;
+}
+
+// Turns masks on (before the first frame): every frame must then get one through begin_input.
+void enable_masks();
+
+// The image the driver is about to pass to TrackMonocular: its size (px, before ORB-SLAM3 resizes it
+// to its settings' Camera.newWidth x newHeight) and its mask (held by the caller until end_input; an
+// empty view without masks).
+void begin_input(int width, int height, const jsve::InstanceMask& mask);
+void end_input();
+
+// The `masks` trailer: the mask source and, per logged frame, t_ns, the keypoints as extracted and
+// how many were dropped (n_extracted is what is left). Call before close_log.
+bool write_masks_trailer(const std::string& source, std::string* error);
 
 // The process's hook state (defined in Tracking.cc's translation unit).
 HookState& state();
@@ -73,8 +161,14 @@ inline void event(std::uint32_t bit) { state().pending_events.fetch_or(bit); }
 // Returns false with `*error` set on failure.
 bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error);
 
-// Closes the log: writes the end marker and renames `<path>.partial` to `<path>`.
+// Closes the log: writes the end marker and renames `<path>.partial` to `<path>`; first the keypoint
+// side file, if any (a side file that cannot be finished leaves both `.partial`).
 bool close_log(std::string* error);
+
+// Writes every logged frame's keypoints to `path` (jsve_keypoints.hpp) with `meta` (the log's run id)
+// plus image_size and ORB-SLAM3's image_bounds. An existing `path` is refused unless `overwrite`,
+// which removes it now. Call after open_log, before the first frame.
+bool open_keypoints(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error);
 
 // In a child of fork_parked: the log goes on at `path` (a copy of every row so far; LogWriter::continue_as).
 bool continue_log_as(const std::string& path, std::string* error);
@@ -266,10 +360,14 @@ inline std::int64_t stamp_ns(const std::string& name, double t_s) {
 }  // namespace jsve_hook
 
 #define JSVE_HOOK_FRUSTUM(count) (::jsve_hook::state().n_frustum = static_cast<int>(count))
-#define JSVE_HOOK_INLIERS(count) (::jsve_hook::state().n_inliers = static_cast<int>(count))
+// Expands inside Tracking::TrackLocalMap, right after it counts mnMatchesInliers.
+#define JSVE_HOOK_INLIERS(count) ::jsve_hook::record_inliers(static_cast<int>(count), mCurrentFrame, mbOnlyTracking)
 #define JSVE_HOOK_BEGIN_FRAME()                                                                    \
     (::jsve_hook::state().n_inliers = ::jsve_hook::state().n_frustum = 0,                          \
+     ::jsve_hook::state().inlier_flags.clear(),                                                    \
      ::jsve_hook::state().entries_before = mlRelativeFramePoses.size())
+// Expands inside Frame's monocular constructor, after ExtractORB.
+#define JSVE_HOOK_MASK_KEYPOINTS() ::jsve_hook::mask_keypoints(mvKeys, mDescriptors, imGray.cols, imGray.rows)
 #define JSVE_HOOK_EVENT(bit) ::jsve_hook::event(::jsve::bit)
 // Tracking::Reset clears the trajectory lists (and every map).
 #define JSVE_HOOK_RESET_ALL() (::jsve_hook::event(::jsve::kEventResetAll), ::jsve_hook::state().entry_rows.clear())
@@ -313,7 +411,8 @@ inline std::int64_t stamp_ns(const std::string& name, double t_s) {
 #define JSVE_HOOK_LOG_FRAME()                                                                      \
     ::jsve_hook::log_frame(mCurrentFrame, static_cast<int>(mState), mpAtlas,                       \
                            ::jsve_hook::TrackerView{&mlRelativeFramePoses, &mlpReferences, &mlbLost,  \
-                                                    mpAtlas, mpLocalMapper, mpLoopClosing})
+                                                    mpAtlas, mpLocalMapper, mpLoopClosing},           \
+                           mImGray.cols, mImGray.rows)
 
 #ifdef JSVE_HOOK_IMPLEMENTATION
 
@@ -350,6 +449,129 @@ std::set<ORB_SLAM3::KeyFrame*>& logged_references() {
 HookState& state() {
     static HookState s;
     return s;
+}
+
+MaskState& mask_state() {
+    static MaskState m;
+    return m;
+}
+
+void enable_masks() { mask_state().on = true; }
+
+void begin_input(int width, int height, const jsve::InstanceMask& mask) {
+    state().input_size[0] = width, state().input_size[1] = height;
+    mask_state().mask = mask;
+}
+
+void end_input() { mask_state().mask = jsve::InstanceMask(); }
+
+// JSON list of numbers.
+template <class Values>
+void append_numbers(std::string& out, const Values& values) {
+    out += '[';
+    for (std::size_t i = 0; i < values.size(); ++i) {
+        if (i) out += ',';
+        out += std::to_string(values[i]);
+    }
+    out += ']';
+}
+
+bool write_masks_trailer(const std::string& source, std::string* error) {
+    HookState& s = state();
+    const MaskState& m = mask_state();
+    if (!s.log) {
+        if (error) *error = "no log is open";
+        return false;
+    }
+    std::string out = "{\"source\":";
+    jsve::detail::append_json_string(out, source);
+    out += ",\"classes\":[" + std::to_string(jsve::kClassCar) + "," + std::to_string(jsve::kClassPedestrian) + "]";
+    out += ",\"t_ns\":";
+    append_numbers(out, m.t_ns);
+    out += ",\"n_before\":";
+    append_numbers(out, m.before);
+    out += ",\"n_removed\":";
+    append_numbers(out, m.removed);
+    out += '}';
+    if (s.log->trailer("masks", out) != jsve::Status::kOk) {
+        if (error) *error = s.log->last_error();
+        return false;
+    }
+    return true;
+}
+
+// TrackLocalMap's inlier count, and with a keypoint file the flag of each keypoint by the count's own
+// condition (a map point, not an outlier, and observed by a keyframe outside localisation-only mode),
+// read right after the count. In a paced run LocalMapping may change a point's observations in
+// between; the frames where the flags then miss the count are counted (keypoint_inlier_mismatches).
+inline void record_inliers(int count, const ORB_SLAM3::Frame& frame, bool only_tracking) {
+    HookState& s = state();
+    s.n_inliers = count;
+    if (!s.keypoints) return;
+    s.inlier_flags.assign(static_cast<std::size_t>(frame.N), 0);
+    for (int i = 0; i < frame.N; ++i) {
+        ORB_SLAM3::MapPoint* point = frame.mvpMapPoints[i];
+        s.inlier_flags[i] = point && !frame.mvbOutlier[i] && (only_tracking || point->Observations() > 0);
+    }
+}
+
+bool open_keypoints(const std::string& path, const jsve::Metadata& meta, bool overwrite, std::string* error) {
+    HookState& s = state();
+    // The file itself is created at the first frame with keypoints; an older one must not wait beside it.
+    if (std::FILE* existing = std::fopen(path.c_str(), "rb")) {
+        std::fclose(existing);
+        if (!overwrite || std::remove(path.c_str()) != 0) {
+            if (error) *error = path + (overwrite ? ": cannot remove it" : ": exists");
+            return false;
+        }
+    }
+    s.keypoints = std::make_unique<jsve::KeypointWriter>();
+    s.keypoints_path = path;
+    s.keypoints_meta = meta;
+    return true;
+}
+
+// Creates the keypoint file: the run's metadata, the input image's size (x, y are in its pixels) and,
+// once ORB-SLAM3 has computed them (on its first frame with keypoints), the undistorted image bounds its
+// grid spans (ux, uy are in those of the image it tracks, resized when its settings say so).
+inline void start_keypoints(bool with_bounds) {
+    HookState& s = state();
+    jsve::Metadata meta = s.keypoints_meta;
+    meta.set("image_size", {s.input_size[0], s.input_size[1]});
+    if (with_bounds)
+        meta.set("image_bounds", {static_cast<double>(ORB_SLAM3::Frame::mnMinX), static_cast<double>(ORB_SLAM3::Frame::mnMaxX),
+                                  static_cast<double>(ORB_SLAM3::Frame::mnMinY), static_cast<double>(ORB_SLAM3::Frame::mnMaxY)});
+    jsve::KeypointOptions options;
+    options.overwrite = true;  // open_keypoints refused or removed an older file
+    options.on_error = jsve::OnError::kReturn;
+    if (s.keypoints->open(s.keypoints_path, meta, options) != jsve::Status::kOk)
+        throw jsve::LogError(jsve::Status::kIoError, s.keypoints->last_error());
+}
+
+// The frame's keypoints after its log row (docs/masks.md, "What a C++ writer would emit"); ORB-SLAM3
+// extracted them from an image of `width` x `height` px.
+inline void log_keypoints(const ORB_SLAM3::Frame& frame, std::int64_t t_ns, int n_inliers, int width, int height) {
+    HookState& s = state();
+    if (!s.keypoints) return;
+    if (!s.keypoints->is_open()) {
+        if (frame.N == 0) return;
+        start_keypoints(true);
+    }
+    const std::size_t n = static_cast<std::size_t>(frame.N);
+    const bool flagged = s.inlier_flags.size() == n;  // TrackLocalMap ran on this frame
+    int sum = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+        const cv::KeyPoint& k = frame.mvKeys[i];
+        const cv::KeyPoint& u = frame.mvKeysUn[i];
+        const bool inlier = flagged && s.inlier_flags[i];
+        sum += inlier;
+        const float x = jsve::source_coordinate(k.pt.x, s.input_size[0], width);
+        const float y = jsve::source_coordinate(k.pt.y, s.input_size[1], height);
+        if (s.keypoints->write(t_ns, x, y, u.pt.x, u.pt.y, k.octave, inlier) != jsve::Status::kOk)
+            throw jsve::LogError(jsve::Status::kFailed, s.keypoints->last_error());
+    }
+    if (sum != n_inliers) ++s.keypoint_inlier_mismatches;
+    if (s.keypoints->flush() != jsve::Status::kOk) throw jsve::LogError(jsve::Status::kIoError, s.keypoints->last_error());
 }
 
 bool settle_frame() {
@@ -395,6 +617,21 @@ bool open_log(const std::string& path, const jsve::Metadata& meta, bool overwrit
 bool close_log(std::string* error) {
     HookState& s = state();
     if (!s.log) return true;
+    if (s.keypoints) {
+        bool ok = true;
+        try {
+            if (!s.keypoints->is_open()) start_keypoints(false);  // no frame had keypoints: no bounds either
+        } catch (const jsve::LogError&) {
+            ok = false;
+        }
+        ok = ok && s.keypoints->close() == jsve::Status::kOk;
+        if (!ok) {
+            if (error) *error = s.keypoints->last_error();
+            s.log->abandon();
+            s.log.reset();
+            return false;
+        }
+    }
     const bool ok = s.log->close() == jsve::Status::kOk;
     if (!ok && error) *error = s.log->last_error();
     s.log.reset();
@@ -546,7 +783,8 @@ inline void copy_pose(double q[4], double t[3], const Sophus::SE3f& pose) {
     for (int i = 0; i < 3; ++i) t[i] = static_cast<double>(pose.translation()(i));
 }
 
-inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::Atlas* atlas, const TrackerView& view) {
+inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::Atlas* atlas, const TrackerView& view,
+                      int image_width, int image_height) {
     HookState& s = state();
     if (!s.log) return;
     tracker_view() = view;
@@ -658,8 +896,16 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
         }
     }
     const jsve::Status status = s.log->write(f);
-    s.log_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (status != jsve::Status::kOk) throw jsve::LogError(status, s.log->last_error());
+    MaskState& m = mask_state();
+    if (m.on) {
+        m.t_ns.push_back(f.t_ns);
+        m.before.push_back(m.n_before);
+        m.removed.push_back(m.n_removed);
+        m.n_before = m.n_removed = 0;
+    }
+    log_keypoints(frame, f.t_ns, f.n_inliers, image_width, image_height);
+    s.log_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
 // JSON text of [qw, qx, qy, qz, tx, ty, tz] (shortest round-trip doubles).
