@@ -4,6 +4,8 @@ plan and its resume keys. The driver itself runs in the opt-in smoke test (.ci/f
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 from pathlib import Path
 
 import cv2
@@ -202,3 +204,110 @@ def test_a_finished_failed_attempt_is_kept_a_killed_one_is_run_again(tmp_path):
     crashed.with_suffix(".summary.json").write_text(json.dumps({"exit_code": -11, "generator": "other"}))
     todo, _ = plan(build, [ds], **kw)
     assert [j.log for j in todo] == [crashed, killed]
+
+
+def test_sensor_masks_and_keypoints_reach_the_driver_and_the_runs_key(tmp_path):
+    from jsve.frontend._run import driver_command
+
+    build = make_build(tmp_path / "build")
+    ds = make_dataset(tmp_path / "ds", manifest={"trajectory": "V101_GT.txt"})
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    kw = dict(runs=1, out=tmp_path / "logs", vocabulary=voc, settings=settings)
+    (plain,), _ = plan(build, [ds], **kw)
+    command = driver_command(Path("driver"), voc, plain)
+    assert not {"--sensor", "--masks", "--keypoints"} & set(command)  # a default run's command as before
+    assert plain.meta["sensor"] == "imu_monocular"
+    with pytest.raises(
+        ValueError, match=r"ds/mav0/cam0/masks/1403715274312143104\.png: no mask \(3 of the 3"
+    ):
+        plan(build, [ds], masks=True, **kw)
+    masks = ds / "mav0" / "cam0" / "masks"
+    masks.mkdir()
+    for image in sorted((ds / "mav0" / "cam0" / "data").iterdir())[:2]:
+        cv2.imwrite(str(masks / image.name), np.zeros((480, 752), np.uint16))
+    with pytest.raises(ValueError, match=r"1403715274412143104\.png: no mask \(1 of the 3"):
+        plan(build, [ds], masks=True, **kw)
+    cv2.imwrite(str(masks / "1403715274412143104.png"), np.zeros((480, 752), np.uint16))
+    (job,), _ = plan(build, [ds], sensor="monocular", masks=True, keypoints=True, **kw)
+    assert driver_command(Path("driver"), voc, job)[-4:] == [
+        "--sensor",
+        "monocular",
+        "--masks",
+        "--keypoints",
+    ]
+    assert job.meta["sensor"] == "monocular" and "camera_in_body" not in job.meta
+    keys = {plain.meta["generator"], job.meta["generator"]}
+    for options in ({"sensor": "monocular"}, {"masks": True}, {"keypoints": True}):
+        (other,), _ = plan(build, [ds], force=True, **options, **kw)
+        keys.add(other.meta["generator"])
+    assert len(keys) == 5  # each option makes runs of their own key
+    cv2.imwrite(str(masks / "1403715274412143104.png"), np.full((480, 752), 1001, np.uint16))
+    (changed,), _ = plan(build, [ds], force=True, masks=True, **kw)
+    assert changed.meta["generator"] not in keys  # another mask, another run
+
+
+def test_a_monocular_run_takes_orbslam3s_own_rule_only(tmp_path):
+    from jsve.core import preset
+
+    build = make_build(tmp_path / "build")
+    ds = make_dataset(tmp_path / "ds", manifest={"trajectory": "V101_GT.txt"})
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    kw = dict(runs=1, out=tmp_path / "logs", vocabulary=voc, settings=settings, sensor="monocular")
+    with pytest.raises(ValueError, match="monocular run tracks with ORB-SLAM3's own rule only"):
+        plan(build, [ds], rule=("sve-option2", preset("sve-option2")), **kw)
+    with pytest.raises(ValueError, match="monocular run tracks with ORB-SLAM3's own rule only"):
+        plan(build, [ds], switch_model="imu-coast", **kw)
+    with pytest.raises(ValueError, match="sensor 'stereo': expected one of imu-monocular, monocular"):
+        plan(build, [ds], **{**kw, "sensor": "stereo"})
+
+
+def test_frontend_run_refuses_a_monocular_rule_and_missing_masks_before_running(tmp_path, capsys):
+    from jsve.cli import main
+
+    build = make_build(tmp_path / "build")
+    ds = make_dataset(tmp_path / "ds", manifest={"trajectory": "V101_GT.txt"})
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    common = ["frontend", "run", str(build), str(ds), "--vocabulary", str(voc), "--settings", str(settings)]
+    out = ["-o", str(tmp_path / "logs"), "--no-progress"]
+    assert main([*common, "--sensor", "monocular", "--rule", "sve-option2", *out]) == 2
+    assert "own rule only" in capsys.readouterr().err
+    assert main([*common, "--masks", *out]) == 2
+    assert "no mask (3 of the 3 images have none)" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main([*common, "--sensor", "stereo", *out])
+    assert exit_.value.code == 2
+
+
+DRIVER = Path(os.environ.get("JSVE_FRONTEND_BUILD", Path.home() / ".cache" / "jsve" / "orbslam3")) / "bin"
+DRIVER = DRIVER / "jsve_orbslam3"
+"""The driver of a `jsve frontend build` (JSVE_FRONTEND_BUILD, else .ci/frontend-smoke's default folder)."""
+
+
+@pytest.mark.skipif(not DRIVER.is_file(), reason=f"no jsve frontend build at {DRIVER} (.ci/frontend-smoke)")
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--sensor", "stereo"], "--sensor wants imu-monocular or monocular, got 'stereo'"),
+        (["--sensor", "monocular", "--rule-inliers", "15,50,50,10"], "need --sensor imu-monocular"),
+        (["--lockstep", "--keypoints", "--branch-at", "2", "--branch-frames", "1", "--branch-log", "BRANCH"],
+         "--keypoints does not go with --branch-at"),
+        (["--masks"], "--masks: no mask "),
+    ],
+)  # fmt: skip
+def test_the_driver_refuses_bad_arguments_and_missing_masks_before_it_runs(tmp_path, extra, message):
+    ds = make_dataset(tmp_path / "ds")
+    (voc := tmp_path / "voc.txt").write_text("10 6 0 0")
+    (settings := tmp_path / "s.yaml").write_text(SETTINGS)
+    log = tmp_path / "a" / "run.csv"
+    log.parent.mkdir()
+    command = [str(DRIVER), "--vocabulary", str(voc), "--settings", str(settings), "--sequence", str(ds)]
+    command += ["--log", str(log), "--meta", "sequence=V101", "--meta", "run=0", "--meta", "fps=20.0"]
+    extra = [str(tmp_path / "b" / "run.csv") if x == "BRANCH" else x for x in extra]  # as long as the log
+    done = subprocess.run(command + extra, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert done.returncode == 2 and message in done.stderr, done.stderr
+    if extra == ["--masks"]:  # the first image's mask, named
+        assert f"{ds}/mav0/cam0/masks/1403715274312143104.png" in done.stderr
+    assert not list(log.parent.iterdir())  # no log, not even a partial one

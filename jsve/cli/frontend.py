@@ -62,16 +62,17 @@ def register(subparsers) -> None:
     r = sub.add_parser(
         "run",
         help="run the hooked ORB-SLAM3 over EuRoC-format datasets, N runs each, writing jsve logs",
-        description="Run the driver of BUILD (IMU_MONOCULAR) over each DATASET (a EuRoC-format folder, e.g. "
-        "from `jsve render` or `jsve disturb`) --runs times, writing OUT/<sequence>/<disturbance>-<level>/"
-        "run_<k>.csv (format-v3 log), run_<k>.orbslam3.txt (ORB-SLAM3's saved trajectory), "
-        "run_<k>.saved-from-log.txt (the same rebuilt from the log), run_<k>.summary.json (events, and the "
-        "ATE of both trajectories against the dataset's ground truth: a mismatch shows there) and "
-        "run_<k>.console.txt. Resumable after a kill at any moment: a run is done once its summary is "
-        "written; runs that crashed, timed out or hit a closed lockstep gate are outcomes and kept "
-        "(--retry-failed runs them again); "
-        "logs of other inputs stop the command unless --force. A downsampled dataset gets ORB-SLAM3 "
-        "settings scaled to its image size.",
+        description="Run the driver of BUILD (IMU_MONOCULAR, or MONOCULAR with --sensor) over each DATASET "
+        "(a EuRoC-format folder, e.g. from `jsve render` or `jsve disturb`) --runs times, writing "
+        "OUT/<sequence>/<disturbance>-<level>/run_<k>.csv (format-v3 log), run_<k>.orbslam3.txt "
+        "(ORB-SLAM3's saved trajectory), run_<k>.saved-from-log.txt (the same rebuilt from the log), "
+        "run_<k>.summary.json (events, and the ATE of both trajectories against the dataset's ground "
+        "truth: a mismatch shows there) and run_<k>.console.txt. Resumable after a kill at any moment: a "
+        "run is done once its summary is written; runs that crashed, timed out or hit a closed lockstep "
+        "gate are outcomes and kept (--retry-failed runs them again); logs of other inputs stop the "
+        "command unless --force. A downsampled dataset gets ORB-SLAM3 settings scaled to its image size. "
+        "--masks takes the keypoints on cars and pedestrians out of ORB-SLAM3's frames "
+        "(DATASET/mav0/cam0/masks); --keypoints writes run_<k>.keypoints.csv for `jsve mask-logs`.",
     )
     r.add_argument("build", metavar="BUILD", help="folder of `jsve frontend build`")
     r.add_argument("datasets", nargs="+", metavar="DATASET", help="EuRoC-format dataset folders")
@@ -79,7 +80,30 @@ def register(subparsers) -> None:
         "--vocabulary", required=True, metavar="VOC.txt", help="ORBvoc.txt or `jsve frontend vocabulary`'s"
     )
     r.add_argument(
-        "--settings", required=True, metavar="YAML", help="ORB-SLAM3 settings (EuRoC Monocular-Inertial.yaml)"
+        "--settings",
+        required=True,
+        metavar="YAML",
+        help="ORB-SLAM3 settings (EuRoC Monocular-Inertial.yaml; Monocular.yaml with --sensor monocular)",
+    )
+    r.add_argument(
+        "--sensor",
+        choices=("imu-monocular", "monocular"),
+        default="imu-monocular",
+        help="ORB-SLAM3's sensor: IMU_MONOCULAR (default; images and mav0/imu0) or MONOCULAR (images "
+        "alone, ORB-SLAM3's own rule only; trajectories scored after a sim3 alignment)",
+    )
+    r.add_argument(
+        "--masks",
+        action="store_true",
+        help="drop the keypoints on cars and pedestrians before ORB-SLAM3 tracks them: each image's "
+        "16-bit instance map DATASET/mav0/cam0/masks/<image name>.png (pixel = class * 1000 + instance; "
+        "classes 1 and 2); a missing mask stops the command (docs/masks.md, Masks in the loop)",
+    )
+    r.add_argument(
+        "--keypoints",
+        action="store_true",
+        help="write every frame's keypoints to run_<k>.keypoints.csv (side file v1, what `jsve mask-logs` "
+        "reads; about 60 bytes per keypoint)",
     )
     r.add_argument(
         "--rule",
@@ -208,6 +232,7 @@ def run_runs(args: argparse.Namespace) -> int:
             vocabulary=Path(args.vocabulary), settings=Path(args.settings), rule=rule,
             switch_model=args.switch_model, force=args.force, retry_failed=args.retry_failed,
             mode="lockstep" if args.lockstep else ("no-wait" if args.no_wait else "paced"), seed=args.seed,
+            sensor=args.sensor, masks=args.masks, keypoints=args.keypoints,
         )  # fmt: skip
     except (ValueError, OSError) as err:
         return common.fail("frontend run", err)

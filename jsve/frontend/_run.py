@@ -1,4 +1,5 @@
-"""`jsve frontend run`: the hooked ORB-SLAM3 (IMU_MONOCULAR) over EuRoC-format datasets, N runs each.
+"""`jsve frontend run`: the hooked ORB-SLAM3 (IMU_MONOCULAR or MONOCULAR) over EuRoC-format datasets, N
+runs each.
 
 Each run calls the driver that `jsve frontend build` made (BUILD/bin/jsve_orbslam3) and writes, under
 OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
@@ -12,6 +13,11 @@ OUT/<sequence>/<disturbance>-<level>/ (the simulator's layout):
                               events, and the ATE of both trajectories (saved_trajectory_scores);
                               written last, atomically: a run is finished exactly when it exists
     run_<k>.console.txt       ORB-SLAM3's console output
+    run_<k>.keypoints.csv     with `keypoints`: every frame's keypoints (jsve.io._keypoints, format v1)
+
+With `masks`, each dataset's mav0/cam0/masks/<image name>.png (16-bit instance maps) take the keypoints
+on cars and pedestrians out of ORB-SLAM3's frames before it tracks them (docs/masks.md, "Masks in the
+loop"); the log's `masks` trailer holds the counts per frame.
 
 Modes (docs/frontend.md): `paced` feeds frames at the camera's rate, as a live camera does; `no-wait`
 as fast as tracking takes them; `lockstep` as fast as possible with ORB-SLAM3's three threads taking
@@ -59,8 +65,15 @@ MODES = ("paced", "no-wait", "lockstep")
 """How the driver feeds frames (module docstring)."""
 
 RUN_FILES = (".csv", ".csv.partial", ".orbslam3.txt", ".orbslam3-euroc.txt", ".saved-from-log.txt",
-             ".summary.json", ".console.txt")  # fmt: skip
+             ".summary.json", ".console.txt", ".keypoints.csv", ".keypoints.csv.partial")  # fmt: skip
 """The files of one run (suffixes of run_<k>), cleared before it runs again."""
+
+
+SENSORS = {"imu-monocular": "imu_monocular", "monocular": "monocular"}
+"""The driver's --sensor values (ORB-SLAM3's IMU_MONOCULAR and MONOCULAR) and the logs' `sensor` metadata."""
+
+MASK_FOLDER = Path("mav0") / "cam0" / "masks"
+"""Where a dataset keeps its masks: one 16-bit instance map per image, named as the image (.png)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +109,30 @@ def describe_dataset(path: Path) -> Dataset:
         sequence = m.get("sequence") or Path(str(m.get("trajectory", path.name))).stem.removesuffix("_GT")
         return Dataset(path, str(sequence), "none", 0.0)
     return Dataset(path, path.name, "none", 0.0)
+
+
+def mask_files(dataset: Path) -> list[Path]:
+    """The mask of every image of a dataset, in the order of mav0/cam0/data.csv: MASK_FOLDER/<the image's
+    name, extension .png>, as the driver's --masks reads them.
+
+    Raises:
+        ValueError naming the first missing mask and how many are missing: a frame without its mask
+        would go unmasked.
+    """
+    folder = dataset / MASK_FOLDER
+    names = []
+    for line in (dataset / "mav0" / "cam0" / "data.csv").read_text().splitlines():
+        fields = line.split(",")
+        if line.strip() and not line.startswith("#") and len(fields) >= 2:
+            names.append(Path(fields[1].strip()).stem + ".png")
+    present = {p.name for p in folder.iterdir()} if folder.is_dir() else set()
+    missing = [name for name in names if name not in present]
+    if missing:
+        raise ValueError(
+            f"{folder / missing[0]}: no mask ({len(missing)} of the {len(names)} images have none); "
+            "--masks needs one 16-bit instance map per image"
+        )
+    return [folder / name for name in names]
 
 
 def scaled_settings(settings: str, width: int, height: int) -> str | None:
@@ -209,16 +246,26 @@ class RunJob:
     rule_args: tuple[str, ...] = ()
     mode: str = "paced"
     seed: int | None = None  # the driver's --seed; None: ORB-SLAM3's own (0)
+    sensor: str = "imu-monocular"  # one of SENSORS
+    masks: bool = False  # the dataset's masks in the loop
+    keypoints: bool = False  # write run_<k>.keypoints.csv
 
 
 def driver_args(job: RunJob, gate_timeout_s: float = DEFAULT_GATE_TIMEOUT_S) -> list[str]:
-    """The driver's options for the job's mode and seed."""
+    """The driver's options for the job's mode, seed, sensor, masks and keypoints (none for a default: a
+    run's command, and with it its heap, holds only the options it uses)."""
     args = {
         "paced": [],
         "no-wait": ["--no-wait"],
         "lockstep": ["--lockstep", "--gate-timeout", repr(gate_timeout_s)],
     }
-    return args[job.mode] + ([] if job.seed is None else ["--seed", str(job.seed)])
+    return (
+        args[job.mode]
+        + ([] if job.seed is None else ["--seed", str(job.seed)])
+        + ([] if job.sensor == "imu-monocular" else ["--sensor", job.sensor])
+        + (["--masks"] if job.masks else [])
+        + (["--keypoints"] if job.keypoints else [])
+    )
 
 
 def driver_command(
@@ -386,7 +433,9 @@ def saved_trajectory_scores(log: Path, dataset: Path) -> dict:
 def _scores(run, log: Path, dataset: Path) -> dict:
     from jsve.io._saved_trajectory import euroc_ate, event_counts, saved_trajectory, write_euroc
 
-    out: dict = {"events": event_counts(run)}
+    # A monocular run has no metric scale: its trajectories are scored after a similarity (sim3).
+    align = "sim3" if run.meta.get("sensor") == SENSORS["monocular"] else "se3"
+    out: dict = {"events": event_counts(run), "ate_align": align}
     if not run.has_keyframes or run.trailers is None:
         return out
     saved = saved_trajectory(run)
@@ -398,9 +447,9 @@ def _scores(run, log: Path, dataset: Path) -> dict:
     if saved is None or len(saved.rows) == 0 or not gt.is_file():
         return out
     write_euroc(saved.t_ns, saved.pose, rebuilt)
-    out["ate_from_log_m"] = euroc_ate(gt, rebuilt)[0]
+    out["ate_from_log_m"] = euroc_ate(gt, rebuilt, align)[0]
     if file.is_file():
-        out["ate_saved_file_m"] = euroc_ate(gt, file)[0]
+        out["ate_saved_file_m"] = euroc_ate(gt, file, align)[0]
         out["ate_difference_m"] = abs(out["ate_saved_file_m"] - out["ate_from_log_m"])
     return out
 
@@ -470,6 +519,9 @@ def plan(
     retry_failed: bool = False,
     mode: str = "paced",
     seed: int | None = None,
+    sensor: str = "imu-monocular",
+    masks: bool = False,
+    keypoints: bool = False,
 ) -> tuple[list[RunJob], list[Path]]:
     """The runs still to do and the runs already done under the same key (`finished_summary`): complete
     logs, and the logs of attempts that ended in a crash, a timeout or a closed gate (their `.csv`
@@ -483,10 +535,16 @@ def plan(
     OUT/<sequence>/<disturbance>-<level>/, in a <rule>-<switch model> subfolder unless the rule is
     ORB-SLAM3's own under "orbslam3".
 
+    `sensor`: one of SENSORS; "monocular" runs ORB-SLAM3's own rule only (jsve's rules replace the
+    IMU_MONOCULAR test). `masks`: every dataset's MASK_FOLDER in the loop (`mask_files`). `keypoints`:
+    each run writes its keypoint side file. The three are part of a run's key: masked and unmasked
+    runs, or the two sensors, go to separate output folders.
+
     Raises:
         StaleOutputError when a complete log was made from other inputs (unless `force`).
         ValueError when two datasets would write the same logs (same sequence, disturbance and level
-        in their manifests): their runs would overwrite each other.
+        in their manifests): their runs would overwrite each other; a sensor that is not in SENSORS, a
+        rule other than ORB-SLAM3's own in a monocular run, a dataset without its masks.
     """
     from jsve.core._machine import check_switch_model
     from jsve.core._rules import preset
@@ -498,7 +556,14 @@ def plan(
         seed = 0
     if seed is not None and not 0 <= seed <= MAX_SEED - max(runs - 1, 0):
         raise ValueError(f"seed {seed}: runs 0..{runs - 1} need seeds in [0, {MAX_SEED}]")
+    if sensor not in SENSORS:
+        raise ValueError(f"sensor {sensor!r}: expected one of {', '.join(SENSORS)}")
     name, rule_obj = rule if rule is not None else ("orbslam3", preset("orbslam3"))
+    if sensor == "monocular" and (name != "orbslam3" or switch_model != "orbslam3"):
+        raise ValueError(
+            f"rule {name!r} under {switch_model!r}: a monocular run tracks with ORB-SLAM3's own rule only "
+            "(jsve's rules and replay model the IMU_MONOCULAR success test)"
+        )
     settings_text = settings.read_text()
     n_features = orb_features(settings_text)
     rule_args, rule_meta = driver_rule(name, rule_obj, switch_model, n_features)
@@ -512,7 +577,11 @@ def plan(
     }
     if mode == "lockstep" or seed is not None:  # paced runs of ORB-SLAM3's own seed keep their keys
         base_key.update(mode=mode, seed=seed)
-    t_bc = camera_in_body(settings_text)
+    for key, value, default in (("sensor", sensor, "imu-monocular"), ("keypoints", keypoints, False)):
+        if value != default:  # a default run's key does not name options it does not use
+            base_key[key] = value
+    # the vis_* poses of a monocular run are the camera's own: no body frame to move them as
+    t_bc = camera_in_body(settings_text) if sensor == "imu-monocular" else None
     todo, done = [], []
     folders: dict[Path, Path] = {}
     for path in datasets:
@@ -537,7 +606,10 @@ def plan(
             run_settings = folder / "orbslam3_settings.yaml"
             run_settings.write_text(own)
         data_key = file_digest(sorted((ds.path / "mav0").rglob("*.csv")))
-        key = fingerprint({**base_key, "data": data_key, "dataset": str(ds.path.resolve())})
+        key_parts = {**base_key, "data": data_key, "dataset": str(ds.path.resolve())}
+        if masks:
+            key_parts["masks"] = file_digest(mask_files(ds.path))
+        key = fingerprint(key_parts)
         for k in range(runs):
             log = folder / f"run_{k:03d}.csv"
             if log.is_file() and (recorded := _recorded_generator(log)) != key and not force:
@@ -549,7 +621,7 @@ def plan(
                 done.append(log)
                 continue
             meta = {
-                "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": "imu_monocular",
+                "sequence": ds.sequence, "run": k, "fps": 20.0, "sensor": SENSORS[sensor],
                 "n_features": n_features, "image_size": [width, height], "grid": [8, 8], "frontend": FRONTEND,
                 "disturbance": ds.disturbance, "level": ds.level, "rule": rule_meta,
                 "switch_model": switch_model, "rule_name": name, "generator": key,
@@ -559,7 +631,7 @@ def plan(
             if t_bc is not None:
                 meta["camera_in_body"] = t_bc
             todo.append(RunJob(ds, k, log, run_settings, meta, tuple(rule_args), mode,
-                               None if seed is None else seed + k))  # fmt: skip
+                               None if seed is None else seed + k, sensor, masks, keypoints))  # fmt: skip
     return todo, done
 
 
