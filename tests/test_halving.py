@@ -73,7 +73,7 @@ def _design(space, n: int, seed: int = 0) -> np.ndarray:
 
 
 def _cache(data: FitData, space, values) -> RunLossCache:
-    return RunLossCache(data.parts, data.run_counts, space, values, data.config)
+    return RunLossCache(data.scorer, space, values)
 
 
 def _exhaustive(data: FitData, space, values):

@@ -242,7 +242,7 @@ def test_cross_validation_judges_its_folds_together_as_each_fold_alone(data):
         np.testing.assert_array_equal(held["failed"], oracle.failed[0, fold.test])
 
 
-def test_the_verdict_scores_each_distinct_candidate_once(data, monkeypatch):
+def test_the_verdict_scores_each_distinct_candidate_once(data):
     """judge scores fits that share candidates (folds with the same search best) once per distinct
     setting, and each fit's verdict is that of the fit judged alone."""
     from jsve.fitting import _fit
@@ -252,16 +252,12 @@ def test_the_verdict_scores_each_distinct_candidate_once(data, monkeypatch):
     searched = search_all(data, space, search_design(space, config), progress=False)
     weights = [np.ones(data.n_runs), np.ones(data.n_runs)]  # two fits with the same candidates
     pending = _fit.polish_fits(data, space, [(w, searched) for w in weights], config)
-    calls = []
-    real_search = _fit.search
-
-    def counted(parts, space, values, *args, **kwargs):
-        calls.append(len(values))
-        return real_search(parts, space, values, *args, **kwargs)
-
-    monkeypatch.setattr(_fit, "search", counted)
+    calls, settings = data.meter.calls, data.meter.settings  # the scorer's meter counts every request
     both = _fit.judge(data, space, pending)
-    assert calls == [len(np.unique(np.stack([v for _, v in pending[0].candidates]), axis=0))]
+    assert data.meter.calls - calls == 1
+    assert data.meter.settings - settings == len(
+        np.unique(np.stack([v for _, v in pending[0].candidates]), axis=0)
+    )
     alone = _fit.judge(data, space, pending[:1])
     for result in both:
         np.testing.assert_array_equal(result.values, alone[0].values)

@@ -45,8 +45,7 @@ from jsve.fitting._fit import (
     search_design,
 )
 from jsve.fitting._halving import RunLossCache, halving_searches, stratified_order
-from jsve.fitting._packing import subset_parts
-from jsve.fitting._search import RESULT_FIELDS, SearchResult, search
+from jsve.fitting._search import RESULT_FIELDS, SearchResult
 from jsve.fitting._space import ParamSpace, is_space_point, preset_point
 
 log = logging.getLogger(__name__)
@@ -147,14 +146,7 @@ class CrossValidation:
 
 def rule_results(data: FitData, space: ParamSpace, values) -> SearchResult:
     """Per-run results of one setting (free values in `space`) on every run: [1, R] matrices."""
-    return search(
-        data.parts,
-        space,
-        np.asarray(values, np.float64)[None],
-        data.config,
-        run_counts=data.run_counts,
-        progress=False,
-    )
+    return data.scorer.score(space, np.asarray(values, np.float64)[None])
 
 
 _run_losses = eqx.filter_jit(run_losses)
@@ -531,8 +523,7 @@ def bootstrap_race(
     ordered = stratified_order(data.meta, data.n_runs, seed=seed)
     ordered = ordered[w[ordered] > 0]
     if not 0 < screen_runs < len(ordered) or len(local) == 1:
-        everything = search(data.parts, space, local, data.config, run_counts=data.run_counts,
-                            progress=progress, desc=f"bootstrap design {space.kind}")  # fmt: skip
+        everything = data.scorer.score(space, local, progress=progress, desc=f"bootstrap design {space.kind}")
         return everything, [len(local)]
     n_full = effective_runs(w[w > 0])
     fields = dict.fromkeys(RESULT_FIELDS)  # SearchResult's matrices, filled rung by rung
@@ -540,10 +531,8 @@ def bootstrap_race(
     kept, done, prefix = [len(local)], np.zeros(data.n_runs, bool), screen_runs
 
     def score(runs: np.ndarray, desc: str) -> None:
-        parts, counts, columns = subset_parts(data.parts, data.run_counts, runs)
-        piece = search(
-            parts, space, local[keep], data.config, run_counts=counts, progress=progress, desc=desc
-        )
+        columns = np.unique(runs)
+        piece = data.scorer.score(space, local[keep], columns, progress=progress, desc=desc)
         for name in fields:
             block = getattr(piece, name)
             if fields[name] is None:

@@ -33,7 +33,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jsve.core._objective import ObjectiveConfig
-from jsve.fitting._search import RESULT_FIELDS, SearchResult, search
+from jsve.fitting._search import RESULT_FIELDS, SearchResult
 from jsve.fitting._space import ParamSpace
 from jsve.io import _scheduler
 
@@ -41,6 +41,12 @@ SETTINGS_PER_TASK = 256
 """Settings per task: enough setting-runs for a task to outweigh its scheduling (a few ms) and the
 transfer of its [settings, R] results (256 settings x 3,400 runs x ~30 B is about 26 MB), few enough
 that a design of 2,048 settings keeps 8 workers busy."""
+
+
+MIN_SETTING_RUNS = 65536
+"""Requests of fewer settings x runs are scored in the driver's process (jsve.fitting._scorer): eight
+kernel calls' worth of lanes on a CPU, less than a round trip of tasks to the workers and their
+results back; a fit's verdict of a few settings stays local, its searches go out."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -62,14 +68,8 @@ def search_task(
 ) -> tuple[str | None, dict[str, np.ndarray]]:
     """One shard on a worker: `search` of `values` on the study's runs (all, or the global indices
     `runs`, in increasing order). Returns (the content digest the worker read, the [s, R] arrays)."""
-    from jsve.fitting._packing import subset_parts
-
     data = _worker_data(source, config, _stamp(source))
-    if runs is None:
-        parts, counts = data.parts, data.run_counts
-    else:
-        parts, counts, _ = subset_parts(data.parts, data.run_counts, runs)
-    result = search(parts, space, values, config, run_counts=counts, progress=False)
+    result = data.scorer.score(space, values, runs)  # the worker's own scorer: in its process
     return data.content_digest, {name: getattr(result, name) for name in RESULT_FIELDS}
 
 
@@ -88,6 +88,7 @@ class ShardedSearch:
             scheduler address or scheduler file (jsve.io._scheduler).
         workers: processes of a local cluster or pool.
         settings_per_task: settings per task (SETTINGS_PER_TASK).
+        min_setting_runs: smaller requests are scored in the driver's process (MIN_SETTING_RUNS).
     """
 
     source: str
@@ -96,6 +97,7 @@ class ShardedSearch:
     scheduler: str = _scheduler.LOCAL
     workers: int = 2
     settings_per_task: int = SETTINGS_PER_TASK
+    min_setting_runs: int = MIN_SETTING_RUNS
     _stack: contextlib.ExitStack | None = field(default=None, init=False, repr=False, compare=False)
     _pool: concurrent.futures.Executor | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -177,4 +179,4 @@ class ShardedSearch:
         return SearchResult(values=values, **arrays)
 
 
-__all__ = ["ShardedSearch", "search_task", "SETTINGS_PER_TASK"]
+__all__ = ["ShardedSearch", "search_task", "SETTINGS_PER_TASK", "MIN_SETTING_RUNS"]

@@ -42,7 +42,8 @@ from jsve.core._sve import FrameFeatures
 from jsve.fitting._designs import design
 from jsve.fitting._halving import RunLossCache, halving_search, rung_sizes, stratified_order
 from jsve.fitting._polish import polish_in_lockstep
-from jsve.fitting._search import SearchBatch, SearchResult, prepare, search, search_chunk
+from jsve.fitting._scorer import Meter, ReplayScorer
+from jsve.fitting._search import SearchBatch, SearchResult, prepare, search_chunk
 from jsve.fitting._space import ParamSpace, preset_values
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog
@@ -107,10 +108,17 @@ class FitData:
     content_digest: str | None = None
     runs_per_part: int = 4096
     searcher: Callable | None = None
+    meter: Meter = field(default_factory=Meter)
 
     @property
     def n_runs(self) -> int:
         return int(sum(self.run_counts))
+
+    @property
+    def scorer(self) -> ReplayScorer:
+        """The replay of these runs by the search kernel, under `config`, on `searcher`'s workers for
+        large requests; every optimiser scores through it (jsve.fitting._scorer)."""
+        return ReplayScorer(self.parts, self.run_counts, self.config, self.searcher, meter=self.meter)
 
     @property
     def n_frames(self) -> int:
@@ -623,19 +631,12 @@ def search_design(space: ParamSpace, config: FitConfig, starts: Sequence[np.ndar
 
 def fit_cache(data: FitData, space: ParamSpace, config: FitConfig) -> RunLossCache:
     """An empty cache of per-run results of the fit's design (search_design) on `data`."""
-    return RunLossCache(
-        data.parts, data.run_counts, space, search_design(space, config), data.config, searcher=data.searcher
-    )
+    return RunLossCache(data.scorer, space, search_design(space, config))
 
 
 def search_all(data: FitData, space: ParamSpace, values, *, progress: bool = True, desc: str = "search"):
-    """`search` of every setting of `values` on every run of `data`, where data.searcher says (in this
-    process by default)."""
-    if data.searcher is not None:
-        return data.searcher(space, values, None, progress=progress, desc=desc)
-    return search(
-        data.parts, space, values, data.config, run_counts=data.run_counts, progress=progress, desc=desc
-    )
+    """Every setting of `values` scored on every run of `data` (its scorer)."""
+    return data.scorer.score(space, values, progress=progress, desc=desc)
 
 
 def fit(
@@ -853,10 +854,12 @@ def judge(
     # Folds often share candidates (the same search best; a polish that ended where it started): each
     # distinct setting is scored once.
     distinct, inverse = np.unique(values, axis=0, return_inverse=True)
-    scored = search(
-        data.parts, space, distinct, data.config, run_counts=data.run_counts, progress=progress,
+    scored = data.scorer.score(
+        space,
+        distinct,
+        progress=progress,
         desc=f"verdict {space.kind}, {len(fits)} fits, {len(distinct)} settings",
-    )  # fmt: skip
+    )
     everything = _rows(scored, np.asarray(inverse).reshape(-1))
     out, row = [], 0
     for f in fits:

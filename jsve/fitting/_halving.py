@@ -31,16 +31,15 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 
 from jsve._memory import release_memory
-from jsve.core._objective import ObjectiveConfig
-from jsve.fitting._packing import subset_parts
-from jsve.fitting._search import RESULT_FIELDS, SearchBatch, SearchResult, search
+from jsve.fitting._scorer import Scorer
+from jsve.fitting._search import RESULT_FIELDS, SearchResult
 
 log = logging.getLogger(__name__)
 
@@ -85,30 +84,26 @@ def stratified_order(meta: pd.DataFrame | None, n_runs: int, *, seed: int = 0, s
 
 @dataclass
 class RunLossCache:
-    """Per-run results of a fixed design's settings, filled on demand by the search kernel.
+    """Per-run results of a fixed design's settings, filled on demand by a scorer.
 
     Attributes:
+        scorer: what scores settings on runs (jsve.fitting._scorer.Scorer).
         values: [S, d] the design (free values of `space`).
         known: [S, R] which pairs are computed; the SearchResult fields [S, R] hold them (undefined
             elsewhere).
-        evaluations: setting-runs computed so far (the cost, in the kernel's unit).
-        searcher: where the kernel runs: None in this process, else a callable (space, values, runs,
-            progress=, desc=) -> SearchResult on those global runs (jsve.fitting._distributed.ShardedSearch).
+        evaluations: setting-runs this cache had computed (the cost, in the kernel's unit).
     """
 
-    parts: Sequence[SearchBatch]
-    run_counts: Sequence[int]
+    scorer: Scorer
     space: object
     values: np.ndarray
-    config: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     arrays: dict = field(default_factory=dict)
     known: np.ndarray | None = None
     evaluations: int = 0
-    searcher: Callable | None = None
 
     @property
     def n_runs(self) -> int:
-        return int(sum(self.run_counts))
+        return int(self.scorer.n_runs)
 
     @staticmethod
     def fits(n_settings: int, n_runs: int, max_bytes: int = MAX_CACHE_BYTES) -> bool:
@@ -145,27 +140,11 @@ class RunLossCache:
                 self._compute(group, np.flatnonzero(missing[group].any(axis=0)), progress, desc)
 
     def _compute(self, settings: np.ndarray, runs: np.ndarray, progress: bool, desc: str) -> None:
-        """Run the search kernel on settings x runs and store the pairs not known yet."""
-        every = len(runs) == self.n_runs
-        if self.searcher is not None:
-            columns = np.arange(self.n_runs) if every else np.unique(np.asarray(runs, np.int64))
-            res = self.searcher(
-                self.space, self.values[settings], None if every else columns, progress=progress, desc=desc
-            )
-        else:
-            if every:
-                parts, counts, columns = list(self.parts), list(self.run_counts), np.arange(self.n_runs)
-            else:
-                parts, counts, columns = subset_parts(self.parts, self.run_counts, runs)
-            res = search(
-                parts,
-                self.space,
-                self.values[settings],
-                self.config,
-                run_counts=counts,
-                progress=progress,
-                desc=desc or "search",
-            )
+        """Score settings x runs and store the pairs not known yet."""
+        columns = np.unique(np.asarray(runs, np.int64))
+        res = self.scorer.score(
+            self.space, self.values[settings], columns, progress=progress, desc=desc or "search"
+        )
         self.evaluations += len(settings) * len(columns)
         block = np.ix_(settings, columns)
         new = ~self.known[block]

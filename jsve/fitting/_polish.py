@@ -27,14 +27,11 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
 from jsve.fitting._halving import stratified_order
-from jsve.fitting._packing import subset_layout
-from jsve.fitting._search import search
 from jsve.fitting._simplex import lockstep_nelder_mead
 
 
@@ -115,11 +112,9 @@ def polish_in_lockstep(
     own = [polish_runs(data.meta, w, n_runs, seed=seed, pool=pool) for w in weights]
     own = [np.flatnonzero(w > 0) if runs is None else runs for w, runs in zip(weights, own, strict=True)]
     union = np.unique(np.concatenate(own))
-    # a step scores about one point per simplex: in one part where that is cheaper (few simplexes)
-    packed, run_counts, columns = subset_layout(data.parts, data.run_counts, union, len(starts))
-    # gathered once (every step scans them again), each on the device `search` runs its calls on
-    devices = jax.local_devices()
-    parts = [jax.device_put(part, devices[p % len(devices)]) for p, part in enumerate(packed)]
+    # a step scores about one point per simplex, on the union packed once for steps of that size
+    scorer = data.scorer.on(union, len(starts))
+    columns = scorer.runs
     fit_weights = np.zeros((len(weights), len(columns)))
     for f, (w, runs) in enumerate(zip(weights, own, strict=True)):
         mine = np.isin(columns, runs)
@@ -129,7 +124,7 @@ def polish_in_lockstep(
 
     def objective(z: np.ndarray, owners: np.ndarray) -> np.ndarray:
         values = np.asarray(space.values_from_z(jnp.asarray(z, dtype)), np.float64)
-        scored = search(parts, space, values, data.config, run_counts=run_counts, progress=False)
+        scored = scorer.score(space, values)
         return _weighted_rows(scored, fit_weights[owner_fit[owners]])
 
     z0 = np.stack([np.asarray(space.z_from_values(jnp.asarray(v, dtype))) for _, v in starts])

@@ -47,9 +47,8 @@ from jsve.fitting._crossval import (
 from jsve.fitting._designs import grid_design
 from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
 from jsve.fitting._levels import SveLevelSums
-from jsve.fitting._packing import subset_layout
 from jsve.fitting._polish import polish_runs
-from jsve.fitting._search import SearchResult, search
+from jsve.fitting._search import SearchResult
 from jsve.fitting._space import ParamSpace, space_from_dict
 from jsve.io import _atomic as atomic
 from jsve.io._resume import StaleOutputError, differences
@@ -379,14 +378,9 @@ def heatmap_table(
     grid[:, ix] = space.lo[ix] + (space.hi[ix] - space.lo[ix]) * unit[:, 0]
     grid[:, iy] = space.lo[iy] + (space.hi[iy] - space.lo[iy]) * unit[:, 1]
     subset = polish_runs(data.meta, w, runs, seed=seed)
-    if subset is None:
-        parts, counts, scored_w = data.parts, data.run_counts, w
-    else:  # in one part or by length class, whichever scores the grid faster
-        parts, counts, columns = subset_layout(data.parts, data.run_counts, subset, len(grid))
-        scored_w = w[columns]
-    res = search(
-        parts, space, grid, data.config, run_counts=counts, progress=progress, desc=f"heat map {space.kind}"
-    )
+    scorer = data.scorer if subset is None else data.scorer.on(subset, len(grid))
+    scored_w = w[scorer.runs]
+    res = scorer.score(space, grid, progress=progress, desc=f"heat map {space.kind}")
     return pd.DataFrame(
         {
             "family": space.kind,
