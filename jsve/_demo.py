@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from jsve.fitting._fit import FitConfig
@@ -63,10 +63,7 @@ class DemoConfig:
             raise ValueError(f"{source}: unknown [demo] settings {bad}; known: {sorted(known)}")
         if "duration_s" in demo:
             demo["duration_s"] = tuple(demo["duration_s"])
-        base = asdict(DEMO_STUDY)
-        base["fit"] = {**base["fit"], **spec.pop("fit", {})}
-        base.update(spec)
-        return cls(**demo, study=StudyConfig.from_dict(base, source))
+        return cls(**demo, study=StudyConfig.merged(spec, DEMO_STUDY, source))
 
 
 def run_demo(

@@ -47,15 +47,14 @@ def test_support_policy_keys_the_study_and_reaches_the_objective():
     the other policy stops, or starts over with --force: tests/test_report.py), `jsve fit --support`
     sets it, and a wrong value is refused when the study is configured."""
     from jsve.cli import build_parser
-    from jsve.cli.fit import load_study_config
     from jsve.fitting._study import fingerprint
 
     default, exclude = StudyConfig(), StudyConfig(support="exclude")
     assert default.objective().support == "penalise" and exclude.objective().support == "exclude"
     assert StudyConfig.from_dict(exclude.to_dict()) == exclude
     assert fingerprint(default.to_dict()) != fingerprint(exclude.to_dict())
-    assert load_study_config(None, support="exclude") == exclude
-    assert load_study_config(None, support=None) == default
+    assert StudyConfig.from_toml(None, support="exclude") == exclude
+    assert StudyConfig.from_toml(None, support=None) == default
     args = build_parser().parse_args(["fit", "logs", "-o", "out", "--support", "exclude"])
     assert args.support == "exclude"
     with pytest.raises(SystemExit):
@@ -69,28 +68,27 @@ def test_search_method_from_the_config_file_and_the_command_line(tmp_path):
     --initial-fraction` over them; the study's key changes with them; wrong values are refused when the
     study is configured (argparse for the method's name)."""
     from jsve.cli import build_parser
-    from jsve.cli.fit import load_study_config
     from jsve.fitting._fit import FitConfig
     from jsve.fitting._study import fingerprint
 
     toml = tmp_path / "fit.toml"
     toml.write_text('[fit]\nsearch = "exhaustive"\neta = 2.0\n')
-    from_file = load_study_config(str(toml))
+    from_file = StudyConfig.from_toml(str(toml))
     assert (from_file.fit.search, from_file.fit.eta) == ("exhaustive", 2.0)
-    both = load_study_config(str(toml), search="halving", initial_fraction=0.25, eta=None)
+    both = StudyConfig.from_toml(str(toml), search="halving", initial_fraction=0.25, eta=None)
     assert (both.fit.search, both.fit.eta, both.fit.initial_fraction) == ("halving", 2.0, 0.25)
     assert StudyConfig.from_dict(both.to_dict()) == both
     assert fingerprint(both.to_dict()) != fingerprint(from_file.to_dict())
-    assert load_study_config(None).fit == FitConfig()
+    assert StudyConfig.from_toml(None).fit == FitConfig()
     argv = ["fit", "logs", "-o", "out", "--search", "exhaustive", "--eta", "4", "--initial-fraction", "0.5"]
     args = build_parser().parse_args(argv)
     assert (args.search, args.eta, args.initial_fraction) == ("exhaustive", 4.0, 0.5)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["fit", "logs", "-o", "out", "--search", "random"])
     with pytest.raises(ValueError, match="initial_fraction"):
-        load_study_config(None, search="halving", initial_fraction=2.0)
+        StudyConfig.from_toml(None, search="halving", initial_fraction=2.0)
     with pytest.raises(ValueError, match="eta > 1"):
-        load_study_config(None, search="halving", eta=1.0)
+        StudyConfig.from_toml(None, search="halving", eta=1.0)
 
 
 def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
@@ -100,7 +98,6 @@ def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
     a --config file's keys win over --thorough, command-line flags over both; the study's key changes
     with it; a count that is not one is refused."""
     from jsve.cli import build_parser
-    from jsve.cli.fit import load_study_config
     from jsve.fitting import THOROUGH
     from jsve.fitting._study import fingerprint, study_folds
 
@@ -109,15 +106,15 @@ def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
     runs = ka.make_study("occlusion", range(6), n_frames=50)
     folds = study_folds(FitData.from_runs(runs).meta, default)
     assert {f.kind for f in folds} == {"kfold"} and len(folds) == default.kfold
-    thorough = load_study_config(None, thorough=True)
+    thorough = StudyConfig.from_toml(None, thorough=True)
     assert thorough.leave_one_out == THOROUGH["leave_one_out"] == ("sequence", "disturbance")
     assert thorough.n_local == THOROUGH["n_local"] == 1024
-    assert thorough == StudyConfig(**THOROUGH) and load_study_config(None) == default
+    assert thorough == StudyConfig(**THOROUGH) and StudyConfig.from_toml(None) == default
     assert fingerprint(thorough.to_dict()) != fingerprint(default.to_dict())
     toml = tmp_path / "fit.toml"
     toml.write_text("n_local = 64\n")
-    assert load_study_config(str(toml), thorough=True) == StudyConfig(**{**THOROUGH, "n_local": 64})
-    assert load_study_config(str(toml), thorough=True, seed=3).seed == 3
+    assert StudyConfig.from_toml(str(toml), thorough=True) == StudyConfig(**{**THOROUGH, "n_local": 64})
+    assert StudyConfig.from_toml(str(toml), thorough=True, seed=3).seed == 3
     assert build_parser().parse_args(["fit", "logs", "-o", "out", "--thorough"]).thorough
     assert not build_parser().parse_args(["fit", "logs", "-o", "out"]).thorough
     for bad in (-1, 1.5, True):
@@ -128,18 +125,17 @@ def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
 def test_a_wrong_setting_names_where_it_came_from(tmp_path):
     """A wrong value in the --config file names the file (and [fit] for that table); one from a
     command-line flag over a good file names the command line, not the file."""
-    from jsve.cli.fit import load_study_config
 
     toml = tmp_path / "fit.toml"
     toml.write_text("n_local = -1\n")
     with pytest.raises(ValueError, match=rf"^{re.escape(str(toml))}: StudyConfig.n_local must be a count"):
-        load_study_config(str(toml))
+        StudyConfig.from_toml(str(toml))
     toml.write_text('[fit]\nsearch = "halving"\neta = 1.0\n')
     with pytest.raises(ValueError, match=rf"^{re.escape(str(toml))}: \[fit\] halving needs eta > 1"):
-        load_study_config(str(toml))
+        StudyConfig.from_toml(str(toml))
     toml.write_text('[fit]\nsearch = "halving"\n')
     with pytest.raises(ValueError, match=r"^the command line: \[fit\] halving needs eta > 1"):
-        load_study_config(str(toml), eta=1.0)
+        StudyConfig.from_toml(str(toml), eta=1.0)
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,6 @@ import logging
 import sys
 from pathlib import Path
 
-import tomllib
-
 from jsve.cli import _common as common
 
 HELP = "fit SVE weights and thresholds (and ORB-SLAM3's) to minimise position error"
@@ -130,48 +128,11 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-FIT_OVERRIDES = ("search", "eta", "initial_fraction")
-"""Command-line options that set a key of the config's [fit] table (jsve.fitting.FitConfig)."""
-
-
-def load_study_config(path: str | None, *, thorough: bool = False, **overrides):
-    """StudyConfig from a TOML file (top-level study keys, a [fit] table) with command-line overrides:
-    the defaults, then THOROUGH's where `thorough`, then the file's keys, then the overrides."""
-    from dataclasses import asdict
-
-    from jsve.fitting._study import THOROUGH, StudyConfig
-
-    spec = {}
-    if path:
-        try:
-            spec = tomllib.loads(Path(path).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as err:
-            raise ValueError(f"{path}: {err}") from None
-        spec.pop("demo", None)
-    base = asdict(StudyConfig())
-    if thorough:
-        base.update(THOROUGH)
-    base["fit"] = {**base["fit"], **spec.pop("fit", {})}
-    base.update(spec)
-    StudyConfig.from_dict(base, source=path or "<defaults>")  # a wrong value names the file
-    for key, value in overrides.items():
-        if value is None:
-            continue
-        if key == "relaxed":
-            base["fit"]["relaxed"] = True
-        elif key in FIT_OVERRIDES:
-            base["fit"][key] = value
-        elif key == "seed":
-            base["seed"] = base["fit"]["seed"] = value
-        else:
-            base[key] = value
-    return StudyConfig.from_dict(base, source="the command line")
-
-
 @common.guarded("fit")
 def run(args) -> int:
     from jsve._jax_cache import enable_compilation_cache
     from jsve.fitting._search import use_all_cores
+    from jsve.fitting._study import StudyConfig
     from jsve.io._atomic import check_writable
 
     check_writable(args.output)  # before reading the logs: an unwritable folder fails at once
@@ -185,7 +146,7 @@ def run(args) -> int:
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
     enable_compilation_cache()  # a second run compiles nothing
     try:
-        config = load_study_config(
+        config = StudyConfig.from_toml(
             args.config,
             thorough=args.thorough,
             families=tuple(args.family) if args.family else None,

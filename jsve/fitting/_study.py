@@ -29,6 +29,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pandas as pd
+import tomllib
 
 from jsve._memory import peak_resident_bytes, release_memory
 from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE, ObjectiveConfig
@@ -196,8 +197,58 @@ class StudyConfig:
         except ValueError as err:
             raise ValueError(f"{source}: {err}") from None
 
+    @classmethod
+    def merged(cls, spec: dict, base: StudyConfig, source: str = "<config>") -> StudyConfig:
+        """A parsed TOML/JSON table's keys over `base` (its [fit] table over base.fit's keys)."""
+        spec = dict(spec)
+        merged = base.to_dict()
+        merged["fit"] = {**merged["fit"], **spec.pop("fit", {})}
+        merged.update(spec)
+        return cls.from_dict(merged, source=source)
+
+    @classmethod
+    def from_toml(
+        cls, path: str | os.PathLike | None = None, *, base: StudyConfig | None = None,
+        thorough: bool = False, **overrides,
+    ) -> StudyConfig:  # fmt: skip
+        """The study a TOML file describes (top-level study keys, a [fit] table; a [demo] table is
+        `jsve demo`'s and ignored here), over `base` (default: the defaults) and THOROUGH's keys where
+        `thorough`, with `overrides` (None values ignored) over all of them.
+
+        An override names a study key or one of OVERRIDES_OF_FIT (search, eta, initial_fraction,
+        relaxed), which set the [fit] table's key; `seed` seeds the study's folds and bootstraps and the
+        fit's design alike. A wrong value names its source: the file, or "the command line".
+        """
+        spec = {}
+        if path is not None:
+            try:
+                spec = tomllib.loads(Path(path).read_text())
+            except (OSError, tomllib.TOMLDecodeError) as err:
+                raise ValueError(f"{path}: {err}") from None
+            spec.pop("demo", None)
+        base = base or cls()
+        if thorough:
+            base = replace(base, **THOROUGH)
+        config = cls.merged(spec, base, source=str(path) if path is not None else "<defaults>")
+        given = {key: value for key, value in overrides.items() if value is not None}
+        if not given:
+            return config
+        merged = config.to_dict()
+        for key, value in given.items():
+            if key in OVERRIDES_OF_FIT:
+                merged["fit"][key] = value
+            elif key == "seed":
+                merged["seed"] = merged["fit"]["seed"] = value
+            else:
+                merged[key] = value
+        return cls.from_dict(merged, source="the command line")
+
 
 THOROUGH = {"leave_one_out": ("sequence", "disturbance"), "n_local": 1024}
+"""What `jsve fit --thorough` adds to a study: leave-one-sequence/disturbance-out folds and a local design."""
+
+OVERRIDES_OF_FIT = ("search", "eta", "initial_fraction", "relaxed")
+"""Overrides of StudyConfig.from_toml that set a key of the [fit] table (jsve.fitting._fit.FitConfig)."""
 """What `jsve fit --thorough` adds to the defaults: leave-one-sequence-out and leave-one-disturbance-out
 folds, and a parameter bootstrap whose refits also choose among 1,024 settings around the fit (finer
 intervals). The default takes about half the time, with the same fitted rules and k-fold held-out
