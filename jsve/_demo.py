@@ -81,7 +81,7 @@ def run_demo(
     of another configuration the demo stops with StaleOutputError before writing anything, unless
     `force`, which discards them and recomputes.
     """
-    from jsve.fitting._fit import FitData
+    from jsve.fitting._data import FitData
     from jsve.fitting._study import run_study
     from jsve.report._report import write_report
     from jsve.sim._motion import FlightProfile

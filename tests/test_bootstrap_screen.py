@@ -79,7 +79,8 @@ def test_a_screened_bootstrap_gives_the_unscreened_intervals():
 
     from jsve.core._objective import ObjectiveConfig
     from jsve.fitting._crossval import parameter_bootstrap
-    from jsve.fitting._fit import FitConfig, FitData, fit
+    from jsve.fitting._data import FitData
+    from jsve.fitting._fit import FitConfig, fit
     from jsve.fitting._space import inlier_space
 
     data = FitData.from_runs(

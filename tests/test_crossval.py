@@ -14,7 +14,8 @@ from jsve.core._objective import ObjectiveConfig
 from jsve.core._rules import preset
 from jsve.evaluation._aggregate import bootstrap_ci
 from jsve.fitting._crossval import bootstrap_weighted_mean, compare, cross_validate, kfold, leave_one_out
-from jsve.fitting._fit import FitConfig, FitData
+from jsve.fitting._data import FitData
+from jsve.fitting._fit import FitConfig
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space
 

@@ -10,8 +10,9 @@ import knownanswer as ka
 import numpy as np
 import pytest
 
+from jsve.fitting._data import FitData
 from jsve.fitting._distributed import ShardedSearch
-from jsve.fitting._fit import FitConfig, FitData, fit
+from jsve.fitting._fit import FitConfig, fit
 from jsve.fitting._packing import subset_parts
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, sve_space

@@ -14,15 +14,9 @@ import pytest
 from jsve.core._objective import ObjectiveConfig
 from jsve.core._rules import preset
 from jsve.fitting._crossval import bootstrap_weighted_mean
-from jsve.fitting._fit import (
-    FitConfig,
-    FitData,
-    fit,
-    hard_objective,
-    nelder_mead,
-    relaxed_fit,
-    relaxed_objective,
-)
+from jsve.fitting._data import FitData
+from jsve.fitting._fit import FitConfig, fit
+from jsve.fitting._optimise import hard_objective, nelder_mead, relaxed_fit, relaxed_objective
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, sve_space
 

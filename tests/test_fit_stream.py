@@ -10,7 +10,8 @@ import pytest
 from jsve.core._objective import ObjectiveConfig
 from jsve.core._rules import preset
 from jsve.evaluation._aggregate import group_weights
-from jsve.fitting._fit import FitData, hard_objective
+from jsve.fitting._data import FitData
+from jsve.fitting._optimise import hard_objective
 from jsve.fitting._space import inlier_space, sve_space
 from jsve.fitting._study import data_fingerprint
 from jsve.io._ingest import ingest

@@ -17,8 +17,9 @@ import pytest
 
 from jsve.core._objective import ObjectiveConfig
 from jsve.fitting._crossval import cross_validate, kfold
+from jsve.fitting._data import FitData
 from jsve.fitting._designs import sobol
-from jsve.fitting._fit import FitConfig, FitData, fit, fit_cache, search_design
+from jsve.fitting._fit import FitConfig, fit, fit_cache, search_design
 from jsve.fitting._halving import (
     RunLossCache,
     halving_search,

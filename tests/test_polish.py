@@ -11,7 +11,9 @@ import pytest
 
 from jsve.fitting import _packing
 from jsve.fitting._crossval import cross_validate, kfold, rule_results
-from jsve.fitting._fit import FitConfig, FitData, fit, hard_objective, nelder_mead, search_all, search_design
+from jsve.fitting._data import FitData
+from jsve.fitting._fit import FitConfig, fit, search_all, search_design
+from jsve.fitting._optimise import hard_objective, nelder_mead
 from jsve.fitting._packing import frame_classes, pack_runs, packing, subset_parts
 from jsve.fitting._polish import polish_in_lockstep, polish_runs
 from jsve.fitting._search import search

@@ -11,7 +11,7 @@ import knownanswer as ka
 import numpy as np
 import pytest
 
-from jsve.fitting._fit import FitData
+from jsve.fitting._data import FitData
 from jsve.fitting._scorer import Meter, ReplayScorer
 from jsve.fitting._search import RESULT_FIELDS, SearchResult, search
 from jsve.fitting._space import inlier_space

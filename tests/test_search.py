@@ -21,8 +21,8 @@ from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, ObjectiveConfig, run
 from jsve.core._replay import batch_features, replay
 from jsve.core._rules import Thresholds
 from jsve.core._sve import feature_logs
+from jsve.fitting._data import FitData
 from jsve.fitting._designs import sobol
-from jsve.fitting._fit import FitData
 from jsve.fitting._search import (
     LANES_PER_CALL,
     _scan,

@@ -15,7 +15,7 @@ import pytest
 
 from jsve.core._rules import preset
 from jsve.core._sve import FrameFeatures, s_a_from_ratio
-from jsve.fitting._fit import FitData
+from jsve.fitting._data import FitData
 from jsve.fitting._levels import sve_level_table
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, space_from_dict, sve_space

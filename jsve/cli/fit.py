@@ -159,7 +159,7 @@ def run(args) -> int:
             eta=args.eta,
             initial_fraction=args.initial_fraction,
         )
-        # A Parquet study is streamed into FitData (jsve.fitting._fit.FitData.from_parquet): no parsed
+        # A Parquet study is streamed into FitData (jsve.fitting._data.FitData.from_parquet): no parsed
         # runs are held; logs on disk are parsed first.
         streamed = Path(args.logs).name.endswith(".parquet")
         runs = [] if streamed else common.load_runs(
@@ -171,7 +171,7 @@ def run(args) -> int:
         return common.fail("fit", f"no valid logs in {args.logs}")
     import time
 
-    from jsve.fitting._fit import FitData
+    from jsve.fitting._data import FitData
     from jsve.fitting._study import run_study
     from jsve.report._report import trust_warnings, write_report
 

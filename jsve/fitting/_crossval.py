@@ -30,10 +30,10 @@ from jsve._memory import release_memory
 from jsve.core._objective import run_losses
 from jsve.core._rules import BASELINES, PRESETS, preset
 from jsve.evaluation._evaluate import OBJECTIVE_COLUMNS
+from jsve.fitting._data import FitData
 from jsve.fitting._designs import sobol
 from jsve.fitting._fit import (
     FitConfig,
-    FitData,
     FitResult,
     fit_cache,
     fit_search,

@@ -53,7 +53,7 @@ results back; a fit's verdict of a few settings stays local, its searches go out
 def _worker_data(source: str, config: ObjectiveConfig, stamp: tuple[int, int]):
     """The study as this worker process holds it (one at a time): loaded by the first task, reused by
     the next (stamp: the file's size and mtime, so a rewritten file is loaded again)."""
-    from jsve.fitting._fit import FitData
+    from jsve.fitting._data import FitData
 
     return FitData.from_parquet(source, config)
 

@@ -39,7 +39,7 @@ computations, each costing time in proportion to the frames it scans:
   (its search's best and each polish's result), of all the cross-validation's folds at once
   (jsve.fitting._fit.judge), whose rows also score each fold's fitted rule on its held-out runs.
 - **objective** (`[fit] relaxed = true` only): the hard objective of one setting on every run
-  (`_fit._hard_jit`), the relaxed fit's value after each temperature.
+  (`_optimise._hard_jit`), the relaxed fit's value after each temperature.
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
   presets and the fitted rules, in one pass that also gives the cross-validation the presets' held-out
   rows (the objective's terms of every run) and the SVE level table.
@@ -613,7 +613,8 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     from jsve.core._batch import iter_chunks, ladder_chunk_size, runs_per_chunk_for
     from jsve.core._rules import BASELINES, preset
     from jsve.evaluation._evaluate import evaluate_batch
-    from jsve.fitting._fit import _hard_jit, _relaxed_jit, search_design
+    from jsve.fitting._fit import search_design
+    from jsve.fitting._optimise import _hard_jit, _relaxed_jit
     from jsve.fitting._search import call_size, search
 
     n_devices = len(jax.local_devices())
@@ -643,7 +644,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             compiled["search", family] = keys
             bar.update(1)
 
-            if config.fit.relaxed:  # the relaxed fit's objectives (jsve.fitting._fit.relaxed_fit)
+            if config.fit.relaxed:  # the relaxed fit's objectives (jsve.fitting._optimise.relaxed_fit)
                 z = space.z_from_values(jnp.asarray(values[0], part.t.dtype))
                 run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
                 compile_s["objective", family], seconds["objective", family] = _twice(run, spent)

@@ -45,8 +45,9 @@ from jsve.fitting._crossval import (
     objective_results,
     parameter_bootstrap,
 )
+from jsve.fitting._data import FitData
 from jsve.fitting._designs import grid_design
-from jsve.fitting._fit import FitConfig, FitData, FitResult, fit, fitted_rule_name
+from jsve.fitting._fit import FitConfig, FitResult, fit, fitted_rule_name
 from jsve.fitting._levels import SveLevelSums
 from jsve.fitting._polish import polish_runs
 from jsve.fitting._search import SearchResult
