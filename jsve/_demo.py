@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from jsve.fitting._config import StudyConfig
 from jsve.fitting._fit import FitConfig
-from jsve.fitting._study import StudyConfig
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ class DemoConfig:
         sequences: procedural EuRoC-like flights. runs: runs per (sequence, setting).
         duration_s: range of flight lengths, s (equal by default: one padded shape, one compilation).
         disturbances: settings spec ("seed": the seed's 31).
-        seed: simulator seed. study: jsve.fitting._study.StudyConfig.
+        seed: simulator seed. study: jsve.fitting._config.StudyConfig.
     """
 
     sequences: int = 3

@@ -13,7 +13,7 @@ import tomllib
 
 from jsve._demo import DEMO_STUDY, DemoConfig
 from jsve.cli import SUBCOMMANDS, build_parser, main
-from jsve.fitting._study import StudyConfig
+from jsve.fitting._config import StudyConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

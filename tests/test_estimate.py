@@ -11,6 +11,7 @@ import knownanswer as ka
 import numpy as np
 import pytest
 
+from jsve.fitting._config import StudyConfig
 from jsve.fitting._estimate import (
     NM_MOVED_SHARE,
     Plan,
@@ -25,7 +26,6 @@ from jsve.fitting._estimate import (
     search_cost,
 )
 from jsve.fitting._fit import FitConfig
-from jsve.fitting._study import StudyConfig
 
 R, F = 64, 100  # one part of 64 runs x 100 frames
 

@@ -23,9 +23,10 @@ import pytest
 
 from jsve.core._rules import PRESETS
 from jsve.evaluation import group_weights
+from jsve.fitting._config import StudyConfig
 from jsve.fitting._data import FitData
 from jsve.fitting._fit import FitConfig
-from jsve.fitting._study import StudyConfig, data_fingerprint, fingerprint, read_table, run_study, study_files
+from jsve.fitting._study import data_fingerprint, fingerprint, read_table, run_study, study_files
 from jsve.io._resume import StaleOutputError
 from jsve.report import _format as fmt
 from jsve.report._report import write_report

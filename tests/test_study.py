@@ -15,11 +15,12 @@ import pytest
 
 from jsve.core._rules import preset
 from jsve.core._sve import FrameFeatures, s_a_from_ratio
+from jsve.fitting._config import StudyConfig
 from jsve.fitting._data import FitData
 from jsve.fitting._levels import sve_level_table
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, space_from_dict, sve_space
-from jsve.fitting._study import StudyConfig, heatmap_table
+from jsve.fitting._study import heatmap_table
 
 
 def test_config_spaces_are_the_families_spaces():

@@ -131,8 +131,8 @@ def register(subparsers) -> None:
 @common.guarded("fit")
 def run(args) -> int:
     from jsve._jax_cache import enable_compilation_cache
+    from jsve.fitting._config import StudyConfig
     from jsve.fitting._search import use_all_cores
-    from jsve.fitting._study import StudyConfig
     from jsve.io._atomic import check_writable
 
     check_writable(args.output)  # before reading the logs: an unwritable folder fails at once

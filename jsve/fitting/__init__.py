@@ -6,6 +6,8 @@ lockstep driver) and relaxed BFGS fits (optimistix), cross-validation with boots
 resumable study behind `jsve fit`.
 """
 
+from jsve.fitting._config import THOROUGH as THOROUGH
+from jsve.fitting._config import StudyConfig as StudyConfig
 from jsve.fitting._crossval import compare as compare
 from jsve.fitting._crossval import cross_validate as cross_validate
 from jsve.fitting._crossval import kfold as kfold
@@ -52,7 +54,5 @@ from jsve.fitting._space import ParamSpace as ParamSpace
 from jsve.fitting._space import inlier_space as inlier_space
 from jsve.fitting._space import space_from_dict as space_from_dict
 from jsve.fitting._space import sve_space as sve_space
-from jsve.fitting._study import THOROUGH as THOROUGH
-from jsve.fitting._study import StudyConfig as StudyConfig
 from jsve.fitting._study import run_study as run_study
 from jsve.fitting._study import study_folds as study_folds

@@ -40,7 +40,7 @@ from jsve.report._tables import (
 )
 
 GROUP_COLUMNS = ("sequence", "disturbance", "level")
-"""`jsve fit`'s default run weighting (jsve.fitting._study.StudyConfig.balance_by)."""
+"""`jsve fit`'s default run weighting (jsve.fitting._config.StudyConfig.balance_by)."""
 
 
 def _paired(scored: pd.DataFrame, n_boot: int = 1000) -> pd.DataFrame:

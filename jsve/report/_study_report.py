@@ -52,7 +52,7 @@ from jsve.report._tables import (
 DESIGN_TEXT = {"sobol": "Sobol", "grid": "grid", "random": "random", "lhs": "Latin hypercube"}
 """Search designs (jsve.fitting._designs) in words."""
 GROUP_COLUMNS = ("sequence", "disturbance", "level")
-"""`jsve fit`'s default run weighting (jsve.fitting._study.StudyConfig.balance_by), for a study.json that
+"""`jsve fit`'s default run weighting (jsve.fitting._config.StudyConfig.balance_by), for a study.json that
 records none."""
 
 FAMILY_TEXT = {
