@@ -43,6 +43,7 @@ from jsve.io import _schema as schema
 from jsve.io import _text as text
 from jsve.io._errors import LogFormatError, LogIncompleteError, LogVersionWarning, shorten
 from jsve.io._groundtruth import GroundTruthSpec, apply_ground_truth
+from jsve.io._row_rules import Problem, find_problem
 from jsve.io._schema import RunLog
 
 PARTIAL_SUFFIX = atomic.PARTIAL_SUFFIX
@@ -64,9 +65,6 @@ _GROUP_WORDS = {
 TRAILERS_KEY = b"jsve.trailers"
 """Where a parsed table (parse_table) carries the log's trailers: its schema metadata, as JSON."""
 _VIS_SET = frozenset(schema.VIS_COLUMNS)
-_POSED = ", ".join(f"{s} ({schema.STATE_NAMES[s]})" for s in schema.POSED_STATES[:-1]) + (
-    f" and {schema.POSED_STATES[-1]} ({schema.STATE_NAMES[schema.POSED_STATES[-1]]})"
-)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -74,11 +72,6 @@ _POSED = ", ".join(f"{s} ({schema.STATE_NAMES[s]})" for s in schema.POSED_STATES
 
 
 _MISSING = object()  # a metadata key that is absent
-
-_TOO_LARGE = (
-    f"beyond float32's range (|x| <= {schema.FLOAT_MAX:.8g}), the range jsve computes in: "
-    "no real metre, second or m/s is this large"
-)
 
 
 def _check_meta(meta, source: str, line: int | None) -> None:
@@ -218,335 +211,7 @@ def _quote(names: Sequence[str], limit: int = 8) -> str:
 
 
 # --------------------------------------------------------------------------------------------------
-# Row validation (vectorised; shared by the reader and the in-memory validator)
-
-
-@dataclass
-class _Problem:
-    """The first defect found in the frames; turned into a LogFormatError by the caller."""
-
-    row: int  # 0-based frame
-    order: int  # column position used to pick the first defect of a row
-    column: str
-    reason: str  # may contain '{ref}', replaced by 'line N' or 'frame N' of ref_row
-    value_cols: tuple[str, ...] = ()  # columns whose values make up the value shown
-    value: str | None = None  # explicit value, when it is not a field of the row
-    what: str = "column"
-    ref_row: int | None = None
-
-
-def _find_problem(
-    cols: Mapping[str, np.ndarray],
-    gt_missing: np.ndarray | None,
-    vis_missing: np.ndarray | None,
-    starts: np.ndarray | None = None,
-) -> _Problem | None:
-    """First (lowest row, then leftmost column) violation of the value rules, or None.
-
-    Arguments:
-        cols: column name -> values [frames], in file order (v2, or v1 without map_id / imu_ba2);
-            ints int64, floats float64, gt_* and vis_* NaN where missing.
-        gt_missing: bool [frames, 7], True where a gt value is absent (an empty field in a file; NaN in
-            memory), or None when there are no gt columns.
-        vis_missing: bool [frames, 10], True where a vis_* value is absent (as gt_missing), or None
-            where no vis_* value may be absent (format v1).
-        starts: the first row of each run, for several runs' rows checked at once (rows_are_valid):
-            stamps then increase within each run and the first-frame rules hold at each start. Default
-            one run.
-    """
-    pos = {c: i for i, c in enumerate(cols)}
-    n_frames = len(cols["t_ns"])
-    starts = np.zeros(1 if n_frames else 0, np.int64) if starts is None else np.asarray(starts)
-
-    found: list[_Problem] = []
-
-    # Rules are checked column by column (no [frames, k] copies): many logs are validated at once
-    # (rows_are_valid), and a full pass per rule over every column would cost more than the parse.
-    def first_cell(bads: np.ndarray | Sequence[np.ndarray | None]) -> tuple[int, int] | None:
-        """(row, k) of the first True over the columns bads[k] (lowest row, then lowest k), or None;
-        a None column has no True. An array is one column [frames] or columns [frames, k]."""
-        if isinstance(bads, np.ndarray):
-            bads = [bads] if bads.ndim == 1 else list(bads.T)
-        best = None
-        for k, bad in enumerate(bads):
-            if bad is not None and bad.any():
-                r = int(np.argmax(bad))
-                if best is None or r < best[0]:
-                    best = (r, k)
-        return best
-
-    def per_cell(bads: np.ndarray | Sequence[np.ndarray | None], names: Sequence[str], reason) -> None:
-        """One-field rule: bads[k] flags column names[k]; reason is a string, or a function of the row."""
-        hit = first_cell(bads)
-        if hit is not None:
-            r, k = hit
-            c = names[k]
-            text = reason(r) if callable(reason) else reason
-            found.append(_Problem(r, pos[c], c, text, (c,)))
-
-    def outside(names: Sequence[str], low: float | None, high: float | None) -> list[np.ndarray | None]:
-        """Per column, where a value is < low or > high (None: none is, from its min and max)."""
-        out: list[np.ndarray | None] = []
-        for c in names:
-            x = cols[c]
-            below = low is not None and x.min() < low
-            above = high is not None and x.max() > high
-            if not (below or above):
-                out.append(None)
-                continue
-            bad = np.zeros(len(x), bool)
-            if below:
-                bad |= x < low
-            if above:
-                bad |= x > high
-            out.append(bad)
-        return out
-
-    ints = cols
-    other_floats = [c for c in schema.FLOAT_COLUMNS if c not in _VIS_SET]
-    other_floats += [c for c in schema.WORLD_COLUMNS if c in pos]
-
-    # NaN / inf anywhere (an empty gt_* or vis_* field is a missing value, not NaN), and finite values
-    # that float32, which jsve computes in, cannot hold.
-    def finite_in_range(names: Sequence[str], missing: np.ndarray | None, no_value: str) -> None:
-        not_finite: list[np.ndarray | None] = []
-        huge: list[np.ndarray | None] = []
-        for k, c in enumerate(names):
-            x = cols[c]
-            finite = np.isfinite(x)
-            all_finite = finite.all()
-            bad = None if all_finite else ~finite if missing is None else ~finite & ~missing[:, k]
-            not_finite.append(bad)
-            if all_finite:
-                large = x.max() > schema.FLOAT_MAX or x.min() < -schema.FLOAT_MAX
-            else:
-                with np.errstate(invalid="ignore"):
-                    large = bool(np.any(np.abs(x[finite]) > schema.FLOAT_MAX))
-            if large:
-                with np.errstate(invalid="ignore"):
-                    huge.append((np.abs(x) > schema.FLOAT_MAX) & finite)
-            else:
-                huge.append(None)
-        per_cell(not_finite, names, "NaN or inf is not allowed" + no_value)
-        per_cell(huge, names, _TOO_LARGE)
-
-    finite_in_range(other_floats, None, "")
-    if vis_missing is None:
-        finite_in_range(schema.VIS_COLUMNS, None, "")
-    else:
-        finite_in_range(
-            schema.VIS_COLUMNS,
-            vis_missing,
-            " (leave all ten vis_* fields empty for a frame without a pose)",
-        )
-        n_vis = len(schema.VIS_COLUMNS)
-        n_missing = vis_missing.sum(axis=1)
-        partial = (n_missing > 0) & (n_missing < n_vis)
-        hit = first_cell(vis_missing & partial[:, None])
-        if hit is not None:
-            r, k = hit
-            c = schema.VIS_COLUMNS[k]
-            present = n_vis - int(n_missing[r])
-            found.append(
-                _Problem(
-                    r,
-                    # After the single-field rules of the row: a 'nan' written beside empty fields
-                    # is reported as itself.
-                    pos[schema.VIS_COLUMNS[-1]],
-                    c,
-                    f"missing while {present} other vis_* values of this frame are present (a frame "
-                    "has all ten vis_* values, or none when the front-end has no pose)",
-                    (c,),
-                )
-            )
-        state = ints["state"]
-        hit = first_cell((n_missing == n_vis) & np.isin(state, schema.POSED_STATES))
-        if hit is not None:
-            r = hit[0]
-            c = schema.VIS_COLUMNS[0]
-            s = int(state[r])
-            found.append(
-                _Problem(
-                    r,
-                    pos[c],
-                    c,
-                    f"no pose in state {s} ({schema.STATE_NAMES[s]}): frames in states {_POSED} "
-                    "have one (vis_* may be empty only in the other states)",
-                    (c,),
-                )
-            )
-    if gt_missing is not None:
-        finite_in_range(
-            schema.GT_COLUMNS,
-            gt_missing,
-            " (leave all seven gt_* fields empty for a frame without ground truth)",
-        )
-        n_missing = gt_missing.sum(axis=1)
-        partial = (n_missing > 0) & (n_missing < len(schema.GT_COLUMNS))
-        hit = first_cell(gt_missing & partial[:, None])
-        if hit is not None:
-            r, k = hit
-            c = schema.GT_COLUMNS[k]
-            present = len(schema.GT_COLUMNS) - int(n_missing[r])
-            found.append(
-                _Problem(
-                    r,
-                    pos[c],
-                    c,
-                    f"missing while {present} other gt_* values of this frame are present "
-                    "(a frame has all seven gt_* values or none)",
-                    value="",
-                )
-            )
-
-    # Timestamps strictly increasing.
-    t = ints["t_ns"]
-    if len(t) > 1:
-        bad = np.diff(t) <= 0
-        bad[starts[1:] - 1] = False  # from one run's last frame to the next run's first
-        if bad.any():
-            r = int(np.argmax(bad)) + 1
-            if t[r] == t[r - 1]:
-                reason = "duplicate timestamp: the same as {ref} (t_ns must be strictly increasing)"
-            else:
-                reason = (
-                    f"t_ns must be strictly increasing: {int(t[r - 1]) - int(t[r])} ns earlier than {{ref}} "
-                    f"({int(t[r - 1])}; rows unsorted)"
-                )
-            found.append(_Problem(r, pos["t_ns"], "t_ns", reason, ("t_ns",), ref_row=r - 1))
-
-    states = ", ".join(map(str, schema.VALID_STATES))
-    per_cell(
-        ~np.isin(ints["state"], schema.VALID_STATES),
-        ("state",),
-        f"must be one of {states} (ORB-SLAM3 eTrackingState)",
-    )
-    imu_init = ints["imu_init"]
-    per_cell((imu_init != 0) & (imu_init != 1), ("imu_init",), "must be 0 or 1")
-    if "map_id" in cols:  # format v2
-        per_cell(ints["map_id"] < 0, ("map_id",), "must be >= 0 (ORB-SLAM3 Map::GetId(), an unsigned id)")
-        ba2 = ints["imu_ba2"]
-        per_cell((ba2 != 0) & (ba2 != 1), ("imu_ba2",), "must be 0 or 1")
-        per_cell(
-            (ba2 == 1) & (imu_init == 0),
-            ("imu_ba2",),
-            "requires imu_init = 1 (ORB-SLAM3 runs inertial BA2 only on a map whose IMU is initialised)",
-        )
-
-    count_names = schema.COUNT_COLUMNS + schema.BIN_COLUMNS
-    per_cell(outside(count_names, 0, None), count_names, "must be >= 0 (a count)")
-    per_cell(
-        outside(schema.COUNT_COLUMNS, None, schema.COUNT_MAX),
-        schema.COUNT_COLUMNS,
-        f"must be <= {schema.COUNT_MAX} (ORB-SLAM3 counts in int; jsve holds counts as int32)",
-    )
-    bins_outside = outside(schema.BIN_COLUMNS, 0, schema.BIN_MAX)
-    per_cell(
-        outside(schema.BIN_COLUMNS, None, schema.BIN_MAX),
-        schema.BIN_COLUMNS,
-        f"must be <= {schema.BIN_MAX} (keypoints of one SVE bin; jsve holds bins as uint16)",
-    )
-
-    n_ext, n_inl = ints["n_extracted"], ints["n_inliers"]
-    per_cell([n_inl > n_ext], ("n_inliers",), lambda r: f"must be <= n_extracted ({int(n_ext[r])})")
-    # Clipped so that the sum cannot wrap around int64: a bin out of [0, BIN_MAX] is reported above.
-    bin_sum = np.zeros(n_frames, np.int64)
-    for c, out_of_range in zip(schema.BIN_COLUMNS, bins_outside, strict=True):
-        bin_sum += cols[c] if out_of_range is None else np.clip(cols[c], 0, schema.BIN_MAX + 1)
-    hit = first_cell([bin_sum > n_ext])
-    if hit is not None:
-        r = hit[0]
-        found.append(
-            _Problem(
-                r,
-                pos[schema.BIN_COLUMNS[-1]],  # after the single-field rules of the same row
-                f"{schema.BIN_COLUMNS[0]}..{schema.BIN_COLUMNS[-1]}",
-                f"the binned keypoints (sum {int(bin_sum[r])}) must not exceed n_extracted ({int(n_ext[r])})",
-                value=str(int(bin_sum[r])),
-                what="columns",
-            )
-        )
-
-    if "ref_kf" in pos:  # format v3's keyframe columns
-        _keyframe_problems(cols, pos, per_cell, found)
-
-    tol = schema.UNIT_QUATERNION_TOLERANCE
-    for names in schema.QUATERNION_GROUPS.values():
-        if names[0] not in pos:
-            continue
-        norm = np.sqrt(sum(cols[c] * cols[c] for c in names))
-        # NaN rows compare False: reported above, or a frame without ground truth or without a pose.
-        hit = first_cell(np.abs(norm - 1.0) > tol)
-        if hit is not None:
-            r = hit[0]
-            found.append(
-                _Problem(
-                    r,
-                    pos[names[-1]],
-                    f"{names[0]}..{names[-1]}",
-                    f"not a unit quaternion: |q| = {norm[r]:.12g} (tolerance {tol:g})",
-                    tuple(names),
-                    what="columns",
-                )
-            )
-
-    per_cell(cols["imu_dt"] < 0, ("imu_dt",), "must be >= 0 (seconds since the previous frame)")
-    if schema.WORLD_SCALE in pos:
-        per_cell(
-            ~(cols[schema.WORLD_SCALE] > 0),
-            (schema.WORLD_SCALE,),
-            "must be > 0 (the scale of the similarity between world frames)",
-        )
-
-    # First frame: nothing to preintegrate from (docs/log-format.md, "First frame").
-    if n_frames:
-        first_reason = "must be {} on the first frame (no previous frame to preintegrate from)"
-        for c in ("imu_dt",) + schema.IMU_DP + schema.IMU_DV:
-            bad = cols[c][starts] != 0.0
-            if bad.any():
-                found.append(_Problem(int(starts[np.argmax(bad)]), pos[c], c, first_reason.format(0), (c,)))
-        identity = np.array([1.0, 0.0, 0.0, 0.0])
-        bad = (np.stack([cols[c][starts] for c in schema.IMU_DQ], axis=1) != identity).any(axis=1)
-        if bad.any():
-            found.append(
-                _Problem(
-                    int(starts[np.argmax(bad)]),
-                    pos[schema.IMU_DQ[-1]],
-                    f"{schema.IMU_DQ[0]}..{schema.IMU_DQ[-1]}",
-                    first_reason.format("the identity (1, 0, 0, 0)"),
-                    schema.IMU_DQ,
-                    what="columns",
-                )
-            )
-    return min(found, key=lambda p: (p.row, p.order)) if found else None
-
-
-def _keyframe_problems(cols, pos, per_cell, found: list) -> None:
-    """The rules of v3's keyframe columns (schema.KEYFRAME_COLUMNS): known event bits, traj 0/1 and only
-    with a reference keyframe, ref_kf >= -1, rel_* all present and finite exactly where ref_kf >= 0."""
-    events, traj, ref = cols["events"], cols["traj"], cols["ref_kf"]
-    per_cell(
-        (events < 0) | ((events & ~schema.EVENT_MASK) != 0),
-        ("events",),
-        f"must be a bit set of the known events (0..{schema.EVENT_MASK}; schema.EVENTS)",
-    )
-    per_cell((traj != 0) & (traj != 1), ("traj",), "must be 0 or 1")
-    per_cell(ref < -1, ("ref_kf",), "must be >= -1 (a keyframe id, or -1 for none)")
-    per_cell((traj == 1) & (ref < 0), ("traj",), "is 1 without a reference keyframe (ref_kf -1)")
-    rel = np.stack([cols[c] for c in schema.REL_COLUMNS], axis=1)
-    finite = np.isfinite(rel)
-    has_ref = ref >= 0
-    bad = (has_ref[:, None] & ~finite) | (~has_ref[:, None] & ~np.isnan(rel))
-    hit = np.flatnonzero(bad.any(axis=1))
-    if len(hit):
-        r = int(hit[0])
-        c = schema.REL_COLUMNS[int(np.argmax(bad[r]))]
-        reason = (
-            "must be a finite number where ref_kf >= 0"
-            if has_ref[r]
-            else "must be empty where ref_kf is -1 (no reference keyframe)"
-        )
-        found.append(_Problem(r, pos[c], c, reason, (c,)))
+# Trailers
 
 
 def parse_trailers(lines: Sequence[tuple[int, str]], source: str) -> dict:
@@ -618,7 +283,7 @@ def validate_run(run: RunLog) -> RunLog:
             columns[c] = values.astype(np.float64, copy=False)
     gt_missing = np.stack([np.isnan(columns[c]) for c in schema.GT_COLUMNS], axis=1) if has_gt else None
     vis_missing = np.stack([np.isnan(columns[c]) for c in schema.VIS_COLUMNS], axis=1)
-    problem = _find_problem(columns, gt_missing, vis_missing)
+    problem = find_problem(columns, gt_missing, vis_missing)
     if problem is not None:
         raise _memory_error(problem, columns, source)
     if (
@@ -632,7 +297,7 @@ def validate_run(run: RunLog) -> RunLog:
     return RunLog(meta=meta, frames=canonical, source=source, trailers=run.trailers)
 
 
-def _memory_error(p: _Problem, cols: Mapping[str, np.ndarray], source: str) -> LogFormatError:
+def _memory_error(p: Problem, cols: Mapping[str, np.ndarray], source: str) -> LogFormatError:
     if p.value is not None:
         value = p.value
     else:
@@ -958,8 +623,8 @@ def _first_empty(table: pa.Table, columns: Sequence[str], version: int) -> tuple
 
 def _value_problem(
     table: pa.Table, columns: Sequence[str], version: int, starts: np.ndarray | None = None
-) -> _Problem | None:
-    """_find_problem on parsed rows (their null masks: empty gt_* and vis_* fields)."""
+) -> Problem | None:
+    """find_problem on parsed rows (their null masks: empty gt_* and vis_* fields)."""
 
     def nulls(names):
         return np.stack([np.asarray(table.column(c).is_null()) for c in names], axis=1)
@@ -967,13 +632,13 @@ def _value_problem(
     gt_missing = nulls(schema.GT_COLUMNS) if schema.GT_COLUMNS[0] in columns else None
     vis_missing = nulls(schema.VIS_COLUMNS) if version >= 2 else None
     cols = {c: table.column(c).to_numpy() for c in columns}
-    return _find_problem(cols, gt_missing, vis_missing, starts)
+    return find_problem(cols, gt_missing, vis_missing, starts)
 
 
 def rows_are_valid(table: pa.Table, columns: Sequence[str], version: int, starts: np.ndarray) -> bool:
     """Whether several logs' rows parsed as one table (each log's first row at `starts`) pass every
     value rule that `read_log` applies to each alone: no empty field where none may be, no
-    _find_problem. Which log and line fails is left to reading that log alone."""
+    find_problem. Which log and line fails is left to reading that log alone."""
     return (
         _first_empty(table, columns, version) is None
         and _value_problem(table, columns, version, starts) is None
@@ -1070,7 +735,7 @@ def _locate_parse_error(region: bytes, columns: list[str], source: str, arrow_me
     return LogFormatError(source, None, f"cannot parse the rows: {arrow_message}")
 
 
-def _file_error(p: _Problem, region: bytes, columns: list[str], source: str) -> LogFormatError:
+def _file_error(p: Problem, region: bytes, columns: list[str], source: str) -> LogFormatError:
     if p.value is not None:
         value = p.value
     else:
