@@ -2,7 +2,7 @@
 
 Everything in one output folder, without ../shared (procedural EuRoC-like flights):
 
-    OUT/logs/           the simulated format-v1 logs and logs/study.parquet (jsve.sim._simulate.write_study)
+    OUT/logs/           the simulated format-v1 logs and logs/study.parquet (jsve.sim._study.write_study)
     OUT/*.parquet|csv   every table of the study (jsve.fitting._study)
     OUT/report.md|html  the report (jsve.report._report), OUT/figures/
 
@@ -85,7 +85,8 @@ def run_demo(
     from jsve.fitting._study import run_study
     from jsve.report._report import write_report
     from jsve.sim._motion import FlightProfile
-    from jsve.sim._simulate import SimConfig, write_study
+    from jsve.sim._simulate import SimConfig
+    from jsve.sim._study import write_study
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -26,6 +26,7 @@ from jsve.io import read_log, write_log
 from jsve.io._resume import StaleOutputError
 from jsve.sim import _motion as sm
 from jsve.sim import _simulate as sim
+from jsve.sim import _study as sim_study
 from jsve.sim import _vision as sv
 
 SHORT = sim.SimConfig(flight=sm.FlightProfile(duration_s=(25.0, 25.0)))
@@ -135,16 +136,16 @@ def test_visual_error_grows_as_tracking_weakens():
 
 def test_write_study_is_resumable(tmp_path):
     out = tmp_path / "study"
-    first = sim.write_study(
+    first = sim_study.write_study(
         out, procedural=1, disturbances="blur:0:40", runs=2, workers=1, config=SHORT, progress=False
     )
     assert (first.written, first.skipped) == (4, 0)
-    path = sim.log_path(out, "proc_00", sim.Setting("blur", 40.0), 1)
+    path = sim_study.log_path(out, "proc_00", sim.Setting("blur", 40.0), 1)
     original = path.read_bytes()
     path.unlink()
     stale = path.with_name(path.name + ".partial")
     stale.write_text("half a log")
-    second = sim.write_study(
+    second = sim_study.write_study(
         out, procedural=1, disturbances="blur:0:40", runs=2, workers=1, config=SHORT, progress=False
     )
     assert (second.written, second.skipped) == (1, 3)
@@ -153,7 +154,7 @@ def test_write_study_is_resumable(tmp_path):
 
 def _study(out, **kw):
     options = dict(procedural=1, disturbances="blur:0:40", runs=2, workers=1, config=SHORT, progress=False)
-    return sim.write_study(out, **{**options, **kw})
+    return sim_study.write_study(out, **{**options, **kw})
 
 
 def test_resume_refuses_logs_of_another_seed_or_configuration(tmp_path):
@@ -162,7 +163,7 @@ def test_resume_refuses_logs_of_another_seed_or_configuration(tmp_path):
     force=True replaces them with the logs a clean run under the new key writes."""
     out = tmp_path / "study"
     _study(out, runs=1)
-    path = sim.log_path(out, "proc_00", sim.Setting("blur", 40.0), 0)
+    path = sim_study.log_path(out, "proc_00", sim.Setting("blur", 40.0), 0)
     before = {p: p.read_bytes() for p in out.rglob("*.csv")}
     assert read_log(path).meta["generator"] == sim.generator_key(sim.SequenceSpec("proc_00"), 0, SHORT)
     with pytest.raises(StaleOutputError, match=r"study holds outputs of another job \(2 logs .* seed 0 != 1"):
@@ -174,7 +175,7 @@ def test_resume_refuses_logs_of_another_seed_or_configuration(tmp_path):
         _study(out, config=replace(SHORT, imu_source="real"))
     assert {p: p.read_bytes() for p in out.rglob("*.csv")} == before
     # a log of another sequence in the folder counts too (one folder, one study)
-    other = sim.log_path(out, "proc_07", sim.Setting("none", 0.0), 0)
+    other = sim_study.log_path(out, "proc_07", sim.Setting("none", 0.0), 0)
     other.parent.mkdir(parents=True)
     other.write_bytes(path.read_bytes().replace(b'"generator": {"seed": 0', b'"generator": {"seed": 5', 1))
     with pytest.raises(StaleOutputError, match="proc_07/none-0/run_000.csv: seed 5 != 0"):
@@ -235,7 +236,7 @@ def test_cli(tmp_path, capsys):
         == 0
     )
     assert "1 logs written" in capsys.readouterr().out
-    run = read_log(sim.log_path(out, "proc_00", sim.Setting("occlusion", 450.0), 0))
+    run = read_log(sim_study.log_path(out, "proc_00", sim.Setting("occlusion", 450.0), 0))
     assert run.meta["frontend"] == sim.FRONTEND and run.meta["disturbance"] == "occlusion"
     assert main(["simulate", "-o", str(out), "--sequences", "MH_01"]) == 2
 
@@ -248,7 +249,7 @@ def test_cli_duration_sets_every_procedural_flights_length(tmp_path, capsys):
     assert main([*args, "--duration", "12.5", "--workers", "1", "--no-progress"]) == 0
     assert "2 logs x ~250 frames" in capsys.readouterr().err  # the size announced from the duration
     for name in ("proc_00", "proc_01"):
-        assert len(read_log(sim.log_path(out, name, sim.Setting("none", 0.0), 0)).frames) == 250
+        assert len(read_log(sim_study.log_path(out, name, sim.Setting("none", 0.0), 0)).frames) == 250
     assert main([*args, "--duration", "0"]) == 2
     assert (
         main(["simulate", "-o", str(out), "--sequences", "MH_01", "--euroc-gt", ".", "--duration", "5"]) == 2

@@ -4,7 +4,7 @@
     jsve simulate -o study/ --sequences MH_01,V1_01 --euroc-gt ../shared/data/euroc/groundtruth_left_cam
     jsve simulate -o study/ --procedural 3 --disturbances blur=0,25,50,occlusion --runs 5 --parquet
 
-A thin layer over jsve.sim._simulate.write_study: one log per sequence x setting x run under
+A thin layer over jsve.sim._study.write_study: one log per sequence x setting x run under
 OUT/<sequence>/<disturbance>-<level>/run_<k>.csv, in parallel processes (an embedded Dask cluster, a
 process pool or a running Dask cluster: --scheduler, docs/scaling.md); a re-run skips logs that
 are already complete and were simulated under the same seed, --imu, configuration and input files
@@ -85,7 +85,8 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from jsve.io._scheduler import check_scheduler
     from jsve.sim._motion import FlightProfile
-    from jsve.sim._simulate import LOG_BYTES_PER_FRAME, SimConfig, settings, study_size, write_study
+    from jsve.sim._simulate import SimConfig, settings
+    from jsve.sim._study import LOG_BYTES_PER_FRAME, study_size, write_study
 
     if args.sequences and not args.euroc_gt:
         return common.fail("simulate", "--sequences needs --euroc-gt DIR (or use --procedural N)")

@@ -24,7 +24,7 @@ from jsve.sim._simulate import procedural_sequences as procedural_sequences
 from jsve.sim._simulate import settings as settings
 from jsve.sim._simulate import simulate_run as simulate_run
 from jsve.sim._simulate import simulate_study as simulate_study
-from jsve.sim._simulate import write_study as write_study
+from jsve.sim._study import write_study as write_study
 from jsve.sim._vision import RENDERED_TEXTURE_SCALE as RENDERED_TEXTURE_SCALE
 from jsve.sim._vision import Scene as Scene
 from jsve.sim._vision import SceneProfile as SceneProfile
