@@ -113,21 +113,21 @@ def build(tmp_path_factory):
     return _build
 
 
+def compile_strictly(source: Path, out: Path, standard: str, variant: str) -> subprocess.CompletedProcess:
+    """Compile a C++ test source to an object file with STRICT plus the stricter warnings users may
+    have (-Wshadow, -Wconversion, ...), at `standard`, with VARIANTS[variant]'s defines."""
+    extra = ["-Wshadow", "-Wconversion", "-Wsign-conversion", "-Wold-style-cast", "-Wdouble-promotion"]
+    cmd = [CXX, f"-std={standard}", *STRICT, *extra, "-O2", *VARIANTS[variant]]
+    cmd += [f"-I{jsve.frontend.get_include()}", "-c", str(source), "-o", str(out)]
+    return subprocess.run(cmd, capture_output=True, text=True)
+
+
 @needs_cxx
 @pytest.mark.parametrize("standard", ["c++17", "c++20"])
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_header_compiles_warning_free(tmp_path, variant, standard):
     """-Wall -Wextra -pedantic -Werror at -std=c++17 (and c++20), plus stricter flags users may have."""
-    extra = ["-Wshadow", "-Wconversion", "-Wsign-conversion", "-Wold-style-cast", "-Wdouble-promotion"]
-    cmd = [CXX, f"-std={standard}", *STRICT, *extra, "-O2", *VARIANTS[variant]]
-    cmd += [
-        f"-I{jsve.frontend.get_include()}",
-        "-c",
-        str(CPP / "header_only.cpp"),
-        "-o",
-        str(tmp_path / "h.o"),
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    done = compile_strictly(CPP / "header_only.cpp", tmp_path / "h.o", standard, variant)
     assert done.returncode == 0, done.stderr
     assert done.stderr == ""
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_frontend import CPP, CXX, STRICT, VARIANTS, build, needs_cxx  # noqa: F401 - build: the fixture
+from test_frontend import CPP, CXX, STRICT, VARIANTS, build, compile_strictly, needs_cxx  # noqa: F401 - build: the fixture
 
 import jsve.frontend
 from jsve.io import LogIncompleteError, keypoints_path, read_keypoints
@@ -103,16 +103,7 @@ def test_the_writer_refuses_bad_rows_and_metadata_and_leaves_a_partial_file(buil
 @pytest.mark.parametrize("standard", ["c++17", "c++20"])
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_the_header_compiles_warning_free_under_strict_flags(tmp_path, variant, standard):
-    extra = ["-Wshadow", "-Wconversion", "-Wsign-conversion", "-Wold-style-cast", "-Wdouble-promotion"]
-    cmd = [CXX, f"-std={standard}", *STRICT, *extra, "-O2", *VARIANTS[variant]]
-    cmd += [
-        f"-I{jsve.frontend.get_include()}",
-        "-c",
-        str(CPP / "write_keypoints.cpp"),
-        "-o",
-        str(tmp_path / "k.o"),
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    done = compile_strictly(CPP / "write_keypoints.cpp", tmp_path / "k.o", standard, variant)
     assert done.returncode == 0 and done.stderr == "", done.stderr
 
 
