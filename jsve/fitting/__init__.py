@@ -1,8 +1,9 @@
 """jsve.fitting: fitting rule weights and thresholds to minimise position error.
 
 The parameter space (bounds, transforms, presets as points), space-filling designs, the fused search
-kernel (replay + alignment statistics in one scan over many settings), Nelder-Mead fits (jsve's own
-lockstep driver) and relaxed BFGS fits (optimistix), cross-validation with bootstrap CIs, and the
+kernel (replay + alignment statistics in one scan over many settings), the scorer every optimiser
+asks for per-run results (Scorer; ReplayScorer replays logs with the kernel), Nelder-Mead fits (jsve's
+own lockstep driver) and relaxed BFGS fits (optimistix), cross-validation with bootstrap CIs, and the
 resumable study behind `jsve fit`.
 """
 
@@ -17,10 +18,8 @@ from jsve.fitting._designs import design as design
 from jsve.fitting._designs import grid_design as grid_design
 from jsve.fitting._designs import sobol as sobol
 from jsve.fitting._distributed import ShardedSearch as ShardedSearch
-from jsve.fitting._fit import SEARCH_METHODS as SEARCH_METHODS
 from jsve.fitting._fit import FitConfig as FitConfig
 from jsve.fitting._fit import FitResult as FitResult
-from jsve.fitting._fit import PolishedFit as PolishedFit
 from jsve.fitting._fit import fit as fit
 from jsve.fitting._fit import fit_search as fit_search
 from jsve.fitting._fit import fitted_rule_name as fitted_rule_name
@@ -29,7 +28,6 @@ from jsve.fitting._fit import polish as polish
 from jsve.fitting._fit import polish_fits as polish_fits
 from jsve.fitting._fit import resolve_search as resolve_search
 from jsve.fitting._fit import search_all as search_all
-from jsve.fitting._halving import HalvingResult as HalvingResult
 from jsve.fitting._halving import RunLossCache as RunLossCache
 from jsve.fitting._halving import halving_search as halving_search
 from jsve.fitting._halving import halving_searches as halving_searches
@@ -40,12 +38,12 @@ from jsve.fitting._optimise import relaxed_fit as relaxed_fit
 from jsve.fitting._packing import LAYOUT_CLASSES as LAYOUT_CLASSES
 from jsve.fitting._packing import cheapest_layout as cheapest_layout
 from jsve.fitting._packing import layout_shapes as layout_shapes
-from jsve.fitting._packing import one_part_shape as one_part_shape
 from jsve.fitting._packing import pack_runs as pack_runs
 from jsve.fitting._packing import scan_cost as scan_cost
-from jsve.fitting._packing import subset_layout as subset_layout
 from jsve.fitting._packing import subset_parts as subset_parts
 from jsve.fitting._polish import polish_runs as polish_runs
+from jsve.fitting._scorer import ReplayScorer as ReplayScorer
+from jsve.fitting._scorer import Scorer as Scorer
 from jsve.fitting._search import lanes_per_call as lanes_per_call
 from jsve.fitting._search import search as search
 from jsve.fitting._search import use_all_cores as use_all_cores
