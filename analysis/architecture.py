@@ -58,6 +58,9 @@ LAYERS: dict[str, frozenset[str] | None] = {
     # Rendered EuRoC-format sequences for the real front-end: trajectories and IMU synthesis from sim,
     # the camera model from image.
     "render": frozenset({"core", "io", "image", "sim"}),
+    # Rules tuned in the loop: runs of the front-end (or the simulator, to rehearse), the replay's
+    # proposals (fitting, evaluation) and paired tests over the runs.
+    "tuning": frozenset({"core", "io", "evaluation", "fitting", "frontend", "sim"}),
     # The root package itself (jsve/__init__.py) re-exports everything.
     "": ANYTHING,
 }

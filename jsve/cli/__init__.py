@@ -42,6 +42,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "simulate",
     "render",
     "fit",
+    "tune",
     "report",
     "demo",
 )

@@ -33,6 +33,7 @@ from jsve.report._evaluation_report import evaluation_sections
 from jsve.report._format import cm_ci, percent
 from jsve.report._study_report import FOLD_KIND_TEXT, read_study, study_sections
 from jsve.report._tables import read_json, rule_file
+from jsve.report._tune_report import TUNE_TITLE, tune_sections
 
 STUDY_TITLE = "jsve threshold report"
 EVALUATION_TITLE = "jsve evaluation report"
@@ -83,6 +84,9 @@ def write_report(
     if (source / "study.json").is_file():
         title = _title(source, out, title, STUDY_TITLE)
         sections = study_sections(read_study(source), fig_dir)
+    elif (source / "tune.json").is_file():
+        title = _title(source, out, title, TUNE_TITLE)
+        sections = tune_sections(source, fig_dir)
     elif (source / "runs.parquet").is_file():
         title = _title(source, out, title, EVALUATION_TITLE)
         sections = evaluation_sections(source, fig_dir)

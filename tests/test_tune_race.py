@@ -1,0 +1,99 @@
+"""The race's statistics (jsve.tuning._race): Holm's adjustment against its definition worked by hand,
+the one-sided tests and intervals against scipy.stats called directly, and the racing steps on tables
+whose answer is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from jsve.tuning._race import better_than, eliminate, holm, paired_difference, paired_losses, worse_p
+
+
+def _rows(losses: dict[str, np.ndarray], datasets=("a", "b")) -> pd.DataFrame:
+    """Runs of each candidate on (dataset, seed) instances, the losses in instance order."""
+    rows = []
+    for name, values in losses.items():
+        for k, loss in enumerate(values):
+            rows.append({"candidate": name, "dataset": datasets[k % len(datasets)], "seed": k // len(datasets),
+                         "loss_m": float(loss), "failed": bool(loss >= 1.0)})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def test_holm_multiplies_the_kth_smallest_p_by_m_minus_k_and_keeps_the_order():
+    # sorted 0.01, 0.03, 0.04 -> 3 * 0.01 = 0.03, 2 * 0.03 = 0.06, 1 * 0.04 -> max(0.06, 0.04) = 0.06
+    assert holm([0.04, 0.01, 0.03]) == pytest.approx([0.06, 0.03, 0.06])
+    assert holm([0.5, 0.9]) == pytest.approx([1.0, 1.0])  # capped at 1
+    assert holm([]).shape == (0,)
+
+
+def test_worse_p_is_scipys_one_sided_wilcoxon_and_one_when_nothing_differs():
+    rng = np.random.default_rng(0)
+    d = rng.normal(0.02, 0.05, 30)
+    assert worse_p(d) == stats.wilcoxon(d, alternative="greater").pvalue
+    assert worse_p(np.zeros(12)) == 1.0
+    assert worse_p(-np.abs(d)) > 0.99  # better, never "worse"
+
+
+def test_pairs_are_the_instances_both_candidates_ran():
+    rows = _rows({"x": np.arange(6) * 0.1, "y": np.ones(4)})
+    pair = paired_losses(rows, "x", "y")
+    assert len(pair) == 4
+    assert sorted(pair["x"]) == pytest.approx([0.0, 0.1, 0.2, 0.3])  # in (dataset, seed) order
+
+
+def test_a_clearly_worse_candidate_is_eliminated_and_a_tied_one_is_not():
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0.01, 0.05, 20)
+    rows = _rows({"inc": base, "tie": base.copy(), "bad": base + rng.uniform(0.02, 0.2, 20)})
+    alive, table = eliminate(rows, ["inc", "tie", "bad"], alpha=0.05)
+    assert alive == ["inc", "tie"]
+    bad = table.set_index("candidate").loc["bad"]
+    assert bad.eliminated and bad.p_holm == pytest.approx(min(1.0, 2 * bad.p))  # Holm over two tests
+    assert table.set_index("candidate").loc["tie"].p == 1.0
+
+
+def test_the_winner_is_the_best_of_the_challengers_that_beat_the_incumbent():
+    rng = np.random.default_rng(2)
+    inc = rng.uniform(0.1, 0.3, 24)
+    rows = _rows({"inc": inc, "good": inc - 0.05, "better": inc - 0.08, "same": inc + rng.normal(0, 1e-3, 24)})
+    winner, table = better_than(rows, "inc", ["good", "better", "same"], alpha=0.05)
+    assert winner == "better"
+    assert list(table.set_index("candidate").beats[["good", "better", "same"]]) == [True, True, False]
+    assert table.set_index("candidate").loc["better"].mean_diff_m == pytest.approx(-0.08)
+
+
+def test_nobody_wins_when_no_challenger_is_significantly_better():
+    rng = np.random.default_rng(3)
+    inc = rng.uniform(0.1, 0.3, 10)
+    rows = _rows({"inc": inc, "noisy": inc + rng.normal(0, 0.05, 10)})
+    winner, _ = better_than(rows, "inc", ["noisy"], alpha=0.001)
+    assert winner is None
+
+
+def test_paired_difference_reports_scipys_intervals_and_counts():
+    rng = np.random.default_rng(4)
+    b = rng.uniform(0.02, 0.1, 16)
+    a = b + rng.normal(-0.01, 0.02, 16)
+    a[3] = 1.0  # a failure of the rule
+    rows = _rows({"rule": a, "base": b})
+    out = paired_difference(rows, "rule", "base", n_resamples=999)
+    pair = paired_losses(rows, "rule", "base")  # the sample in (dataset, seed) order, as resampled
+    a, b = pair["rule"].to_numpy(), pair["base"].to_numpy()
+    d = a - b
+    ci = stats.ttest_rel(a, b).confidence_interval(0.95)
+    boot = stats.bootstrap((d,), np.mean, method="BCa", n_resamples=999, random_state=0).confidence_interval
+    assert out["pairs"] == 16 and out["mean_diff_m"] == pytest.approx(d.mean())
+    assert (out["t_low_m"], out["t_high_m"]) == pytest.approx((ci.low, ci.high))
+    assert (out["bca_low_m"], out["bca_high_m"]) == pytest.approx((boot.low, boot.high))
+    assert out["wilcoxon_p"] == pytest.approx(stats.wilcoxon(d).pvalue)
+    assert (out["better"], out["worse"]) == (int((d < 0).sum()), int((d > 0).sum()))
+    assert (out["rule_failed"], out["baseline_failed"]) == (1, 0)
+
+
+def test_identical_arms_give_a_zero_width_interval_not_nan():
+    b = np.linspace(0.01, 0.05, 8)
+    out = paired_difference(_rows({"rule": b, "base": b}), "rule", "base")
+    assert out["mean_diff_m"] == 0 and out["bca_low_m"] == out["bca_high_m"] == 0 and out["wilcoxon_p"] == 1
