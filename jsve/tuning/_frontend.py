@@ -285,6 +285,7 @@ class SimulatedFrontend:
     pool: Path
     check_base: int
     study_seed: int = 0
+    flight_s: float | None = None
 
     def describe(self, dataset: str) -> tuple[str, str, float]:
         return parse_setting(dataset)
@@ -300,10 +301,13 @@ class SimulatedFrontend:
         )
 
     def _simulated(self, request: Request):
-        from jsve.sim._simulate import simulate_run
+        from jsve.sim._motion import FlightProfile
+        from jsve.sim._simulate import SimConfig, simulate_run
 
         sequence, disturbance, level = parse_setting(request.instance.dataset)
-        return simulate_run(sequence, disturbance, level, run=request.instance.seed, seed=self.study_seed)
+        config = SimConfig() if self.flight_s is None else SimConfig(flight=FlightProfile(duration_s=(self.flight_s,) * 2))
+        return simulate_run(sequence, disturbance, level, run=request.instance.seed, seed=self.study_seed,
+                            config=config)
 
     def run(self, requests: Sequence[Request], on_done: Callable[[Request, dict], None]) -> None:
         groups: dict[tuple[str, str], list[Request]] = {}

@@ -69,7 +69,8 @@ class TuneStudy:
         lockstep: runs in lockstep (deterministic under their seed; docs/frontend.md section 7).
         workers: runs at once; scheduler: where they run (jsve.io._scheduler; None: embedded Dask).
         timeout_s: a run's wall-clock limit (its outcome is then "timeout", a failed run).
-        seed: seeds the design and the perturbations.
+        seed: seeds the design and the perturbations (and the simulator's study).
+        flight_s: the simulator's flights' length, s (None: its default, 80-180 s).
         source: the TOML file read, for messages.
     """
 
@@ -101,6 +102,7 @@ class TuneStudy:
     scheduler: str | None = None
     timeout_s: float | None = 900.0
     seed: int = 0
+    flight_s: float | None = None
     source: str = field(default="<study>", compare=False)
 
     def __post_init__(self):

@@ -51,7 +51,7 @@ LEVEL = ("disturbance", "level")
 def make_frontend(study: TuneStudy, pool: Path):
     """The study's front-end over the pool of runs."""
     if study.frontend == "simulator":
-        return SimulatedFrontend(pool, study.verify_seed_base, study.seed)
+        return SimulatedFrontend(pool, study.verify_seed_base, study.seed, study.flight_s)
     return OrbSlam3Frontend(
         pool,
         Path(study.build),

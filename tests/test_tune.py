@@ -1,0 +1,159 @@
+"""`jsve tune` end to end on the simulator's front-end (jsve.tuning): the study file, every file of the
+folder and what its numbers must equal, resuming with nothing repeated, a folder of another study
+refused, and a tuning killed with SIGKILL and resumed that ends as an uninterrupted one."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from jsve.io._resume import StaleOutputError
+from jsve.tuning import TuneStudy, paired_difference, tune
+from jsve.tuning._tune import check_runs
+
+STUDY = """
+[tune]
+frontend = "simulator"
+family = "sve"
+switch_model = "imu-coast"
+train = ["proc_00:blur=25", "proc_01:occlusion=300"]
+heldout = ["proc_02:blur=25"]
+seeds_per_round = 2
+min_seeds = 2
+max_rounds = 2
+verify_seeds = 3
+budget = 100
+design = 16
+shortlist = 4
+perturbations = 1
+flight_s = 20.0
+"""
+
+
+def _study(folder: Path, text: str = STUDY) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (path := folder / "study.toml").write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tune")
+    study = TuneStudy.from_toml(_study(root))
+    state = tune(study, root / "out", progress=False)
+    return root, study, state
+
+
+def test_the_study_file_names_its_errors(tmp_path):
+    with pytest.raises(ValueError, match=r"study.toml: unknown key 'seeds'"):
+        TuneStudy.from_toml(_study(tmp_path, STUDY + "seeds = 3\n"))
+    with pytest.raises(ValueError, match="verify_seed_base 3 overlaps"):
+        TuneStudy.from_toml(_study(tmp_path, STUDY + "verify_seed_base = 3\n"))
+    with pytest.raises(ValueError, match="'sve-option9' is not a preset"):
+        TuneStudy.from_toml(_study(tmp_path, STUDY + 'baselines = ["sve-option9"]\n'))
+    with pytest.raises(ValueError, match="needs build, vocabulary, settings"):
+        TuneStudy.from_toml(_study(tmp_path, STUDY.replace('"simulator"', '"orbslam3"')))
+
+
+def test_paths_are_read_from_the_root_and_the_study_file(tmp_path):
+    text = STUDY.replace('"simulator"', '"orbslam3"').replace('"proc_00:blur=25"', '"d/a"')
+    text = text.replace('"proc_01:occlusion=300"', '"d/b"').replace('"proc_02:blur=25"', '"d/c"')
+    text += 'build = "b"\nvocabulary = "voc.txt"\nsettings = "s.yaml"\n'
+    study = TuneStudy.from_toml(_study(tmp_path / "sweeps", text), root=tmp_path / "data")
+    assert study.train == (str(tmp_path / "data" / "d" / "a"), str(tmp_path / "data" / "d" / "b"))
+    assert study.vocabulary == str(tmp_path / "data" / "voc.txt")
+    assert study.settings == str(tmp_path / "sweeps" / "s.yaml")
+
+
+def test_a_held_out_sequence_may_not_be_trained_on(tmp_path):
+    study = TuneStudy.from_toml(_study(tmp_path, STUDY.replace("proc_02:blur=25", "proc_00:occlusion=300")))
+    with pytest.raises(ValueError, match="held-out sequence proc_00 is also trained on"):
+        tune(study, tmp_path / "out", progress=False)
+
+
+def test_every_rule_raced_or_chosen_is_kept_and_every_run_has_one_row(tuned):
+    root, study, state = tuned
+    out = root / "out"
+    runs = pd.read_csv(out / "runs.csv")
+    assert not runs.duplicated(["candidate", "switch_model", "dataset", "seed"]).any()
+    assert runs["loss_m"].notna().all() and len(runs) == state["runs_used"] <= study.budget
+    raced = {c["name"] for r in state["rounds"] for c in r["candidates"]}
+    assert raced <= {p.stem for p in (out / "rules").glob("*.json")}
+    assert {"orbslam3", "sve-option2"} <= {p.stem for p in (out / "rules").glob("*.json")}
+    assert json.loads((out / "tuned_rule.json").read_text()) == json.loads((out / "rules" / f"{state['tuned']}.json").read_text())
+    check = runs[runs.seed >= study.verify_seed_base]
+    assert len(check) == check_runs(study)  # the tuned rule and both baselines on every held-out run
+    assert json.loads((out / "progress.json").read_text())["phase"] == "done"
+
+
+def test_the_check_is_the_paired_difference_of_the_kept_runs(tuned):
+    root, study, state = tuned
+    runs = pd.read_csv(root / "out" / "runs.csv")
+    check = pd.read_csv(root / "out" / "check.csv")
+    held = runs[runs.seed >= study.verify_seed_base].assign(candidate=lambda t: t.candidate + "@" + t.switch_model)
+    for row in check[check.scope == "all held-out"].itertuples():
+        again = paired_difference(held, row.rule, row.baseline)
+        assert row.pairs == again["pairs"] == len(study.heldout) * study.verify_seeds
+        assert row.mean_diff_m == pytest.approx(again["mean_diff_m"])
+
+
+def test_the_replay_of_the_incumbents_own_logs_predicts_its_runs(tuned):
+    # the simulator's run of a rule is the replay of its log: prediction and run must agree exactly,
+    # so a mismatch is a defect of the pairing of predictions with runs
+    root, study, state = tuned
+    runs = pd.read_csv(root / "out" / "runs.csv").set_index(["candidate", "dataset", "seed"])
+    pred = pd.read_csv(root / "out" / "rounds" / "0" / "predictions.csv")
+    both = pred.join(runs["loss_m"], on=["candidate", "dataset", "seed"], how="inner")
+    assert len(both) >= len(study.train) * study.seeds_per_round
+    assert np.allclose(both["predicted_loss_m"], both["loss_m"], atol=1e-6)
+
+
+def test_a_resumed_tuning_repeats_no_run_and_decides_the_same(tuned, capsys):
+    root, study, state = tuned
+    again = tune(study, root / "out", progress=True)
+    assert "(0 made now)" in capsys.readouterr().err
+    assert again["rounds"] == state["rounds"] and again["check"] == state["check"]
+
+
+def test_a_folder_of_another_study_is_refused_unless_forced(tuned, tmp_path):
+    root, study, _ = tuned
+    other = TuneStudy.from_toml(_study(tmp_path, STUDY.replace("alpha", "alpha").replace("design = 16", "design = 8")))
+    with pytest.raises(StaleOutputError):
+        tune(other, root / "out", progress=False)
+    bigger = TuneStudy.from_toml(_study(tmp_path / "b", STUDY.replace("budget = 100", "budget = 120")))
+    assert bigger.digest() == study.digest()  # more budget resumes the same tuning
+
+
+@pytest.mark.slow
+def test_a_tuning_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tuned, tmp_path):
+    root, study, state = tuned
+    path = _study(tmp_path)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "jsve.cli", "tune", str(path), "-o", str(out), "--no-progress"]
+    rng = np.random.default_rng(int(time.time()))
+    target = int(rng.integers(1, state["runs_used"] - 1))
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while proc.poll() is None and len(list((out / "runs").rglob("*.summary.json"))) < target:
+            time.sleep(0.05)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    resumed = subprocess.run(command, capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    key = ["candidate", "switch_model", "dataset", "seed"]
+    mine = pd.read_csv(out / "runs.csv").drop(columns="log").sort_values(key).reset_index(drop=True)
+    theirs = pd.read_csv(root / "out" / "runs.csv").drop(columns="log").sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(mine, theirs)
+    final = json.loads((out / "tune.json").read_text())
+    assert final["rounds"] == state["rounds"] and final["tuned"] == state["tuned"]
+    assert not list(out.rglob("*.tmp")) and not list(out.rglob("*.partial"))
