@@ -89,7 +89,9 @@ def test_every_rule_raced_or_chosen_is_kept_and_every_run_has_one_row(tuned):
     raced = {c["name"] for r in state["rounds"] for c in r["candidates"]}
     assert raced <= {p.stem for p in (out / "rules").glob("*.json")}
     assert {"orbslam3", "sve-option2"} <= {p.stem for p in (out / "rules").glob("*.json")}
-    assert json.loads((out / "tuned_rule.json").read_text()) == json.loads((out / "rules" / f"{state['tuned']}.json").read_text())
+    assert json.loads((out / "tuned_rule.json").read_text()) == json.loads(
+        (out / "rules" / f"{state['tuned']}.json").read_text()
+    )
     check = runs[runs.seed >= study.verify_seed_base]
     assert len(check) == check_runs(study)  # the tuned rule and both baselines on every held-out run
     assert json.loads((out / "progress.json").read_text())["phase"] == "done"
@@ -99,7 +101,9 @@ def test_the_check_is_the_paired_difference_of_the_kept_runs(tuned):
     root, study, state = tuned
     runs = pd.read_csv(root / "out" / "runs.csv")
     check = pd.read_csv(root / "out" / "check.csv")
-    held = runs[runs.seed >= study.verify_seed_base].assign(candidate=lambda t: t.candidate + "@" + t.switch_model)
+    held = runs[runs.seed >= study.verify_seed_base].assign(
+        candidate=lambda t: t.candidate + "@" + t.switch_model
+    )
     for row in check[check.scope == "all held-out"].itertuples():
         again = paired_difference(held, row.rule, row.baseline)
         assert row.pairs == again["pairs"] == len(study.heldout) * study.verify_seeds
@@ -126,7 +130,9 @@ def test_a_resumed_tuning_repeats_no_run_and_decides_the_same(tuned, capsys):
 
 def test_a_folder_of_another_study_is_refused_unless_forced(tuned, tmp_path):
     root, study, _ = tuned
-    other = TuneStudy.from_toml(_study(tmp_path, STUDY.replace("alpha", "alpha").replace("design = 16", "design = 8")))
+    other = TuneStudy.from_toml(
+        _study(tmp_path, STUDY.replace("alpha", "alpha").replace("design = 16", "design = 8"))
+    )
     with pytest.raises(StaleOutputError):
         tune(other, root / "out", progress=False)
     bigger = TuneStudy.from_toml(_study(tmp_path / "b", STUDY.replace("budget = 100", "budget = 120")))
@@ -152,7 +158,9 @@ def test_a_tuning_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(
     assert resumed.returncode == 0, resumed.stderr
     key = ["candidate", "switch_model", "dataset", "seed"]
     mine = pd.read_csv(out / "runs.csv").drop(columns="log").sort_values(key).reset_index(drop=True)
-    theirs = pd.read_csv(root / "out" / "runs.csv").drop(columns="log").sort_values(key).reset_index(drop=True)
+    theirs = (
+        pd.read_csv(root / "out" / "runs.csv").drop(columns="log").sort_values(key).reset_index(drop=True)
+    )
     pd.testing.assert_frame_equal(mine, theirs)
     final = json.loads((out / "tune.json").read_text())
     assert final["rounds"] == state["rounds"] and final["tuned"] == state["tuned"]

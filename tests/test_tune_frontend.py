@@ -95,8 +95,12 @@ def test_each_run_goes_to_its_rule_model_and_seed_and_is_made_once(loop):
     level = "V101/none-0"
     assert made == {
         f"seeds-0/{level}/{rule}-imu-coast/run_{k:03d}.summary.json": k
-        for rule in ("orbslam3", "sve-option2") for k in (0, 2)
-    } | {f"seeds-1000/{level}/{rule}-imu-coast/run_001.summary.json": 1001 for rule in ("orbslam3", "sve-option2")}
+        for rule in ("orbslam3", "sve-option2")
+        for k in (0, 2)
+    } | {
+        f"seeds-1000/{level}/{rule}-imu-coast/run_001.summary.json": 1001
+        for rule in ("orbslam3", "sve-option2")
+    }
     # the stand-in saves no trajectory: every run fails and costs the penalty, none is dropped
     assert result.failed.all() and np.all(result.loss == 1.0) and len(rows) == 6
     again = FrontendScorer(frontend, instances, "imu-coast", 1.0, 0.5)
@@ -112,8 +116,9 @@ def test_stock_orbslam3_runs_without_rule_arguments_in_the_level_folder(loop, mo
     assert job.rule_args == () and job.seed == 1
     coasting, _ = frontend._plan(Request(Candidate.preset("orbslam3"), "imu-coast", Instance(ds, 1)))
     assert coasting.rule_args[0] == "--rule-inliers" and coasting.rule_args[-1] == "--coast"
-    FrontendScorer(frontend, [Instance(ds, 1)], "orbslam3", 1.0, 0.5).score_candidates([Candidate.preset("orbslam3")])
+    FrontendScorer(frontend, [Instance(ds, 1)], "orbslam3", 1.0, 0.5).score_candidates(
+        [Candidate.preset("orbslam3")]
+    )
     assert len(_starts(ledger)) == 1
     (summary,) = frontend.pool.rglob("run_*.summary.json")
     assert summary == frontend.pool / "seeds-0" / "V101" / "none-0" / "run_001.summary.json"
-

@@ -17,7 +17,8 @@ def _rows(losses: dict[str, np.ndarray], datasets=("a", "b")) -> pd.DataFrame:
     rows = []
     for name, values in losses.items():
         for k, loss in enumerate(values):
-            rows.append({"candidate": name, "dataset": datasets[k % len(datasets)], "seed": k // len(datasets),
+            instance = {"dataset": datasets[k % len(datasets)], "seed": k // len(datasets)}
+            rows.append({"candidate": name, **instance,
                          "loss_m": float(loss), "failed": bool(loss >= 1.0)})  # fmt: skip
     return pd.DataFrame(rows)
 
@@ -58,7 +59,9 @@ def test_a_clearly_worse_candidate_is_eliminated_and_a_tied_one_is_not():
 def test_the_winner_is_the_best_of_the_challengers_that_beat_the_incumbent():
     rng = np.random.default_rng(2)
     inc = rng.uniform(0.1, 0.3, 24)
-    rows = _rows({"inc": inc, "good": inc - 0.05, "better": inc - 0.08, "same": inc + rng.normal(0, 1e-3, 24)})
+    rows = _rows(
+        {"inc": inc, "good": inc - 0.05, "better": inc - 0.08, "same": inc + rng.normal(0, 1e-3, 24)}
+    )
     winner, table = better_than(rows, "inc", ["good", "better", "same"], alpha=0.05)
     assert winner == "better"
     assert list(table.set_index("candidate").beats[["good", "better", "same"]]) == [True, True, False]

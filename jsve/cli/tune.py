@@ -50,14 +50,14 @@ def run(args) -> int:
 
     scheduler = None if args.scheduler == "local" else args.scheduler
     try:
-        study = TuneStudy.from_toml(args.study, root=args.root, workers=args.workers, budget=args.budget, scheduler=scheduler)
+        study = TuneStudy.from_toml(
+            args.study, root=args.root, workers=args.workers, budget=args.budget, scheduler=scheduler
+        )
         state = tune(study, args.output, pool=args.pool, force=args.force, progress=not args.no_progress)
     except (ValueError, FileNotFoundError) as err:
         return common.fail("tune", err)
-    print(
-        f"jsve tune: {state['tuned']} ({'the new incumbent' if state['tuned_is_incumbent'] else 'best challenger; the incumbent stayed'}), "
-        f"{state['runs_used']} runs; stopped: {state['stopped']}"
-    )
+    role = "the new incumbent" if state["tuned_is_incumbent"] else "best challenger; the incumbent stayed"
+    print(f"jsve tune: {state['tuned']} ({role}), {state['runs_used']} runs; stopped: {state['stopped']}")
     for row in state["check"]:
         if row["scope"] == "all held-out":
             print(

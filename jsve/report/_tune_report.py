@@ -106,10 +106,12 @@ def headline(data: dict) -> Section:
     for row in check[check.scope == "all held-out"].to_dict("records"):
         half = (row["bca_high_m"] - row["bca_low_m"]) / 2
         items.append(
-            f"vs `{row['baseline']}` on {row['pairs']} held-out runs: {cm_ci(row['mean_diff_m'], row['bca_low_m'], row['bca_high_m'], sign=True)} "
+            f"vs `{row['baseline']}` on {row['pairs']} held-out runs: "
+            f"{cm_ci(row['mean_diff_m'], row['bca_low_m'], row['bca_high_m'], sign=True)} "
             f"(95 % BCa; t {cm(row['t_low_m'], sign=True)} to {cm(row['t_high_m'], sign=True)}; half-width "
             f"{cm(half)}), Wilcoxon p = {number(row['wilcoxon_p'], 3)}: **{verdict(row)}**; better on "
-            f"{row['better']}, worse on {row['worse']}; failed runs {row['rule_failed']} against {row['baseline_failed']}."
+            f"{row['better']}, worse on {row['worse']}; failed runs {row['rule_failed']} against "
+            f"{row['baseline_failed']}."
         )
     arms = _arm_rows(data["runs"], study)
     if len(arms):
@@ -137,8 +139,9 @@ def cost_line(data: dict) -> str:
     wall = runs["wall_s"].dropna()
     cpu = runs["cpu_s"].dropna()
     return (
-        f"Runs spent: {len(runs)} (budget {study['budget']}); a full grid of the same {len(raced)} candidates "
-        f"on every training run and the same check: {grid}; the seed's protocol ({SEED_RUNS_PER_SETTING} runs "
+        f"Runs spent: {len(runs)} (budget {study['budget']}); a full grid of the same {len(raced)} "
+        f"candidates on every training run and the same check: {grid}; the seed's protocol "
+        f"({SEED_RUNS_PER_SETTING} runs "
         f"per setting and rule): {seed}. Front-end time: {wall.sum() / 3600:.2f} h of run wall time, "
         f"{wall.mean():.1f} s a run ({cpu.mean():.1f} s CPU)."
     )
@@ -169,8 +172,9 @@ def check_section(data: dict, fig_dir: Path) -> Section:
         }
     )
     blocks = [
-        f"The tuned rule `{check['rule'].iloc[0] if len(check) else ''}` against each baseline on the held-out "
-        "datasets with fresh seeds, paired by (dataset, seed), on the bounded loss (difference rule - baseline; "
+        f"The tuned rule `{check['rule'].iloc[0] if len(check) else ''}` against each baseline on the "
+        "held-out datasets with fresh seeds, paired by (dataset, seed), on the bounded loss (difference "
+        "rule - baseline; "
         "negative: the tuned rule is better).",
         Table(table),
     ]
@@ -207,11 +211,13 @@ def race_section(data: dict) -> Section:
             out = race[race.candidate == name].query("eliminated") if len(race) else pd.DataFrame()
             dec = decision[decision.candidate == name] if len(decision) else pd.DataFrame()
             fate = (
-                f"out after seed {int(out.iloc[0].after_seed)} (worse than {out.iloc[0].best}, Holm p {number(out.iloc[0].p_holm, 3)})"
+                f"out after seed {int(out.iloc[0].after_seed)} (worse than {out.iloc[0].best}, "
+                f"Holm p {number(out.iloc[0].p_holm, 3)})"
                 if len(out)
                 else "incumbent"
                 if name == incumbent
-                else f"survived; beats the incumbent: {'yes' if dec.iloc[0].beats else 'no'} (Holm p {number(dec.iloc[0].p_holm, 3)})"
+                else f"survived; beats the incumbent: {'yes' if dec.iloc[0].beats else 'no'} "
+                f"(Holm p {number(dec.iloc[0].p_holm, 3)})"
                 if len(dec)
                 else "survived"
             )
@@ -252,11 +258,13 @@ def agreement_section(data: dict, fig_dir: Path) -> Section:
         pick = g.sort_values("predicted_diff_even_m", kind="stable").iloc[0]
         picks.append(
             f"round {rnd}: the replay's pick on the even seeds, {pick.candidate}, predicted "
-            f"{cm(pick.predicted_diff_even_m, sign=True)}, measured on the odd seeds {cm(pick.measured_diff_odd_m, sign=True)}"
+            f"{cm(pick.predicted_diff_even_m, sign=True)}, measured on the odd seeds "
+            f"{cm(pick.measured_diff_odd_m, sign=True)}"
         )
     items = [
         f"Each raced candidate's difference to the incumbent, predicted by replaying the incumbent's logs "
-        f"and measured on the same (dataset, seed) in the loop: mean bias (predicted - measured) {cm(bias, sign=True)}"
+        "and measured on the same (dataset, seed) in the loop: mean bias (predicted - measured) "
+        f"{cm(bias, sign=True)}"
         + (
             f", Spearman {rho.statistic:.2f} (p {number(rho.pvalue, 3)}) over {len(a)} candidates"
             if rho
@@ -313,10 +321,12 @@ def method_section(data: dict) -> Section:
     return Section(
         "Method",
         [
-            "A run's loss is the ATE of the trajectory ORB-SLAM3 saves (SE(3)-aligned), capped at the failure penalty; "
-            "a run that did not finish, saved no trajectory or covers less than min_coverage of its frames costs the "
-            "penalty. Races pair runs by (dataset, seed) and test with one-sided Wilcoxon signed-rank tests, "
-            "Holm-corrected over the candidates tested at once; the check uses fresh seeds on held-out sequences.",
+            "A run's loss is the ATE of the trajectory ORB-SLAM3 saves (SE(3)-aligned), capped at the "
+            "failure penalty; a run that did not finish, saved no trajectory or covers less than "
+            "min_coverage of its frames costs the penalty. Races pair runs by (dataset, seed) and test "
+            "with one-sided Wilcoxon signed-rank tests, "
+            "Holm-corrected over the candidates tested at once; the check uses fresh seeds on held-out "
+            "sequences.",
             Bullets(tuple(items)),
         ],
     )

@@ -305,9 +305,14 @@ class SimulatedFrontend:
         from jsve.sim._simulate import SimConfig, simulate_run
 
         sequence, disturbance, level = parse_setting(request.instance.dataset)
-        config = SimConfig() if self.flight_s is None else SimConfig(flight=FlightProfile(duration_s=(self.flight_s,) * 2))
-        return simulate_run(sequence, disturbance, level, run=request.instance.seed, seed=self.study_seed,
-                            config=config)
+        config = (
+            SimConfig()
+            if self.flight_s is None
+            else SimConfig(flight=FlightProfile(duration_s=(self.flight_s,) * 2))
+        )
+        return simulate_run(
+            sequence, disturbance, level, run=request.instance.seed, seed=self.study_seed, config=config
+        )
 
     def run(self, requests: Sequence[Request], on_done: Callable[[Request, dict], None]) -> None:
         groups: dict[tuple[str, str], list[Request]] = {}

@@ -142,9 +142,10 @@ def propose(
             f"{inside.loc[name, 'changed']:.2%} of the decisions (trust region {share:.2%})"
         )
     else:
+        least = summary.loc[[c.name for c in shortlisted], "changed"].min()
         note = (
             f"replay fit: none of the {len(shortlisted)} best settings changes at most {share:.2%} of the "
-            f"decisions (the least changes {summary.loc[[c.name for c in shortlisted], 'changed'].min():.2%}); "
+            f"decisions (the least changes {least:.2%}); "
             "no replay-fit candidate this round"
         )
     candidates = _unique([incumbent, *picked, *presets, *perturbed], None)

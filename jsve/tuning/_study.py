@@ -166,7 +166,9 @@ class TuneStudy:
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
     @classmethod
-    def from_toml(cls, path: str | os.PathLike, *, root: str | os.PathLike | None = None, **overrides) -> TuneStudy:
+    def from_toml(
+        cls, path: str | os.PathLike, *, root: str | os.PathLike | None = None, **overrides
+    ) -> TuneStudy:
         """The study of a TOML file's [tune] table, with `overrides` (None values ignored) on top.
 
         Paths are read from the file's folder; the datasets and the vocabulary from `root` when given
