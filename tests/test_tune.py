@@ -165,3 +165,26 @@ def test_a_tuning_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(
     final = json.loads((out / "tune.json").read_text())
     assert final["rounds"] == state["rounds"] and final["tuned"] == state["tuned"]
     assert not list(out.rglob("*.tmp")) and not list(out.rglob("*.partial"))
+
+
+def test_the_report_opens_with_the_tuned_rule_and_its_held_out_differences(tuned, tmp_path):
+    from jsve.report import write_report
+
+    root, study, state = tuned
+    written = write_report(root / "out", output=tmp_path / "report")
+    md = written["markdown"].read_text()
+    assert md.index("## Headline") < md.index("## Held-out check") < md.index("## The race")
+    assert f"Tuned **{state['tuned']}**" in md
+    for baseline in ("orbslam3@orbslam3", "sve-option2@orbslam3"):
+        assert f"vs `{baseline}` on {len(study.heldout) * study.verify_seeds} held-out runs" in md
+    assert (tmp_path / "report" / "figures" / "check.png").is_file()
+    assert "Runs spent: " + str(state["runs_used"]) in md
+
+
+def test_an_unfinished_tuning_has_no_report(tuned, tmp_path):
+    from jsve.report import write_report
+
+    root, _, _ = tuned
+    (tmp_path / "tune.json").write_text(json.dumps({"status": "running"}))
+    with pytest.raises(ValueError, match="has not finished"):
+        write_report(tmp_path)

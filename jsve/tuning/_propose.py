@@ -6,7 +6,8 @@
 The replay fit searches a Sobol design of the family's space (jsve.fitting's ReplayScorer over the
 incumbent's logs) and checks its best settings against the trust region, the share of the logged
 decisions a candidate may change before the replay stops predicting the front-end
-(jsve.evaluation.trusted_share of the switch model): the best one inside it is proposed. Settings
+(jsve.evaluation.trusted_share of the switch model): the best one inside it is proposed, ties (to
+0.1 mm) going to the one that changes fewest decisions. Settings
 between the best one and the incumbent (when it is of the family) come closer to the region.
 """
 
@@ -134,7 +135,9 @@ def propose(
     inside = summary.loc[[c.name for c in shortlisted if summary.loc[c.name, "changed"] <= share]]
     picked: list[Candidate] = []
     if len(inside):
-        name = str(inside["loss"].idxmin())
+        # the lowest predicted loss (to 0.1 mm, below what a run resolves), then the fewest changed decisions
+        order = inside.assign(key=inside["loss"].round(4)).sort_values(["key", "changed"], kind="stable")
+        name = str(order.index[0])
         picked = [c for c in shortlisted if c.name == name]
         note = (
             f"replay fit: {name}, predicted {inside.loc[name, 'loss'] * 100:.2f} cm against the "
