@@ -1,0 +1,86 @@
+"""The tunings of docs/tuning.md side by side: every finished `jsve tune` folder under OUT, its held-out
+check, and the replay's prediction against the front-end per raced candidate, pooled over the tunings.
+
+    python analysis/tune_summary.py OUT [--csv-prefix docs/data/tune]
+
+Prints the tables; with --csv-prefix writes <prefix>_check.csv, <prefix>_agreement.csv and
+<prefix>_runs.csv (every run of every tuning, one row each, the tuning named).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pandas as pd
+from scipy import stats
+
+
+def finished(out: Path) -> list[Path]:
+    """The folders under OUT holding a finished tuning."""
+    found = []
+    for path in sorted(out.glob("*/tune.json")):
+        if json.loads(path.read_text()).get("status") == "done":
+            found.append(path.parent)
+    return found
+
+
+def stacked(folders: list[Path], name: str) -> pd.DataFrame:
+    """File `name` of every folder, with the tuning's folder name first."""
+    tables = []
+    for folder in folders:
+        try:
+            table = pd.read_csv(folder / name)
+        except pd.errors.EmptyDataError:
+            continue
+        table.insert(0, "tuning", folder.name)
+        tables.append(table)
+    return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+
+
+def pooled_agreement(agreement: pd.DataFrame) -> dict:
+    """Over every raced candidate of every tuning: the predicted - measured difference to the incumbent
+    (its mean and spread, metres), Spearman's rho of the two, and on the halves: the prediction made on
+    the even seeds against the measurement on the odd ones."""
+    if agreement.empty:
+        return {"candidates": 0}
+    bias = agreement["predicted_diff_m"] - agreement["measured_diff_m"]
+    out = {"candidates": len(agreement), "bias_mean_m": bias.mean(), "bias_sd_m": bias.std(ddof=1)}
+    if len(agreement) >= 3:
+        rho = stats.spearmanr(agreement["predicted_diff_m"], agreement["measured_diff_m"])
+        halves = stats.spearmanr(agreement["predicted_diff_even_m"], agreement["measured_diff_odd_m"])
+        out.update(spearman=rho.statistic, spearman_p=rho.pvalue, halves_spearman=halves.statistic)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--csv-prefix", type=Path)
+    args = parser.parse_args(argv)
+    folders = finished(args.out)
+    if not folders:
+        print(f"{args.out}: no finished tuning")
+        return 1
+    check, agreement, runs = (stacked(folders, n) for n in ("check.csv", "agreement.csv", "runs.csv"))
+    with pd.option_context("display.width", 220, "display.max_columns", 30):
+        keep = ["tuning", "scope", "rule", "baseline", "pairs", "mean_diff_m", "bca_low_m", "bca_high_m"]
+        keep += ["t_low_m", "t_high_m", "wilcoxon_p", "better", "worse", "rule_failed", "baseline_failed"]
+        print(check[keep].to_string(index=False, float_format=lambda x: f"{x:.4g}"))
+        print()
+        print(agreement.to_string(index=False, float_format=lambda x: f"{x:.4g}"))
+    print("\npooled:", json.dumps(pooled_agreement(agreement), default=float))
+    wall, cpu = runs["wall_s"].dropna(), runs["cpu_s"].dropna()
+    print(f"runs: {len(runs)} over {len(folders)} tunings, {wall.sum() / 3600:.2f} h of run wall time, "
+          f"{wall.mean():.1f} s wall and {cpu.mean():.1f} s CPU a run")  # fmt: skip
+    if args.csv_prefix:
+        args.csv_prefix.parent.mkdir(parents=True, exist_ok=True)
+        check.to_csv(f"{args.csv_prefix}_check.csv", index=False)
+        agreement.to_csv(f"{args.csv_prefix}_agreement.csv", index=False)
+        runs.drop(columns="log").to_csv(f"{args.csv_prefix}_runs.csv", index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
