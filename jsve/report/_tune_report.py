@@ -107,9 +107,10 @@ def headline(data: dict) -> Section:
         half = (row["bca_high_m"] - row["bca_low_m"]) / 2
         items.append(
             f"vs `{row['baseline']}` on {row['pairs']} held-out runs: "
-            f"{cm_ci(row['mean_diff_m'], row['bca_low_m'], row['bca_high_m'], sign=True)} "
-            f"(95 % BCa; t {cm(row['t_low_m'], sign=True)} to {cm(row['t_high_m'], sign=True)}; half-width "
-            f"{cm(half)}), Wilcoxon p = {number(row['wilcoxon_p'], 3)}: **{verdict(row)}**; better on "
+            f"{cm_ci(row['mean_diff_m'], row['bca_low_m'], row['bca_high_m'], sign=True)} cm "
+            f"(95 % BCa; t {cm(row['t_low_m'], sign=True)} to {cm(row['t_high_m'], sign=True)} cm; "
+            "half-width "
+            f"{cm(half)} cm), Wilcoxon p = {number(row['wilcoxon_p'], 3)}: **{verdict(row)}**; better on "
             f"{row['better']}, worse on {row['worse']}; failed runs {row['rule_failed']} against "
             f"{row['baseline_failed']}."
         )
@@ -131,7 +132,7 @@ def cost_line(data: dict) -> str:
     runs, study = data["runs"], data["state"]["study"]
     raced = {c["name"] for r in data["rounds"] for c in r["proposal"]["candidates"]}
     train = len(study["train"])
-    seeds = sum(len(r["proposal"]["candidates"]) and 1 for r in data["rounds"]) * study["seeds_per_round"]
+    seeds = len(data["rounds"]) * study["seeds_per_round"]
     arms = 1 + len(study["baselines"])
     check_runs = arms * len(study["heldout"]) * study["verify_seeds"]
     grid = len(raced) * train * seeds + check_runs
@@ -143,7 +144,8 @@ def cost_line(data: dict) -> str:
         f"candidates on every training run and the same check: {grid}; the seed's protocol "
         f"({SEED_RUNS_PER_SETTING} runs "
         f"per setting and rule): {seed}. Front-end time: {wall.sum() / 3600:.2f} h of run wall time, "
-        f"{wall.mean():.1f} s a run ({cpu.mean():.1f} s CPU)."
+        f"{wall.mean():.1f} s a run"
+        + (f" ({cpu.mean():.1f} s CPU)." if len(cpu) else " (no CPU time recorded).")
     )
 
 
@@ -156,13 +158,13 @@ def check_section(data: dict, fig_dir: Path) -> Section:
             "scope": check["scope"],
             "baseline": check["baseline"],
             "pairs": check["pairs"],
-            "difference (BCa 95 %)": [
+            "difference, cm (BCa 95 %)": [
                 cm_ci(r.mean_diff_m, r.bca_low_m, r.bca_high_m, sign=True) for r in check.itertuples()
             ],
-            "t 95 %": [
+            "t 95 %, cm": [
                 f"{cm(r.t_low_m, sign=True)} to {cm(r.t_high_m, sign=True)}" for r in check.itertuples()
             ],
-            "median": [cm(x, sign=True) for x in check["median_diff_m"]],
+            "median, cm": [cm(x, sign=True) for x in check["median_diff_m"]],
             "Wilcoxon p": [number(x, 3) for x in check["wilcoxon_p"]],
             "better / worse": [f"{r.better} / {r.worse}" for r in check.itertuples()],
             "failed (rule / baseline)": [
@@ -226,9 +228,9 @@ def race_section(data: dict) -> Section:
                 {
                     "candidate": name,
                     "origin": c["origin"],
-                    "replay: predicted": cm(pred.loc[name, "pred"]) if name in pred.index else "",
+                    "replay: predicted, cm": cm(pred.loc[name, "pred"]) if name in pred.index else "",
                     "changed decisions": percent(pred.loc[name, "changed"]) if name in pred.index else "",
-                    "measured": cm(m["loss"]) if m is not None else "",
+                    "measured, cm": cm(m["loss"]) if m is not None else "",
                     "runs": int(m["runs"]) if m is not None else 0,
                     "failed": int(m["failed"]) if m is not None else 0,
                     "fate": fate,
@@ -258,13 +260,13 @@ def agreement_section(data: dict, fig_dir: Path) -> Section:
         pick = g.sort_values("predicted_diff_even_m", kind="stable").iloc[0]
         picks.append(
             f"round {rnd}: the replay's pick on the even seeds, {pick.candidate}, predicted "
-            f"{cm(pick.predicted_diff_even_m, sign=True)}, measured on the odd seeds "
-            f"{cm(pick.measured_diff_odd_m, sign=True)}"
+            f"{cm(pick.predicted_diff_even_m, sign=True)} cm, measured on the odd seeds "
+            f"{cm(pick.measured_diff_odd_m, sign=True)} cm"
         )
     items = [
         f"Each raced candidate's difference to the incumbent, predicted by replaying the incumbent's logs "
         "and measured on the same (dataset, seed) in the loop: mean bias (predicted - measured) "
-        f"{cm(bias, sign=True)}"
+        f"{cm(bias, sign=True)} cm"
         + (
             f", Spearman {rho.statistic:.2f} (p {number(rho.pvalue, 3)}) over {len(a)} candidates"
             if rho
@@ -272,7 +274,18 @@ def agreement_section(data: dict, fig_dir: Path) -> Section:
         ),
         *picks,
     ]
-    table = a.assign(**{c: a[c].map(lambda x: cm(x, sign=True)) for c in a.columns if c.endswith("_m")})
+    table = pd.DataFrame(
+        {
+            "round": a["round"],
+            "candidate": a["candidate"],
+            "origin": a["origin"],
+            "pairs": a["pairs"],
+            "predicted, cm": a["predicted_diff_m"].map(lambda x: cm(x, sign=True)),
+            "measured, cm": a["measured_diff_m"].map(lambda x: cm(x, sign=True)),
+            "predicted on even seeds, cm": a["predicted_diff_even_m"].map(lambda x: cm(x, sign=True)),
+            "measured on odd seeds, cm": a["measured_diff_odd_m"].map(lambda x: cm(x, sign=True)),
+        }
+    )
     return Section(
         "Replay against the front-end",
         [
@@ -302,6 +315,7 @@ def level_tables(data: dict) -> Section:
         .reset_index()
     )
     g["loss"] = g["loss"].map(cm)
+    g = g.rename(columns={"loss": "loss, cm"})
     g["level"] = g["level"].map(lambda x: f"{x:g}")
     g["switches"] = g["switches"].map(lambda x: f"{x:.1f}")
     return Section(
