@@ -99,29 +99,32 @@ class Ledger:
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(list(self.rows.values()), columns=list(RUN_COLUMNS))
 
-    def eta_s(self) -> float | None:
+    def eta_s(self, runs: int) -> float | None:
+        """Seconds `runs` more runs take at the mean wall time of the runs made so far."""
         walls = [r["wall_s"] for r in self.rows.values() if r.get("wall_s")]
-        return None if not walls else self.planned * float(np.mean(walls)) / max(1, self.workers)
+        return None if not walls else runs * float(np.mean(walls)) / max(1, self.workers)
 
     def write(self) -> None:
-        eta = self.eta_s()
+        eta, most = self.eta_s(self.planned), self.eta_s(max(0, self.budget - len(self.rows)))
         state = {
             "phase": self.phase,
             "runs_used": len(self.rows),
             "runs_made_now": self.made,
             "runs_left_in_step": self.planned,
+            "runs_left_in_budget": max(0, self.budget - len(self.rows)),
             "budget": self.budget,
             "eta_step_s": None if eta is None else round(eta, 1),
+            "eta_budget_s": None if most is None else round(most, 1),
             "elapsed_s": round(time.monotonic() - self.started, 1),
         }
         _atomic.write_text(self.out / "progress.json", json.dumps(state, indent=2) + "\n")
         table = self.table.sort_values(["switch_model", "candidate", "dataset", "seed"], kind="stable")
         _atomic.write_text(self.out / "runs.csv", table.to_csv(index=False))
         if self.show:
-            when = "" if eta is None else f", ETA {eta / 60:.0f} min"
+            when = "" if eta is None else f", ETA {eta / 60:.0f} min (the whole budget: {most / 60:.0f} min)"
             print(
                 f"jsve tune: {self.phase}: {len(self.rows)} runs used ({self.made} made now), "
-                f"{self.planned} left in this step{when}",
+                f"{self.planned} left in this step, {state['runs_left_in_budget']} in the budget{when}",
                 file=sys.stderr,
                 flush=True,
             )
