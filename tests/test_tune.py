@@ -188,3 +188,18 @@ def test_an_unfinished_tuning_has_no_report(tuned, tmp_path):
     (tmp_path / "tune.json").write_text(json.dumps({"status": "running"}))
     with pytest.raises(ValueError, match="has not finished"):
         write_report(tmp_path)
+
+
+def test_with_record_the_proposals_replay_the_record_rules_logs(tmp_path):
+    study = TuneStudy.from_toml(
+        _study(tmp_path, STUDY.replace("max_rounds = 2", "max_rounds = 1") + "record = true\n")
+    )
+    state = tune(study, tmp_path / "out", progress=False)
+    runs = pd.read_csv(tmp_path / "out" / "runs.csv")
+    recorded = runs[runs.candidate == "record"]
+    assert len(recorded) == len(study.train) * study.seeds_per_round
+    pred = pd.read_csv(tmp_path / "out" / "rounds" / "0" / "predictions.csv")
+    assert set(zip(pred.dataset, pred.seed, strict=True)) == set(
+        zip(recorded.dataset, recorded.seed, strict=True)
+    )
+    assert "record" not in {c["name"] for c in state["rounds"][0]["candidates"]}  # recorded, never raced

@@ -1,10 +1,11 @@
-"""What a round races: candidates proposed from the incumbent's own logs, and the replay's predictions.
+"""What a round races: candidates proposed from the round's logs (the incumbent's own, or the record
+rule's), and the replay's predictions.
 
     propose        the replay's fit within the trust region, the family's presets, perturbations
-    predictions    each candidate's replayed loss on each of the incumbent's logs (per run)
+    predictions    each candidate's replayed loss on each of those logs (per run)
 
 The replay fit searches a Sobol design of the family's space (jsve.fitting's ReplayScorer over the
-incumbent's logs) and checks its best settings against the trust region, the share of the logged
+round's logs) and checks its best settings against the trust region, the share of the logged
 decisions a candidate may change before the replay stops predicting the front-end
 (jsve.evaluation.trusted_share of the switch model): the best one inside it is proposed, ties (to
 0.1 mm) going to the one that changes fewest decisions. Settings
@@ -99,7 +100,8 @@ def propose(
     perturbation_scale: float,
     seed: int,
 ) -> Proposal:
-    """The candidates of a round from the incumbent's logs (RunLogs with ground truth).
+    """The candidates of a round from its logs (RunLogs with ground truth): the incumbent's, or those of
+    the record rule (which support every rule).
 
     Raises:
         ValueError when there are no logs to replay.

@@ -61,6 +61,9 @@ class TuneStudy:
         verify_seeds: seeds of the held-out check, from verify_seed_base.
         budget: front-end runs in all, the check's included.
         alpha: level of every paired test (Holm-corrected over the candidates tested at once).
+        record: also run the permissive `record` rule (jsve.frontend._run.RECORD_THRESHOLDS) on each
+            round's seeds and propose from its logs, which support every rule (one more run per
+            training run); otherwise the proposals replay the incumbent's own logs.
         perturbations: candidates drawn around the incumbent each round; perturbation_scale: their
             spread in the family's unit cube (a normal's standard deviation).
         design: settings of the replay's search on the incumbent's logs; shortlist: how many of the
@@ -91,6 +94,7 @@ class TuneStudy:
     verify_seed_base: int = 1000
     budget: int = 400
     alpha: float = 0.05
+    record: bool = False
     perturbations: int = 2
     perturbation_scale: float = 0.1
     design: int = 512

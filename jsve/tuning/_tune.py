@@ -1,8 +1,9 @@
 """`jsve tune`: the replay proposes, the real front-end decides, held-out sequences verify.
 
     round r (seeds r * n .. r * n + n - 1 of the training datasets):
-      record    the incumbent in the loop (ORB-SLAM3's own rule first)
-      propose   from the incumbent's logs: the replay's fit in the trust region, presets, perturbations
+      record    the incumbent in the loop (ORB-SLAM3's own rule first); with `record`, also the
+                permissive record rule, whose logs support every rule
+      propose   from those logs: the replay's fit in the trust region, presets, perturbations
       race      seed by seed, every candidate still in on every training dataset; from min_seeds on, a
                 candidate significantly worse than the best (paired Wilcoxon, Holm) is out
       decide    the survivor of lowest mean loss among those that beat the incumbent (paired, Holm)
@@ -30,6 +31,7 @@ import pandas as pd
 
 from jsve.core._objective import ObjectiveConfig
 from jsve.core._rules import rule_from_dict, rule_to_dict
+from jsve.frontend._run import record_rule
 from jsve.io import _atomic
 from jsve.io._resume import StaleOutputError
 from jsve.tuning._frontend import (
@@ -214,24 +216,28 @@ def run_round(study, out, frontend, ledger, incumbent: Candidate, r: int, reserv
     scorer = FrontendScorer(
         frontend, instances, study.switch_model, study.failure_penalty, study.min_coverage, ledger.add
     )
+    recorder = Candidate("record", record_rule(), "record", r) if study.record else incumbent
+    recording = [incumbent, recorder] if study.record else [incumbent]
     left = study.budget - reserve - len(ledger.rows)
-    if left < len(instances):
+    if left < len(recording) * len(instances):
         return {"round": r, "incumbent": incumbent.name, "stopped": "budget", "winner": None}
-    ledger.plan(f"round {r}: record {incumbent.name}", len(instances))
-    scorer.score_candidates([incumbent])
+    ledger.plan(
+        f"round {r}: record {' and '.join(c.name for c in recording)}", len(recording) * len(instances)
+    )
+    scorer.score_candidates(recording)
     own = [
         Instance(d, s)
         for d in study.train
         for s in range(0, (r + 1) * study.seeds_per_round)
-        if (incumbent.name, study.switch_model, d, s) in ledger.rows
+        if (recorder.name, study.switch_model, d, s) in ledger.rows
     ]
-    requests = [Request(incumbent, study.switch_model, i) for i in own]
+    requests = [Request(recorder, study.switch_model, i) for i in own]
     config = ObjectiveConfig(
         failure_penalty=study.failure_penalty,
         min_coverage=study.min_coverage,
         switch_model=study.switch_model,
     )
-    ledger.plan(f"round {r}: propose from {len(own)} logs of {incumbent.name}", 0)
+    ledger.plan(f"round {r}: propose from {len(own)} logs of {recorder.name}", 0)
 
     def make() -> Proposal:
         logs = [frontend.read_log(q) for q in requests]
