@@ -27,7 +27,9 @@ from jsve.report._document import Bullets, Details, Figure, Section, Sub, Table
 from jsve.report._format import cm, cm_ci, number, percent
 
 SEED_RUNS_PER_SETTING = 100
-"""The seed study's protocol: 100 runs of the front-end per setting and build (rule)."""
+"""The seed study's protocol: 100 runs of the front-end per setting and build (rule)..."""
+SEED_SETTINGS = 31
+"""... over its 31 disturbance settings (blur, downsampling and occlusion levels)."""
 
 TUNE_TITLE = "jsve tuning report"
 
@@ -131,20 +133,19 @@ def cost_line(data: dict) -> str:
     """Runs spent, against the seed's protocol and a full grid of the same candidates, and their time."""
     runs, study = data["runs"], data["state"]["study"]
     raced = {c["name"] for r in data["rounds"] for c in r["proposal"]["candidates"]}
-    train = len(study["train"])
     seeds = len(data["rounds"]) * study["seeds_per_round"]
-    arms = 1 + len(study["baselines"])
-    check_runs = arms * len(study["heldout"]) * study["verify_seeds"]
-    grid = len(raced) * train * seeds + check_runs
-    seed = SEED_RUNS_PER_SETTING * (train + len(study["heldout"])) * (len(raced) + arms - 1)
-    wall = runs["wall_s"].dropna()
-    cpu = runs["cpu_s"].dropna()
+    check_runs = (1 + len(study["baselines"])) * len(study["heldout"]) * study["verify_seeds"]
+    grid = len(raced) * len(study["train"]) * seeds + check_runs
+    rules = len(raced) + len(study["baselines"])
+    datasets = len(study["train"]) + len(study["heldout"])
+    wall, cpu = runs["wall_s"].dropna(), runs["cpu_s"].dropna()
     return (
-        f"Runs spent: {len(runs)} (budget {study['budget']}); a full grid of the same {len(raced)} "
-        f"candidates on every training run and the same check: {grid}; the seed's protocol "
-        f"({SEED_RUNS_PER_SETTING} runs "
-        f"per setting and rule): {seed}. Front-end time: {wall.sum() / 3600:.2f} h of run wall time, "
-        f"{wall.mean():.1f} s a run"
+        f"Runs spent: {len(runs)} (budget {study['budget']}). A full grid of the same {len(raced)} "
+        f"candidates on every training run, with the same check: {grid}. The seed's protocol, "
+        f"{SEED_RUNS_PER_SETTING} runs per setting and build: {SEED_RUNS_PER_SETTING * datasets * rules:,} "
+        f"for these {datasets} datasets and {rules} rules ({SEED_RUNS_PER_SETTING * SEED_SETTINGS:,} per "
+        f"build over its {SEED_SETTINGS} settings). Front-end time: {wall.sum() / 3600:.2f} h of run "
+        f"wall time, {wall.mean():.1f} s a run"
         + (f" ({cpu.mean():.1f} s CPU)." if len(cpu) else " (no CPU time recorded).")
     )
 
