@@ -316,15 +316,17 @@ def _race_rows(ledger: Ledger, study: TuneStudy, names, seeds) -> pd.DataFrame:
 def check(study: TuneStudy, frontend, ledger: Ledger, tuned: Candidate) -> pd.DataFrame:
     """The tuned rule against each baseline on the held-out datasets with fresh seeds: paired differences
     over every held-out run and per level (disturbance, level)."""
-    instances = [Instance(d, s) for s in study.check_seeds for d in study.heldout]
     arms = [(tuned, study.switch_model)] + [
         (Candidate.preset(n, "baseline"), m) for n, m in study.baseline_pairs
     ]
-    for candidate, model in arms:
-        ledger.plan(f"check: {candidate.name}@{model} on {len(instances)} held-out runs", len(instances))
-        FrontendScorer(
-            frontend, instances, model, study.failure_penalty, study.min_coverage, ledger.add
-        ).score_candidates([candidate])
+    rows_of = FrontendScorer(frontend, [], study.switch_model, study.failure_penalty, study.min_coverage)
+    # seed by seed, every arm on every held-out dataset: a check cut short holds whole pairs
+    for seed in study.check_seeds:
+        requests = [Request(c, m, Instance(d, seed)) for c, m in arms for d in study.heldout]
+        ledger.plan(
+            f"check: seed {seed} ({len(arms)} rules on {len(study.heldout)} held-out datasets)", len(requests)
+        )
+        frontend.run(requests, lambda request, summary: ledger.add(rows_of.row(request, summary)))
     t = ledger.table
     t = t[t.dataset.isin(list(study.heldout)) & t.seed.isin(study.check_seeds)].copy()
     t["candidate"] = t["candidate"] + "@" + t["switch_model"]
