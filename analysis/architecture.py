@@ -49,7 +49,7 @@ LAYERS: dict[str, frozenset[str] | None] = {
     # the driving sequences with Algorithm 1 (sim/_driving.py); it needs nothing from image.
     "sim": frozenset({"core", "io", "masks"}),
     "fitting": frozenset({"_memory", "core", "io", "evaluation"}),
-    "report": frozenset({"core", "io", "evaluation", "fitting"}),
+    "report": frozenset({"core", "io", "evaluation", "fitting", "tuning"}),
     "_demo": ANYTHING,
     "cli": ANYTHING,
     # The compiled front-end's Python side: the build (standard library only) and the vocabulary, which

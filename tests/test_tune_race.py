@@ -9,7 +9,15 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from jsve.tuning._race import better_than, eliminate, holm, paired_difference, paired_losses, worse_p
+from jsve.tuning._race import (
+    better_than,
+    eliminate,
+    holm,
+    paired_difference,
+    paired_losses,
+    pairs_for_half_width,
+    worse_p,
+)
 
 
 def _rows(losses: dict[str, np.ndarray], datasets=("a", "b")) -> pd.DataFrame:
@@ -100,3 +108,10 @@ def test_identical_arms_give_a_zero_width_interval_not_nan():
     b = np.linspace(0.01, 0.05, 8)
     out = paired_difference(_rows({"rule": b, "base": b}), "rule", "base")
     assert out["mean_diff_m"] == 0 and out["bca_low_m"] == out["bca_high_m"] == 0 and out["wilcoxon_p"] == 1
+
+
+@pytest.mark.parametrize("sd", [0.005, 0.05, 0.2, 0.5])
+def test_pairs_for_a_half_width_are_the_fewest_whose_t_interval_is_that_narrow(sd):
+    n = pairs_for_half_width(sd, 0.03)
+    half = lambda k: stats.t.ppf(0.975, k - 1) * sd / np.sqrt(k)  # noqa: E731
+    assert half(n) <= 0.03 and (n == 2 or half(n - 1) > 0.03)

@@ -25,6 +25,7 @@ from scipy import stats
 
 from jsve.report._document import Bullets, Details, Figure, Section, Sub, Table
 from jsve.report._format import cm, cm_ci, number, percent
+from jsve.tuning._race import RESOLUTION_M
 
 SEED_RUNS_PER_SETTING = 100
 """The seed study's protocol: 100 runs of the front-end per setting and build (rule)..."""
@@ -114,7 +115,8 @@ def headline(data: dict) -> Section:
             "half-width "
             f"{cm(half)} cm), Wilcoxon p = {number(row['wilcoxon_p'], 3)}: **{verdict(row)}**; better on "
             f"{row['better']}, worse on {row['worse']}; failed runs {row['rule_failed']} against "
-            f"{row['baseline_failed']}."
+            f"{row['baseline_failed']}; at this spread a half-width of {cm(RESOLUTION_M)} cm takes about "
+            f"{row['pairs_for_resolution']} pairs."
         )
     arms = _arm_rows(data["runs"], study)
     if len(arms):

@@ -125,6 +125,22 @@ def better_than(
     return (None if winners.empty else str(winners.iloc[0].candidate)), table
 
 
+RESOLUTION_M = 0.03
+"""The half-width (metres) of a 95 % interval that decides a difference worth a tuning."""
+
+
+def pairs_for_half_width(sd_m: float, half_width_m: float = RESOLUTION_M, level: float = 0.95) -> int:
+    """The fewest pairs whose t interval of the mean difference is at most `half_width_m` wide on each
+    side when the differences spread as `sd_m` (metres): n with t(level, n - 1) sd / sqrt(n) <= h."""
+    if not np.isfinite(sd_m) or sd_m <= 0:
+        return 2
+    # t exceeds the normal quantile, so the normal's answer is where the search starts
+    n = max(2, int(np.ceil((stats.norm.ppf(0.5 + level / 2) * sd_m / half_width_m) ** 2)))
+    while stats.t.ppf(0.5 + level / 2, n - 1) * sd_m / np.sqrt(n) > half_width_m:
+        n += 1
+    return n
+
+
 def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 9999) -> dict:
     """a - b on the bounded loss over the instances both ran: mean and median (metres), the mean's 95 %
     t interval (ttest_rel) and BCa bootstrap interval, two-sided Wilcoxon p, how often a did better, and
@@ -151,6 +167,8 @@ def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 
         "baseline_failed": int(failed[b].sum()) if b in failed else 0,
         "rule_mean_m": float(pair[a].mean()) if len(d) else np.nan,
         "baseline_mean_m": float(pair[b].mean()) if len(d) else np.nan,
+        "sd_diff_m": float(d.std(ddof=1)) if len(d) >= 2 else np.nan,
+        "pairs_for_resolution": pairs_for_half_width(float(d.std(ddof=1))) if len(d) >= 2 else None,
     }
     if len(d) == 0:
         return out
@@ -176,4 +194,14 @@ def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 
     return out
 
 
-__all__ = ["KEY", "better_than", "eliminate", "holm", "paired_difference", "paired_losses", "worse_p"]
+__all__ = [
+    "KEY",
+    "RESOLUTION_M",
+    "pairs_for_half_width",
+    "better_than",
+    "eliminate",
+    "holm",
+    "paired_difference",
+    "paired_losses",
+    "worse_p",
+]
