@@ -208,8 +208,9 @@ def _prediction_rows(table: pd.DataFrame, sources: dict[str, Instance]) -> pd.Da
 
 
 def run_round(study, out, frontend, ledger, incumbent: Candidate, r: int, reserve: int, history: list):
-    """One round: record, propose, race, decide. Returns its summary (winner None: nobody beat the
-    incumbent; stopped: why the race ended early, or None)."""
+    """One round: record, propose, race, decide. Returns (its summary, its candidates by name); the
+    summary's winner is None where nobody beat the incumbent, its `stopped` why the race ended early
+    (None: it did not). None when the budget cannot pay for the round's recording."""
     folder = out / "rounds" / f"{r}"
     seeds = study.round_seeds(r)
     instances = [Instance(d, s) for s in seeds for d in study.train]
@@ -220,7 +221,7 @@ def run_round(study, out, frontend, ledger, incumbent: Candidate, r: int, reserv
     recording = [incumbent, recorder] if study.record else [incumbent]
     left = study.budget - reserve - len(ledger.rows)
     if left < len(recording) * len(instances):
-        return {"round": r, "incumbent": incumbent.name, "stopped": "budget", "winner": None}
+        return None
     ledger.plan(
         f"round {r}: record {' and '.join(c.name for c in recording)}", len(recording) * len(instances)
     )
@@ -413,7 +414,7 @@ def tune(study: TuneStudy, out, *, pool=None, force: bool = False, progress: boo
     stopped = "rounds"
     for r in range(study.max_rounds):
         result = run_round(study, out, frontend, ledger, incumbent, r, reserve, history)
-        if isinstance(result, dict):
+        if result is None:
             stopped = "budget"
             break
         summary, by_name = result
