@@ -63,6 +63,13 @@ def _means(rows: pd.DataFrame, names: Sequence[str]) -> pd.Series:
     return wide.reindex(columns=list(names)).dropna().mean()
 
 
+def _worse_than(rows: pd.DataFrame, a: str, b: str) -> dict:
+    """pairs, mean_diff_m (a - b, metres) and p, the one-sided p that a is worse than b."""
+    pair = paired_losses(rows, a, b)
+    d = (pair[a] - pair[b]).to_numpy()
+    return {"pairs": len(d), "mean_diff_m": float(d.mean()) if len(d) else np.nan, "p": worse_p(d)}
+
+
 def eliminate(rows: pd.DataFrame, alive: Sequence[str], alpha: float) -> tuple[list[str], pd.DataFrame]:
     """One racing step: the best candidate (lowest mean loss over the instances all of `alive` ran)
     against each other one, one-sided Wilcoxon (the other is worse), Holm-adjusted over the others.
@@ -75,19 +82,8 @@ def eliminate(rows: pd.DataFrame, alive: Sequence[str], alpha: float) -> tuple[l
     best = str(means.idxmin())
     tests = []
     for name in alive:
-        if name == best:
-            continue
-        pair = paired_losses(rows, name, best)
-        d = (pair[name] - pair[best]).to_numpy()
-        tests.append(
-            {
-                "candidate": name,
-                "best": best,
-                "pairs": len(d),
-                "mean_diff_m": float(d.mean()) if len(d) else np.nan,
-                "p": worse_p(d),
-            }
-        )
+        if name != best:
+            tests.append({"candidate": name, "best": best, **_worse_than(rows, name, best)})
     table = pd.DataFrame(tests, columns=["candidate", "best", "pairs", "mean_diff_m", "p"])
     table["p_holm"] = holm(table["p"].to_numpy())
     table["eliminated"] = table["p_holm"] < alpha
@@ -107,17 +103,8 @@ def better_than(
     """
     tests = []
     for name in challengers:
-        pair = paired_losses(rows, incumbent, name)
-        d = (pair[incumbent] - pair[name]).to_numpy()
-        tests.append(
-            {
-                "candidate": name,
-                "incumbent": incumbent,
-                "pairs": len(d),
-                "mean_diff_m": -float(d.mean()) if len(d) else np.nan,
-                "p": worse_p(d),
-            }
-        )
+        test = _worse_than(rows, incumbent, name)
+        tests.append({"candidate": name, "incumbent": incumbent, **test, "mean_diff_m": -test["mean_diff_m"]})
     table = pd.DataFrame(tests, columns=["candidate", "incumbent", "pairs", "mean_diff_m", "p"])
     table["p_holm"] = holm(table["p"].to_numpy())
     table["beats"] = table["p_holm"] < alpha
