@@ -47,7 +47,8 @@ def pooled_agreement(agreement: pd.DataFrame) -> dict:
         return {"candidates": 0}
     bias = agreement["predicted_diff_m"] - agreement["measured_diff_m"]
     out = {"candidates": len(agreement), "bias_mean_m": bias.mean(), "bias_sd_m": bias.std(ddof=1)}
-    if len(agreement) >= 3:
+    varied = all(agreement[c].nunique() > 1 for c in ("predicted_diff_m", "measured_diff_m"))
+    if len(agreement) >= 3 and varied:
         rho = stats.spearmanr(agreement["predicted_diff_m"], agreement["measured_diff_m"])
         halves = stats.spearmanr(agreement["predicted_diff_even_m"], agreement["measured_diff_odd_m"])
         out.update(spearman=rho.statistic, spearman_p=rho.pvalue, halves_spearman=halves.statistic)

@@ -256,7 +256,8 @@ def agreement_section(data: dict, fig_dir: Path) -> Section:
     a = data["agreement"]
     if a.empty:
         return Section("Replay against the front-end", ["No raced candidate has both a prediction and runs."])
-    rho = stats.spearmanr(a["predicted_diff_m"], a["measured_diff_m"]) if len(a) >= 3 else None
+    alike = a["predicted_diff_m"].nunique() < 2 or a["measured_diff_m"].nunique() < 2
+    rho = stats.spearmanr(a["predicted_diff_m"], a["measured_diff_m"]) if len(a) >= 3 and not alike else None
     bias = (a["predicted_diff_m"] - a["measured_diff_m"]).mean()
     picks = []
     for rnd, g in a.groupby("round"):
@@ -274,7 +275,8 @@ def agreement_section(data: dict, fig_dir: Path) -> Section:
             f", Spearman {rho.statistic:.2f} (p {number(rho.pvalue, 3)}) over {len(a)} candidates"
             if rho
             else ""
-        ),
+        )
+        + ("; no rank correlation: one side gives every candidate the same difference" if alike else ""),
         *picks,
     ]
     table = pd.DataFrame(
