@@ -10,6 +10,7 @@
 #   masks       dynamic-object masks (Algorithm 1) and Table I
 #   sim         the stand-in front-end (trajectories, IMU, vision model, logs)
 #   fitting     parameter spaces, designs, the search kernel, optimisers, cross-validation, studies
+#   tuning      rules tuned in the real front-end's loop (`jsve tune`): proposals, races, the check
 #   report      the threshold report
 #   cli, frontend   the `jsve` command; the C++ log writer header
 
@@ -23,6 +24,7 @@ from . import io as io
 from . import masks as masks
 from . import report as report
 from . import sim as sim
+from . import tuning as tuning
 from ._demo import run_demo as run_demo
 from ._version import __version__ as __version__
 from .core import FAILURE_CAUSES as FAILURE_CAUSES
