@@ -25,7 +25,6 @@ from scipy import stats
 
 from jsve.report._document import Bullets, Details, Figure, Section, Sub, Table
 from jsve.report._format import cm, cm_ci, number, percent
-from jsve.tuning._race import RESOLUTION_M
 
 SEED_RUNS_PER_SETTING = 100
 """The seed study's protocol: 100 runs of the front-end per setting and build (rule)..."""
@@ -88,6 +87,8 @@ def _arm_rows(runs: pd.DataFrame, study: dict) -> pd.DataFrame:
 
 
 def headline(data: dict) -> Section:
+    from jsve.tuning._race import RESOLUTION_M
+
     state, study = data["state"], data["state"]["study"]
     tuned = state["tuned"]
     rule = json.loads((data["folder"] / "rules" / f"{tuned}.json").read_text())
