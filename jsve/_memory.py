@@ -60,7 +60,7 @@ def _trim_heap() -> bool:
 
 ENV = "JSVE_RELEASE_MEMORY"
 """JSVE_RELEASE_MEMORY=0 (or off, false, no) turns `release_memory` off: a machine with memory to spare
-keeps every executable (no compiling a shape twice); analysis/bench_fit_memory.py compares both."""
+keeps every executable (no compiling a shape twice); benchmarks/bench_fit_memory.py compares both."""
 
 
 def release_memory(*, above_bytes: int | None = RELEASE_ABOVE_BYTES) -> dict:

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     config = tomllib.loads(Path(args.config).read_text())
 
-    from jsve.fitting import use_all_cores
+    from jsve.cli import use_all_cores
 
     use_all_cores()
     import numpy as np

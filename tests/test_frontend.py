@@ -583,7 +583,7 @@ def test_a_world_frame_the_writer_rejects_is_one_the_reader_rejects(build, tmp_p
 @needs_cxx
 @pytest.mark.slow
 def test_benchmark_script_reports_microseconds_per_frame(tmp_path):
-    script = Path(__file__).resolve().parents[1] / "analysis" / "bench_frontend_writer.py"
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_frontend_writer.py"
     out = tmp_path / "bench.json"
     subprocess.run(
         [sys.executable, str(script), "--frames", "2000", "--repeats", "2", "--json", str(out)],

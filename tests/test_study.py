@@ -99,7 +99,7 @@ def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
     a --config file's keys win over --thorough, command-line flags over both; the study's key changes
     with it; a count that is not one is refused."""
     from jsve.cli import build_parser
-    from jsve.fitting import THOROUGH
+    from jsve.fitting._config import THOROUGH
     from jsve.fitting._study import fingerprint, study_folds
 
     default = StudyConfig()

@@ -25,6 +25,7 @@ import sys
 from collections.abc import Iterable, Sequence
 
 from jsve.cli import _common as common
+from jsve.cli._common import use_all_cores as use_all_cores
 
 SUBCOMMANDS: tuple[str, ...] = (
     "ingest",

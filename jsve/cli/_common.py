@@ -462,3 +462,15 @@ def load_runs(command: str, source: str, *, on_error: OnError, workers: int | No
     for q in result.quarantined:
         print(f"jsve {command}: quarantined {q.message}", file=sys.stderr)
     return result.runs
+
+
+def use_all_cores() -> None:
+    """Ask XLA for one CPU device per core, so that jsve.fitting's `search` runs its calls on every
+    core. Effective only before JAX's backend starts, and only when XLA_FLAGS does not set a device
+    count already. For the command line and scripts (it changes the process's environment): a library
+    user decides this for their own process."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = (
+            f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
+        )

@@ -63,7 +63,7 @@ def register(subparsers) -> None:
 @common.guarded("demo")
 def run(args) -> int:
     from jsve._jax_cache import enable_compilation_cache
-    from jsve.fitting._search import use_all_cores
+    from jsve.cli._common import use_all_cores
 
     use_all_cores()  # one XLA CPU device per core: the batched search runs on all of them
     enable_compilation_cache()  # a second run compiles nothing

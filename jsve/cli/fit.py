@@ -62,7 +62,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="also leave out each sequence and each disturbance in turn, and refit each bootstrap "
         "resample among 1,024 settings around the fit too, for finer parameter intervals "
-        "(jsve.fitting.THOROUGH; about twice the time, docs/fitting.md); "
+        "(jsve.fitting._config.THOROUGH; about twice the time, docs/fitting.md); "
         "--config's settings override it (default: 5-fold only, and intervals from refits among the "
         "search's settings and the fit)",
     )
@@ -131,8 +131,8 @@ def register(subparsers) -> None:
 @common.guarded("fit")
 def run(args) -> int:
     from jsve._jax_cache import enable_compilation_cache
+    from jsve.cli._common import use_all_cores
     from jsve.fitting._config import StudyConfig
-    from jsve.fitting._search import use_all_cores
     from jsve.io._atomic import check_writable
 
     check_writable(args.output)  # before reading the logs: an unwritable folder fails at once

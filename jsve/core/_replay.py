@@ -146,7 +146,7 @@ def _scan_frames(
 
     Every scan step advances all runs at once as vector lanes: frames-major data make each step read
     contiguous memory, which on CPU is several times faster than vmapping a per-run scan over
-    runs-major arrays (analysis/bench_evaluate.py).
+    runs-major arrays (benchmarks/bench_evaluate.py).
 
     Arguments:
         score: [F, *B]. data: FrameData with [F, *B] leaves. run: RunConstants with [*B] leaves.

@@ -494,7 +494,7 @@ def run_error(
 
 RUNS_PER_BLOCK = 32
 """Runs evaluated together inside `batched_run_error`: blocks this size keep each pass over the frames in
-cache, where one vmap over every run does not (analysis/bench_ape.py)."""
+cache, where one vmap over every run does not (benchmarks/bench_ape.py)."""
 
 
 @functools.partial(

@@ -4,7 +4,7 @@ The search kernel compiles once per input shape (frames x runs x settings per ca
 streamed from disk is cut into length buckets (a few dozen for a EuRoC study), so a subset of its runs
 taken part by part, as halving's rungs and the cross-validation folds' rungs take them, gives every
 part a shape of its own in every rung: hundreds of compilations for one family's halving search, about
-half its time (analysis/profile_fit.py counts them). Packing the subset's runs by length class instead
+half its time (benchmarks/profile_fit.py counts them). Packing the subset's runs by length class instead
 (FRAME_CLASSES classes of about equal runs, each padded to its longest part's frames, each padded to a
 power of 2 of runs) leaves a few shapes per rung, and the same shapes recur in the next rung and fold.
 The padding costs frames: within a class the runs are at most one class's range shorter than its
@@ -210,7 +210,7 @@ def subset_parts(
 
 SCAN_STEP_LANES = 1900
 """What a call of the search kernel costs per frame whatever its lanes, in lanes: a scan step of L lanes
-takes about 48 us + 0.025 us x L on a 2-core CPU (analysis/bench_layout.py; docs/fitting.md,
+takes about 48 us + 0.025 us x L on a 2-core CPU (benchmarks/bench_layout.py; docs/fitting.md,
 "Nelder-Mead on a subset of the runs"), so a narrow call is dominated by its steps. `cheapest_layout`
 weighs calls by it."""
 
@@ -238,7 +238,7 @@ def one_part_shape(parts: Sequence[tuple[int, int]], runs) -> tuple[int, int]:
 LAYOUT_CLASSES = (2, FRAME_CLASSES)
 """Length classes `cheapest_layout` weighs against one part. Two classes pad less than one part and
 call fewer times than four, which makes them the faster layout for the heat map's 400 settings on 512
-runs (analysis/bench_layout.py; docs/fitting.md, "Nelder-Mead on a subset of the runs")."""
+runs (benchmarks/bench_layout.py; docs/fitting.md, "Nelder-Mead on a subset of the runs")."""
 
 
 def layout_shapes(

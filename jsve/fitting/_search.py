@@ -35,7 +35,7 @@ jsve.core._objective.run_losses setting by setting.
 
 Everything per frame is spelled out in coordinate columns ([F, R] arrays) rather than [..., 3] rows:
 XLA on CPU vectorises the former and not the latter, which matters most for the pose update and the
-power means (analysis/bench_search.py).
+power means (benchmarks/bench_search.py).
 """
 
 from __future__ import annotations
@@ -612,7 +612,7 @@ RESULT_FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included"
 
 LANES_PER_CALL = 8192
 """Settings x runs per kernel call on CPU: enough lanes to vectorise each frame step, few enough that the
-scan's carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (`analysis/bench_search.py
+scan's carry (~50 floats per lane, 1.6 MB) stays in a core's L2 cache (`benchmarks/bench_search.py
 --lanes` compares widths)."""
 
 GPU_LANES_PER_CALL = 262144
@@ -769,17 +769,6 @@ def _device(tree):
     return device
 
 
-def use_all_cores() -> None:
-    """Ask XLA for one CPU device per core, so that `search` runs its calls on every core. Effective
-    only before JAX's backend starts, and only when XLA_FLAGS does not set a device count already.
-    For the command line and scripts: a library user decides this for their own process."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" not in flags:
-        os.environ["XLA_FLAGS"] = (
-            f"{flags} --xla_force_host_platform_device_count={os.cpu_count() or 1}".strip()
-        )
-
-
 __all__ = [
     "SearchBatch",
     "RESULT_FIELDS",
@@ -789,7 +778,6 @@ __all__ = [
     "SearchResult",
     "score_columns",
     "feature_logs",
-    "use_all_cores",
     "call_size",
     "LANES_PER_CALL",
     "GPU_LANES_PER_CALL",

@@ -62,7 +62,7 @@ def lockstep_nelder_mead(
 
     One simplex at a time, each objective call scores one setting: a scan over the polish's runs whose
     lanes (settings x runs) are too few to fill a core, so one call of many settings costs a fraction
-    of as many calls of one (analysis/profile_fit.py). A cross-validation polishes 2 starts x 19 folds;
+    of as many calls of one (benchmarks/profile_fit.py). A cross-validation polishes 2 starts x 19 folds;
     in lockstep their reflections are one call, their expansions and contractions another, their
     shrinks a third.
 

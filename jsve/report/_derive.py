@@ -24,7 +24,7 @@ import pandas as pd
 
 from jsve.core._rules import BASELINES, PRESETS, preset, rule_params
 from jsve.evaluation import aggregate, group_weights, run_loss
-from jsve.fitting import fitted_rule_name
+from jsve.fitting._fit import fitted_rule_name
 
 NOT_IDENTIFIED_SPAN = 0.5
 """A parameter whose 95 % bootstrap interval spans at least this share of its search range is flagged:

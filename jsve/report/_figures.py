@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from jsve.core._rules import PRESETS, RULE_KINDS  # noqa: E402
-from jsve.fitting import fitted_rule_name  # noqa: E402
+from jsve.fitting._fit import fitted_rule_name
 from jsve.io import _atomic as atomic  # noqa: E402
 from jsve.report._derive import rule_order  # noqa: E402
 from jsve.report._format import SEVERITY_FALLS_WITH_LEVEL, cm, level_axis, span_mm  # noqa: E402

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from jsve.core._rules import BASELINES
 from jsve.evaluation import trust_region_warning
-from jsve.fitting import fitted_rule_name
+from jsve.fitting._fit import fitted_rule_name
 from jsve.io import _atomic as atomic
 from jsve.report import _derive as derive
 from jsve.report._document import Details, Figure, Section, render

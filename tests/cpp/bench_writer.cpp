@@ -1,5 +1,5 @@
 // Times jsve_log.hpp: N frames of realistic values written to a real file, repeated; prints one
-// JSON object. Driven by analysis/bench_frontend_writer.py, which compiles it with -O2.
+// JSON object. Driven by benchmarks/bench_frontend_writer.py, which compiles it with -O2.
 //
 // usage: bench_writer OUT.csv N_FRAMES REPEATS
 

@@ -1,6 +1,6 @@
 """Benchmark: cost growth of ingest, evaluate and fit with the study's size (issue 14, item 3).
 
-    python analysis/bench_scale.py STUDY_DIR STUDY.parquet --sizes 100,1000,3410,10000 --work W \\
+    python benchmarks/bench_scale.py STUDY_DIR STUDY.parquet --sizes 100,1000,3410,10000 --work W \\
         [--fit-sizes 100,1000] [--estimate-sizes 3410,10000] [--before-tree OLD] [--json W/scale.json]
 
 For each size N: the first N logs of STUDY_DIR (sorted paths, as `jsve ingest` orders them) ingested

@@ -2,7 +2,7 @@
 --scheduler`): wall time of a first call (workers start and load the study), of a second call (the
 study held), and whether the results are equal.
 
-    python analysis/bench_sharded_search.py STUDY.parquet [--settings 512] [--scheduler local]
+    python benchmarks/bench_sharded_search.py STUDY.parquet [--settings 512] [--scheduler local]
         [--workers 2] [--family sve]
 
 On one machine the local search already runs on every core (one XLA CPU device per core), so the
@@ -16,7 +16,10 @@ import time
 
 import numpy as np
 
-from jsve.fitting import FitData, ShardedSearch, StudyConfig, design, search_all, use_all_cores
+from jsve.cli import use_all_cores
+from jsve.fitting import FitData, StudyConfig, design
+from jsve.fitting._distributed import ShardedSearch
+from jsve.fitting._fit import search_all
 
 
 def main(argv=None) -> int:

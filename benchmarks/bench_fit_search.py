@@ -1,8 +1,8 @@
 """Exhaustive search, successive halving and Optuna's TPE on one simulated study, side by side.
 
     pip install -e '.[bench]'                        # optuna
-    python analysis/bench_fit_search.py              # 3 EuRoC sequences x 31 settings x 1 run (93 logs)
-    python analysis/bench_fit_search.py --full       # the 3,410-log EuRoC study (11 x 31 x 10)
+    python benchmarks/bench_fit_search.py              # 3 EuRoC sequences x 31 settings x 1 run (93 logs)
+    python benchmarks/bench_fit_search.py --full       # the 3,410-log EuRoC study (11 x 31 x 10)
 
 The study is simulated once (jsve.sim.write_study, kept in --study-dir and reused). Each method then
 runs in its own process, so that its peak RSS is its own: it fits every family on all runs (the fit a
@@ -165,7 +165,7 @@ def _rss_mb() -> float:
 
 
 def _child(args) -> int:
-    from jsve.fitting import use_all_cores
+    from jsve.cli import use_all_cores
 
     use_all_cores()  # as jsve fit: one XLA CPU device per core
     if args.jax_cache:  # JAX's persistent compilation cache, as jsve fit sets it (every computation)
@@ -228,7 +228,8 @@ def _row(fold: str, run: int, weight: float, loss: float, failed: bool, coverage
 
 def _jsve_family(data, space, family, weights, folds, config, args) -> dict:
     """The exhaustive or halving search, through jsve.fitting.fit and cross_validate (as jsve fit)."""
-    from jsve.fitting import cross_validate, fit, fitted_rule_name
+    from jsve.fitting import cross_validate, fit
+    from jsve.fitting._fit import fitted_rule_name
 
     t = time.perf_counter()
     full = fit(data, space, weights, config, progress=False)
@@ -286,7 +287,7 @@ def _tpe_search(data, space, weights, n_trials: int, batch: int, seed: int):
 def _tpe_budget(n_settings: int, n_train: int, eta: float, f0: float) -> int:
     """Trials that halving's nominal cost on n_train runs buys: sum over rungs of settings x runs new to
     the rung, divided by n_train (each trial is scored on every training run)."""
-    from jsve.fitting import rung_sizes
+    from jsve.fitting._halving import rung_sizes
 
     cost, seen = 0, 0
     for settings, runs in rung_sizes(n_settings, n_train, eta, f0):

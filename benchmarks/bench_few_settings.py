@@ -2,7 +2,7 @@
 a Nelder-Mead step of 19 folds x 2 starts (38 settings on the 256 polish runs packed by length class),
 each timed three times after a first call that compiles.
 
-    python analysis/bench_few_settings.py study.parquet
+    python benchmarks/bench_few_settings.py study.parquet
 
 Such a search is one kernel call a part; where the parts sit decides how many cores run them
 (jsve.fitting.search sends a part of one call to the XLA devices in turn). Prints seconds per search.
@@ -20,17 +20,19 @@ def main(argv=None) -> None:
     parser.add_argument("--family", default="sve")
     args = parser.parse_args(argv)
 
-    from jsve.fitting import use_all_cores
+    from jsve.cli import use_all_cores
 
     use_all_cores()
     import numpy as np
 
     from jsve.core import ObjectiveConfig
-    from jsve.fitting import FitData, search, sobol, space_from_dict, stratified_order, subset_parts
+    from jsve.fitting import FitData, design, search, space_from_dict
+    from jsve.fitting._halving import stratified_order
+    from jsve.fitting._packing import subset_parts
 
     data = FitData.from_parquet(args.study, ObjectiveConfig())
     space = space_from_dict({"kind": args.family})
-    values = np.asarray(space.values_from_unit(sobol(64, space.dim, seed=0)), np.float64)
+    values = np.asarray(space.values_from_unit(design("sobol", 64, space.dim, seed=0)), np.float64)
     # the polish runs of a fit on every run (jsve.fitting._polish.polish_runs): the first 256 in the order
     runs = np.sort(stratified_order(data.meta, data.n_runs, seed=0)[:256])
     packed, counts, _ = subset_parts(data.parts, data.run_counts, runs)

@@ -6,7 +6,7 @@ folds' halving searches in step, as `jsve fit` runs them; the resident set size 
 during the folds' halving. `--release off` sets JSVE_RELEASE_MEMORY=0 (jsve._memory: executables and
 freed heap kept).
 
-    python analysis/bench_fit_memory.py STUDY.parquet [--family inliers]
+    python benchmarks/bench_fit_memory.py STUDY.parquet [--family inliers]
 
 Measured on the 3,410-log study (docs/fitting.md, Limits): 19 folds' halving of the inlier family
 peaked at 3.67 GB and left 2.61 GB with the release, 4.21 and 4.21 GB without.
@@ -30,17 +30,12 @@ def _resident_gb() -> float:
 
 def measure(study: str, family: str) -> None:
     """The measurement, in this process (one line on stdout)."""
+    from jsve.cli import use_all_cores
     from jsve.evaluation import group_weights
-    from jsve.fitting import (
-        FitData,
-        StudyConfig,
-        fit,
-        halving_searches,
-        resolve_search,
-        stratified_order,
-        study_folds,
-        use_all_cores,
-    )  # fmt: skip
+    from jsve.fitting import FitData, StudyConfig, fit
+    from jsve.fitting._fit import resolve_search
+    from jsve.fitting._halving import halving_searches, stratified_order
+    from jsve.fitting._study import study_folds
 
     use_all_cores()
     config = StudyConfig()

@@ -7,8 +7,8 @@ open and close amortised), and the cost of binning ORB-SLAM3's 64 x 48 keypoint 
 64 SVE bins with jsve::fill_bins_from_grid. Both float formatters are measured: std::to_chars
 (default) and the snprintf "%.17g" fallback (-DJSVE_LOG_USE_SNPRINTF).
 
-    python analysis/bench_frontend_writer.py                 # 20000 frames x 5 repeats
-    python analysis/bench_frontend_writer.py --frames 100000 --repeats 7 --json out.json
+    python benchmarks/bench_frontend_writer.py                 # 20000 frames x 5 repeats
+    python benchmarks/bench_frontend_writer.py --frames 100000 --repeats 7 --json out.json
 """
 
 from __future__ import annotations

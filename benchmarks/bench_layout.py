@@ -3,7 +3,7 @@ on the study's first N polish runs (jsve.fitting._polish.polish_runs), each layo
 call (the first compiles), with what jsve.fitting._packing.scan_cost predicts and what subset_layout
 chooses (cheapest_layout).
 
-    python analysis/bench_layout.py study.parquet [--family sve] [--runs 256 512] [--settings 2 10 38 400]
+    python benchmarks/bench_layout.py study.parquet [--family sve] [--runs 256 512] [--settings 2 10 38 400]
 
 The measurements behind SCAN_STEP_LANES (docs/fitting.md, "Nelder-Mead on a subset of the runs").
 Prints one line per (runs, settings): each layout's seconds and its cost-model units relative to one
@@ -24,29 +24,28 @@ def main(argv=None) -> None:
     parser.add_argument("--settings", type=int, nargs="+", default=[2, 10, 38, 100, 400])
     args = parser.parse_args(argv)
 
-    from jsve.fitting import use_all_cores
+    from jsve.cli import use_all_cores
 
     use_all_cores()
     import numpy as np
 
     from jsve.core import ObjectiveConfig
-    from jsve.fitting import (
+    from jsve.fitting import FitData, design, search, space_from_dict
+    from jsve.fitting._packing import (
         LAYOUT_CLASSES,
-        FitData,
         cheapest_layout,
         layout_shapes,
         pack_runs,
-        polish_runs,
         scan_cost,
-        search,
-        sobol,
-        space_from_dict,
         subset_parts,
     )
+    from jsve.fitting._polish import polish_runs
 
     data = FitData.from_parquet(args.study, ObjectiveConfig())
     space = space_from_dict({"kind": args.family})
-    values = np.asarray(space.values_from_unit(sobol(max(args.settings), space.dim, seed=0)), np.float64)
+    values = np.asarray(
+        space.values_from_unit(design("sobol", max(args.settings), space.dim, seed=0)), np.float64
+    )
     shapes = [(p.n_frames, p.n_runs) for p in data.parts]
 
     def timed(parts, counts, v) -> float:

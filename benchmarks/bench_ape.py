@@ -1,7 +1,7 @@
 """Micro-benchmark: batched JAX trajectory error (alignment + APE statistics) against evo's per-run loop.
 
-    python analysis/bench_ape.py                                  # N = 10, 100, 1000 runs x 3,600 poses
-    python analysis/bench_ape.py --sizes 10,100 --evo-runs 20 --align sim3
+    python benchmarks/bench_ape.py                                  # N = 10, 100, 1000 runs x 3,600 poses
+    python benchmarks/bench_ape.py --sizes 10,100 --evo-runs 20 --align sim3
 
 JAX: `jsve.batched_run_error` (jit-compiled, vmapped over runs; one segment per run, full ground truth), in
 float32 and float64, timed after compilation (compile time printed apart; median of --repeats calls).

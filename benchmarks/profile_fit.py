@@ -1,7 +1,7 @@
 """Where a large fit's time goes: the search, the polishes and the verdicts, with the compilations each
 triggers counted and timed (JAX's backend compile events).
 
-    python analysis/profile_fit.py study.parquet --family sve [--folds 19]
+    python benchmarks/profile_fit.py study.parquet --family sve [--folds 19]
 
 On a Parquet study (`jsve ingest`), the steps one family's fit and its cross-validation run
 (jsve.fitting: `fit_search`, `polish`, `judge`), each timed on its own, its compilations apart:
@@ -33,7 +33,7 @@ def main(argv=None) -> None:
     parser.add_argument("--folds", type=int, default=19, help="fits judged together (cross-validation)")
     args = parser.parse_args(argv)
 
-    from jsve.fitting import use_all_cores
+    from jsve.cli import use_all_cores
 
     use_all_cores()  # one XLA CPU device per core, as jsve fit
     import jax.monitoring
@@ -47,20 +47,9 @@ def main(argv=None) -> None:
     )
     from jsve.core import ObjectiveConfig
     from jsve.evaluation import group_weights
-    from jsve.fitting import (
-        FitConfig,
-        FitData,
-        StudyConfig,
-        fit_search,
-        inlier_space,
-        judge,
-        polish,
-        polish_fits,
-        resolve_search,
-        search,
-        study_folds,
-        sve_space,
-    )
+    from jsve.fitting import FitConfig, FitData, StudyConfig, inlier_space, search, sve_space
+    from jsve.fitting._fit import fit_search, judge, polish, polish_fits, resolve_search
+    from jsve.fitting._study import study_folds
 
     def timed(label: str, fn):
         before, started = len(compiles), time.perf_counter()

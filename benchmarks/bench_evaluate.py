@@ -1,7 +1,7 @@
 """Benchmark: one rule setting over growing numbers of runs (replay + SE3 alignment + APE statistics).
 
-    python analysis/bench_evaluate.py                       # 10 .. 10,000 runs x 3,600 frames
-    python analysis/bench_evaluate.py --sizes 100,1000 --evo-runs 5
+    python benchmarks/bench_evaluate.py                       # 10 .. 10,000 runs x 3,600 frames
+    python benchmarks/bench_evaluate.py --sizes 100,1000 --evo-runs 5
 
 Prints, per size: wall time of the compiled evaluation (data already in memory; compile time shown
 apart), frames per second, peak resident memory of the process, and the ratio against evo's APE loop

@@ -1,7 +1,7 @@
 """Benchmark: `jsve evaluate` end to end from Parquet, cold and warm compilation cache (issue 14, item 2).
 
-    python analysis/bench_evaluate_cli.py --work /tmp/jb                     # simulate, ingest, time
-    python analysis/bench_evaluate_cli.py --work /tmp/jb --before-tree OLD   # and an older checkout
+    python benchmarks/bench_evaluate_cli.py --work /tmp/jb                     # simulate, ingest, time
+    python benchmarks/bench_evaluate_cli.py --work /tmp/jb --before-tree OLD   # and an older checkout
 
 Simulates a study (EuRoC sequences x the seed's 31 settings x --runs; 11 sequences x 1 run is 341 logs,
 0.82 M frames), ingests it to Parquet (both skipped when already there), then runs

@@ -1,9 +1,9 @@
 """Throughput of the batched search (jsve.fitting.search) in frame-settings per second.
 
-    python analysis/bench_search.py                      # all cores (one XLA CPU device per core)
-    python analysis/bench_search.py --devices 1          # one device
-    python analysis/bench_search.py --settings 4096 --output bench_search.json
-    python analysis/bench_search.py --lanes 8192,131072   # settings x runs per kernel call, each timed
+    python benchmarks/bench_search.py                      # all cores (one XLA CPU device per core)
+    python benchmarks/bench_search.py --devices 1          # one device
+    python benchmarks/bench_search.py --settings 4096 --output bench_search.json
+    python benchmarks/bench_search.py --lanes 8192,131072   # settings x runs per kernel call, each timed
 
 Simulates a study (procedural flights x the seed's settings, jsve.sim.simulate_study), prepares it once, and
 times `jsve.fitting.search` on Sobol designs of both rule families (inlier thresholds; SVE combination and
@@ -46,7 +46,8 @@ def main(argv=None) -> int:
     import jax
     import numpy as np
 
-    from jsve.fitting import FitData, inlier_space, lanes_per_call, sobol, sve_space
+    from jsve.fitting import FitData, design, inlier_space, sve_space
+    from jsve.fitting._search import lanes_per_call
     from jsve.sim import FlightProfile, SimConfig, simulate_study
 
     t0 = time.perf_counter()
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
     }
     lanes = [int(n) for n in args.lanes.split(",")] if args.lanes else [None]
     for space in (inlier_space(), sve_space()):
-        values = np.asarray(space.values_from_unit(sobol(args.settings, space.dim, seed=1)))
+        values = np.asarray(space.values_from_unit(design("sobol", args.settings, space.dim, seed=1)))
         for n_lanes in lanes:
             if n_lanes is not None:
                 os.environ["JSVE_LANES_PER_CALL"] = str(n_lanes)
