@@ -39,6 +39,15 @@ def stacked(folders: list[Path], name: str) -> pd.DataFrame:
     return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
 
 
+def _spearman(x: pd.Series, y: pd.Series) -> tuple[float, float]:
+    """Spearman's rho and its p; NaN for both where either side is constant or there are under 3 pairs
+    (the rank correlation is undefined, not 0)."""
+    if len(x) < 3 or x.nunique() < 2 or y.nunique() < 2:
+        return float("nan"), float("nan")
+    result = stats.spearmanr(x, y)
+    return float(result.statistic), float(result.pvalue)
+
+
 def pooled_agreement(agreement: pd.DataFrame) -> dict:
     """Over every raced candidate of every tuning: the predicted - measured difference to the incumbent
     (its mean and spread, metres), Spearman's rho of the two, and on the halves: the prediction made on
@@ -46,13 +55,17 @@ def pooled_agreement(agreement: pd.DataFrame) -> dict:
     if agreement.empty:
         return {"candidates": 0}
     bias = agreement["predicted_diff_m"] - agreement["measured_diff_m"]
-    out = {"candidates": len(agreement), "bias_mean_m": bias.mean(), "bias_sd_m": bias.std(ddof=1)}
-    varied = all(agreement[c].nunique() > 1 for c in ("predicted_diff_m", "measured_diff_m"))
-    if len(agreement) >= 3 and varied:
-        rho = stats.spearmanr(agreement["predicted_diff_m"], agreement["measured_diff_m"])
-        halves = stats.spearmanr(agreement["predicted_diff_even_m"], agreement["measured_diff_odd_m"])
-        out.update(spearman=rho.statistic, spearman_p=rho.pvalue, halves_spearman=halves.statistic)
-    return out
+    rho, p = _spearman(agreement["predicted_diff_m"], agreement["measured_diff_m"])
+    halves, halves_p = _spearman(agreement["predicted_diff_even_m"], agreement["measured_diff_odd_m"])
+    return {
+        "candidates": len(agreement),
+        "bias_mean_m": bias.mean(),
+        "bias_sd_m": bias.std(ddof=1),
+        "spearman": rho,
+        "spearman_p": p,
+        "halves_spearman": halves,
+        "halves_spearman_p": halves_p,
+    }
 
 
 def main(argv=None) -> int:

@@ -4,8 +4,10 @@ refused, and a tuning killed with SIGKILL and resumed that ends as an uninterrup
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -203,3 +205,39 @@ def test_with_record_the_proposals_replay_the_record_rules_logs(tmp_path):
         zip(recorded.dataset, recorded.seed, strict=True)
     )
     assert "record" not in {c["name"] for c in state["rounds"][0]["candidates"]}  # recorded, never raced
+
+
+def _tune_summary():
+    """analysis/tune_summary.py, imported by path: analysis/ is a folder of scripts, not a package."""
+    path = Path(__file__).resolve().parents[1] / "analysis" / "tune_summary.py"
+    spec = importlib.util.spec_from_file_location("analysis_tune_summary", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_pooled_summary_counts_each_run_once_and_finds_no_bias_where_a_run_is_the_replay(
+    tuned, tmp_path, capsys
+):
+    # On the simulator a rule's run is the replay of its log, so the replay's prediction of every raced
+    # candidate is its measured difference: the pooled bias is 0. Two tunings sharing one pool (a copy
+    # of the folder) use every run twice and the machine made each once.
+    root, study, state = tuned
+    summary = _tune_summary()
+    out = tmp_path / "out"
+    for name in ("a", "b"):
+        shutil.copytree(root / "out", out / name)
+    assert summary.main([str(out), "--csv-prefix", str(tmp_path / "tables" / "tune")]) == 0
+    printed = capsys.readouterr().out
+    runs = pd.read_csv(root / "out" / "runs.csv")
+    assert f"runs: {len(runs)} distinct over 2 tunings ({2 * len(runs)} uses)" in printed
+    agreement = pd.read_csv(tmp_path / "tables" / "tune_agreement.csv")
+    assert len(agreement) == 2 * len(pd.read_csv(root / "out" / "agreement.csv")) > 0
+    pooled = summary.pooled_agreement(agreement)
+    assert pooled["candidates"] == len(agreement)
+    assert abs(pooled["bias_mean_m"]) < 1e-6 and pooled["bias_sd_m"] < 1e-6
+    if agreement["predicted_diff_m"].nunique() > 1:
+        assert pooled["spearman"] == pytest.approx(1.0)
+    else:
+        assert np.isnan(pooled["spearman"])  # undefined for a constant prediction, never 0
