@@ -23,6 +23,7 @@ import pandas as pd
 from scipy import stats
 
 from jsve import ObjectiveConfig
+from jsve.tuning import run_row
 
 DEFAULT_FAILURE_PENALTY_M = ObjectiveConfig().failure_penalty
 DEFAULT_MIN_COVERAGE = ObjectiveConfig().min_coverage
@@ -55,16 +56,12 @@ def run_table(out: Path) -> pd.DataFrame:
         rule = tail[2] if len(tail) == 4 else "orbslam3-orbslam3"
         stem = summary_path.with_name(summary_path.name.removesuffix(".summary.json"))
         t = s.get("time", {})
-        coverage, ate = s.get("saved_coverage"), s.get("ate_from_log_m")
-        failed = s["outcome"] != "ok" or coverage is None or coverage < DEFAULT_MIN_COVERAGE or ate is None
-        events = s.get("events") or {}
+        row = run_row(s, DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE)
         rows.append({
             "study": study, "sequence": sequence, "level": level, "rule": rule, "run": stem.name,
-            "mode": s.get("mode"), "seed": s.get("seed"), "outcome": s["outcome"], "failed": failed,
-            "ate_m": ate, "coverage": coverage,
-            "loss_m": DEFAULT_FAILURE_PENALTY_M if failed else min(ate, DEFAULT_FAILURE_PENALTY_M),
-            "resets": events.get("reset", 0) + events.get("reset_all", 0), "loops": events.get("loop", 0),
-            "merges": events.get("merge", 0), "keyframes": s.get("keyframes_at_end"),
+            "mode": s.get("mode"), "seed": s.get("seed"),
+            **{k: row[k] for k in ("outcome", "failed", "ate_m", "coverage", "loss_m", "resets", "loops")},
+            "merges": (s.get("events") or {}).get("merge", 0), "keyframes": s.get("keyframes_at_end"),
             "wall_s": s.get("wall_seconds"), "cpu_s": t.get("cpu_s"),
             "start_s": t.get("setup_s", 0) + t.get("system_s", 0), "decode_s": t.get("decode_s"),
             "track_s": t.get("track_s"), "local_mapping_s": t.get("local_mapping_s"),

@@ -26,6 +26,7 @@ import pandas as pd
 from scipy import stats
 
 from jsve import ObjectiveConfig
+from jsve.tuning import run_row
 
 PENALTY_M = ObjectiveConfig().failure_penalty
 MIN_COVERAGE = ObjectiveConfig().min_coverage
@@ -44,16 +45,12 @@ def run_table(out: Path) -> pd.DataFrame:
         if "exit_code" not in s:
             continue
         scene, arm, sequence = path.relative_to(out).parts[:3]
-        coverage, ate = s.get("saved_coverage"), s.get("ate_from_log_m")
-        failed = s["outcome"] != "ok" or coverage is None or coverage < MIN_COVERAGE or ate is None
-        events = s.get("events") or {}
+        row = run_row(s, PENALTY_M, MIN_COVERAGE)
         rows.append({
             "scene": scene, "arm": arm, "sequence": sequence, "seed": s["seed"], "run": path.name[4:7],
-            "outcome": s["outcome"], "coverage": coverage, "ate_m": ate, "failed": failed,
-            "loss_m": PENALTY_M if failed else min(ate, PENALTY_M),
-            "resets": events.get("reset", 0) + events.get("reset_all", 0), "maps": events.get("new_map", 0),
-            "loops": events.get("loop", 0), "ba2": events.get("ba2", 0),
-            "cpu_s": (s.get("time") or {}).get("cpu_s"), "stem": str(path).removesuffix(".summary.json"),
+            **{k: row[k] for k in ("outcome", "coverage", "ate_m", "failed", "loss_m", "resets")},
+            "maps": row["new_maps"], "loops": row["loops"], "ba2": (s.get("events") or {}).get("ba2", 0),
+            "cpu_s": row["cpu_s"], "stem": str(path).removesuffix(".summary.json"),
         })  # fmt: skip
     return pd.DataFrame(rows)
 

@@ -13,7 +13,7 @@ from jsve.evaluation._aggregate import group_weights
 from jsve.fitting._data import FitData
 from jsve.fitting._optimise import hard_objective
 from jsve.fitting._space import inlier_space, sve_space
-from jsve.fitting._study import data_fingerprint
+from jsve.fitting._stages import data_fingerprint
 from jsve.io._ingest import ingest
 from jsve.io._logs import write_log
 

@@ -26,7 +26,8 @@ from jsve.evaluation import group_weights
 from jsve.fitting._config import StudyConfig
 from jsve.fitting._data import FitData
 from jsve.fitting._fit import FitConfig
-from jsve.fitting._study import data_fingerprint, fingerprint, read_table, run_study, study_files
+from jsve.fitting._stages import data_fingerprint, fingerprint, read_table, study_files
+from jsve.fitting._study import run_study
 from jsve.io._resume import StaleOutputError
 from jsve.report import _format as fmt
 from jsve.report._report import write_report
@@ -335,7 +336,7 @@ INLIER_SPACE = {
 
 def _fake_study(out):
     """Every table write_report reads, made by hand with known answers."""
-    from jsve.fitting._study import write_json, write_table
+    from jsve.fitting._stages import write_json, write_table
 
     config = {
         "failure_penalty": 1.0,
@@ -548,7 +549,7 @@ def test_parameter_intervals_say_what_the_refits_chose_from(tmp_path):
     """With a local design the refits chose from it and the search; without one (the default study's
     n_local 0: `local` is 1, the fit alone) the report says the intervals are only as fine as the search's
     settings, and how to get finer ones."""
-    from jsve.fitting._study import read_table, write_table
+    from jsve.fitting._stages import read_table, write_table
 
     _fake_study(tmp_path)
     md = write_report(tmp_path, title="fake")["markdown"].read_text()
@@ -610,7 +611,7 @@ def test_jsve_report_dash_o_writes_the_same_page_elsewhere_and_only_reads_the_st
 def test_report_of_an_older_study_without_support_columns(tmp_path):
     """A study written before the support columns and the configuration's switch model and support policy
     existed renders without them."""
-    from jsve.fitting._study import write_json, write_table
+    from jsve.fitting._stages import write_json, write_table
 
     _fake_study(tmp_path)
     runs = read_table(tmp_path, "runs").drop(columns=["unsupported_fraction", "changed_fraction"])

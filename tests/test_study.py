@@ -48,7 +48,7 @@ def test_support_policy_keys_the_study_and_reaches_the_objective():
     the other policy stops, or starts over with --force: tests/test_report.py), `jsve fit --support`
     sets it, and a wrong value is refused when the study is configured."""
     from jsve.cli import build_parser
-    from jsve.fitting._study import fingerprint
+    from jsve.fitting._stages import fingerprint
 
     default, exclude = StudyConfig(), StudyConfig(support="exclude")
     assert default.objective().support == "penalise" and exclude.objective().support == "exclude"
@@ -70,7 +70,7 @@ def test_search_method_from_the_config_file_and_the_command_line(tmp_path):
     study is configured (argparse for the method's name)."""
     from jsve.cli import build_parser
     from jsve.fitting._fit import FitConfig
-    from jsve.fitting._study import fingerprint
+    from jsve.fitting._stages import fingerprint
 
     toml = tmp_path / "fit.toml"
     toml.write_text('[fit]\nsearch = "exhaustive"\neta = 2.0\n')
@@ -100,7 +100,8 @@ def test_the_default_study_is_k_fold_only_and_thorough_adds_the_rest(tmp_path):
     with it; a count that is not one is refused."""
     from jsve.cli import build_parser
     from jsve.fitting._config import THOROUGH
-    from jsve.fitting._study import fingerprint, study_folds
+    from jsve.fitting._stages import fingerprint
+    from jsve.fitting._study import study_folds
 
     default = StudyConfig()
     assert default.leave_one_out == () and default.n_local == 0

@@ -50,7 +50,7 @@ class FitData:
             data streamed from Parquet (`from_parquet`), whose buckets `full_buckets` streams again.
         source: the Parquet study the data was streamed from, or None.
         content_digest: sha256 (hex) of every leaf of the full chunks as they streamed, or None
-            (jsve.fitting._study.data_fingerprint hashes `buckets` then).
+            (jsve.fitting._stages.data_fingerprint hashes `buckets` then).
         runs_per_part: the most runs of a part (how the buckets were cut into parts).
         searcher: where the fit's searches run: None in this process, else a callable (space, values,
             runs, progress=, desc=) -> SearchResult (jsve.fitting._distributed.ShardedSearch: Dask

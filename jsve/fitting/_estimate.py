@@ -335,9 +335,8 @@ def plan(size: StudySize, config, done: Collection[str] = ()) -> Plan:
     """The study's work (cost model, module docstring) under StudyConfig `config`, leaving out the
     stages in `done` (names of jsve.fitting._study's stages: fit_<family> for the fits)."""
     from jsve.fitting._crossval import RACE_ETA
-    from jsve.fitting._fit import resolve_search
 
-    fit = resolve_search(config.fit, size.n_runs)
+    fit = config.resolved(size.n_runs).fit
     work: dict[tuple[str, str, str], float] = {}  # (stage, kind, family) -> units, in order of first use
     compiles: dict[tuple[str, str], set] = {}
 
@@ -546,9 +545,7 @@ def compile_rate(rates: Rates, kind: str, family: str) -> float:
 
 def describe(size: StudySize, config) -> str:
     """The study's size in words, the basis of an estimate: runs, frames, settings, search, folds."""
-    from jsve.fitting._fit import resolve_search
-
-    fit = resolve_search(config.fit, size.n_runs)
+    fit = config.resolved(size.n_runs).fit
     settings = " + ".join(f"{f} {size.designs[f]:,}" for f in config.families)
     words = [
         f"{size.n_runs:,} runs",

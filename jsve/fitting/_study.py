@@ -1,41 +1,37 @@
-"""A whole fitting study over a set of logs, written to one output folder, stage by stage.
+"""A whole fitting study over a set of logs, written to one output folder: a list of stages.
 
-    fit each family on all runs -> evaluate the presets and fitted rules, with the objective's terms
-    and the SVE per level, in one pass -> cross-validate (k-fold; with --thorough also
-    leave-one-sequence-out and leave-one-disturbance-out) -> bootstrap the fitted parameters ->
-    objective over the two main thresholds -> (jsve.report._report renders it all)
+    fit_<family>          each family fitted on all runs (`fit_stage`)
+    evaluate              the presets and fitted rules, the objective's terms and the SVE per level
+    cross_validation      k-fold (with --thorough also leave-one-sequence/disturbance-out)
+    parameter_bootstrap   the fitted parameters' intervals
+    heatmap               the objective over the two main thresholds
 
-Every stage writes its tables atomically (a temporary name, then a rename) as Parquet and CSV, and
-records itself in `stages.json` under the study's key: a fingerprint of the configuration and one of the
-data's content (data_fingerprint: sha256 over every array and metadata value the study reads). A rerun
-under the same key skips finished stages, so an interrupted study resumes where it stopped; a rerun
-under another key (other logs, or other log content under the same run ids; another configuration)
-stops with StaleOutputError before writing anything, or with force=True deletes the study's files
-(STUDY_FILES) and starts over: a folder never holds tables of two keys. `jsve fit` and `jsve demo` are
-thin layers over `run_study`.
+Each stage is a top-level function of a `Study` (the data, the resolved configuration, the run
+weights, the spaces and the fits so far) that writes its tables; `stages(study)` lists them in order
+with their outputs, and `run_study` runs them through the resumable runner of jsve.fitting._stages
+(a finished stage under the same key is skipped). jsve.report._report renders the folder; `jsve fit`
+and `jsve demo` are thin layers over `run_study`.
 """
 
 from __future__ import annotations
 
-import hashlib
+import functools
 import json
 import logging
 import os
-import time
-from collections.abc import Callable, Sequence
-from dataclasses import fields, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-import jax
 import numpy as np
 import pandas as pd
 
-from jsve._memory import peak_resident_bytes, release_memory
+from jsve._memory import release_memory
 from jsve.core._rules import PRESETS, preset, rule_kind, rule_to_dict
 from jsve.core._sve import Combination
 from jsve.evaluation._aggregate import aggregate, group_weights
 from jsve.evaluation._evaluate import evaluate_rules, in_run_order
-from jsve.fitting._config import THOROUGH, StudyConfig
+from jsve.fitting._config import StudyConfig
 from jsve.fitting._crossval import (
     compare,
     cross_validate,
@@ -51,171 +47,50 @@ from jsve.fitting._levels import SveLevelSums
 from jsve.fitting._polish import polish_runs
 from jsve.fitting._search import SearchResult
 from jsve.fitting._space import ParamSpace
+from jsve.fitting._stages import (
+    Stages,
+    data_fingerprint,
+    describe_change,
+    fingerprint,
+    read_table,
+    write_json,
+    write_table,
+)
 from jsve.io import _atomic as atomic
-from jsve.io._resume import StaleOutputError, differences
+from jsve.io._resume import StaleOutputError
 
 log = logging.getLogger(__name__)
 
-TABLES = (
-    "runs",
-    "summary",
-    "heldout",
-    "cv_params",
-    "heldout_summary",
-    "params",
-    "heatmap",
-    "sve_levels",
-)
-"""The study's tables, each written as `<name>.parquet` and `<name>.csv`."""
 
-STUDY_FILES = (
-    "study.json",
-    "stages.json",
-    "fitted_*.json",
-    "search_*.npz",
-    *(f"{name}.{suffix}" for name in TABLES for suffix in ("parquet", "csv")),
-    "report.md",
-    "report.html",
-    "report.json",
-    "figures/*.png",
-    "runs_presets.parquet",  # the presets' own table, which older versions of the study write
-    "runs_presets.csv",
-)
-"""Glob patterns of every file a study and its report write in their folder: what force=True deletes
-(and only that: the folder may hold other files)."""
+@dataclass
+class Study:
+    """What the stages of one study read and share.
 
-
-"""What `jsve fit --thorough` adds to the defaults: leave-one-sequence-out and leave-one-disturbance-out
-folds, and a parameter bootstrap whose refits also choose among 1,024 settings around the fit (finer
-intervals). The default takes about half the time, with the same fitted rules and k-fold held-out
-objective (docs/fitting.md, "The default study and `--thorough`")."""
-
-
-def fingerprint(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def data_fingerprint(data: FitData) -> str:
-    """16 hex digits of sha256 over the content of what a study reads: every array of the runs' batches
-    (dtype, shape and bytes, in order) and their metadata table.
-
-    The study's results are a function of these and of its configuration alone, so equal fingerprints
-    mean equal results, and any change of a log's values, runs or metadata changes it (run ids and frame
-    counts, or the input files' sizes and modification times, would not be enough: other logs can have
-    the same). It costs one pass over the arrays (sha256 at about 1 GB/s), small next to any stage.
-    """
-    if data.content_digest is not None:  # streamed: its chunks were hashed as they went by
-        total = hashlib.sha256(data.content_digest.encode())
-        total.update(data.meta.to_csv(index=False).encode())
-        return total.hexdigest()[:16]
-    total = hashlib.sha256()
-    batches = [b.batch for b in data.buckets] if data.buckets else [b for b, _, _ in data.iter_slim()]
-    for batch in batches:
-        for leaf in jax.tree_util.tree_leaves(batch):
-            array = np.ascontiguousarray(np.asarray(leaf))
-            total.update(f"{array.dtype.str}{array.shape}".encode())
-            total.update(array.reshape(-1).view(np.uint8).data)  # the bytes, without a copy
-    total.update(data.meta.to_csv(index=False).encode())
-    return total.hexdigest()[:16]
-
-
-# ---------------------------------------------------------------------------------------------------
-# Atomic outputs
-
-
-def write_table(table: pd.DataFrame, out: Path, name: str) -> None:
-    """`name`.parquet and `name`.csv, each written under a temporary name and renamed."""
-    for suffix in (".parquet", ".csv"):
-        atomic.write_table(table, Path(out) / f"{name}{suffix}")
-
-
-def read_table(out: Path, name: str) -> pd.DataFrame:
-    return pd.read_parquet(Path(out) / f"{name}.parquet")
-
-
-def write_json(obj, path: Path) -> None:
-    atomic.write_json(path, obj)
-
-
-def study_files(out: Path) -> list[Path]:
-    """The files of STUDY_FILES in `out`."""
-    return sorted({p for pattern in STUDY_FILES for p in Path(out).glob(pattern) if p.is_file()})
-
-
-class Stages:
-    """stages.json: which stages finished under which key (configuration and data fingerprints).
-
-    Raises:
-        StaleOutputError: the folder's stages ran under another key (and force is False); with force,
-            the study's files are deleted and every stage runs again.
+    Attributes:
+        data: the logs (FitData, its objective the configuration's).
+        out: the study's folder.
+        config: the study's configuration, its "auto" settings resolved for these data
+            (StudyConfig.resolved).
+        weights: [R] run weights (groups of config.balance_by count equally).
+        spaces: family -> ParamSpace.
+        progress: show progress bars.
+        fits: family -> FitResult, as the fit stages wrote them (read back from their files).
+        caches: family -> the halving's per-run results of a fit run in this process, which the folds
+            of the cross-validation reuse.
     """
 
-    def __init__(self, out: Path, config_fp: str, data_fp: str, *, force: bool = False, describe=None):
-        self.path = out / "stages.json"
-        self.key = {"config": config_fp, "data": data_fp}
-        self.done = {}
-        if not self.path.is_file():
-            return
-        record = json.loads(self.path.read_text())
-        if record.get("key") == self.key:
-            self.done = record.get("done", {})
-            return
-        old = record.get("key") or {}
-        what = describe(old, self.key) if describe else differences(old, self.key)
-        if not force:
-            raise StaleOutputError(out, what)
-        log.info("%s: a study of another key (%s); its files are deleted (force)", out, what)
-        files = study_files(out)
-        for path in files:
-            try:
-                path.unlink()
-            except OSError as error:
-                raise atomic.output_error(error, path) from error
-        for folder in {p.parent for p in files} - {out}:
-            if not any(folder.iterdir()):
-                folder.rmdir()  # the report's figures/
+    data: FitData
+    out: Path
+    config: StudyConfig
+    weights: np.ndarray
+    spaces: dict[str, ParamSpace]
+    progress: bool = True
+    fits: dict[str, FitResult] = field(default_factory=dict)
+    caches: dict = field(default_factory=dict)
 
-    def run(self, name: str, fn: Callable[[], dict | None], outputs: Sequence[Path]) -> dict:
-        if name in self.done and all(p.exists() for p in outputs):
-            log.info("stage %s: done already, skipped", name)
-            return self.done[name]
-        started = time.perf_counter()
-        info = fn() or {}
-        info["seconds"] = time.perf_counter() - started
-        # the process's peak so far (the stage's own where memory grew in it), then what it left behind
-        peak = peak_resident_bytes()
-        if peak is not None:
-            info["peak_rss_gb"] = round(peak / 1e9, 2)
-        release_memory()
-        self.done[name] = info
-        write_json({"key": self.key, "done": self.done}, self.path)
-        return info
-
-
-def _describe_change(out: Path, config: dict, data: dict) -> Callable[[dict, dict], str]:
-    """What differs between the study in `out` (its stages.json key `old` and its study.json) and this
-    one (key `new`, JSON-ready `config`, `data` summary), in words: `data: ...; configuration: ...`."""
-
-    def describe(old: dict, new: dict) -> str:
-        try:
-            study = json.loads((out / "study.json").read_text())
-        except (OSError, ValueError):
-            study = {}
-        parts = []
-        if old.get("data") != new["data"]:
-            before = {
-                "fingerprint": old.get("data"),
-                "n_runs": study.get("n_runs"),
-                "n_frames": study.get("n_frames"),
-                "source": (study.get("data") or {}).get("source"),
-            }
-            parts.append(f"data: {differences(before, data)}")
-        if old.get("config") != new["config"]:
-            shown = differences(study["config"], config) if "config" in study else "another"
-            parts.append(f"configuration: {shown or 'another'}")
-        return "; ".join(parts) or f"key {old} != {new}"
-
-    return describe
+    @property
+    def has_levels(self) -> bool:
+        return {"disturbance", "level"} <= set(self.data.meta.columns)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -328,6 +203,184 @@ def study_folds(meta: pd.DataFrame, config: StudyConfig) -> list:
     return folds
 
 
+# ---------------------------------------------------------------------------------------------------
+# The stages
+
+
+def fit_files(study: Study, family: str) -> list[Path]:
+    """fitted_<family>.json (the rule file and the fit's facts) and search_<family>.npz (its search)."""
+    return [study.out / f"fitted_{family}.json", study.out / f"search_{family}.npz"]
+
+
+def fit_stage(study: Study, family: str) -> dict:
+    """Fit `family` on every run and write its files."""
+    json_path, search_path = fit_files(study, family)
+    result = fit(study.data, study.spaces[family], study.weights, study.config.fit, progress=study.progress)
+    if result.cache is not None:
+        study.caches[family] = result.cache
+    _save_search(result.search, search_path)
+    write_json(_fit_record(family, result), json_path)
+    return {"objective": result.objective, "values": result.values.tolist()}
+
+
+def read_fit(study: Study, family: str) -> None:
+    """`study.fits[family]`: the fit as its files hold it (the same whether it ran now or before a
+    resume)."""
+    json_path, search_path = fit_files(study, family)
+    record = json.loads(json_path.read_text())
+    study.fits[family] = FitResult(
+        space=study.spaces[family],
+        values=np.asarray(record["values"]),
+        objective=record["objective"],
+        failure_rate=record["failure_rate"],
+        coverage=record["coverage"],
+        stages=record["stages"],
+        search=_load_search(search_path),
+        unsupported_rate=record["unsupported_rate"],
+        n_unsupported=record["n_unsupported"],
+        n_excluded=record["n_excluded"],
+    )
+
+
+def evaluate_stage(study: Study) -> None:
+    """Every preset and fitted rule in one pass over the runs (one stream of a Parquet study, each
+    chunk's features computed once), with the objective's terms of every run (the cross-validation's
+    held-out rows of the presets the kernel does not search) and the SVE level sums riding on the same
+    chunks: runs, summary and sve_levels."""
+    data, config = study.data, study.config
+    rules = [(name, preset(name)) for name in PRESETS]
+    rules += [(fitted_rule_name(f), r.rule) for f, r in study.fits.items()]
+    levels = SveLevelSums(_sve_combinations(study.fits)) if study.has_levels else None
+    # Length by length: the pass drops each length's executables once past it (jsve._memory) without
+    # meeting that length again; the table is then put in the runs' order.
+    per_run = evaluate_rules(
+        data.full_buckets(by_length=True), rules, n_runs=data.n_runs, objective=data.config,
+        on_chunk=None if levels is None else levels.add, align=config.align,
+        min_coverage=config.min_coverage, failure=config.failure, switch_model=config.switch_model,
+        progress=study.progress,
+    )  # fmt: skip
+    per_run = in_run_order(per_run, data.meta_order(per_run["run_id"]))
+    write_table(per_run, study.out, "runs")
+    group = [c for c in ("disturbance", "level") if c in per_run.columns]
+    summary = aggregate(
+        per_run, group + ["rule"], n_boot=config.n_boot, level=config.level, seed=config.seed,
+        failure_penalty=config.failure_penalty, support=config.support,
+    )  # fmt: skip
+    write_table(summary, study.out, "summary")
+    if levels is not None:
+        write_table(levels.table(), study.out, "sve_levels")
+
+
+def cross_validation_stage(study: Study) -> dict:
+    """Every family refitted on each fold's training runs and scored, with the presets, on its held-out
+    runs: heldout, cv_params and heldout_summary."""
+    config = study.config
+    folds = study_folds(study.data.meta, config)
+    if not folds:
+        return {"folds": 0}
+    cv = cross_validate(
+        study.data, study.spaces, folds, study.weights, config.fit,
+        searches={f: r.search for f, r in study.fits.items()}, caches=study.caches,
+        replayed=objective_results(read_table(study.out, "runs"), study.data.meta, PRESETS),
+        progress=study.progress,
+    )  # fmt: skip
+    write_table(cv.heldout, study.out, "heldout")
+    write_table(cv.params, study.out, "cv_params")
+    summary = compare(cv.heldout, n_boot=config.n_boot, level=config.level, seed=config.seed)
+    write_table(summary, study.out, "heldout_summary")
+    return {"folds": len(folds)}
+
+
+def bootstrap_stage(study: Study) -> None:
+    """The fitted parameters' bootstrap intervals, every family: params."""
+    config = study.config
+    tables = [
+        parameter_bootstrap(
+            study.data,
+            study.spaces[f],
+            r,
+            study.weights,
+            n_local=config.n_local,
+            fraction=config.local_fraction,
+            n_boot=config.n_boot,
+            level=config.level,
+            seed=config.seed,
+            screen_runs=config.bootstrap_screen_runs,
+            progress=study.progress,
+        )  # fmt: skip
+        for f, r in study.fits.items()
+    ]
+    write_table(pd.concat(tables, ignore_index=True), study.out, "params")
+
+
+def heatmap_stage(study: Study) -> None:
+    """The objective over config.heatmap's two thresholds for every family that has both: heatmap."""
+    x, y, n = study.config.heatmap
+    tables = [
+        heatmap_table(
+            study.data,
+            study.spaces[f],
+            r.values,
+            study.weights,
+            x,
+            y,
+            int(n),
+            runs=study.config.heatmap_runs,
+            seed=study.config.fit.seed,
+            progress=study.progress,
+        )  # fmt: skip
+        for f, r in study.fits.items()
+        if x in study.spaces[f].names and y in study.spaces[f].names
+    ]
+    if tables:
+        write_table(pd.concat(tables, ignore_index=True), study.out, "heatmap")
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of the list: its name in stages.json, what runs it, and the files that show it done.
+
+    Attributes:
+        after: what follows it every time, run or skipped (the fits read back into `Study.fits`).
+    """
+
+    name: str
+    run: Callable[[], dict | None]
+    outputs: list[Path]
+    after: Callable[[], None] | None = None
+
+
+def stages(study: Study) -> list[Stage]:
+    """The study's stages in the order they run."""
+    out = study.out
+    fits = [
+        Stage(
+            f"fit_{family}",
+            functools.partial(fit_stage, study, family),
+            fit_files(study, family),
+            after=functools.partial(read_fit, study, family),
+        )
+        for family in study.spaces
+    ]
+    evaluated = [out / "runs.parquet", out / "summary.parquet"]
+    evaluated += [out / "sve_levels.parquet"] if study.has_levels else []
+    heatmap = [out / "heatmap.parquet"] if study.config.heatmap else []
+    return fits + [
+        Stage("evaluate", functools.partial(evaluate_stage, study), evaluated),
+        Stage(
+            "cross_validation",
+            functools.partial(cross_validation_stage, study),
+            [out / "heldout_summary.parquet"],
+        ),
+        Stage("parameter_bootstrap", functools.partial(bootstrap_stage, study), [out / "params.parquet"]),
+        Stage("heatmap", functools.partial(heatmap_stage, study), heatmap),
+    ]
+
+
+# ---------------------------------------------------------------------------------------------------
+# The runner
+
+
 def finished_stages(
     out_dir: str | os.PathLike,
     config: StudyConfig,
@@ -376,7 +429,7 @@ def _open_stages(
         fingerprint(config.to_dict()),
         summary["fingerprint"],
         force=force,
-        describe=_describe_change(out, config_json, summary),
+        describe=describe_change(out, config_json, summary),
     )
     return stages, summary
 
@@ -394,7 +447,7 @@ def run_study(
     data: FitData,
     out_dir: str | os.PathLike,
     config: StudyConfig = StudyConfig(),  # noqa: B008
-    *,  # noqa: B008
+    *,
     progress: bool = True,
     data_description: dict | None = None,
     force: bool = False,
@@ -406,6 +459,8 @@ def run_study(
     Arguments:
         data: FitData (with its buckets, for jsve.evaluation._evaluate); its objective config must be
             config's.
+        config: the study as asked for; its key is this configuration, and its "auto" settings are
+            resolved once, here, for these data (StudyConfig.resolved).
         data_description: JSON-ready facts about the data (source, simulator settings) for the report.
         force: the folder holds a study of another key: delete its files (STUDY_FILES) and start over,
             instead of raising StaleOutputError.
@@ -421,181 +476,35 @@ def run_study(
     if data.config != config.objective():
         data = replace(data, config=config.objective())
     release_memory()  # what came before (loading, `jsve fit`'s timing probe) holds gigabytes
-    meta = data.meta
-    stages, summary = _open_stages(out, config, data, data_description, force=force)
-    data_fp = summary["fingerprint"]
+    record, summary = _open_stages(out, config, data, data_description, force=force)
     atomic.check_writable(out)
-    by = [c for c in config.balance_by if c in meta.columns]
-    weights = group_weights(meta, by)
-    write_json(
-        {
-            "config": config.to_dict(),
-            "data": data_description or {},
-            "data_fingerprint": data_fp,
-            "n_runs": data.n_runs,
-            "n_frames": data.n_frames,
-            "balance_by": by,
-        },
-        out / "study.json",
-    )
-    spaces = {f: config.space(f) for f in config.families}
-    eval_kwargs = dict(
-        align=config.align,
-        min_coverage=config.min_coverage,
-        failure=config.failure,
-        switch_model=config.switch_model,
-        progress=progress,
-    )
-
-    fits: dict[str, FitResult] = {}
-    caches = {}  # the halving's per-run results of fits run in this process, which the folds reuse
-    for family, space in spaces.items():
-        json_path, search_path = out / f"fitted_{family}.json", out / f"search_{family}.npz"
-
-        def do_fit(family=family, space=space, json_path=json_path, search_path=search_path):
-            result = fit(data, space, weights, config.fit, progress=progress)
-            if result.cache is not None:
-                caches[family] = result.cache
-            _save_search(result.search, search_path)
-            write_json(_fit_record(family, result), json_path)
-            return {"objective": result.objective, "values": result.values.tolist()}
-
-        stages.run(f"fit_{family}", do_fit, [json_path, search_path])
-        record = json.loads(json_path.read_text())
-        fits[family] = FitResult(
-            space=space,
-            values=np.asarray(record["values"]),
-            objective=record["objective"],
-            failure_rate=record["failure_rate"],
-            coverage=record["coverage"],
-            stages=record["stages"],
-            search=_load_search(search_path),
-            unsupported_rate=record["unsupported_rate"],
-            n_unsupported=record["n_unsupported"],
-            n_excluded=record["n_excluded"],
-        )
-
-    has_levels = {"disturbance", "level"} <= set(meta.columns)
-
-    def evaluate():
-        # Every preset and fitted rule in one pass over the runs (one stream of a Parquet study, each
-        # chunk's features computed once), with the objective's terms of every run (the cross-
-        # validation's held-out rows of the presets the kernel does not search) and the SVE level
-        # sums riding on the same chunks.
-        rules = [(name, preset(name)) for name in PRESETS]
-        rules += [(fitted_rule_name(f), r.rule) for f, r in fits.items()]
-        levels = SveLevelSums(_sve_combinations(fits)) if has_levels else None
-        # Length by length: the pass drops each length's executables once past it (jsve._memory)
-        # without meeting that length again; the table is then put in the runs' order.
-        per_run = evaluate_rules(
-            data.full_buckets(by_length=True), rules, n_runs=data.n_runs, objective=data.config,
-            on_chunk=None if levels is None else levels.add, **eval_kwargs,
-        )  # fmt: skip
-        per_run = in_run_order(per_run, data.meta_order(per_run["run_id"]))
-        write_table(per_run, out, "runs")
-        group = [c for c in ("disturbance", "level") if c in per_run.columns]
-        write_table(
-            aggregate(
-                per_run,
-                group + ["rule"],
-                n_boot=config.n_boot,
-                level=config.level,
-                seed=config.seed,
-                failure_penalty=config.failure_penalty,
-                support=config.support,
-            ),  # fmt: skip
-            out,
-            "summary",
-        )
-        if levels is not None:
-            write_table(levels.table(), out, "sve_levels")
-
-    outputs = [out / "runs.parquet", out / "summary.parquet"] + [out / "sve_levels.parquet"] * has_levels
-    stages.run("evaluate", evaluate, outputs)
-
-    def crossvalidate():
-        folds = study_folds(meta, config)
-        if not folds:
-            return {"folds": 0}
-        cv = cross_validate(
-            data,
-            spaces,
-            folds,
-            weights,
-            config.fit,
-            searches={f: r.search for f, r in fits.items()},
-            caches=caches,
-            replayed=objective_results(read_table(out, "runs"), meta, PRESETS),
-            progress=progress,
-        )
-        write_table(cv.heldout, out, "heldout")
-        write_table(cv.params, out, "cv_params")
-        write_table(
-            compare(cv.heldout, n_boot=config.n_boot, level=config.level, seed=config.seed),
-            out,
-            "heldout_summary",
-        )
-        return {"folds": len(folds)}
-
-    stages.run("cross_validation", crossvalidate, [out / "heldout_summary.parquet"])
-
-    def bootstrap():
-        tables = [
-            parameter_bootstrap(
-                data,
-                spaces[f],
-                r,
-                weights,
-                n_local=config.n_local,
-                fraction=config.local_fraction,
-                n_boot=config.n_boot,
-                level=config.level,
-                seed=config.seed,
-                screen_runs=config.bootstrap_screen_runs,
-                progress=progress,
-            )
-            for f, r in fits.items()
-        ]
-        write_table(pd.concat(tables, ignore_index=True), out, "params")
-
-    stages.run("parameter_bootstrap", bootstrap, [out / "params.parquet"])
-
-    def heatmap():
-        x, y, n = config.heatmap
-        tables = [
-            heatmap_table(
-                data,
-                spaces[f],
-                r.values,
-                weights,
-                x,
-                y,
-                int(n),
-                runs=config.heatmap_runs,
-                seed=config.fit.seed,
-                progress=progress,
-            )
-            for f, r in fits.items()
-            if x in spaces[f].names and y in spaces[f].names
-        ]
-        if tables:
-            write_table(pd.concat(tables, ignore_index=True), out, "heatmap")
-
-    stages.run("heatmap", heatmap, [out / "heatmap.parquet"] if config.heatmap else [])
-
-    return stages.done
+    by = [c for c in config.balance_by if c in data.meta.columns]
+    study_record = {
+        "config": config.to_dict(),
+        "data": data_description or {},
+        "data_fingerprint": summary["fingerprint"],
+        "n_runs": data.n_runs,
+        "n_frames": data.n_frames,
+        "balance_by": by,
+    }
+    write_json(study_record, out / "study.json")
+    resolved = config.resolved(data.n_runs)
+    spaces = {f: resolved.space(f) for f in resolved.families}
+    study = Study(data, out, resolved, group_weights(data.meta, by), spaces, progress)
+    for stage in stages(study):
+        record.run(stage.name, stage.run, stage.outputs)
+        if stage.after is not None:
+            stage.after()
+    return record.done
 
 
 __all__ = [
-    "StudyConfig",
-    "THOROUGH",
+    "Study",
+    "Stage",
+    "stages",
     "run_study",
-    "data_fingerprint",
-    "STUDY_FILES",
     "finished_stages",
     "record_timing",
     "study_folds",
     "heatmap_table",
-    "write_table",
-    "read_table",
 ]
