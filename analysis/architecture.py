@@ -641,6 +641,46 @@ def package_sizes(modules: Mapping[str, Path]) -> dict[str, tuple[int, int]]:
     return dict(sorted(sizes.items()))
 
 
+def function_lengths(modules: Mapping[str, Path]) -> list[tuple[int, str]]:
+    """(lines, `module.function`) of every function and method, longest first; a function's lines run
+    from its `def` (decorators excluded) to its last statement, nested functions counted in it."""
+    found = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                end = node.end_lineno if node.end_lineno is not None else node.lineno
+                found.append((end - node.lineno + 1, f"{name}.{node.name}"))
+    return sorted(found, key=lambda item: (-item[0], item[1]))
+
+
+def exported_names(root: Path, package: str) -> list[str]:
+    """The names a subpackage's `__init__.py` re-exports (`from x import a as a`, or its `__all__`)."""
+    init = Path(root) / package.replace(".", "/") / "__init__.py"
+    tree = ast.parse(init.read_text(encoding="utf-8"))
+    names = [a.asname or a.name for n in tree.body if isinstance(n, ast.ImportFrom) for a in n.names]
+    return sorted(n for n in names if not n.startswith("_"))
+
+
+def shape(root: Path, top: int = 5, long_module: int = 700) -> str:
+    """Markdown: jsve.fitting's exported names, the longest functions, the modules over `long_module`
+    lines and the largest modules of the checkout at `root`."""
+    modules = find_modules(Path(root).resolve())
+    lines = sorted(
+        ((len(p.read_text(encoding="utf-8").splitlines()), n) for n, p in modules.items()), reverse=True
+    )
+    longest = function_lengths(modules)
+    over = [(n, m) for n, m in lines if n > long_module]
+    rows = [
+        ("`jsve.fitting` exported names", str(len(exported_names(root, "jsve.fitting")))),
+        (f"longest functions (top {top})", "; ".join(f"`{f}` {n}" for n, f in longest[:top])),
+        ("functions over 100 lines", str(sum(n > 100 for n, _ in longest))),
+        (f"modules over {long_module} lines", f"{len(over)}: " + "; ".join(f"`{m}` {n}" for n, m in over)),
+        (f"largest modules (top {top})", "; ".join(f"`{m}` {n}" for n, m in lines[:top])),
+    ]
+    return _table(rows, ("measure", "value"))
+
+
 def _table(rows: list[tuple[str, ...]], header: tuple[str, ...]) -> str:
     out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     out += ["| " + " | ".join(row) + " |" for row in rows]
@@ -712,8 +752,13 @@ def main(argv: list[str] | None = None) -> int:
         help="checkout to measure (the folder holding jsve/); default: this one",
     )
     parser.add_argument("--help-runs", type=int, default=5, help="runs of `jsve --help` to take a median of")
+    parser.add_argument(
+        "--shape",
+        action="store_true",
+        help="the code's shape only: exports, longest functions, largest modules",
+    )
     args = parser.parse_args(argv)
-    print(report(args.root, args.help_runs))
+    print(shape(args.root) if args.shape else report(args.root, args.help_runs))
     return 0
 
 

@@ -84,8 +84,8 @@ def run_demo(
     from jsve.fitting._data import FitData
     from jsve.fitting._study import run_study
     from jsve.report._report import write_report
+    from jsve.sim._config import SimConfig
     from jsve.sim._motion import FlightProfile
-    from jsve.sim._simulate import SimConfig
     from jsve.sim._study import write_study
 
     out = Path(out_dir)

@@ -286,8 +286,8 @@ def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_pat
     told to discard its stale stages (the fit and the report are stubbed: they have their own tests)."""
     from jsve.fitting import _study
     from jsve.report import _report
+    from jsve.sim._config import SimConfig
     from jsve.sim._motion import FlightProfile
-    from jsve.sim._simulate import SimConfig
     from jsve.sim._study import write_study
 
     out = tmp_path / "demo"

@@ -24,12 +24,14 @@ import pytest
 from jsve.io import _schema as schema
 from jsve.io import read_log, write_log
 from jsve.io._resume import StaleOutputError
+from jsve.sim import _config as sim_config
 from jsve.sim import _motion as sm
+from jsve.sim import _recording as sim_recording
 from jsve.sim import _simulate as sim
 from jsve.sim import _study as sim_study
 from jsve.sim import _vision as sv
 
-SHORT = sim.SimConfig(flight=sm.FlightProfile(duration_s=(25.0, 25.0)))
+SHORT = sim_config.SimConfig(flight=sm.FlightProfile(duration_s=(25.0, 25.0)))
 """Simulator configuration with 25 s flights (500 frames) for the log-level tests."""
 
 
@@ -165,7 +167,9 @@ def test_resume_refuses_logs_of_another_seed_or_configuration(tmp_path):
     _study(out, runs=1)
     path = sim_study.log_path(out, "proc_00", sim.Setting("blur", 40.0), 0)
     before = {p: p.read_bytes() for p in out.rglob("*.csv")}
-    assert read_log(path).meta["generator"] == sim.generator_key(sim.SequenceSpec("proc_00"), 0, SHORT)
+    assert read_log(path).meta["generator"] == sim_recording.generator_key(
+        sim_recording.SequenceSpec("proc_00"), 0, SHORT
+    )
     with pytest.raises(StaleOutputError, match=r"study holds outputs of another job \(2 logs .* seed 0 != 1"):
         _study(out, seed=1)  # two more runs asked for, too: nothing is written before the check
     slower = replace(SHORT, tracking=replace(SHORT.tracking, recovery_s=0.5))
@@ -202,14 +206,16 @@ def test_the_generator_key_covers_the_input_files(tmp_path):
     gt.mkdir()
     rows = "\n".join(f"{1403636580000000000 + k * 50_000_000} {k * 0.01} 0 0 1 0 0 0" for k in range(5))
     (gt / "MH01_GT.txt").write_text("#t x y z qw qx qy qz\n" + rows + "\n")
-    spec = sim.euroc_sequences(["MH_01"], gt)[0]
-    first = sim.generator_key(spec, 0, SHORT)
+    spec = sim_recording.euroc_sequences(["MH_01"], gt)[0]
+    first = sim_recording.generator_key(spec, 0, SHORT)
     copy = tmp_path / "copy"
     shutil.copytree(gt, copy)
-    assert sim.generator_key(sim.euroc_sequences(["MH_01"], copy)[0], 0, SHORT) == first
+    assert sim_recording.generator_key(sim_recording.euroc_sequences(["MH_01"], copy)[0], 0, SHORT) == first
     (gt / "MH01_GT.txt").write_text("#t x y z qw qx qy qz\n" + rows.replace(" 0.01 ", " 0.02 ") + "\n")
-    assert sim.generator_key(spec, 0, SHORT)["inputs"] != first["inputs"]
-    assert sim.generator_key(sim.SequenceSpec("proc_00"), 0, SHORT)["inputs"] == "procedural"
+    assert sim_recording.generator_key(spec, 0, SHORT)["inputs"] != first["inputs"]
+    assert (
+        sim_recording.generator_key(sim_recording.SequenceSpec("proc_00"), 0, SHORT)["inputs"] == "procedural"
+    )
 
 
 def test_cli(tmp_path, capsys):
@@ -237,7 +243,7 @@ def test_cli(tmp_path, capsys):
     )
     assert "1 logs written" in capsys.readouterr().out
     run = read_log(sim_study.log_path(out, "proc_00", sim.Setting("occlusion", 450.0), 0))
-    assert run.meta["frontend"] == sim.FRONTEND and run.meta["disturbance"] == "occlusion"
+    assert run.meta["frontend"] == sim_config.FRONTEND and run.meta["disturbance"] == "occlusion"
     assert main(["simulate", "-o", str(out), "--sequences", "MH_01"]) == 2
 
 
@@ -294,7 +300,7 @@ def test_the_first_map_waits_for_matches_and_parallax():
     poor[33:36] = 100
     assert _first_map(n_keys=poor) == 42
     # 1.5 degrees of parallax needs 7.85 cm: frame 38 (8 cm).
-    tracking = replace(sim.TrackingParams(), init_parallax_deg=1.5)
+    tracking = replace(sim_config.TrackingParams(), init_parallax_deg=1.5)
     assert _first_map(tracking=tracking) == 38
 
 
@@ -334,7 +340,7 @@ def test_heavy_blur_never_starts_a_map():
 def test_an_occluder_costs_map_inliers():
     """The edge's keypoints (static) are never inliers, and the points that emerge from behind the
     occluder have no map point yet: the share falls with the occluder's size and with image speed."""
-    recording = sim.make_recording(sim.SequenceSpec("proc_00"), 0, SHORT)
+    recording = sim_recording.make_recording(sim_recording.SequenceSpec("proc_00"), 0, SHORT)
     share = {}
     for side in (0, 200, 350):
         deg = sv.degradation("occlusion" if side else "none", side)

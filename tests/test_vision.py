@@ -15,6 +15,8 @@ import pandas as pd
 import pytest
 
 from jsve.core import s_b
+from jsve.sim import _camera as sim_camera
+from jsve.sim import _scene as sim_scene
 from jsve.sim import _vision as sv
 
 REPO = Path(__file__).resolve().parents[1]
@@ -24,9 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def reference_scene() -> sv.Scene:
+def reference_scene() -> sim_scene.Scene:
     t = np.arange(600) / 20.0  # 30 s: about six independent spatial patterns
-    scene = sv.make_scene(np.random.default_rng(0), t)
+    scene = sim_scene.make_scene(np.random.default_rng(0), t)
     return dataclasses.replace(scene, texture=np.ones(len(t)), streak_px=np.zeros(len(t)))
 
 
@@ -102,7 +104,7 @@ def test_extraction_physics(reference_scene):
     assert previous.n_extracted.mean() < 0.5 * base.n_extracted.mean()
     # A 450 px square hides the central bins entirely; their keypoints move to the visible ones.
     occluded = sv.extract(reference_scene, sv.degradation("occlusion", 450))
-    hidden = sv.bin_geometry().occluded_share(450) > 0.999
+    hidden = sim_camera.bin_geometry().occluded_share(450) > 0.999
     # Only the edge's keypoints can fall in a hidden bin (a few of its border pixels lie outside).
     assert (
         hidden.sum() >= 8
@@ -115,7 +117,7 @@ def test_extraction_physics(reference_scene):
 def test_pose_information_needs_spread_features():
     # The same number of inliers gives a far less certain pose when they crowd one bin than when
     # they spread over the image (the poor-geometry term of the visual error).
-    geo = sv.bin_geometry()
+    geo = sim_camera.bin_geometry()
     depth, spread = 3.0, 0.3
 
     def covariance(bins):
@@ -177,14 +179,14 @@ RENDERED_MISSES = {20.0}
 model holds initialisation's 100 where the mean rendered frame does not (docs/simulator.md, section 6)."""
 
 
-def _scene(profile: sv.SceneProfile, frames: int = 1000) -> sv.Scene:
+def _scene(profile: sim_scene.SceneProfile, frames: int = 1000) -> sim_scene.Scene:
     """The calibration's reference scene (analysis/simulator_calibration.py): texture 1, no motion blur."""
     t = np.arange(frames) / 20.0
-    scene = sv.make_scene(np.random.default_rng(0), t, profile=profile)
+    scene = sim_scene.make_scene(np.random.default_rng(0), t, profile=profile)
     return dataclasses.replace(scene, texture=np.ones(len(t)), streak_px=np.zeros(len(t)))
 
 
-def _levels(scene: sv.Scene, level: float) -> np.ndarray:
+def _levels(scene: sim_scene.Scene, level: float) -> np.ndarray:
     return sv.extract(scene, sv.degradation("blur", level)).levels.mean(axis=0)
 
 
@@ -192,7 +194,7 @@ def test_keypoints_per_level_match_the_photographs():
     """ORB's keypoints per pyramid level under blur on the real V1_01 photographs, with the camera images'
     scene; level 0, which monocular initialisation needs, holds 100 exactly where the photos do."""
     real = _octaves("photos")
-    scene = _scene(sv.SceneProfile())
+    scene = _scene(sim_scene.SceneProfile())
     misses = []
     for _, row in real[real["disturbance"] == "blur"].iterrows():
         levels = _levels(scene, row["level"])
@@ -213,8 +215,8 @@ def test_the_rendered_scene_loses_level_zero_to_less_blur():
     holds initialisation's 100 keypoints at every blur level but RENDERED_MISSES, and its levels 1-4 are
     within 35 % plus 15 up to blur 30 (there too)."""
     real = _octaves("rendered")
-    profile = sv.SceneProfile(texture_scale=sv.RENDERED_TEXTURE_SCALE)
-    rendered, camera = _scene(profile), _scene(sv.SceneProfile())
+    profile = sim_scene.SceneProfile(texture_scale=sim_scene.RENDERED_TEXTURE_SCALE)
+    rendered, camera = _scene(profile), _scene(sim_scene.SceneProfile())
     misses = []
     for _, row in real[real["disturbance"] == "blur"].iterrows():
         levels = _levels(rendered, row["level"])
@@ -234,7 +236,7 @@ def test_an_occluders_edge_takes_keypoints(reference_scene):
     """The quadtree nodes an occluder's edge crosses keep the edge's keypoints: as many as measured
     within FAST's radius of the square on the photos (docs/data/simulator_octaves.csv, edge_share), to
     0.05; they stay out of the hidden bins and are part of every level's budget."""
-    geo = sv.bin_geometry()
+    geo = sim_camera.bin_geometry()
     perimeter, edge = geo.occluder_edge(200)
     assert perimeter == pytest.approx(800, rel=0.05) and edge.sum() == pytest.approx(1.0)
     assert not edge[geo.occluded_share(200) > 0.999].any()

@@ -253,18 +253,20 @@ def evaluate_stage(study: Study) -> None:
     levels = SveLevelSums(_sve_combinations(study.fits)) if study.has_levels else None
     # Length by length: the pass drops each length's executables once past it (jsve._memory) without
     # meeting that length again; the table is then put in the runs' order.
+    # One road for the objective's settings: the evaluation replays and scores as data.config says.
+    objective = data.config
     per_run = evaluate_rules(
-        data.full_buckets(by_length=True), rules, n_runs=data.n_runs, objective=data.config,
-        on_chunk=None if levels is None else levels.add, align=config.align,
-        min_coverage=config.min_coverage, failure=config.failure, switch_model=config.switch_model,
-        progress=study.progress,
+        data.full_buckets(by_length=True), rules, n_runs=data.n_runs, objective=objective,
+        on_chunk=None if levels is None else levels.add, align=objective.align,
+        min_coverage=objective.min_coverage, failure=objective.failure,
+        switch_model=objective.switch_model, progress=study.progress,
     )  # fmt: skip
     per_run = in_run_order(per_run, data.meta_order(per_run["run_id"]))
     write_table(per_run, study.out, "runs")
     group = [c for c in ("disturbance", "level") if c in per_run.columns]
     summary = aggregate(
         per_run, group + ["rule"], n_boot=config.n_boot, level=config.level, seed=config.seed,
-        failure_penalty=config.failure_penalty, support=config.support,
+        failure_penalty=objective.failure_penalty, support=objective.support,
     )  # fmt: skip
     write_table(summary, study.out, "summary")
     if levels is not None:

@@ -16,6 +16,8 @@ For any set of sequences x disturbance settings x runs, deterministically under 
 Nothing is defined through the SVE formulas; docs/simulator.md describes the model, its parameters,
 its calibration against real frames and its limits.
 
+The configuration is jsve.sim._config's, the sequences and their recordings jsve.sim._recording's.
+
     simulate_run(sequence, "blur", 25, run=3)              one RunLog
     simulate_study(sequences=..., disturbances="seed")     RunLogs in memory
     write_study("out/", ...)                               logs on disk (jsve.sim._study)
@@ -26,9 +28,8 @@ from __future__ import annotations
 import functools
 import math
 import os
-import zlib
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,43 +38,26 @@ import pandas as pd
 from jsve.core._levels import LEVELS, SEED_DISTURBANCES, parse_disturbances
 from jsve.core._machine import MONO_INIT_MIN_KEYPOINTS, MONO_INIT_MIN_MATCHES
 from jsve.io import _schema as schema
-from jsve.io._resume import file_digest, fingerprint
 from jsve.io._schema import RunLog
+from jsve.sim._camera import EUROC_CAM0, bin_geometry
+from jsve.sim._config import FRONTEND, SimConfig, TrackingParams
 from jsve.sim._motion import (
-    EUROC_CAM0_T_BS,
-    EUROC_SEQUENCES,
     GRAVITY,
-    FlightProfile,
-    ImuNoise,
-    Trajectory,
-    euroc_file_stem,
-    frame_bias_estimate,
-    frame_substeps,
     gauss_markov,
-    load_euroc_trajectory,
-    preintegrate,
-    procedural_trajectory,
     quat_exp,
     quat_mul,
-    quat_to_matrix,
-    read_imu_stream,
-    synthesize_imu,
 )
-from jsve.sim._vision import (
-    EUROC_CAM0,
-    N_FEATURES,
-    Counts,
-    Degradation,
-    SceneProfile,
-    VisionParams,
-    bin_geometry,
-    degradation,
-    extract,
-    make_scene,
+from jsve.sim._recording import (
+    Recording,
+    SequenceSpec,
+    _cached_recording,
+    euroc_sequences,
+    generator_key,
+    make_recording,
+    procedural_sequences,
+    seed_key,
 )
-
-FRONTEND = "jsve simulator 2"
-"""Value of the `frontend` metadata key of simulated logs (the model version)."""
+from jsve.sim._vision import Counts, Degradation, degradation, extract
 
 GRIDS = {name: (0, *levels) if name == "occlusion" else levels for name, levels in LEVELS.items()}
 """The level grids the simulator runs: jsve.core._levels.LEVELS (the image registry's), with the
@@ -130,262 +114,6 @@ def settings(spec: str | Iterable[str] = "seed") -> list[Setting]:
             seen.add((s.disturbance, s.level))
             unique.append(s)
     return unique
-
-
-# --------------------------------------------------------------------------------------------------
-# Configuration
-
-
-@dataclass(frozen=True)
-class TrackingParams:
-    """Run-level tracking model: map inliers, frustum counts, visual pose error, IMU initialisation.
-
-    Attributes:
-        map_fraction: share of frame-to-frame matchable keypoints that carry a local-map point.
-        run_sigma, run_tau: log spread and correlation time (s) of a run's map quality (ORB-SLAM3's
-            runs differ through threading and RANSAC).
-        frustum_window_s: s; n_frustum counts the local map's points in view, built from the
-            keypoints of about the last second (ORB-SLAM3's covisible keyframes).
-        frustum_ratio: local-map points in view per keypoint of that window (1: the real-frame
-            stand-in's ratio).
-        depth_spread: coefficient of variation of the scene depth about its median (breaks the
-            translation-rotation ambiguity of a narrow view).
-        prior_position, prior_rotation: m, rad: the motion-model prior of the pose optimisation.
-        drift_per_sqrt_m, yaw_drift_per_sqrt_m: m, rad per sqrt(m travelled): the map's slow drift
-            (visual-inertial: position and yaw unobservable).
-        jitter_to_drift: share of each frame's error that stays in the map.
-        outlier_rate, outlier_inliers: a gross jump happens on a frame with probability
-            outlier_rate exp(-inliers / outlier_inliers).
-        outlier_position, outlier_rotation: m, rad: standard deviation of a jump per axis.
-        recovery_s: s, time for strong tracking (many inliers) to pull an excursion back; weak
-            tracking holds it (recovery slows as inliers / (inliers + recovery_inliers) falls).
-        velocity_tau: s, smoothing of the visual velocity (the visual-inertial window).
-        imu_init_s: (min, max) s after the first map's first frame at which ORB-SLAM3 initialises the
-            IMU (LocalMapping: the first inertial initialisation after 2 s of map).
-        init_match_share: level-0 keypoints that monocular initialisation's windowed search matches
-            between its reference and a frame up to 0.5 s later, per keypoint matched frame to frame.
-        init_max_age_s: s, ORB-SLAM3 drops an IMU_MONOCULAR initialisation reference older than this.
-        init_parallax_deg: degrees of parallax a two-view reconstruction needs.
-        map_lifetime_s: s a scene point must stay in view to become a map point (keyframes, then
-            triangulation): under an occluder the points that emerge from behind it within this
-            time of image motion have none yet.
-    """
-
-    map_fraction: float = 0.46
-    run_sigma: float = 0.1
-    run_tau: float = 5.0
-    frustum_window_s: float = 1.0
-    frustum_ratio: float = 1.0
-    depth_spread: float = 0.3
-    prior_position: float = 0.3
-    prior_rotation: float = 0.1
-    drift_per_sqrt_m: float = 0.006
-    yaw_drift_per_sqrt_m: float = 0.001
-    jitter_to_drift: float = 0.1
-    outlier_rate: float = 0.5
-    outlier_inliers: float = 8.0
-    outlier_position: float = 0.25
-    outlier_rotation: float = 0.05
-    recovery_s: float = 0.2
-    recovery_inliers: float = 30.0
-    velocity_tau: float = 0.25
-    imu_init_s: tuple[float, float] = (2.0, 3.5)
-    init_match_share: float = 0.79
-    init_max_age_s: float = 1.0
-    init_parallax_deg: float = 1.0
-    map_lifetime_s: float = 1.25
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    """Everything the simulator's output depends on besides sequence, setting, run and seed."""
-
-    vision: VisionParams = VisionParams()
-    tracking: TrackingParams = TrackingParams()
-    scene: SceneProfile = SceneProfile()
-    imu: ImuNoise = ImuNoise()
-    flight: FlightProfile = FlightProfile()
-    imu_source: str = "synthetic"  # "synthetic" or "real" (EuRoC imu0 stream where available)
-    bias_window_s: float = 10.0
-    n_features: int = N_FEATURES
-
-
-# --------------------------------------------------------------------------------------------------
-# Sequences and recordings
-
-
-@dataclass(frozen=True)
-class SequenceSpec:
-    """A sequence to simulate: a procedural flight, or a EuRoC sequence from ORB-SLAM3's files.
-
-    Attributes:
-        name: metadata `sequence` ("MH_01", "proc_03").
-        euroc_gt: folder of ORB-SLAM3's left-camera ground truth (MH01_GT.txt, ...), for EuRoC.
-        timestamps: folder of frame stamp lists (MH01.txt), optional. imu: folder of real imu0
-            streams (V101.txt), optional (used with SimConfig.imu_source = "real").
-    """
-
-    name: str
-    euroc_gt: str | None = None
-    timestamps: str | None = None
-    imu: str | None = None
-
-    @property
-    def procedural(self) -> bool:
-        return self.euroc_gt is None
-
-
-def procedural_sequences(n: int) -> list[SequenceSpec]:
-    """n procedural flights named proc_00, proc_01, ..."""
-    return [SequenceSpec(f"proc_{i:02d}") for i in range(n)]
-
-
-def euroc_sequences(names: Sequence[str], euroc_gt: str | os.PathLike) -> list[SequenceSpec]:
-    """EuRoC sequences from `euroc_gt` (ORB-SLAM3's EuRoC_left_cam folder); the sibling folders
-    `timestamps/` and `imu/` are used where they exist (the layout of ../shared/data/euroc)."""
-    gt = Path(euroc_gt)
-    if not gt.is_dir():
-        raise FileNotFoundError(f"--euroc-gt {gt}: not a folder")
-    ts = gt.parent / "timestamps"
-    imu = gt.parent / "imu"
-    out = []
-    for name in names:
-        stem = euroc_file_stem(name)
-        if not (gt / f"{stem}_GT.txt").is_file():
-            raise FileNotFoundError(f"{gt / f'{stem}_GT.txt'}: no ground truth for sequence {name}")
-        canonical = next(k for k, v in EUROC_SEQUENCES.items() if v == stem)
-        out.append(
-            SequenceSpec(
-                canonical, str(gt), str(ts) if ts.is_dir() else None, str(imu) if imu.is_dir() else None
-            )
-        )
-    return out
-
-
-def input_files(spec: SequenceSpec, config: SimConfig = SimConfig()) -> list[Path]:
-    """The files make_recording reads for `spec` under `config`: the ground truth and, where used, the
-    frame stamp list and the real IMU stream; none for a procedural flight."""
-    if spec.euroc_gt is None:  # procedural
-        return []
-    stem = euroc_file_stem(spec.name)
-    files = [Path(spec.euroc_gt) / f"{stem}_GT.txt"]
-    for folder, used in ((spec.timestamps, True), (spec.imu, config.imu_source == "real")):
-        if used and folder is not None and (Path(folder) / f"{stem}.txt").is_file():
-            files.append(Path(folder) / f"{stem}.txt")
-    return files
-
-
-def generator_key(spec: SequenceSpec, seed: int, config: SimConfig = SimConfig()) -> dict:
-    """What a simulated log is a function of besides its sequence name, setting and run: the study
-    seed, the simulator model (FRONTEND), the IMU source, a fingerprint of the whole SimConfig, and a
-    digest of the content of the input files (input_files: "procedural" for a procedural flight).
-    Written into every log's metadata as `generator`; write_study resumes a log only under an equal key.
-    """
-    files = input_files(spec, config)
-    return {
-        "seed": int(seed),
-        "model": FRONTEND,
-        "imu_source": config.imu_source,
-        "config": fingerprint(asdict(config)),
-        "inputs": file_digest(files) if files else "procedural",
-    }
-
-
-@dataclass(frozen=True)
-class Recording:
-    """What a sequence gives every run and setting: truth, IMU, preintegration and scene.
-
-    Attributes (F frames):
-        spec: the sequence. trajectory: the smooth true trajectory. frame_ns: [F] int64.
-        t: [F] s since the first frame. p, q, v: [F, 3|4|3] true body pose and velocity (world).
-        omega: [F, 3] true body rates, rad/s. r_wc: [F, 3, 3] camera-to-world rotation.
-        camera_p: [F, 3] camera centre, m (world): the parallax of monocular initialisation.
-        preint_zero, preint_est: (dt, dp, dv, dq) with zero biases (before IMU initialisation) and
-            with the estimator's biases (after). scene: the texture process. travelled: [F] m.
-        imu_source: where the IMU came from.
-    """
-
-    spec: SequenceSpec
-    trajectory: Trajectory
-    frame_ns: np.ndarray
-    t: np.ndarray
-    p: np.ndarray
-    q: np.ndarray
-    v: np.ndarray
-    omega: np.ndarray
-    r_wc: np.ndarray
-    camera_p: np.ndarray
-    preint_zero: tuple
-    preint_est: tuple
-    scene: object
-    travelled: np.ndarray
-    imu_source: str
-
-    @property
-    def n_frames(self) -> int:
-        return len(self.frame_ns)
-
-
-def _key(*parts) -> list[int]:
-    """A stable integer seed sequence from strings and numbers (crc32; Python's hash() is salted)."""
-    out = []
-    for part in parts:
-        if isinstance(part, str):
-            out.append(zlib.crc32(part.encode()))
-        elif isinstance(part, float):
-            out.append(zlib.crc32(repr(part).encode()))
-        else:
-            out.append(int(part))
-    return out
-
-
-def make_recording(spec: SequenceSpec, seed: int = 0, config: SimConfig = SimConfig()) -> Recording:
-    """Build a sequence's recording (deterministic in seed and name)."""
-    rng = np.random.default_rng(_key(seed, "recording", spec.name))
-    if spec.procedural:
-        trajectory = procedural_trajectory(spec.name, rng, config.flight)
-    else:
-        trajectory = load_euroc_trajectory(spec.name, spec.euroc_gt, timestamps_dir=spec.timestamps)
-    imu_rng = np.random.default_rng(_key(seed, "imu", spec.name))
-    imu = None
-    if config.imu_source == "real" and spec.imu is not None:
-        path = Path(spec.imu) / f"{euroc_file_stem(spec.name)}.txt"
-        if path.is_file():
-            imu = read_imu_stream(path)
-    if imu is None:
-        imu = synthesize_imu(trajectory, imu_rng, config.imu)
-    steps = frame_substeps(imu, trajectory.frame_ns)
-    bg, ba = frame_bias_estimate(imu, trajectory, window_s=config.bias_window_s)
-    t = trajectory.seconds(trajectory.frame_ns)
-    p, q = trajectory.pose(t)
-    v = trajectory.velocity(t)
-    omega = trajectory.angular_velocity(t)
-    r_wb = quat_to_matrix(q)
-    r_wc = r_wb @ EUROC_CAM0_T_BS[:3, :3]
-    scene = make_scene(np.random.default_rng(_key(seed, "scene", spec.name)), t, omega, config.scene)
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-    return Recording(
-        spec=spec,
-        trajectory=trajectory,
-        frame_ns=trajectory.frame_ns,
-        t=t,
-        p=p,
-        q=q,
-        v=v,
-        omega=omega,
-        r_wc=r_wc,
-        camera_p=p + r_wb @ EUROC_CAM0_T_BS[:3, 3],
-        preint_zero=preintegrate(steps, np.zeros(3), np.zeros(3)),
-        preint_est=preintegrate(steps, bg, ba),
-        scene=scene,
-        travelled=travelled,
-        imu_source=imu.source,
-    )
-
-
-@functools.lru_cache(maxsize=4)
-def _cached_recording(spec: SequenceSpec, seed: int, config: SimConfig) -> Recording:
-    return make_recording(spec, seed, config)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -719,7 +447,7 @@ def simulate_setting(
             map_share,
             p_init,
             np.random.default_rng(
-                _key(seed, "run", recording.spec.name, setting.disturbance, float(setting.level), int(r))
+                seed_key(seed, "run", recording.spec.name, setting.disturbance, float(setting.level), int(r))
             ),
             config,
         )
@@ -897,17 +625,9 @@ def simulate_study(
 
 
 __all__ = [
-    "FRONTEND",
     "GRIDS",
     "Setting",
     "settings",
-    "TrackingParams",
-    "SimConfig",
-    "SequenceSpec",
-    "procedural_sequences",
-    "euroc_sequences",
-    "Recording",
-    "make_recording",
     "simulate_setting",
     "simulate_run",
     "simulate_study",

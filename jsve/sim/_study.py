@@ -23,20 +23,13 @@ from pathlib import Path
 from jsve.io import _scheduler
 from jsve.io import _schema as schema
 from jsve.io._resume import differences, stop_if_stale
+from jsve.sim._config import SimConfig
 from jsve.sim._motion import (
     FlightProfile,
     euroc_file_stem,
 )
-from jsve.sim._simulate import (
-    SequenceSpec,
-    Setting,
-    SimConfig,
-    _as_specs,
-    generator_key,
-    make_recording,
-    settings,
-    simulate_setting,
-)
+from jsve.sim._recording import SequenceSpec, generator_key, make_recording
+from jsve.sim._simulate import Setting, _as_specs, settings, simulate_setting
 
 logger = logging.getLogger(__name__)
 
