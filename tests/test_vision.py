@@ -127,7 +127,7 @@ def test_pose_information_needs_spread_features():
             + np.einsum("b,bij->ij", b, geo.info_m) / depth
             + np.einsum("b,bij->ij", b, geo.info_r)
         )
-        return np.linalg.inv(info * (sv.EUROC_CAM0.fx / 1.0) ** 2 + np.eye(6) * 1e-6)
+        return np.linalg.inv(info * (sim_camera.EUROC_CAM0.fx / 1.0) ** 2 + np.eye(6) * 1e-6)
 
     spread_bins = np.where(geo.share > 0, 1.0, 0.0)
     spread_bins *= 100 / spread_bins.sum()
