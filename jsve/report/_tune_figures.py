@@ -33,7 +33,7 @@ def figure_check(check: pd.DataFrame, path: Path) -> Path:
         )
     ax.axvline(0, color="#888888", lw=1)
     ax.set_yticks(y, [f"vs {r.baseline}: {r.scope} (n={r.pairs})" for r in rows.itertuples()], fontsize=8)
-    ax.set_xlabel(f"{rows['rule'].iloc[0]} - baseline, bounded loss (cm); 95 % BCa")
+    ax.set_xlabel(f"{rows['rule'].iloc[0]} - baseline\nbounded loss (cm); 95 % BCa")
     ax.set_title("Held-out paired differences (negative: the tuned rule is better)", fontsize=10)
     fig.tight_layout()
     return save(fig, path)
