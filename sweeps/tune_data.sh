@@ -11,7 +11,7 @@ set -euo pipefail
 DATA=$1
 EUROC=${EUROC:-../shared/data/euroc}
 WORKERS=${WORKERS:-2}
-LEVELS=${LEVELS:-blur=20,occlusion=350,downsample=0.4}
+LEVELS=${LEVELS:-blur=20,occlusion=350,downsample=0.25}
 for seq in V1_01:V101 V1_02:V102 V2_01:V201 V2_02:V202 MH_01:MH01; do
     name=${seq%%:*} stem=${seq##*:}
     jsve render --trajectory "$EUROC/groundtruth_left_cam/${stem}_GT.txt" \

@@ -12,6 +12,7 @@ from scipy import stats
 from jsve.tuning._race import (
     better_than,
     eliminate,
+    failure_test,
     holm,
     paired_difference,
     paired_losses,
@@ -102,6 +103,36 @@ def test_paired_difference_reports_scipys_intervals_and_counts():
     assert out["wilcoxon_p"] == pytest.approx(stats.wilcoxon(d).pvalue)
     assert (out["better"], out["worse"]) == (int((d < 0).sum()), int((d > 0).sum()))
     assert (out["rule_failed"], out["baseline_failed"]) == (1, 0)
+
+
+def test_the_failure_test_is_the_exact_mcnemar_test_worked_by_hand():
+    # 6 discordant pairs, all failures of a alone: two-sided exact p = 2 x 0.5^6 = 0.03125; concordant
+    # pairs (both failed, neither failed) do not enter it
+    a = np.array([True] * 6 + [True, True] + [False] * 4)
+    b = np.array([False] * 6 + [True, True] + [False] * 4)
+    assert failure_test(a, b) == {"rule_only_failed": 6, "baseline_only_failed": 0, "failure_p": 0.03125}
+    # 3 against 1: P(X <= 1) + P(X >= 3) for X ~ B(4, 1/2) = (1 + 4 + 4 + 1) / 16 = 0.625
+    out = failure_test(np.array([1, 1, 1, 0, 0], bool), np.array([0, 0, 0, 1, 0], bool))
+    assert (out["rule_only_failed"], out["baseline_only_failed"]) == (3, 1)
+    assert out["failure_p"] == pytest.approx(0.625)
+    assert failure_test(a, a)["failure_p"] == 1.0  # no discordant pair: no evidence either way
+
+
+def test_the_tracked_difference_leaves_out_every_pair_where_either_rule_failed():
+    rng = np.random.default_rng(5)
+    b = rng.uniform(0.02, 0.1, 20)
+    a = b + rng.normal(-0.01, 0.01, 20)
+    a[[2, 7]], b[[7, 11]] = 1.0, 1.0  # a fails on 2 and 7, b on 7 and 11
+    out = paired_difference(_rows({"rule": a, "base": b}), "rule", "base", n_resamples=999)
+    pair = paired_losses(_rows({"rule": a, "base": b}), "rule", "base")
+    kept = (pair["rule"] < 1.0) & (pair["base"] < 1.0)
+    d = (pair["rule"] - pair["base"])[kept].to_numpy()
+    boot = stats.bootstrap((d,), np.mean, method="BCa", n_resamples=999, random_state=0).confidence_interval
+    assert out["tracked_pairs"] == 17 == len(d)
+    assert out["tracked_mean_diff_m"] == pytest.approx(d.mean()) and out["tracked_mean_diff_m"] < 0
+    assert (out["tracked_bca_low_m"], out["tracked_bca_high_m"]) == pytest.approx((boot.low, boot.high))
+    assert (out["rule_only_failed"], out["baseline_only_failed"]) == (1, 1)
+    assert out["mean_diff_m"] == pytest.approx((pair["rule"] - pair["base"]).mean())  # all pairs, failures in
 
 
 def test_identical_arms_give_a_zero_width_interval_not_nan():

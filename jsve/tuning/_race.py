@@ -5,10 +5,13 @@
     holm               Holm's step-down adjustment of p-values (scipy.stats has none)
     eliminate          one racing step: who is significantly worse than the best, Holm over the rest
     better_than        which challengers beat the incumbent, Holm over the challengers
-    paired_difference  a - b with its 95 % t and BCa intervals, Wilcoxon p and counts (the check)
+    mean_intervals     the mean of paired differences with its 95 % t and BCa intervals, Wilcoxon p
+    failure_test       paired failures: the discordant pairs and the exact McNemar p
+    paired_difference  a - b on the bounded loss, its failures and its tracked pairs apart (the check)
 
 The tests are scipy.stats.wilcoxon (signed ranks, zero differences dropped; every difference zero
-gives p = 1) and scipy.stats.ttest_rel and scipy.stats.bootstrap for the intervals.
+gives p = 1), scipy.stats.ttest_1samp and scipy.stats.bootstrap for the intervals, and scipy.stats.
+binomtest on the discordant pairs for the failures (the exact McNemar test).
 """
 
 from __future__ import annotations
@@ -128,57 +131,83 @@ def pairs_for_half_width(sd_m: float, half_width_m: float = RESOLUTION_M, level:
     return n
 
 
+def mean_intervals(d: np.ndarray, *, n_resamples: int = 9999) -> dict:
+    """The mean of paired differences d (metres) with its 95 % t interval (ttest_1samp, the same as
+    ttest_rel on the pairs) and BCa bootstrap interval, and the two-sided Wilcoxon p. NaN with no pair;
+    an interval of zero width at the common value when every difference is the same."""
+    d = np.asarray(d, np.float64)
+    out = dict.fromkeys(
+        ("mean_diff_m", "t_low_m", "t_high_m", "bca_low_m", "bca_high_m", "wilcoxon_p"), np.nan
+    )
+    if len(d) == 0:
+        return out
+    out["mean_diff_m"] = float(d.mean())
+    if np.ptp(d) == 0:
+        wilcoxon = 1.0 if d[0] == 0 else np.nan
+        return {
+            **out,
+            "t_low_m": d[0],
+            "t_high_m": d[0],
+            "bca_low_m": d[0],
+            "bca_high_m": d[0],
+            "wilcoxon_p": wilcoxon,
+        }
+    ci = stats.ttest_1samp(d, 0.0).confidence_interval(0.95)
+    boot = stats.bootstrap((d,), np.mean, method="BCa", n_resamples=n_resamples, random_state=0)
+    return {
+        **out,
+        "t_low_m": float(ci.low),
+        "t_high_m": float(ci.high),
+        "bca_low_m": float(boot.confidence_interval.low),
+        "bca_high_m": float(boot.confidence_interval.high),
+        "wilcoxon_p": float(stats.wilcoxon(d).pvalue) if np.count_nonzero(d) else 1.0,
+    }
+
+
+def failure_test(failed_a: np.ndarray, failed_b: np.ndarray) -> dict:
+    """Paired failures of two rules ([n] bool, one per pair): the pairs where only a failed and only b
+    failed, and the exact McNemar p (two-sided binomial test of the discordant pairs, scipy.stats.
+    binomtest; 1 with none)."""
+    only_a = int(np.sum(failed_a & ~failed_b))
+    only_b = int(np.sum(~failed_a & failed_b))
+    p = float(stats.binomtest(only_a, only_a + only_b).pvalue) if only_a + only_b else 1.0
+    return {"rule_only_failed": only_a, "baseline_only_failed": only_b, "failure_p": p}
+
+
 def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 9999) -> dict:
-    """a - b on the bounded loss over the instances both ran: mean and median (metres), the mean's 95 %
-    t interval (ttest_rel) and BCa bootstrap interval, two-sided Wilcoxon p, how often a did better, and
-    each side's failed runs. Intervals are NaN with fewer than 2 pairs or no spread."""
+    """a - b on the bounded loss over the instances both ran (mean_intervals: mean, t and BCa 95 %
+    intervals, Wilcoxon p), its median, how often a did better, each side's failed runs, and the two
+    questions a heavy-tailed loss mixes: does a fail less than b (failure_test, exact McNemar) and, on
+    the pairs both tracked, is it more accurate (tracked_*: the same intervals over those pairs only)."""
     sub = rows[rows.candidate.isin([a, b])]
     pair = paired_losses(rows, a, b)
     d = (pair[a] - pair[b]).to_numpy()
     failed = sub.pivot_table(index=list(KEY), columns="candidate", values="failed", aggfunc="first")
     failed = failed.reindex(pair.index)
-    out = {
+    failed_a, failed_b = (
+        failed[n].fillna(False).to_numpy(bool) if n in failed else np.zeros(len(d), bool) for n in (a, b)
+    )
+    tracked = ~failed_a & ~failed_b
+    both = mean_intervals(d[tracked], n_resamples=n_resamples)
+    sd = float(d.std(ddof=1)) if len(d) >= 2 else np.nan
+    return {
         "rule": a,
         "baseline": b,
         "pairs": len(d),
-        "mean_diff_m": np.nan,
-        "median_diff_m": np.nan,
-        "t_low_m": np.nan,
-        "t_high_m": np.nan,
-        "bca_low_m": np.nan,
-        "bca_high_m": np.nan,
-        "wilcoxon_p": np.nan,
+        **mean_intervals(d, n_resamples=n_resamples),
+        "median_diff_m": float(np.median(d)) if len(d) else np.nan,
         "better": int((d < 0).sum()),
         "worse": int((d > 0).sum()),
-        "rule_failed": int(failed[a].sum()) if a in failed else 0,
-        "baseline_failed": int(failed[b].sum()) if b in failed else 0,
+        "rule_failed": int(failed_a.sum()),
+        "baseline_failed": int(failed_b.sum()),
         "rule_mean_m": float(pair[a].mean()) if len(d) else np.nan,
         "baseline_mean_m": float(pair[b].mean()) if len(d) else np.nan,
-        "sd_diff_m": float(d.std(ddof=1)) if len(d) >= 2 else np.nan,
-        "pairs_for_resolution": pairs_for_half_width(float(d.std(ddof=1))) if len(d) >= 2 else None,
+        "sd_diff_m": sd,
+        "pairs_for_resolution": pairs_for_half_width(sd) if len(d) >= 2 else None,
+        **failure_test(failed_a, failed_b),
+        "tracked_pairs": int(tracked.sum()),
+        **{f"tracked_{k}": both[k] for k in ("mean_diff_m", "bca_low_m", "bca_high_m", "wilcoxon_p")},
     }
-    if len(d) == 0:
-        return out
-    out.update(mean_diff_m=float(d.mean()), median_diff_m=float(np.median(d)))
-    if len(d) >= 2 and np.ptp(d) > 0:
-        ci = stats.ttest_rel(pair[a], pair[b]).confidence_interval(0.95)
-        boot = stats.bootstrap((d,), np.mean, method="BCa", n_resamples=n_resamples, random_state=0)
-        out.update(
-            t_low_m=float(ci.low),
-            t_high_m=float(ci.high),
-            bca_low_m=float(boot.confidence_interval.low),
-            bca_high_m=float(boot.confidence_interval.high),
-            wilcoxon_p=float(stats.wilcoxon(d).pvalue) if np.count_nonzero(d) else 1.0,
-        )
-    elif len(d) >= 1 and np.ptp(d) == 0:
-        out.update(
-            t_low_m=float(d[0]),
-            t_high_m=float(d[0]),
-            bca_low_m=float(d[0]),
-            bca_high_m=float(d[0]),
-            wilcoxon_p=1.0 if d[0] == 0 else np.nan,
-        )
-    return out
 
 
 __all__ = [
@@ -188,6 +217,8 @@ __all__ = [
     "better_than",
     "eliminate",
     "holm",
+    "mean_intervals",
+    "failure_test",
     "paired_difference",
     "paired_losses",
     "worse_p",

@@ -328,10 +328,15 @@ def check(study: TuneStudy, frontend, ledger: Ledger, tuned: Candidate) -> pd.Da
             f"check: seed {seed} ({len(arms)} rules on {len(study.heldout)} held-out datasets)", len(requests)
         )
         frontend.run(requests, lambda request, summary: ledger.add(rows_of.row(request, summary)))
-    t = ledger.table
-    t = t[t.dataset.isin(list(study.heldout)) & t.seed.isin(study.check_seeds)].copy()
+    return check_table(ledger.table, study, tuned.name)
+
+
+def check_table(runs: pd.DataFrame, study: TuneStudy, tuned: str) -> pd.DataFrame:
+    """check.csv from the runs' table (runs.csv): the rule named `tuned` against each baseline on the
+    held-out datasets' check seeds, paired_difference over all of them and per (disturbance, level)."""
+    t = runs[runs.dataset.isin(list(study.heldout)) & runs.seed.isin(study.check_seeds)].copy()
     t["candidate"] = t["candidate"] + "@" + t["switch_model"]
-    name = f"{tuned.name}@{study.switch_model}"
+    name = f"{tuned}@{study.switch_model}"
     rows = []
     for b, model in study.baseline_pairs:
         base = f"{b}@{model}"
@@ -453,4 +458,4 @@ def _candidate(out: Path, name: str) -> Candidate:
     )
 
 
-__all__ = ["agreement", "check", "check_runs", "make_frontend", "run_round", "tune"]
+__all__ = ["agreement", "check", "check_runs", "check_table", "make_frontend", "run_round", "tune"]
