@@ -85,8 +85,8 @@ def run_demo(
     from jsve.fitting._study import run_study
     from jsve.report._report import write_report
     from jsve.sim._config import SimConfig
-    from jsve.sim._motion import FlightProfile
     from jsve.sim._study import write_study
+    from jsve.sim._trajectory import FlightProfile
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

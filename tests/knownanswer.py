@@ -25,7 +25,7 @@ import pandas as pd
 
 from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
-from jsve.sim._motion import matrix_to_quat, quat_normalize, quat_to_matrix
+from jsve.sim._trajectory import matrix_to_quat, quat_normalize, quat_to_matrix
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 FPS = 20.0

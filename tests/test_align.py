@@ -32,7 +32,7 @@ from jsve.core._align import (
 from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.core._replay import batch_features, replay
 from jsve.core._trajectory import align
-from jsve.fitting._search import prepare, search_chunk
+from jsve.fitting._kernel import prepare, search_chunk
 from jsve.fitting._space import inlier_space
 from jsve.io._batching import from_runs
 

@@ -287,8 +287,8 @@ def test_demo_in_a_folder_of_another_configuration_stops_and_names_force(tmp_pat
     from jsve.fitting import _study
     from jsve.report import _report
     from jsve.sim._config import SimConfig
-    from jsve.sim._motion import FlightProfile
     from jsve.sim._study import write_study
+    from jsve.sim._trajectory import FlightProfile
 
     out = tmp_path / "demo"
     small = dict(procedural=1, disturbances="blur:0", runs=1, workers=1, progress=False)

@@ -16,8 +16,8 @@ from jsve.fitting._fit import FitConfig, fit
 from jsve.fitting._packing import subset_parts
 from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, sve_space
-from jsve.io._ingest import ingest
 from jsve.io._logs import write_log
+from jsve.io._parquet import ingest
 
 FIELDS = ("loss", "failed", "rmse", "coverage", "unsupported", "included")
 

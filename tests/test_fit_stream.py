@@ -14,8 +14,8 @@ from jsve.fitting._data import FitData
 from jsve.fitting._optimise import hard_objective
 from jsve.fitting._space import inlier_space, sve_space
 from jsve.fitting._stages import data_fingerprint
-from jsve.io._ingest import ingest
 from jsve.io._logs import write_log
+from jsve.io._parquet import ingest
 
 COAST = ObjectiveConfig(switch_model="imu-coast")
 

@@ -1,5 +1,5 @@
 """jsve.core._geometry: rotation algebra against scipy's Rotation (an implementation we did not write); its
-column forms and its numpy form (the simulator's, jsve.sim._motion) against its JAX form; eager == jit ==
+column forms and its numpy form (the simulator's, jsve.sim._trajectory) against its JAX form; eager == jit ==
 vmap (a stacked loop); gradients == central differences, finite at the identity.
 
 Tolerances: 1e-12 against scipy (float64 rounding of different formulas); exact equality between forms that
@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jsve.core import _geometry as g
-from jsve.sim import _motion as sm
+from jsve.sim import _trajectory as st
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -151,7 +151,7 @@ def test_the_simulators_rotations_are_the_numpy_form(data, name):
     """jsve.sim._motion's rotation helpers are this module's with xp=numpy: the same numbers, exactly."""
     fn, names = next(f for f in ARRAY_FUNCTIONS if f[0].__name__ == name)
     args = _inputs(data, names)
-    np.testing.assert_array_equal(getattr(sm, name)(*args), fn(*args, xp=np))
+    np.testing.assert_array_equal(getattr(st, name)(*args), fn(*args, xp=np))
 
 
 def test_column_forms_are_the_array_forms(data):

@@ -15,6 +15,7 @@ from jsve.cli import main as jsve_main
 from jsve.io import _groundtruth as groundtruth
 from jsve.io import _ingest as ingest
 from jsve.io import _logs as logs
+from jsve.io import _parquet as parquet
 from jsve.io import _schema as schema
 
 # ---------------------------------------------------------------------------------------------------
@@ -177,7 +178,7 @@ def test_cli_ingest_with_ground_truth(shared_data, tmp_path, capsys):
     out = tmp_path / "s.parquet"
     argv = ["ingest", str(tmp_path / "logs"), "-o", str(out), "--gt", str(path), "--gt-format", "euroc"]
     assert jsve_main([*argv, "--no-progress"]) == 0
-    (run,) = ingest.read_parquet(out)
+    (run,) = parquet.read_parquet(out)
     assert run.has_ground_truth and run.meta["gt_missing_frames"] == 0
 
 
@@ -196,7 +197,7 @@ def test_cli_ingest_with_one_ground_truth_per_sequence(tmp_path, capsys):
     argv = ["ingest", str(folder), "-o", str(out), "--no-progress"]
     argv += ["--gt", f"V101={v101}", "--gt", f"V201={v201}"]
     assert jsve_main(argv) == 0
-    runs = {r.meta["sequence"]: r for r in ingest.read_parquet(out)}
+    runs = {r.meta["sequence"]: r for r in parquet.read_parquet(out)}
     assert runs["V101"].has_ground_truth and runs["V201"].has_ground_truth
     assert not runs["MH01"].has_ground_truth
     np.testing.assert_allclose(runs["V101"].frames["gt_py"].to_numpy(), 0.0)

@@ -27,8 +27,9 @@ from jsve.fitting._halving import (
     rung_sizes,
     stratified_order,
 )
+from jsve.fitting._kernel import search_chunk
 from jsve.fitting._packing import subset_parts
-from jsve.fitting._search import search, search_chunk
+from jsve.fitting._search import search
 from jsve.fitting._space import inlier_space, sve_space
 
 K = 40

@@ -1,6 +1,6 @@
 """jsve.core._imu: ORB-SLAM3's PredictStateIMU against tests/oracle_orbslam3.py (an independent numpy
 implementation that rotates by quaternion sandwich products); its column form (the search kernel's) and its
-numpy form (the simulator's, jsve.sim._motion) against the array form; eager == jit == vmap (a stacked loop);
+numpy form (the simulator's, jsve.sim._imu) against the array form; eager == jit == vmap (a stacked loop);
 gradients == central differences.
 
 Tolerances: 1e-12 against the oracle (float64 rounding of a different rotation formula); exact equality
@@ -17,7 +17,8 @@ import pytest
 
 from jsve.core._geometry import columns
 from jsve.core._imu import imu_predict, imu_predict_columns
-from jsve.sim import _motion as sm
+from jsve.sim import _imu as si
+from jsve.sim import _trajectory as st
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -62,8 +63,8 @@ def test_numpy_form_equals_the_jax_form_and_is_the_simulators(state):
         np.testing.assert_allclose(a, np.asarray(b), rtol=1e-15, atol=1e-15)
     # the simulator's name, with its default gravity (the same for every frame)
     p, v, q, dt, dp, dv, dq, _ = state
-    expected = imu_predict(p, v, q, dt, dp, dv, dq, sm.GRAVITY, xp=np)
-    for a, b in zip(sm.imu_predict(p, v, q, dt, dp, dv, dq), expected, strict=True):
+    expected = imu_predict(p, v, q, dt, dp, dv, dq, st.GRAVITY, xp=np)
+    for a, b in zip(si.imu_predict(p, v, q, dt, dp, dv, dq), expected, strict=True):
         np.testing.assert_array_equal(a, b)
 
 

@@ -20,6 +20,7 @@ from logfactory import edit_line, make_run, same_bits, set_field, v1_text
 from jsve.cli import ingest as ingest_cli
 from jsve.io import _ingest as ingest
 from jsve.io import _logs as logs
+from jsve.io import _parquet as parquet
 from jsve.io import _schema as schema
 from jsve.io._errors import LogVersionWarning
 from jsve.io._groundtruth import GroundTruth
@@ -178,13 +179,13 @@ def test_on_error_is_checked(logdir):
 def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
     root, good, bad = logdir
     out = tmp_path / "study.parquet"
-    summary = ingest.ingest(root, out, on_error="quarantine", workers=2, progress=False)
+    summary = parquet.ingest(root, out, on_error="quarantine", workers=2, progress=False)
     expected = ingest.read_logs(root, on_error="quarantine", workers=1, progress=False)
     assert summary.n_runs == len(good) and summary.n_frames == sum(len(r.frames) for r in expected.runs)
     assert [q.path for q in summary.quarantined] == bad
     assert summary.quarantine_report == tmp_path / "study.quarantine.csv"
     assert pd.read_csv(summary.quarantine_report)["path"].tolist() == bad
-    assert same_runs(ingest.read_parquet(out), expected.runs)
+    assert same_runs(parquet.read_parquet(out), expected.runs)
     assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
 
     pf = pq.ParquetFile(out)
@@ -204,7 +205,7 @@ def test_ingest_and_read_parquet_round_trip(logdir, tmp_path):
 def test_ingest_raise_writes_nothing(logdir, tmp_path):
     out = tmp_path / "study.parquet"
     with pytest.raises(LogFormatError):
-        ingest.ingest(logdir[0], out, workers=1, progress=False)
+        parquet.ingest(logdir[0], out, workers=1, progress=False)
     assert list(tmp_path.iterdir()) == [logdir[0]]
 
 
@@ -215,7 +216,7 @@ def test_ingest_without_bad_logs_writes_no_report(tmp_path):
     stale = out.with_suffix(".quarantine.csv")
     stale.parent.mkdir()
     stale.write_text("path\nold.csv\n")
-    summary = ingest.ingest(tmp_path / "logs", out, on_error="quarantine", workers=1, progress=False)
+    summary = parquet.ingest(tmp_path / "logs", out, on_error="quarantine", workers=1, progress=False)
     assert summary.quarantine_report is None and summary.n_runs == 3
     assert not stale.exists()  # a report from an earlier ingest would describe other logs
 
@@ -224,21 +225,21 @@ def test_read_parquet_rejects_other_parquet(tmp_path):
     path = tmp_path / "x.parquet"
     pd.DataFrame({"a": [1, 2]}).to_parquet(path)
     with pytest.raises(LogFormatError, match="not a jsve Parquet file"):
-        ingest.read_parquet(path)
+        parquet.read_parquet(path)
 
 
 def test_load_runs_reads_a_parquet_file_or_logs_alike(logdir, tmp_path):
     root, good, bad = logdir
     out = tmp_path / "study.parquet"
-    ingest.ingest(root, out, on_error="quarantine", workers=1, progress=False)
-    from_logs = ingest.load_runs(root, on_error="quarantine", workers=1, progress=False)
-    from_parquet = ingest.load_runs(str(out))
+    parquet.ingest(root, out, on_error="quarantine", workers=1, progress=False)
+    from_logs = parquet.load_runs(root, on_error="quarantine", workers=1, progress=False)
+    from_parquet = parquet.load_runs(str(out))
     assert [q.path for q in from_logs.quarantined] == bad and from_parquet.quarantined == []
     assert [r.source for r in from_logs.runs] == good
     assert same_runs(from_parquet.runs, from_logs.runs)
-    assert same_runs(ingest.load_runs(out).runs, from_logs.runs)  # a Path as well as a str
+    assert same_runs(parquet.load_runs(out).runs, from_logs.runs)  # a Path as well as a str
     with pytest.raises(LogFormatError):
-        ingest.load_runs(root, workers=1, progress=False)  # on_error="raise" by default
+        parquet.load_runs(root, workers=1, progress=False)  # on_error="raise" by default
 
 
 def test_partial_files_are_never_skipped(tmp_path):
@@ -282,7 +283,7 @@ def test_cli_ingest(logdir, tmp_path, capsys):
     assert cli([*argv, "--workers", "1", "--no-progress"]) == 0
     line = capsys.readouterr().out.strip()
     assert re.search(rf"ingested {len(good)} runs, \d+ frames -> .*; quarantined {len(bad)}", line)
-    assert len(ingest.read_parquet(out)) == len(good) and pd.read_csv(report)["path"].tolist() == bad
+    assert len(parquet.read_parquet(out)) == len(good) and pd.read_csv(report)["path"].tolist() == bad
 
 
 def test_cli_usage_errors(tmp_path):
@@ -295,7 +296,7 @@ def test_cli_usage_errors(tmp_path):
 def test_no_logs_is_an_error(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError):
-        ingest.ingest(tmp_path / "empty", tmp_path / "s.parquet", progress=False)
+        parquet.ingest(tmp_path / "empty", tmp_path / "s.parquet", progress=False)
     assert cli(["ingest", str(tmp_path / "empty"), "-o", str(tmp_path / "s.parquet"), "--no-progress"]) == 2
 
 
@@ -356,14 +357,14 @@ def test_ingest_carries_map_columns_and_missing_poses(mixed_versions, tmp_path):
     root, v1 = mixed_versions
     out = tmp_path / "s.parquet"
     with pytest.warns(LogVersionWarning, match="^5 v1 logs read with defaults") as record:
-        ingest.ingest(root, out, workers=1, progress=False)
+        parquet.ingest(root, out, workers=1, progress=False)
     assert len([w for w in record if issubclass(w.category, LogVersionWarning)]) == 1
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", LogVersionWarning)
         expected = ingest.read_logs(root, workers=1, progress=False).runs
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a format-2 Parquet file reads without a warning
-        back = ingest.read_parquet(out)
+        back = parquet.read_parquet(out)
     assert same_runs(back, expected)  # map_id, imu_ba2 exact; NaN poses bit for bit
     pf = pq.ParquetFile(out)
     assert pf.schema_arrow.names[2:7] == ["t_ns", "state", "imu_init", "map_id", "imu_ba2"]
@@ -389,18 +390,18 @@ def test_parquet_of_format_1_reads_with_v1_defaults(tmp_path):
     for i in range(3):
         logs.write_log(make_run(400, i, sequence="MH_04"), tmp_path / "logs" / f"r{i}.csv")
     out = tmp_path / "s.parquet"
-    ingest.ingest(tmp_path / "logs", out, workers=1, progress=False)
+    parquet.ingest(tmp_path / "logs", out, workers=1, progress=False)
     old = tmp_path / "old.parquet"
     _as_format_1(out, old)
     with pytest.warns(LogVersionWarning) as record:
-        runs = ingest.read_parquet(old)
+        runs = parquet.read_parquet(old)
     (w,) = record
     assert str(w.message).startswith(
         f"{old}: jsve Parquet file of format 1 (ingested before format v2): its 3 runs"
     )
     assert "map_id = 0, imu_ba2 = imu_init & (t - t_first >= 15 s)" in str(w.message)
     assert w.filename == __file__
-    fresh = ingest.read_parquet(out)
+    fresh = parquet.read_parquet(out)
     for a, b in zip(runs, fresh, strict=True):
         assert list(a.frames.columns) == list(schema.COLUMNS)
         assert a.frames["map_id"].eq(0).all()
@@ -410,19 +411,19 @@ def test_parquet_of_format_1_reads_with_v1_defaults(tmp_path):
         others = [c for c in schema.COLUMNS if c not in schema.MAP_COLUMNS]
         assert same_bits(a.frames[others], b.frames[others])
     with pytest.warns(LogVersionWarning):
-        assert same_runs(ingest.load_runs(old).runs, runs)
+        assert same_runs(parquet.load_runs(old).runs, runs)
 
 
 def test_parquet_of_an_unknown_format_is_refused(tmp_path):
     logs.write_log(make_run(N, 1), tmp_path / "logs" / "r.csv")
     out = tmp_path / "s.parquet"
-    ingest.ingest(tmp_path / "logs", out, workers=1, progress=False)
+    parquet.ingest(tmp_path / "logs", out, workers=1, progress=False)
     _rewrite(out, tmp_path / "x.parquet", b"4", [])
     with pytest.raises(LogFormatError, match="unsupported jsve Parquet format '4'.*reads 1 and 2 and 3"):
-        ingest.read_parquet(tmp_path / "x.parquet")
+        parquet.read_parquet(tmp_path / "x.parquet")
     _rewrite(out, tmp_path / "y.parquet", b"2", ["imu_ba2"])
     with pytest.raises(LogFormatError, match="without the column.*imu_ba2"):
-        ingest.read_parquet(tmp_path / "y.parquet")
+        parquet.read_parquet(tmp_path / "y.parquet")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -489,10 +490,10 @@ def test_ingest_writes_every_column_group_as_the_frames_hold_it(tmp_path):
     logs.write_log(_with_world(make_run(30, 2, gt_missing=0.3, no_pose=0.3), 2), root / "c.csv")  # all
     logs.write_log(_with_world(make_run(30, 3, with_gt=False, sequence="V101"), 3), root / "d.csv")
     out = tmp_path / "s.parquet"
-    ingest.ingest(root, out, workers=1, progress=False)
+    parquet.ingest(root, out, workers=1, progress=False)
     expected = ingest.read_logs(root, workers=1, progress=False).runs
     assert [r.has_world_frame for r in expected] == [False, False, True, True]
-    assert same_runs(ingest.read_parquet(out), expected)
+    assert same_runs(parquet.read_parquet(out), expected)
     table = pq.read_table(out)
     rows = np.cumsum([0] + [len(r.frames) for r in expected])
     # A group a run lacks is null; a frame without a value (pose, ground truth) is NaN, never null.
@@ -513,16 +514,16 @@ def test_ingest_with_ground_truth_equals_reading_with_it(shared_data, tmp_path):
     run = make_run(40, 1, with_gt=False, sequence="V101")
     logs.write_log(dataclasses.replace(run, frames=run.frames.assign(t_ns=stamps)), tmp_path / "a.csv")
     spec = {"V101": GroundTruth(gt_path, "euroc")}
-    ingest.ingest(tmp_path, tmp_path / "s.parquet", ground_truth=spec, workers=1, progress=False)
+    parquet.ingest(tmp_path, tmp_path / "s.parquet", ground_truth=spec, workers=1, progress=False)
     expected = ingest.read_logs(tmp_path, ground_truth=spec, workers=1, progress=False).runs
-    back = ingest.read_parquet(tmp_path / "s.parquet")
+    back = parquet.read_parquet(tmp_path / "s.parquet")
     assert back[0].has_ground_truth and back[0].meta["gt_missing_frames"] == 0
     assert same_runs(back, expected)
 
 
 def test_the_study_file_has_its_encodings(logdir, tmp_path):
     out = tmp_path / "s.parquet"
-    ingest.ingest(logdir[0], out, on_error="quarantine", workers=1, progress=False)
+    parquet.ingest(logdir[0], out, on_error="quarantine", workers=1, progress=False)
     meta = pq.ParquetFile(out).metadata.row_group(0)
     columns = {meta.column(k).path_in_schema: meta.column(k) for k in range(meta.num_columns)}
     assert {c.compression for c in columns.values()} <= {"LZ4", "LZ4_RAW"}

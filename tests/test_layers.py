@@ -272,7 +272,7 @@ def test_script_checker_finds_private_imports_and_attributes(tmp_path):
             import jsve
             import jsve.io._atomic
             from jsve.core import _levels, pad_runs
-            from jsve.sim._motion import quat_to_matrix
+            from jsve.sim._trajectory import quat_to_matrix
             from jsve import __version__, core
 
             def f():
@@ -285,7 +285,7 @@ def test_script_checker_finds_private_imports_and_attributes(tmp_path):
     assert found == [
         (3, "jsve.io._atomic"),
         (4, "jsve.core._levels"),
-        (5, "jsve.sim._motion"),
+        (5, "jsve.sim._trajectory"),
         (9, "jsve.io._atomic"),
         (10, "jsve.core._batch"),
     ]

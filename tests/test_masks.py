@@ -16,6 +16,7 @@ from logfactory import make_run
 from pycocotools import mask as mask_util
 
 from jsve.cli import main as cli_main
+from jsve.core._numerics import round_half_away
 from jsve.io import LogFormatError
 from jsve.io import _keypoints as kpio
 from jsve.io import _logs as logs
@@ -233,7 +234,7 @@ def test_sve_bin_index_equals_posingrid_loop(bounds):
 
 def test_round_half_away_is_exact_in_float32():
     v = jnp.asarray(np.array([0.49999997, -0.49999997, 0.5, -0.5, 1.5, 2.5, -2.5, 63.5, -0.2], np.float32))
-    assert np.asarray(masks._round_half_away(v)).tolist() == [
+    assert np.asarray(round_half_away(v)).tolist() == [
         0.0,
         -0.0,
         1.0,
@@ -244,6 +245,15 @@ def test_round_half_away_is_exact_in_float32():
         64.0,
         -0.0,
     ]
+
+
+def test_round_half_away_is_cs_round_in_numpy_float64_too():
+    # the largest double below 0.5 rounds to 0 in C (floor(v + 0.5) would give 1); halves go outwards
+    below = np.nextafter(0.5, 0.0)
+    v = np.array([below, -below, 0.5, -0.5, 1.5, 2.5, -2.5, 63.5, -0.2, 7.0])
+    expected = [0.0, -0.0, 1.0, -1.0, 2.0, 3.0, -3.0, 64.0, -0.0, 7.0]
+    assert round_half_away(v, xp=np).tolist() == expected
+    assert np.signbit(round_half_away(v, xp=np)).tolist() == np.signbit(expected).tolist()
 
 
 def test_frame_counts_equal_loop_under_jit_and_vmap():

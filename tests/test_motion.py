@@ -1,4 +1,5 @@
-"""jsve.sim._motion: trajectories, IMU synthesis and preintegration against what they must show.
+"""jsve.sim._trajectory and jsve.sim._imu: trajectories, IMU synthesis and preintegration against what
+they must show.
 
 - its numpy rotation helpers and IMU prediction agree with jsve.core._geometry and jsve.core._replay;
 - the IMU it synthesises integrates back onto the trajectory, and its dead-reckoning drift is that
@@ -15,14 +16,15 @@ import numpy as np
 import pytest
 
 from jsve.core import _geometry as geometry
-from jsve.sim import _motion as sm
+from jsve.sim import _imu as si
+from jsve.sim import _trajectory as st
 
 
 @pytest.fixture(scope="module")
-def short_flight() -> sm.Trajectory:
+def short_flight() -> st.Trajectory:
     """A procedural flight cut to its first 30 s (keeps the tests fast)."""
-    flight = sm.FlightProfile(duration_s=(30.0, 30.0))
-    return sm.procedural_trajectory("proc_test", np.random.default_rng(3), flight)
+    flight = st.FlightProfile(duration_s=(30.0, 30.0))
+    return st.procedural_trajectory("proc_test", np.random.default_rng(3), flight)
 
 
 # ---- rotations and IMU -----------------------------------------------------------------------------
@@ -30,21 +32,21 @@ def short_flight() -> sm.Trajectory:
 
 def test_numpy_rotations_match_jsve_geometry(x64):
     rng = np.random.default_rng(0)
-    a = sm.quat_normalize(rng.normal(size=(50, 4)))
-    b = sm.quat_normalize(rng.normal(size=(50, 4)))
+    a = st.quat_normalize(rng.normal(size=(50, 4)))
+    b = st.quat_normalize(rng.normal(size=(50, 4)))
     v = rng.normal(size=(50, 3))
     np.testing.assert_allclose(
-        sm.quat_mul(a, b), geometry.quat_mul(jnp.asarray(a), jnp.asarray(b)), atol=1e-14
+        st.quat_mul(a, b), geometry.quat_mul(jnp.asarray(a), jnp.asarray(b)), atol=1e-14
     )
     np.testing.assert_allclose(
-        sm.quat_rotate(a, v), geometry.quat_rotate(jnp.asarray(a), jnp.asarray(v)), atol=1e-13
+        st.quat_rotate(a, v), geometry.quat_rotate(jnp.asarray(a), jnp.asarray(v)), atol=1e-13
     )
-    m = sm.quat_to_matrix(a)
+    m = st.quat_to_matrix(a)
     np.testing.assert_allclose(m, geometry.quat_to_matrix(jnp.asarray(a)), atol=1e-14)
-    np.testing.assert_allclose(sm.matrix_to_quat(m), geometry.matrix_to_quat(jnp.asarray(m)), atol=1e-12)
+    np.testing.assert_allclose(st.matrix_to_quat(m), geometry.matrix_to_quat(jnp.asarray(m)), atol=1e-12)
     phi = rng.normal(size=(50, 3))
-    np.testing.assert_allclose(sm.quat_to_matrix(sm.quat_exp(phi)), sm.so3_exp(phi), atol=1e-12)
-    np.testing.assert_allclose(sm.quat_log(sm.quat_exp(0.5 * phi)), 0.5 * phi, atol=1e-12)
+    np.testing.assert_allclose(st.quat_to_matrix(st.quat_exp(phi)), st.so3_exp(phi), atol=1e-12)
+    np.testing.assert_allclose(st.quat_log(st.quat_exp(0.5 * phi)), 0.5 * phi, atol=1e-12)
 
 
 def test_imu_predict_is_the_replays(x64):
@@ -52,10 +54,10 @@ def test_imu_predict_is_the_replays(x64):
 
     rng = np.random.default_rng(1)
     p, v, dp, dv = (rng.normal(size=(20, 3)) for _ in range(4))
-    q, dq = sm.quat_normalize(rng.normal(size=(20, 4))), sm.quat_normalize(rng.normal(size=(20, 4)))
+    q, dq = st.quat_normalize(rng.normal(size=(20, 4))), st.quat_normalize(rng.normal(size=(20, 4)))
     dt = rng.uniform(0.01, 0.1, 20)
-    ours = sm.imu_predict(p, v, q, dt, dp, dv, dq)
-    theirs = imu_predict(*(jnp.asarray(x) for x in (p, v, q, dt, dp, dv, dq)), jnp.asarray(sm.GRAVITY))
+    ours = si.imu_predict(p, v, q, dt, dp, dv, dq)
+    theirs = imu_predict(*(jnp.asarray(x) for x in (p, v, q, dt, dp, dv, dq)), jnp.asarray(st.GRAVITY))
     for x, y in zip(ours, theirs, strict=True):
         np.testing.assert_allclose(x, y, atol=1e-12)
 
@@ -67,16 +69,16 @@ def test_ideal_imu_integrates_back_onto_the_trajectory(short_flight):
     # (the scheme, not the synthesis).
     drift = {}
     for rate in (200.0, 2000.0):
-        imu = sm.synthesize_imu(short_flight, None, noise=None, rate_hz=rate)
-        pre = sm.preintegrate(sm.frame_substeps(imu, short_flight.frame_ns), np.zeros(3), np.zeros(3))
-        drift[rate] = sm.dead_reckoning_drift(short_flight, pre, horizons_s=(5.0,), skip_s=1.0)[5.0]
+        imu = si.synthesize_imu(short_flight, None, noise=None, rate_hz=rate)
+        pre = si.preintegrate(si.frame_substeps(imu, short_flight.frame_ns), np.zeros(3), np.zeros(3))
+        drift[rate] = si.dead_reckoning_drift(short_flight, pre, horizons_s=(5.0,), skip_s=1.0)[5.0]
     assert np.max(drift[2000.0]) < 0.01
     assert 5 < np.median(drift[200.0]) / np.median(drift[2000.0]) < 20
 
 
 def test_preintegration_first_frame_and_dt(short_flight):
-    imu = sm.synthesize_imu(short_flight, np.random.default_rng(0))
-    dt, dp, dv, dq = sm.preintegrate(sm.frame_substeps(imu, short_flight.frame_ns), np.zeros(3), np.zeros(3))
+    imu = si.synthesize_imu(short_flight, np.random.default_rng(0))
+    dt, dp, dv, dq = si.preintegrate(si.frame_substeps(imu, short_flight.frame_ns), np.zeros(3), np.zeros(3))
     assert dt[0] == 0 and not dp[0].any() and not dv[0].any() and tuple(dq[0]) == (1.0, 0.0, 0.0, 0.0)
     np.testing.assert_allclose(dt[1:], np.diff(short_flight.frame_ns) / 1e9, atol=1e-12)
 
@@ -87,7 +89,7 @@ def test_spline_fit_is_the_dense_least_squares_solution():
     t = np.sort(rng.uniform(0, 20, 400))
     y = np.stack([np.sin(t), np.cos(0.3 * t)], 1) + rng.normal(0, 1e-3, (400, 2))
     h, smooth = 0.1, 1e-2
-    spline = sm.Spline.fit(t, y, h, smooth)
+    spline = st.Spline.fit(t, y, h, smooth)
     n_seg = int(np.ceil((t[-1] - t[0]) / h - 1e-9))
     m = n_seg + 3
     x = (t - t[0]) / h
@@ -104,7 +106,7 @@ def test_spline_fit_is_the_dense_least_squares_solution():
 
 def test_gauss_markov_variance_and_correlation():
     t = np.arange(0, 4000, 0.01)
-    x = sm.gauss_markov(np.random.default_rng(0), t, 0.5, 2.0, dim=4)
+    x = si.gauss_markov(np.random.default_rng(0), t, 0.5, 2.0, dim=4)
     # 4 x 400 correlation times: the sample standard deviation is within 5 % of 0.5.
     assert np.all(np.abs(x.std(axis=0) - 0.5) < 0.025)
     lag = 200  # 2 s = one correlation time
@@ -115,7 +117,7 @@ def test_gauss_markov_variance_and_correlation():
 def test_procedural_flights_are_euroc_like():
     rng = np.random.default_rng(0)
     for i in range(4):
-        traj = sm.procedural_trajectory(f"p{i}", rng)
+        traj = st.procedural_trajectory(f"p{i}", rng)
         t = traj.seconds(traj.frame_ns)
         speed = np.linalg.norm(traj.velocity(t), axis=1)
         assert 80 <= t[-1] <= 180
@@ -131,17 +133,17 @@ def test_procedural_flights_are_euroc_like():
 
 def test_euroc_extrinsics_are_sensor_yaml(shared_data):
     path = shared_data / "euroc" / "V1_01_first95" / "mav0" / "cam0" / "sensor.yaml"
-    np.testing.assert_array_equal(sm.read_yaml_matrix(path), sm.EUROC_CAM0_T_BS)
+    np.testing.assert_array_equal(st.read_yaml_matrix(path), st.EUROC_CAM0_T_BS)
 
 
 def test_euroc_ground_truth_is_in_the_imu_body_frame(shared_data):
     # The body rates of the loaded ground truth must be what the real gyro measures (same axes),
     # and the specific force what the real accelerometer measures up to a bias of EuRoC's size.
     euroc = shared_data / "euroc"
-    traj = sm.load_euroc_trajectory(
+    traj = st.load_euroc_trajectory(
         "V1_01", euroc / "groundtruth_left_cam", timestamps_dir=euroc / "timestamps"
     )
-    imu = sm.read_imu_stream(euroc / "imu" / "V101.txt")
+    imu = si.read_imu_stream(euroc / "imu" / "V101.txt")
     t = traj.seconds(imu.t_ns)
     inside = (t > 1) & (t < traj.position.t_end - 1)
     gyro, omega = imu.gyro[inside], traj.angular_velocity(t[inside])
@@ -162,17 +164,17 @@ def test_imu_drift_matches_the_real_stream(shared_data):
     # Same estimator, same propagation, same trajectory: the simulated stream's median drift after
     # 1, 2 and 5 s is within a factor 1.6 of the real V1_01 stream's (docs/simulator.md, "IMU").
     euroc = shared_data / "euroc"
-    traj = sm.load_euroc_trajectory(
+    traj = st.load_euroc_trajectory(
         "V1_01", euroc / "groundtruth_left_cam", timestamps_dir=euroc / "timestamps"
     )
     medians = {}
     for kind, imu in (
-        ("real", sm.read_imu_stream(euroc / "imu" / "V101.txt")),
-        ("sim", sm.synthesize_imu(traj, np.random.default_rng(0))),
+        ("real", si.read_imu_stream(euroc / "imu" / "V101.txt")),
+        ("sim", si.synthesize_imu(traj, np.random.default_rng(0))),
     ):
-        bg, ba = sm.frame_bias_estimate(imu, traj)
-        pre = sm.preintegrate(sm.frame_substeps(imu, traj.frame_ns), bg, ba)
-        medians[kind] = {h: np.median(e) for h, e in sm.dead_reckoning_drift(traj, pre).items()}
+        bg, ba = si.frame_bias_estimate(imu, traj)
+        pre = si.preintegrate(si.frame_substeps(imu, traj.frame_ns), bg, ba)
+        medians[kind] = {h: np.median(e) for h, e in si.dead_reckoning_drift(traj, pre).items()}
     for horizon in (1.0, 2.0, 5.0):
         ratio = medians["sim"][horizon] / medians["real"][horizon]
         assert 1 / 1.6 < ratio < 1.6, (horizon, medians)

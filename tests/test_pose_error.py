@@ -30,16 +30,13 @@ from jsve.core._pose_error import (
     POSE_ALIGN_METHODS,
     RPE_FAILURE_CAUSES,
     align_poses,
-    batched_ape,
-    batched_pose_error,
-    batched_rpe,
-    check_delta,
     error_statistics,
     pose_errors,
     relative_pose_errors,
     rpe_angle_pairs,
     rpe_pairs,
 )
+from jsve.core._pose_error_batch import batched_ape, batched_pose_error, batched_rpe, check_delta
 from jsve.core._trajectory import batched_run_error, failure_reason
 
 LENGTHS = (40, 95, 2, 61)  # the third is too short to align: failed, not hidden

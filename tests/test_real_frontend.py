@@ -142,7 +142,7 @@ def test_orbslam3s_own_trajectory_scores_as_evo_scores_it(files, x64):
     evo_file = pytest.importorskip("evo.tools.file_interface")
     from evo.core import metrics, sync
 
-    from jsve.core._pose_error import batched_pose_error
+    from jsve.core._pose_error_batch import batched_pose_error
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 
     ref = evo_file.read_euroc_csv_trajectory(str(files["groundtruth.csv"]))

@@ -363,18 +363,18 @@ def test_ground_truth_rotations_are_stored_conjugated(shared_data):
     # the quaternions conjugated (as jsve.sim.load_euroc_trajectory reads them) they do. Correlation per axis
     # after a 0.1 s average, over the flight.
     from jsve.sim import load_euroc_trajectory, read_imu_stream
-    from jsve.sim._motion import (
+    from jsve.sim._trajectory import (
         EUROC_CAM0_T_BS,
-        _read_stamped_rows,
         matrix_to_quat,
         quat_mul,
+        read_stamped_rows,
         trajectory_from_poses,
     )
 
     gt_dir = shared_data / "euroc/groundtruth_left_cam"
     imu = read_imu_stream(shared_data / "euroc/imu/V101.txt")
     conjugated = load_euroc_trajectory("V101", gt_dir)
-    t_ns, values = _read_stamped_rows(gt_dir / "V101_GT.txt", 7)
+    t_ns, values = read_stamped_rows(gt_dir / "V101_GT.txt", 7)
     q_cb = matrix_to_quat(EUROC_CAM0_T_BS[:3, :3].T)
     q_literal = np.asarray(quat_mul(values[:, 3:7], np.broadcast_to(q_cb, (len(t_ns), 4))))
     literal = trajectory_from_poses("literal", t_ns, values[:, :3], q_literal)

@@ -19,7 +19,7 @@ from jsve.core._replay import batch_features
 from jsve.core._rules import InlierRule, Thresholds
 from jsve.evaluation import identity_table, own_rule_table
 from jsve.evaluation._evaluate import LOST_REASON
-from jsve.fitting._search import prepare, search_chunk
+from jsve.fitting._kernel import prepare, search_chunk
 from jsve.io import euroc_ate, event_counts, from_runs, in_saved_frame, read_log, saved_trajectory
 from jsve.io._groundtruth import GroundTruth
 from jsve.io._trajectories import read_trajectory
@@ -177,7 +177,7 @@ def test_euroc_ate_computes_in_float64_in_its_own_thread_only(files, monkeypatch
 
     import jax
 
-    import jsve.core._pose_error as pose_error
+    import jsve.core._pose_error_batch as pose_error
 
     seen = {}
     real = pose_error.batched_ape

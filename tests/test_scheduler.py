@@ -138,11 +138,11 @@ def test_workers_with_another_jsve_are_refused():
 
 def test_an_unreachable_scheduler_is_one_error_and_nothing_is_written(tmp_path, monkeypatch):
     from jsve.sim import _config as sim_config
-    from jsve.sim import _motion as sm
     from jsve.sim import _study as sim_study
+    from jsve.sim import _trajectory as st
 
     monkeypatch.setattr(_scheduler, "CONNECT_TIMEOUT_S", 1.0)
-    short = sim_config.SimConfig(flight=sm.FlightProfile(duration_s=(25.0, 25.0)))
+    short = sim_config.SimConfig(flight=st.FlightProfile(duration_s=(25.0, 25.0)))
     with pytest.raises(_scheduler.SchedulerError, match="tcp://127.0.0.1:9: cannot connect"):
         sim_study.write_study(tmp_path / "s", procedural=1, disturbances="blur:0", runs=1, config=short,
                               progress=False, scheduler="127.0.0.1:9")  # fmt: skip

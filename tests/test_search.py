@@ -1,4 +1,4 @@
-"""jsve.fitting._search: the fused search kernel (designs: tests/test_designs.py; its IMU columns:
+"""jsve.fitting._kernel and _search: the fused search kernel (designs: tests/test_designs.py; its IMU columns:
 tests/test_imu.py).
 
 Oracles: the rules' own score for the score columns, and jsve.core._objective.run_losses (replay +
@@ -23,16 +23,8 @@ from jsve.core._rules import Thresholds
 from jsve.core._sve import feature_logs
 from jsve.fitting._data import FitData
 from jsve.fitting._designs import sobol
-from jsve.fitting._search import (
-    LANES_PER_CALL,
-    _scan,
-    call_size,
-    lanes_per_call,
-    prepare,
-    score_columns,
-    search,
-    search_chunk,
-)
+from jsve.fitting._kernel import _scan, prepare, score_columns, search_chunk
+from jsve.fitting._search import LANES_PER_CALL, call_size, lanes_per_call, search
 from jsve.fitting._space import inlier_space, sve_space
 from jsve.io._batching import from_runs
 

@@ -9,7 +9,8 @@
 - an occluder costs map inliers: its edge's keypoints and the points that emerge from behind it;
 - replaying a small study with ORB-SLAM3's own rule fails more as blur grows and always at blur 50.
 
-jsve.sim._motion and jsve.sim._vision have their own files (test_motion.py, test_vision.py).
+jsve.sim._trajectory, jsve.sim._imu and jsve.sim._vision have their own files (test_motion.py,
+test_vision.py).
 """
 
 from __future__ import annotations
@@ -25,13 +26,13 @@ from jsve.io import _schema as schema
 from jsve.io import read_log, write_log
 from jsve.io._resume import StaleOutputError
 from jsve.sim import _config as sim_config
-from jsve.sim import _motion as sm
 from jsve.sim import _recording as sim_recording
 from jsve.sim import _simulate as sim
 from jsve.sim import _study as sim_study
+from jsve.sim import _trajectory as st
 from jsve.sim import _vision as sv
 
-SHORT = sim_config.SimConfig(flight=sm.FlightProfile(duration_s=(25.0, 25.0)))
+SHORT = sim_config.SimConfig(flight=st.FlightProfile(duration_s=(25.0, 25.0)))
 """Simulator configuration with 25 s flights (500 frames) for the log-level tests."""
 
 

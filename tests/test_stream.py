@@ -16,8 +16,8 @@ from jsve.core._batch import ladder, runs_per_chunk_for
 from jsve.io import _schema as schema
 from jsve.io._batching import from_runs, run_meta_table
 from jsve.io._errors import LogFormatError, LogVersionWarning
-from jsve.io._ingest import ingest, read_parquet
 from jsve.io._logs import write_log
+from jsve.io._parquet import ingest, read_parquet
 from jsve.io._stream import HOST_BYTES_PER_FRAME, _reading_by_length, chunk_plan, iter_buckets, open_study
 
 

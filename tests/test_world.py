@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from jsve.io import _schema as schema
 from jsve.io import from_runs, read_log, read_parquet, write_log
 from jsve.io._errors import LogFormatError
-from jsve.io._ingest import ingest
+from jsve.io._parquet import ingest
 from jsve.io._schema import RunLog
 from jsve.io._world import in_one_world_frame, segment_last_frame, to_last_world_frame
 

@@ -456,7 +456,7 @@ def load_runs(command: str, source: str, *, on_error: OnError, workers: int | No
     Raises:
         LogFormatError, OSError: as jsve.io.load_runs.
     """
-    from jsve.io._ingest import load_runs as read
+    from jsve.io._parquet import load_runs as read
 
     result = read(source, on_error=on_error, workers=workers, progress=progress)
     for q in result.quarantined:

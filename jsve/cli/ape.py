@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import pandas as pd
 
-    from jsve.core._pose_error import batched_ape
+    from jsve.core._pose_error_batch import batched_ape
     from jsve.evaluation._aggregate import per_run_table
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 

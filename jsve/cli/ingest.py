@@ -2,7 +2,7 @@
 
     jsve ingest logs/ -o study.parquet --on-error quarantine --gt V101_GT.txt --gt-format euroc
 
-A thin layer over jsve.io._ingest.ingest; docs/log-format.md describes the format, the errors and the output.
+A thin layer over jsve.io._parquet.ingest; docs/log-format.md describes the format, the errors and the output.
 Exit status: 0 on success (quarantined logs are listed in the summary and the report), 2 when a log is
 malformed with --on-error raise, or when there are no logs.
 """
@@ -122,7 +122,8 @@ def run(args: argparse.Namespace) -> int:
     """Run `jsve ingest`; returns the exit status."""
     from jsve.io import _atomic as atomic
     from jsve.io._groundtruth import DEFAULT_MAX_GAP_NS, GroundTruth
-    from jsve.io._ingest import check_ground_truth, find_logs, ingest
+    from jsve.io._ingest import check_ground_truth, find_logs
+    from jsve.io._parquet import ingest
 
     parser = args._parser
     if args.quarantine_report and args.on_error != "quarantine":

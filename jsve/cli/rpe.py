@@ -88,12 +88,8 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from jsve.core._pose_error import (
-        DELTA_UNITS,
-        RPE_FAILURE_CAUSES,
-        batched_rpe,
-        check_delta,
-    )
+    from jsve.core._pose_error import DELTA_UNITS, RPE_FAILURE_CAUSES
+    from jsve.core._pose_error_batch import batched_rpe, check_delta
     from jsve.core._trajectory import failure_reason
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 

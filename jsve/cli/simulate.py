@@ -85,9 +85,9 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from jsve.io._scheduler import check_scheduler
     from jsve.sim._config import SimConfig
-    from jsve.sim._motion import FlightProfile
     from jsve.sim._simulate import settings
     from jsve.sim._study import LOG_BYTES_PER_FRAME, study_size, write_study
+    from jsve.sim._trajectory import FlightProfile
 
     if args.sequences and not args.euroc_gt:
         return common.fail("simulate", "--sequences needs --euroc-gt DIR (or use --procedural N)")

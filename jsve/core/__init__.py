@@ -35,13 +35,13 @@ from jsve.core._objective import run_losses as run_losses
 from jsve.core._pose_error import DELTA_UNITS as DELTA_UNITS
 from jsve.core._pose_error import POSE_RELATIONS as POSE_RELATIONS
 from jsve.core._pose_error import align_poses as align_poses
-from jsve.core._pose_error import batched_ape as batched_ape
-from jsve.core._pose_error import batched_rpe as batched_rpe
 from jsve.core._pose_error import error_statistics as error_statistics
 from jsve.core._pose_error import pose_errors as pose_errors
 from jsve.core._pose_error import relative_pose_errors as relative_pose_errors
 from jsve.core._pose_error import rpe_angle_pairs as rpe_angle_pairs
 from jsve.core._pose_error import rpe_pairs as rpe_pairs
+from jsve.core._pose_error_batch import batched_ape as batched_ape
+from jsve.core._pose_error_batch import batched_rpe as batched_rpe
 from jsve.core._replay import ReplayResult as ReplayResult
 from jsve.core._replay import batch_features as batch_features
 from jsve.core._replay import replay as replay

@@ -3,7 +3,7 @@
 The one home of alignment in jsve. `ALIGNERS` is the registry of methods (`ALIGN_METHODS` its names, the
 command line's choices); a least-squares method is a solver from the weighted moments of the selected
 point pairs, so the same code serves `jsve.core._trajectory.align` (moments from the points), the objective
-(through `align`) and the fused search kernel (moments from its running sums, jsve.fitting._search). A new
+(through `align`) and the fused search kernel (moments from its running sums, jsve.fitting._kernel). A new
 least-squares method is one solver and one registry entry here.
 
 Conventions: positions are rows `(T, 3)` in metres, world frame; quaternions are wxyz (body in world, T_wb).

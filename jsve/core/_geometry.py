@@ -6,11 +6,11 @@ Every function works on the trailing axis and broadcasts over leading axes, in t
 - jax.numpy (the default): jit, vmap and grad; the double-`where` idiom keeps gradients finite at the
   identity rotation;
 - numpy (`xp=np`): host code that needs float64 without dispatching to JAX, the simulator
-  (jsve.sim._motion), whose worker processes never start a JAX backend.
+  (jsve.sim._trajectory), whose worker processes never start a JAX backend.
 
 The product and the rotation of vectors are also written on coordinate columns (`quat_mul_columns`,
 `quat_rotate_columns`: tuples of arrays, one per coordinate), the form in which the fused search kernel keeps
-its state (jsve.fitting._search); `quat_mul` and `quat_rotate` are those column formulas stacked, so every
+its state (jsve.fitting._kernel); `quat_mul` and `quat_rotate` are those column formulas stacked, so every
 form performs the same floating-point operations in the same order.
 """
 

@@ -2,8 +2,8 @@
 preintegrated IMU measurements of the interval.
 
 The one home of IMU prediction in jsve. The replay (jsve.core._replay) calls `imu_predict` on rows, the
-fused search kernel (jsve.fitting._search) calls `imu_predict_columns` on the coordinate columns it keeps
-its state in, and the simulator (jsve.sim._motion) calls `imu_predict` with `xp=numpy` in float64. The row
+fused search kernel (jsve.fitting._kernel) calls `imu_predict_columns` on the coordinate columns it keeps
+its state in, and the simulator (jsve.sim._imu) calls `imu_predict` with `xp=numpy` in float64. The row
 form is the column form stacked, so all three perform the same floating-point operations in the same order.
 """
 

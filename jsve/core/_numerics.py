@@ -1,4 +1,4 @@
-"""Safe elementary functions: finite gradients where the textbook function has none.
+"""Safe elementary functions (finite gradients where the textbook function has none) and C's rounding.
 
 The one home of jsve's safe math. Each uses the double-`where` idiom: the input of the unsafe operation is
 replaced where it would be singular, so that the branch `jnp.where` does not take never sees an infinite
@@ -8,6 +8,8 @@ They are safe for gradients, never for values: a non-finite input gives a non-fi
 an overflow or a NaN upstream reaches the statistics and fails the run (jsve.core._trajectory.RunError)
 instead of turning into a finite number, as 0 or x / inf = 0 would. Where they return NaN their own
 derivative is 0; a NaN produced upstream may still carry NaN derivatives of its own.
+
+`round_half_away` is C's round(), as ORB-SLAM3 bins keypoints with it, for numpy and JAX arrays alike.
 """
 
 from __future__ import annotations
@@ -34,3 +36,11 @@ def safe_divide(num: Array | float, den: Array | float) -> Array:
     quotient = num / jnp.where(usable, den, 1.0)
     fallback = jnp.where(jnp.isfinite(num) & (den == 0), 0.0, jnp.nan).astype(quotient.dtype)
     return jnp.where(usable, quotient, fallback)
+
+
+def round_half_away(v, xp=jnp):
+    """C's round(): halves away from zero (numpy's and JAX's rint round them to even), in v's dtype, with
+    `xp` numpy or jax.numpy. Exact: floor(|v| + 0.5) is not (0.49999997f + 0.5f == 1 in float32)."""
+    v = xp.asarray(v)
+    t = xp.trunc(v)
+    return xp.where(xp.abs(v - t) >= 0.5, t + xp.sign(v), t)

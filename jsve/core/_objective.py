@@ -211,7 +211,7 @@ def support_outcome(unsupported, failed, config: ObjectiveConfig, hard: bool):
     when not `hard`): an unsupported run counts as failed; under "exclude" it is also left out.
 
     The one home of the policy: the replay objective (`run_losses`) and the search kernel
-    (jsve.fitting._search) both call it.
+    (jsve.fitting._kernel) both call it.
     """
     if hard:
         failed = failed | unsupported

@@ -25,8 +25,8 @@ from jsve.core._batch import LogBatch, bucket_by_length, iter_chunks
 from jsve.core._objective import ObjectiveConfig
 from jsve.core._replay import batch_features
 from jsve.core._sve import FrameFeatures
+from jsve.fitting._kernel import SearchBatch, prepare
 from jsve.fitting._scorer import Meter, ReplayScorer
-from jsve.fitting._search import SearchBatch, prepare
 from jsve.io._batching import Bucket, from_runs
 from jsve.io._schema import RunLog
 from jsve.io._stream import ParquetStudy, iter_buckets, open_study
@@ -40,7 +40,7 @@ class FitData:
         batches: LogBatch per part of runs (keypoint bins dropped: the features hold what rules need),
             or empty where they were not kept (`from_parquet`): `iter_slim` and `slim` stream them again.
         features: FrameFeatures per part (empty with `batches`).
-        parts: SearchBatch per part (jsve.fitting._search.prepare): what the search, Nelder-Mead and
+        parts: SearchBatch per part (jsve.fitting._kernel.prepare): what the search, Nelder-Mead and
             every per-run score read.
         run_counts: real runs per part (parts may end in padding runs).
         meta: one row per real run, in part order (the order of every [R] array of this module).

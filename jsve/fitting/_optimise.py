@@ -21,8 +21,8 @@ import optimistix as optx
 from jsve.core._machine import SoftLogic
 from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.fitting._data import FitData, _default_weights
+from jsve.fitting._kernel import search_chunk
 from jsve.fitting._polish import polish_in_lockstep
-from jsve.fitting._search import search_chunk
 from jsve.fitting._space import ParamSpace
 
 log = logging.getLogger(__name__)

@@ -25,7 +25,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from jsve.fitting._search import SearchBatch, call_size
+from jsve.fitting._kernel import SearchBatch
+from jsve.fitting._search import call_size
 
 FRAME_CLASSES = 4
 """Length classes a subset of runs is packed into (`frame_classes`): fewer classes mean fewer shapes to

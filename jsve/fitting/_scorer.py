@@ -22,8 +22,9 @@ import jax
 import numpy as np
 
 from jsve.core._objective import ObjectiveConfig
+from jsve.fitting._kernel import SearchBatch
 from jsve.fitting._packing import subset_layout, subset_parts
-from jsve.fitting._search import RESULT_FIELDS, SearchBatch, SearchResult, search
+from jsve.fitting._search import RESULT_FIELDS, SearchResult, search
 
 
 @dataclass

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from jsve.core._numerics import round_half_away
 from jsve.image._datasets import (
     DatasetError,
     camera_dirs,
@@ -174,11 +175,6 @@ class Camera:
 # --------------------------------------------------------------------------------------------------
 
 
-def _round_half_away(values: np.ndarray) -> np.ndarray:
-    """C's round(): halves away from zero (np.rint rounds them to even)."""
-    return (np.sign(values) * np.floor(np.abs(values) + 0.5)).astype(np.int64)
-
-
 def sve_bins(grid_xy: np.ndarray, bounds: tuple[float, float, float, float]) -> np.ndarray:
     """Keypoints per SVE bin (64,), row-major (k = 8 bin_y + bin_x).
 
@@ -188,8 +184,8 @@ def sve_bins(grid_xy: np.ndarray, bounds: tuple[float, float, float, float]) -> 
     """
     min_x, max_x, min_y, max_y = bounds
     xy = np.asarray(grid_xy, np.float64).reshape(-1, 2)
-    col = _round_half_away((xy[:, 0] - min_x) * (GRID_COLS / (max_x - min_x)))
-    row = _round_half_away((xy[:, 1] - min_y) * (GRID_ROWS / (max_y - min_y)))
+    col = round_half_away((xy[:, 0] - min_x) * (GRID_COLS / (max_x - min_x)), xp=np).astype(np.int64)
+    row = round_half_away((xy[:, 1] - min_y) * (GRID_ROWS / (max_y - min_y)), xp=np).astype(np.int64)
     valid = (col >= 0) & (col < GRID_COLS) & (row >= 0) & (row < GRID_ROWS)
     bin_index = (row[valid] // (GRID_ROWS // SVE_BINS_Y)) * SVE_BINS_X + col[valid] // (
         GRID_COLS // SVE_BINS_X

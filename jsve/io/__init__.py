@@ -27,10 +27,7 @@ from jsve.io._importers import read_haggart_sve as read_haggart_sve
 from jsve.io._importers import read_seed_sve_csv as read_seed_sve_csv
 from jsve.io._importers import read_sve_output as read_sve_output
 from jsve.io._ingest import ReadResult as ReadResult
-from jsve.io._ingest import ingest as ingest
-from jsve.io._ingest import load_runs as load_runs
 from jsve.io._ingest import read_logs as read_logs
-from jsve.io._ingest import read_parquet as read_parquet
 from jsve.io._ingest import write_quarantine_report as write_quarantine_report
 from jsve.io._keypoints import KeypointLog as KeypointLog
 from jsve.io._keypoints import keypoints_path as keypoints_path
@@ -39,6 +36,9 @@ from jsve.io._keypoints import write_keypoints as write_keypoints
 from jsve.io._logs import read_log as read_log
 from jsve.io._logs import validate_run as validate_run
 from jsve.io._logs import write_log as write_log
+from jsve.io._parquet import ingest as ingest
+from jsve.io._parquet import load_runs as load_runs
+from jsve.io._parquet import read_parquet as read_parquet
 from jsve.io._rule_files import load_rules as load_rules
 from jsve.io._saved_trajectory import SavedTrajectory as SavedTrajectory
 from jsve.io._saved_trajectory import euroc_ate as euroc_ate

@@ -1,10 +1,10 @@
-"""Many tracking logs at once: find, read in parallel with quarantine, and consolidate into Parquet.
+"""Many tracking logs at once: find them and read them in parallel, with quarantine.
 
     find_logs(source)                    the sorted log files of a directory, glob or list
     read_logs(source)                    many logs, in parallel, sorted, raise or quarantine
     write_quarantine_report(result, p)   the logs set aside, as CSV
-    ingest(source, out)                  many logs -> one Parquet file;  read_parquet(out) -> RunLogs
-    load_runs(source)                    a Parquet file from `ingest`, or logs as read_logs takes them
+
+Consolidating them into one Parquet file, and reading it back, is jsve.io._parquet's.
 
 Each log is read and validated by `jsve.io._logs.read_log` (in worker processes for large batches);
 docs/log-format.md describes the batch behaviour, the quarantine report and the Parquet layout. Format
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import collections
 import glob as globlib
-import json
 import logging
 import math
 import multiprocessing
@@ -23,15 +22,12 @@ import os
 import sys
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 import pandas as pd
 import pyarrow as pa
-import pyarrow.parquet as pq
 from tqdm.auto import tqdm
 
 from jsve.io import _atomic as atomic
@@ -48,18 +44,10 @@ from jsve.io._logs import (
     read_log_version,
     run_from_table,
     unreadable,
-    with_v1_defaults,
 )
-from jsve.io._saved_trajectory import SAVED_COLUMN, in_saved_frame
+from jsve.io._saved_trajectory import in_saved_frame
 from jsve.io._schema import RunLog
-from jsve.io._stream import (
-    PARQUET_FORMAT_KEY,
-    PARQUET_FORMAT_VERSION,
-    PARQUET_RUNS_KEY,
-    check_run_rows,
-    open_study,
-)
-from jsve.io._study_table import PARQUET_SCHEMA, PARQUET_WRITE_OPTIONS, row_group, run_rows
+from jsve.io._study_table import run_rows
 from jsve.io._workers import process_pool
 
 # The log reader's logger: read_log's warnings in worker processes are collected from it (_read_chunk)
@@ -84,7 +72,6 @@ files (jsve.io._keypoints), gzipped or not, and what `jsve frontend run` writes 
 
 _SKIPPED_SHOWN = 5  # files that are not logs named in the warning of a directory search
 
-_ROW_GROUP_ROWS = 262_144  # Parquet row group target: ~70 runs of 3,600 frames, ~200 MB in memory
 _MIN_LOGS_PER_WORKER = 8  # below 16 logs in all, starting processes (~1 s) costs more than it saves
 _MAX_WORKER_WARNINGS = 20  # warnings from worker processes re-emitted per batch, then one summary line
 
@@ -216,7 +203,7 @@ def _read_one(path: str, ground_truth) -> tuple[RunLog, int] | LogFormatError:
 
 
 @dataclass(frozen=True)
-class _LogRows:
+class LogRows:
     """One valid log as `ingest` writes it: its entry in the file's run list, and its rows in the
     study layout (jsve.io._study_table.run_rows; without run_id)."""
 
@@ -228,7 +215,7 @@ class _LogRows:
         return self.entry["run_id"]
 
 
-def _read_rows_one(path: str, ground_truth) -> tuple[_LogRows, int] | LogFormatError:
+def read_rows_one(path: str, ground_truth) -> tuple[LogRows, int] | LogFormatError:
     """`_read_one` for `ingest`: (the log's rows, format version) or the error."""
     try:
         return _log_rows(path, *read_log_table(path), ground_truth)
@@ -238,8 +225,8 @@ def _read_rows_one(path: str, ground_truth) -> tuple[_LogRows, int] | LogFormatE
         return unreadable(path, e)
 
 
-def _log_rows(path: str, meta: dict, version: int, table: pa.Table, ground_truth) -> tuple[_LogRows, int]:
-    """(_LogRows, version) of a parsed log (read_log_table). A v2 log without ground truth to associate
+def _log_rows(path: str, meta: dict, version: int, table: pa.Table, ground_truth) -> tuple[LogRows, int]:
+    """(LogRows, version) of a parsed log (read_log_table). A v2 log without ground truth to associate
     goes from Arrow's parse to the layout with no pandas frame."""
     saved = TRAILERS_KEY in (table.schema.metadata or {}) and schema.KEYFRAME_COLUMNS[0] in table.column_names
     if version >= 2 and ground_truth is None and not saved:
@@ -261,11 +248,11 @@ def _log_rows(path: str, meta: dict, version: int, table: pa.Table, ground_truth
         # map_id / imu_ba2 of a v1 log are schema.v1_defaults, not recorded values.
         "log_version": version,
     }
-    return _LogRows(entry, run_rows(columns, table.num_rows)), version
+    return LogRows(entry, run_rows(columns, table.num_rows)), version
 
 
 def _iter_rows_batched(paths: list[str], *, threads: int, progress: bool, stop_on_error: bool):
-    """(path, (_LogRows, version) | LogFormatError) in path order: `_iter_read` with reader=_read_rows_one,
+    """(path, (LogRows, version) | LogFormatError) in path order: `_iter_read` with reader=read_rows_one,
     for logs without ground truth to associate, read in batches parsed as one (jsve.io._log_batches)
     on Arrow's threads in this process: nothing is pickled between processes."""
     bar = tqdm(total=len(paths), disable=not progress, file=sys.stderr, unit="log", desc="reading logs")
@@ -277,7 +264,7 @@ def _iter_rows_batched(paths: list[str], *, threads: int, progress: bool, stop_o
         bar.close()
 
 
-def _warn_v1(paths: list[str], stacklevel: int) -> None:
+def warn_v1_logs(paths: list[str], stacklevel: int) -> None:
     """One LogVersionWarning for every v1 log of a batch: how many, which defaults, the first few."""
     if not paths:
         return
@@ -303,7 +290,7 @@ class _Collect(logging.Handler):
 
 
 def _read_chunk(paths: list[str], ground_truth, stop_on_error: bool, reader=_read_one):
-    """Worker: read a chunk of logs with `reader` (_read_one or _read_rows_one); warnings are returned
+    """Worker: read a chunk of logs with `reader` (_read_one or read_rows_one); warnings are returned
     to the parent to be logged there."""
     records: list = []
     handler = _Collect(records)
@@ -340,7 +327,7 @@ def _iter_read(
     stop_on_error: bool,
     reader=_read_one,
 ):
-    """(path, reader's result: (RunLog or _LogRows, version) | LogFormatError) in the order of `paths`,
+    """(path, reader's result: (RunLog or LogRows, version) | LogFormatError) in the order of `paths`,
     read in parallel chunks."""
     workers = (os.cpu_count() or 1) if workers is None else int(workers)
     if workers < 1:
@@ -384,15 +371,15 @@ def _iter_read(
         bar.close()
 
 
-def _good_runs(
+def good_runs(
     paths, *, on_error: OnError, workers, progress, ground_truth, quarantined: list, reader=_read_one
 ) -> Iterator[tuple]:
-    """(valid run, its format version) in path order, each run a RunLog (or _LogRows with
-    reader=_read_rows_one); bad logs raise (on_error='raise') or go to `quarantined`."""
+    """(valid run, its format version) in path order, each run a RunLog (or LogRows with
+    reader=read_rows_one); bad logs raise (on_error='raise') or go to `quarantined`."""
     if on_error not in ("raise", "quarantine"):
         raise ValueError(f"on_error must be 'raise' or 'quarantine', got {on_error!r}")
     seen: dict[str, str] = {}
-    if reader is _read_rows_one and ground_truth is None:
+    if reader is read_rows_one and ground_truth is None:
         results = _iter_rows_batched(
             paths,
             threads=(os.cpu_count() or 1) if workers is None else int(workers),
@@ -459,7 +446,7 @@ def read_logs(
         LogVersionWarning: once, when v1 logs were read (how many, the defaults used, the first few
             paths), instead of one warning per log.
     """
-    return _read_logs(source, on_error, workers, progress, ground_truth, stacklevel=3)
+    return read_logs_at(source, on_error, workers, progress, ground_truth, stacklevel=3)
 
 
 def check_ground_truth(spec: GroundTruthSpec | None) -> None:
@@ -484,12 +471,14 @@ def check_ground_truth(spec: GroundTruthSpec | None) -> None:
             ) from None
 
 
-def _read_logs(source, on_error, workers, progress, ground_truth, *, stacklevel: int) -> ReadResult:
+def read_logs_at(source, on_error, workers, progress, ground_truth, *, stacklevel: int) -> ReadResult:
+    """read_logs, its warnings attributed `stacklevel` frames up (to the caller of the public function
+    that calls this one)."""
     paths = find_logs(source)
     check_ground_truth(ground_truth)
     quarantined: list[Quarantined] = []
     read = list(
-        _good_runs(
+        good_runs(
             paths,
             on_error=on_error,
             workers=workers,
@@ -499,248 +488,5 @@ def _read_logs(source, on_error, workers, progress, ground_truth, *, stacklevel:
         )
     )
     runs = [run for run, _ in read]
-    _warn_v1([run.source for run, version in read if version == 1], stacklevel)
+    warn_v1_logs([run.source for run, version in read if version == 1], stacklevel)
     return ReadResult(runs=runs, quarantined=quarantined)
-
-
-def load_runs(
-    source: str | os.PathLike | Sequence[str | os.PathLike],
-    *,
-    on_error: OnError = "raise",
-    workers: int | None = None,
-    progress: bool = True,
-    ground_truth: GroundTruthSpec | None = None,
-) -> ReadResult:
-    """The runs of a Parquet file written by `ingest`, or of logs on disk: what `jsve evaluate` and
-    `jsve fit` accept as LOGS.
-
-    Arguments:
-        source: a `.parquet` file (read with `read_parquet`), else logs as `read_logs` takes them.
-        on_error, workers, progress, ground_truth: as in `read_logs`; unused for a Parquet file, whose
-            runs were validated (and given their ground truth) when it was written.
-
-    Returns:
-        ReadResult; nothing is quarantined from a Parquet file.
-    """
-    if isinstance(source, (str, os.PathLike)) and Path(source).name.endswith(".parquet"):
-        return ReadResult(runs=_read_parquet(source, stacklevel=3))
-    return _read_logs(source, on_error, workers, progress, ground_truth, stacklevel=3)
-
-
-# --------------------------------------------------------------------------------------------------
-# Parquet
-
-
-@dataclass(frozen=True)
-class IngestSummary:
-    """What `ingest` did.
-
-    Attributes:
-        out_path: the Parquet file written.
-        n_runs: runs written.
-        n_frames: frames (rows) written.
-        quarantined: logs set aside (on_error='quarantine').
-        quarantine_report: the CSV report written, or None when nothing was quarantined.
-    """
-
-    out_path: Path
-    n_runs: int
-    n_frames: int
-    quarantined: list[Quarantined]
-    quarantine_report: Path | None
-
-    def line(self) -> str:
-        """A one-line summary for people."""
-        text = (
-            f"ingested {self.n_runs} runs, {self.n_frames} frames -> {self.out_path}; "
-            f"quarantined {len(self.quarantined)}"
-        )
-        if self.quarantine_report is not None:
-            text += f" (report: {self.quarantine_report})"
-        return text
-
-
-class _BackgroundWrites:
-    """Row groups written on a thread of their own, one at a time, while the next logs are read (Arrow
-    encodes without the GIL); an error of a write is raised by the next `write` or `wait`."""
-
-    def __init__(self, writer: pq.ParquetWriter):
-        self._writer = writer
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="jsve-parquet")
-        self._pending: Future | None = None
-
-    def write(self, table: pa.Table) -> None:
-        self.wait()  # at most one row group in flight: memory stays at two row groups
-        self._pending = self._pool.submit(self._writer.write_table, table)
-
-    def wait(self) -> None:
-        if self._pending is not None:
-            pending, self._pending = self._pending, None
-            pending.result()
-
-    def __enter__(self) -> _BackgroundWrites:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        try:
-            if exc[0] is None:
-                self.wait()
-        finally:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-
-
-def default_quarantine_report_path(out_path: str | os.PathLike) -> Path:
-    """`OUT.quarantine.csv` beside `OUT.parquet`."""
-    return Path(out_path).with_suffix(".quarantine.csv")
-
-
-def ingest(
-    source: str | os.PathLike | Sequence[str | os.PathLike],
-    out_path: str | os.PathLike,
-    *,
-    on_error: OnError = "raise",
-    workers: int | None = None,
-    progress: bool = True,
-    ground_truth: GroundTruthSpec | None = None,
-    quarantine_report: str | os.PathLike | None = None,
-) -> IngestSummary:
-    """Validate many logs (optionally associating ground truth) and consolidate them into one Parquet file.
-
-    The file (layout PARQUET_SCHEMA) holds one row per frame: `run_id` (dictionary-encoded string),
-    `frame` (int32, 0-based), then the v2 columns (v1 logs with their defaults); runs are contiguous,
-    in sorted path order. The schema's key-value metadata holds b'jsve.runs': a JSON list of {run_id,
-    source, meta, n_frames, has_ground_truth, has_world_frame, log_version}, one per run in file order, and
-    b'jsve.format' = b'2'. Logs are streamed (row groups of ~260k frames), so memory stays flat. The
-    file is written as `<out>.partial` and renamed when complete.
-
-    Arguments:
-        source: logs (see `find_logs`).
-        out_path: the Parquet file.
-        on_error, workers, progress, ground_truth: as in `read_logs`.
-        quarantine_report: CSV path for the report of quarantined logs; default `OUT.quarantine.csv`
-            beside the output. Written only when logs were quarantined (a stale report at the default
-            path is removed).
-
-    Returns:
-        IngestSummary.
-
-    Raises:
-        LogFormatError: the first bad log, with on_error='raise' (nothing is written); a ground-truth
-            file that cannot be read, whatever on_error (check_ground_truth; nothing is written).
-        FileNotFoundError: no logs in `source`.
-        OutputError: the Parquet file or the report cannot be written (nothing is left of them).
-
-    Warns:
-        LogVersionWarning: once, when v1 logs were read (see `read_logs`).
-    """
-    paths = find_logs(source)
-    if not paths:
-        raise FileNotFoundError(
-            f"no tracking logs (*.csv, *.csv.gz, with or without .partial) in {os.fspath(source)!r}"
-        )
-    check_ground_truth(ground_truth)
-    out = Path(out_path)
-    quarantined: list[Quarantined] = []
-    v1: list[str] = []
-    entries = []
-    n_frames = 0
-    with (
-        atomic.atomic_path(out) as tmp,
-        pq.ParquetWriter(tmp, PARQUET_SCHEMA, **PARQUET_WRITE_OPTIONS) as writer,
-        _BackgroundWrites(writer) as background,
-    ):
-        batch: list[_LogRows] = []
-        batch_rows = 0
-        runs = _good_runs(
-            paths,
-            on_error=on_error,
-            workers=workers,
-            progress=progress,
-            ground_truth=ground_truth,
-            quarantined=quarantined,
-            reader=_read_rows_one,
-        )
-        for run, version in runs:
-            if version == 1:
-                v1.append(run.entry["source"])
-            entries.append(run.entry)
-            n_frames += run.entry["n_frames"]
-            batch.append(run)
-            batch_rows += run.entry["n_frames"]
-            if batch_rows >= _ROW_GROUP_ROWS:
-                background.write(row_group([r.run_id for r in batch], [r.rows for r in batch]))
-                batch, batch_rows = [], 0
-        if batch:
-            background.write(row_group([r.run_id for r in batch], [r.rows for r in batch]))
-        background.wait()
-        writer.add_key_value_metadata(
-            {
-                PARQUET_RUNS_KEY: json.dumps(entries, allow_nan=False),
-                PARQUET_FORMAT_KEY: str(PARQUET_FORMAT_VERSION),
-            }
-        )
-
-    _warn_v1(v1, 2)
-    default_report = default_quarantine_report_path(out)
-    report = Path(quarantine_report) if quarantine_report is not None else default_report
-    if quarantined:
-        write_quarantine_report(quarantined, report)
-        logger.warning("%d logs quarantined; see %s", len(quarantined), report)
-    else:
-        if quarantine_report is None and default_report.exists():
-            logger.info("removing the stale quarantine report %s", default_report)
-            default_report.unlink()
-        report = None
-    return IngestSummary(out, len(entries), n_frames, quarantined, report)
-
-
-def read_parquet(path: str | os.PathLike) -> list[RunLog]:
-    """Restore the runs of a Parquet file written by `ingest`, exactly (ints exact, floats bitwise).
-
-    A file ingested before format v2 (`jsve.format` "1": no map_id / imu_ba2 columns) is read with
-    `schema.v1_defaults` for every run and one `LogVersionWarning` naming the file.
-
-    Returns:
-        RunLogs in file order, with the metadata and source recorded at ingest; runs ingested without
-        ground truth have no gt_* columns.
-
-    Raises:
-        LogFormatError: not a jsve Parquet file, a format version this reader does not know, or rows
-            that disagree with its run list.
-    """
-    return _read_parquet(path, stacklevel=3)
-
-
-def _read_parquet(path: str | os.PathLike, *, stacklevel: int) -> list[RunLog]:
-    study = open_study(path)
-    source, version, entries = study.path, study.version, study.entries
-    table = pq.ParquetFile(source).read()
-    check_run_rows(study, table, first_run=0, stop_run=study.n_runs)
-    offsets = np.concatenate([[0], np.cumsum(study.lengths)])
-    required = schema.required_columns(version)
-    world = [c for c in schema.WORLD_COLUMNS if c in table.column_names]
-    columns = {c: table.column(c).to_numpy() for c in required + schema.GT_COLUMNS + tuple(world)}
-    saved = (
-        table.column(SAVED_COLUMN).to_numpy(zero_copy_only=False).astype(np.float64)
-        if SAVED_COLUMN in table.column_names
-        else None
-    )
-    runs = []
-    for e, start, stop in zip(entries, offsets[:-1], offsets[1:], strict=True):
-        has_world = bool(e.get("has_world_frame", False))
-        names = schema.column_order(version, e["has_ground_truth"], has_world)
-        frames = pd.DataFrame({c: columns[c][start:stop].copy() for c in names}, columns=list(names))
-        if version == 1:
-            frames = with_v1_defaults(frames)
-        if saved is not None and not np.isnan(saved[start]):  # poses of the saved trajectory's frame
-            frames[SAVED_COLUMN] = saved[start:stop].astype(np.int64)
-        runs.append(RunLog(meta=e["meta"], frames=frames, source=e["source"]))
-    if version == 1:
-        warnings.warn(
-            f"{source}: jsve Parquet file of format 1 (ingested before format v2): its {len(runs)} runs "
-            f"read with the v1 defaults {schema.V1_DEFAULTS_TEXT} (docs/log-format.md, 'Reading v1 "
-            "logs: defaults'); ingest the logs again to write format 2",
-            LogVersionWarning,
-            stacklevel=stacklevel,
-        )
-    return runs

@@ -252,7 +252,7 @@ def euroc_ate(reference, estimate, align: str = "se3") -> tuple[float, int]:
     as `jsve ape REF EST --format euroc --align ALIGN` computes it (evo's association, float64)."""
     import jax
 
-    from jsve.core._pose_error import batched_ape
+    from jsve.core._pose_error_batch import batched_ape
     from jsve.io._trajectories import read_pose_pairs, stack_pose_pairs
 
     pair = read_pose_pairs(reference, [estimate], "euroc")

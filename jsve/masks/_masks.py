@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jsve.core._numerics import round_half_away
 from jsve.io import _schema as schema
 from jsve.io._keypoints import KeypointLog, check_matches_log, frame_of_keypoints
 from jsve.io._logs import LogFormatError
@@ -469,12 +470,6 @@ def dynamic_keypoints(
     return hit & valid.astype(bool)
 
 
-def _round_half_away(v: Array) -> Array:
-    """C's round(): halves away from zero, exact (floor(|v| + 0.5) is not: 0.49999997f + 0.5f == 1)."""
-    t = jnp.trunc(v)
-    return jnp.where(jnp.abs(v - t) >= 0.5, t + jnp.sign(v), t)
-
-
 def sve_bin_index(grid_xy: Float[Array, "*batch 2"], bounds: Float[ArrayLike, " 4"]) -> Int[Array, "*batch"]:
     """The SVE bin (0..63, row-major) of every keypoint, or -1 for a keypoint outside ORB-SLAM3's grid.
 
@@ -501,8 +496,8 @@ def sve_bin_index(grid_xy: Float[Array, "*batch 2"], bounds: Float[ArrayLike, " 
     y = grid_xy[..., 1].astype(f32)
     inv_w = f32(GRID_COLS) / (b[1] - b[0])  # mfGridElementWidthInv
     inv_h = f32(GRID_ROWS) / (b[3] - b[2])
-    col = _round_half_away((x - b[0]) * inv_w)
-    row = _round_half_away((y - b[2]) * inv_h)
+    col = round_half_away((x - b[0]) * inv_w)
+    row = round_half_away((y - b[2]) * inv_h)
     inside = (col >= 0) & (col < GRID_COLS) & (row >= 0) & (row < GRID_ROWS)
     col = jnp.where(inside, col, 0).astype(jnp.int32)
     row = jnp.where(inside, row, 0).astype(jnp.int32)

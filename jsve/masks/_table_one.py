@@ -28,7 +28,7 @@ import jax
 import numpy as np
 import pandas as pd
 
-from jsve.core._pose_error import batched_pose_error
+from jsve.core._pose_error_batch import batched_pose_error
 from jsve.core._trajectory import AlignMethod, Transform
 from jsve.evaluation._aggregate import per_run_table
 from jsve.io import _atomic as atomic

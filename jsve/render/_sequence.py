@@ -58,7 +58,7 @@ from jsve.render._scene import (
     with_objects,
 )
 from jsve.sim import ImuNoise, load_euroc_trajectory, read_imu_stream, synthesize_imu
-from jsve.sim._motion import EUROC_CAM0_T_BS, GRAVITY, Trajectory, quat_to_matrix
+from jsve.sim._trajectory import EUROC_CAM0_T_BS, GRAVITY, Trajectory, quat_to_matrix
 
 logger = logging.getLogger(__name__)
 

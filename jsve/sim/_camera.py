@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from jsve.core._numerics import round_half_away
+
 GRID_COLS, GRID_ROWS = 64, 48
 ORB_BORDER = 16
 """Keypoints lie at least EDGE_THRESHOLD - 3 = 16 px from the image border (ORBextractor)."""
@@ -146,10 +148,6 @@ def _per_bin_fraction(pixel_bin: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(count > 0, hit / np.maximum(count, 1), 0.0)
 
 
-def _round_half_away(v: np.ndarray) -> np.ndarray:
-    return (np.sign(v) * np.floor(np.abs(v) + 0.5)).astype(np.int64)
-
-
 @functools.lru_cache(maxsize=4)
 def bin_geometry(camera: CameraModel = EUROC_CAM0, stride: int = 2) -> BinGeometry:
     """The SVE bin geometry of a camera, as ORB-SLAM3 bins keypoints (Frame::ComputeImageBounds and
@@ -161,8 +159,8 @@ def bin_geometry(camera: CameraModel = EUROC_CAM0, stride: int = 2) -> BinGeomet
     ys, xs = np.mgrid[ORB_BORDER : h - ORB_BORDER : stride, ORB_BORDER : w - ORB_BORDER : stride]
     xy = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(float) + 0.5 * (stride - 1)
     und = camera.undistort(xy)
-    col = _round_half_away((und[:, 0] - min_x) * GRID_COLS / (max_x - min_x))
-    row = _round_half_away((und[:, 1] - min_y) * GRID_ROWS / (max_y - min_y))
+    col = round_half_away((und[:, 0] - min_x) * GRID_COLS / (max_x - min_x), xp=np).astype(np.int64)
+    row = round_half_away((und[:, 1] - min_y) * GRID_ROWS / (max_y - min_y), xp=np).astype(np.int64)
     inside = (col >= 0) & (col < GRID_COLS) & (row >= 0) & (row < GRID_ROWS)
     pixel_bin = np.where(inside, (row // 6) * 8 + col // 8, -1)
     share = np.bincount(pixel_bin[inside], minlength=64) / len(xy)

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from jsve.sim._motion import FlightProfile, ImuNoise
+from jsve.sim._imu import ImuNoise
 from jsve.sim._scene import SceneProfile
+from jsve.sim._trajectory import FlightProfile
 from jsve.sim._vision import N_FEATURES, VisionParams
 
 FRONTEND = "jsve simulator 2"

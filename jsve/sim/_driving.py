@@ -39,7 +39,7 @@ from jsve.io import _schema as schema
 from jsve.io._keypoints import KeypointLog
 from jsve.io._schema import RunLog
 from jsve.masks._masks import apply_masks, sve_bin_index
-from jsve.sim._motion import GRAVITY, matrix_to_quat, quat_conj, quat_mul, quat_rotate
+from jsve.sim._trajectory import GRAVITY, matrix_to_quat, quat_conj, quat_mul, quat_rotate
 
 CAMERA_FROM_BODY = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 """R_cb: body x (forward) -> camera z, body y (left) -> camera -x, body z (up) -> camera -y."""

@@ -19,21 +19,17 @@ import numpy as np
 
 from jsve.io._resume import file_digest, fingerprint
 from jsve.sim._config import FRONTEND, SimConfig
-from jsve.sim._motion import (
+from jsve.sim._imu import frame_bias_estimate, frame_substeps, preintegrate, read_imu_stream, synthesize_imu
+from jsve.sim._scene import make_scene
+from jsve.sim._trajectory import (
     EUROC_CAM0_T_BS,
     EUROC_SEQUENCES,
     Trajectory,
     euroc_file_stem,
-    frame_bias_estimate,
-    frame_substeps,
     load_euroc_trajectory,
-    preintegrate,
     procedural_trajectory,
     quat_to_matrix,
-    read_imu_stream,
-    synthesize_imu,
 )
-from jsve.sim._scene import make_scene
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from jsve.sim._camera import EUROC_CAM0, CameraModel
-from jsve.sim._motion import gauss_markov
+from jsve.sim._imu import gauss_markov
 
 RENDERED_TEXTURE_SCALE = 0.7
 """SceneProfile.texture_scale of `jsve render`'s images. Their texture is a mosaic of the V1_01 photographs

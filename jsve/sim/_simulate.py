@@ -4,7 +4,8 @@ For any set of sequences x disturbance settings x runs, deterministically under 
 
     recording   per sequence: a smooth true trajectory (EuRoC ground truth, or a procedural flight),
                 the IMU stream it implies (ADIS16448 noise model, or the real EuRoC stream), the
-                per-frame preintegration and the scene-texture process        (jsve.sim._motion)
+                per-frame preintegration and the scene-texture process
+                                              (jsve.sim._trajectory, jsve.sim._imu, jsve.sim._scene)
     setting     per (sequence, disturbance, level): ORB extraction counts and SVE bins on the
                 degraded images, matching and localisation quality             (jsve.sim._vision)
     run         per run: the first map (monocular initialisation: 100 level-0 matches and parallax),
@@ -41,12 +42,7 @@ from jsve.io import _schema as schema
 from jsve.io._schema import RunLog
 from jsve.sim._camera import EUROC_CAM0, bin_geometry
 from jsve.sim._config import FRONTEND, SimConfig, TrackingParams
-from jsve.sim._motion import (
-    GRAVITY,
-    gauss_markov,
-    quat_exp,
-    quat_mul,
-)
+from jsve.sim._imu import gauss_markov
 from jsve.sim._recording import (
     Recording,
     SequenceSpec,
@@ -57,6 +53,7 @@ from jsve.sim._recording import (
     procedural_sequences,
     seed_key,
 )
+from jsve.sim._trajectory import GRAVITY, quat_exp, quat_mul
 from jsve.sim._vision import Counts, Degradation, degradation, extract
 
 GRIDS = {name: (0, *levels) if name == "occlusion" else levels for name, levels in LEVELS.items()}

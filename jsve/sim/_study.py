@@ -24,12 +24,9 @@ from jsve.io import _scheduler
 from jsve.io import _schema as schema
 from jsve.io._resume import differences, stop_if_stale
 from jsve.sim._config import SimConfig
-from jsve.sim._motion import (
-    FlightProfile,
-    euroc_file_stem,
-)
 from jsve.sim._recording import SequenceSpec, generator_key, make_recording
 from jsve.sim._simulate import Setting, _as_specs, settings, simulate_setting
+from jsve.sim._trajectory import FlightProfile, euroc_file_stem
 
 logger = logging.getLogger(__name__)
 
@@ -277,7 +274,7 @@ def write_study(
         result.write_s += write_s
         result.paths.extend(out_dir / p for p in paths)
     if parquet:
-        from jsve.io._ingest import ingest
+        from jsve.io._parquet import ingest
 
         result.parquet = out_dir / "study.parquet"
         ingest(str(out_dir), result.parquet, workers=workers, progress=progress)

@@ -302,8 +302,8 @@ class SimulatedFrontend:
 
     def _simulated(self, request: Request):
         from jsve.sim._config import SimConfig
-        from jsve.sim._motion import FlightProfile
         from jsve.sim._simulate import simulate_run
+        from jsve.sim._trajectory import FlightProfile
 
         sequence, disturbance, level = parse_setting(request.instance.dataset)
         config = (
