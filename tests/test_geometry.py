@@ -148,7 +148,7 @@ def test_numpy_form_equals_the_jax_form(data, fn, names):
 
 @pytest.mark.parametrize("name", SIMULATOR_NAMES)
 def test_the_simulators_rotations_are_the_numpy_form(data, name):
-    """jsve.sim._motion's rotation helpers are this module's with xp=numpy: the same numbers, exactly."""
+    """jsve.sim._trajectory's rotation helpers are this module's with xp=numpy: the same numbers, exactly."""
     fn, names = next(f for f in ARRAY_FUNCTIONS if f[0].__name__ == name)
     args = _inputs(data, names)
     np.testing.assert_array_equal(getattr(st, name)(*args), fn(*args, xp=np))

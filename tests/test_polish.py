@@ -19,8 +19,8 @@ from jsve.fitting._polish import polish_in_lockstep, polish_runs
 from jsve.fitting._search import search
 from jsve.fitting._space import ParamSpace, inlier_space
 from jsve.sim import _config as sim_config
-from jsve.sim import _motion as sm
 from jsve.sim import _simulate as sim
+from jsve.sim import _trajectory as st
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def data() -> FitData:
     runs = []
     for k, n_frames in enumerate((150, 320)):
         runs += ka.make_study("occlusion", range(10 * k, 10 * k + 6), n_frames=n_frames)
-    config = sim_config.SimConfig(flight=sm.FlightProfile(duration_s=(30.0, 30.0)))
+    config = sim_config.SimConfig(flight=st.FlightProfile(duration_s=(30.0, 30.0)))
     runs += [sim.simulate_run(f"proc_0{i % 3}", "blur", 40, run=i, seed=3, config=config) for i in range(6)]
     data = FitData.from_runs(runs)
     assert len({p.n_frames for p in data.parts}) == 3
