@@ -16,6 +16,17 @@ from pathlib import Path
 import pandas as pd
 from scipy import stats
 
+FAILURES_APART = (
+    "rule_only_lost",
+    "baseline_only_lost",
+    "lost_p",
+    "tracked_pairs",
+    "tracked_mean_diff_m",
+    "tracked_bca_low_m",
+    "tracked_bca_high_m",
+)
+"""check.csv's columns that test the failures apart and score the pairs both rules tracked."""
+
 
 def finished(out: Path) -> list[Path]:
     """The folders under OUT holding a finished tuning."""
@@ -81,6 +92,7 @@ def main(argv=None) -> int:
     with pd.option_context("display.width", 220, "display.max_columns", 30):
         keep = ["tuning", "scope", "rule", "baseline", "pairs", "mean_diff_m", "bca_low_m", "bca_high_m"]
         keep += ["t_low_m", "t_high_m", "wilcoxon_p", "better", "worse", "rule_failed", "baseline_failed"]
+        keep += [c for c in FAILURES_APART if c in check]
         print(check[keep].to_string(index=False, float_format=lambda x: f"{x:.4g}"))
         print()
         print(agreement.to_string(index=False, float_format=lambda x: f"{x:.4g}"))

@@ -110,12 +110,12 @@ def test_the_failure_test_is_the_exact_mcnemar_test_worked_by_hand():
     # pairs (both failed, neither failed) do not enter it
     a = np.array([True] * 6 + [True, True] + [False] * 4)
     b = np.array([False] * 6 + [True, True] + [False] * 4)
-    assert failure_test(a, b) == {"rule_only_failed": 6, "baseline_only_failed": 0, "failure_p": 0.03125}
+    assert failure_test(a, b) == {"rule_only_lost": 6, "baseline_only_lost": 0, "lost_p": 0.03125}
     # 3 against 1: P(X <= 1) + P(X >= 3) for X ~ B(4, 1/2) = (1 + 4 + 4 + 1) / 16 = 0.625
     out = failure_test(np.array([1, 1, 1, 0, 0], bool), np.array([0, 0, 0, 1, 0], bool))
-    assert (out["rule_only_failed"], out["baseline_only_failed"]) == (3, 1)
-    assert out["failure_p"] == pytest.approx(0.625)
-    assert failure_test(a, a)["failure_p"] == 1.0  # no discordant pair: no evidence either way
+    assert (out["rule_only_lost"], out["baseline_only_lost"]) == (3, 1)
+    assert out["lost_p"] == pytest.approx(0.625)
+    assert failure_test(a, a)["lost_p"] == 1.0  # no discordant pair: no evidence either way
 
 
 def test_the_tracked_difference_leaves_out_every_pair_where_either_rule_failed():
@@ -131,8 +131,24 @@ def test_the_tracked_difference_leaves_out_every_pair_where_either_rule_failed()
     assert out["tracked_pairs"] == 17 == len(d)
     assert out["tracked_mean_diff_m"] == pytest.approx(d.mean()) and out["tracked_mean_diff_m"] < 0
     assert (out["tracked_bca_low_m"], out["tracked_bca_high_m"]) == pytest.approx((boot.low, boot.high))
-    assert (out["rule_only_failed"], out["baseline_only_failed"]) == (1, 1)
+    assert (out["rule_only_lost"], out["baseline_only_lost"]) == (1, 1)
     assert out["mean_diff_m"] == pytest.approx((pair["rule"] - pair["base"]).mean())  # all pairs, failures in
+
+
+def test_a_diverged_run_is_lost_like_a_failed_one_but_counts_as_tracked_in_rule_failed():
+    rng = np.random.default_rng(6)
+    b = rng.uniform(0.02, 0.1, 12)
+    a = b + rng.normal(-0.005, 0.002, 12)
+    rows = _rows({"rule": a, "base": b})
+    rows["ate_m"] = rows["loss_m"]
+    diverged = (rows.candidate == "base") & (rows.seed == 2) & (rows.dataset == "a")
+    rows.loc[diverged, ["ate_m", "loss_m"]] = [1.67, 1.0]  # tracked, its ATE above the 1 m cap
+    out = paired_difference(rows, "rule", "base", n_resamples=999)
+    assert (out["rule_failed"], out["baseline_failed"]) == (0, 0)  # it did not fail ...
+    assert (out["rule_only_lost"], out["baseline_only_lost"]) == (0, 1)  # ... but it lost track
+    kept = ~((np.arange(12) // 2 == 2) & (np.arange(12) % 2 == 0))  # instance 4: dataset a, seed 2
+    assert out["tracked_pairs"] == 11
+    assert out["tracked_mean_diff_m"] == pytest.approx((a - b)[kept].mean())
 
 
 def test_identical_arms_give_a_zero_width_interval_not_nan():

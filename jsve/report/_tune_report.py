@@ -81,18 +81,19 @@ def verdict(row) -> str:
 
 
 def apart(row: dict) -> str:
-    """The check's two questions apart, in words: failures (exact McNemar on the pairs where one rule
-    alone failed) and accuracy on the pairs both tracked; empty for a check.csv without them."""
-    if "failure_p" not in row or not np.isfinite(row["failure_p"]):
+    """The check's two questions apart, in words: lost runs (failed or diverged; exact McNemar on the
+    pairs where one rule alone lost track) and accuracy on the pairs neither lost; empty for a check.csv
+    without them."""
+    if "lost_p" not in row or not np.isfinite(row["lost_p"]):
         return ""
     interval = cm_ci(
         row["tracked_mean_diff_m"], row["tracked_bca_low_m"], row["tracked_bca_high_m"], sign=True
     )
     tracked = f"{interval} cm" if row["tracked_pairs"] else "no pair"
     return (
-        f"Apart: pairs where only the rule failed {row['rule_only_failed']}, only the baseline "
-        f"{row['baseline_only_failed']} (exact McNemar p = {number(row['failure_p'], 3)}); on the "
-        f"{row['tracked_pairs']} pairs both tracked, {tracked} (95 % BCa)."
+        f"Apart: pairs where only the rule lost track (failed or diverged) {row['rule_only_lost']}, "
+        f"only the baseline {row['baseline_only_lost']} (exact McNemar p = {number(row['lost_p'], 3)}); "
+        f"on the {row['tracked_pairs']} pairs neither lost, {tracked} (95 % BCa)."
     )
 
 
@@ -192,17 +193,17 @@ def check_section(data: dict, fig_dir: Path) -> Section:
             ],
             **(
                 {
-                    "failed alone (rule / baseline), p": [
-                        f"{r.rule_only_failed} / {r.baseline_only_failed}, {number(r.failure_p, 3)}"
+                    "lost track alone (rule / baseline), p": [
+                        f"{r.rule_only_lost} / {r.baseline_only_lost}, {number(r.lost_p, 3)}"
                         for r in check.itertuples()
                     ],
-                    "both tracked: pairs, cm (BCa)": [
+                    "neither lost: pairs, cm (BCa)": [
                         f"{r.tracked_pairs}, "
                         + cm_ci(r.tracked_mean_diff_m, r.tracked_bca_low_m, r.tracked_bca_high_m, sign=True)
                         for r in check.itertuples()
                     ],
                 }
-                if "failure_p" in check
+                if "lost_p" in check
                 else {}
             ),
             "verdict": [verdict(r) for r in check.to_dict("records")],
@@ -213,8 +214,9 @@ def check_section(data: dict, fig_dir: Path) -> Section:
         "held-out datasets with fresh seeds, paired by (dataset, seed), on the bounded loss (difference "
         "rule - baseline; "
         "negative: the tuned rule is better). A failed run costs the penalty, so a few failures can "
-        "carry the mean: the failures are also tested apart (pairs where one rule alone failed, and the "
-        "exact McNemar p over them), and the difference is also given over the pairs both rules tracked.",
+        "carry the mean: lost runs (failed, or diverged past the loss's cap) are also tested apart (pairs "
+        "where one rule alone lost track, and the exact McNemar p over them), and the difference is also "
+        "given over the pairs neither rule lost.",
         Table(table),
     ]
     if len(check):

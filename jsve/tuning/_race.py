@@ -6,8 +6,9 @@
     eliminate          one racing step: who is significantly worse than the best, Holm over the rest
     better_than        which challengers beat the incumbent, Holm over the challengers
     mean_intervals     the mean of paired differences with its 95 % t and BCa intervals, Wilcoxon p
-    failure_test       paired failures: the discordant pairs and the exact McNemar p
-    paired_difference  a - b on the bounded loss, its failures and its tracked pairs apart (the check)
+    lost_runs          which runs lost track: failed, or diverged past the loss's cap
+    failure_test       paired losses of track: the discordant pairs and the exact McNemar p
+    paired_difference  a - b on the bounded loss, its lost runs and its tracked pairs apart (the check)
 
 The tests are scipy.stats.wilcoxon (signed ranks, zero differences dropped; every difference zero
 gives p = 1), scipy.stats.ttest_1samp and scipy.stats.bootstrap for the intervals, and scipy.stats.
@@ -164,21 +165,33 @@ def mean_intervals(d: np.ndarray, *, n_resamples: int = 9999) -> dict:
     }
 
 
-def failure_test(failed_a: np.ndarray, failed_b: np.ndarray) -> dict:
-    """Paired failures of two rules ([n] bool, one per pair): the pairs where only a failed and only b
-    failed, and the exact McNemar p (two-sided binomial test of the discordant pairs, scipy.stats.
-    binomtest; 1 with none)."""
-    only_a = int(np.sum(failed_a & ~failed_b))
-    only_b = int(np.sum(~failed_a & failed_b))
+def lost_runs(rows: pd.DataFrame, name: str, index: pd.Index) -> np.ndarray:
+    """[n] bool: whether candidate `name`'s run on each (dataset, seed) of `index` was lost: it failed,
+    or it tracked with an ATE above what its loss was capped at (a diverged run, ate_m > loss_m, where
+    rows carry ate_m). False where it has no run."""
+    own = rows[rows.candidate == name].set_index(list(KEY)).reindex(index)
+    lost = own["failed"].fillna(False).to_numpy(bool)
+    if "ate_m" in own:
+        lost = lost | (own["ate_m"] > own["loss_m"]).fillna(False).to_numpy(bool)
+    return lost
+
+
+def failure_test(lost_a: np.ndarray, lost_b: np.ndarray) -> dict:
+    """Paired losses of track of two rules ([n] bool, one per pair, lost_runs): the pairs where only a
+    and only b lost the run, and the exact McNemar p (two-sided binomial test of the discordant pairs,
+    scipy.stats.binomtest; 1 with none)."""
+    only_a = int(np.sum(lost_a & ~lost_b))
+    only_b = int(np.sum(~lost_a & lost_b))
     p = float(stats.binomtest(only_a, only_a + only_b).pvalue) if only_a + only_b else 1.0
-    return {"rule_only_failed": only_a, "baseline_only_failed": only_b, "failure_p": p}
+    return {"rule_only_lost": only_a, "baseline_only_lost": only_b, "lost_p": p}
 
 
 def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 9999) -> dict:
     """a - b on the bounded loss over the instances both ran (mean_intervals: mean, t and BCa 95 %
     intervals, Wilcoxon p), its median, how often a did better, each side's failed runs, and the two
-    questions a heavy-tailed loss mixes: does a fail less than b (failure_test, exact McNemar) and, on
-    the pairs both tracked, is it more accurate (tracked_*: the same intervals over those pairs only)."""
+    questions a heavy-tailed loss mixes: does a lose track less often than b (failed or diverged runs,
+    lost_runs; failure_test, exact McNemar) and, on the pairs neither lost, is it more accurate
+    (tracked_*: the same intervals over those pairs only)."""
     sub = rows[rows.candidate.isin([a, b])]
     pair = paired_losses(rows, a, b)
     d = (pair[a] - pair[b]).to_numpy()
@@ -187,7 +200,8 @@ def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 
     failed_a, failed_b = (
         failed[n].fillna(False).to_numpy(bool) if n in failed else np.zeros(len(d), bool) for n in (a, b)
     )
-    tracked = ~failed_a & ~failed_b
+    lost_a, lost_b = lost_runs(sub, a, pair.index), lost_runs(sub, b, pair.index)
+    tracked = ~lost_a & ~lost_b
     both = mean_intervals(d[tracked], n_resamples=n_resamples)
     sd = float(d.std(ddof=1)) if len(d) >= 2 else np.nan
     return {
@@ -204,7 +218,7 @@ def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 
         "baseline_mean_m": float(pair[b].mean()) if len(d) else np.nan,
         "sd_diff_m": sd,
         "pairs_for_resolution": pairs_for_half_width(sd) if len(d) >= 2 else None,
-        **failure_test(failed_a, failed_b),
+        **failure_test(lost_a, lost_b),
         "tracked_pairs": int(tracked.sum()),
         **{f"tracked_{k}": both[k] for k in ("mean_diff_m", "bca_low_m", "bca_high_m", "wilcoxon_p")},
     }
@@ -218,6 +232,7 @@ __all__ = [
     "eliminate",
     "holm",
     "mean_intervals",
+    "lost_runs",
     "failure_test",
     "paired_difference",
     "paired_losses",
