@@ -11,6 +11,7 @@ from scipy import stats
 
 from jsve.tuning._race import (
     better_than,
+    check_verdict,
     eliminate,
     failure_test,
     holm,
@@ -149,6 +150,22 @@ def test_a_diverged_run_is_lost_like_a_failed_one_but_counts_as_tracked_in_rule_
     kept = ~((np.arange(12) // 2 == 2) & (np.arange(12) % 2 == 0))  # instance 4: dataset a, seed 2
     assert out["tracked_pairs"] == 11
     assert out["tracked_mean_diff_m"] == pytest.approx((a - b)[kept].mean())
+
+
+@pytest.mark.parametrize(
+    ("bca", "t", "word"),
+    [
+        ((-0.13, -0.01), (-0.08, -0.02), "better"),
+        ((0.01, 0.2), (0.005, 0.1), "worse"),
+        ((-0.13, -0.001), (-0.08, 0.024), "unsettled (BCa and t disagree)"),  # one outlier's bootstrap
+        ((-0.01, 0.02), (-0.01, 0.02), "no clear difference"),
+        ((0.001, 0.2), (np.nan, np.nan), "worse"),  # no t interval: the BCa decides alone
+        ((np.nan, np.nan), (np.nan, np.nan), "undetermined"),
+    ],
+)
+def test_the_checks_word_needs_both_intervals_on_one_side(bca, t, word):
+    row = {"bca_low_m": bca[0], "bca_high_m": bca[1], "t_low_m": t[0], "t_high_m": t[1]}
+    assert check_verdict(row) == word
 
 
 def test_identical_arms_give_a_zero_width_interval_not_nan():

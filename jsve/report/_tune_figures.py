@@ -14,12 +14,16 @@ CM = 100.0
 
 
 def figure_check(check: pd.DataFrame, path: Path) -> Path:
-    """Per baseline and scope: the tuned rule's mean paired difference (cm) with its 95 % BCa interval."""
+    """Per baseline and scope: the tuned rule's mean paired difference (cm) with its 95 % BCa interval,
+    green or red where check_verdict says better or worse."""
+    from jsve.tuning._race import check_verdict
+
     rows = check.reset_index(drop=True)
     fig, ax = plt.subplots(figsize=(7.5, 0.45 * len(rows) + 1.4))
     y = np.arange(len(rows))[::-1]
     for yi, r in zip(y, rows.itertuples(), strict=True):
-        colour = "#2ca02c" if r.bca_high_m < 0 else "#d62728" if r.bca_low_m > 0 else "#444444"
+        word = check_verdict(r._asdict())
+        colour = {"better": "#2ca02c", "worse": "#d62728"}.get(word, "#444444")
         ax.errorbar(
             r.mean_diff_m * CM,
             yi,

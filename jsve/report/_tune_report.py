@@ -69,17 +69,6 @@ def _csv(path: Path) -> pd.DataFrame:
         return pd.DataFrame()
 
 
-def verdict(row) -> str:
-    """'better' / 'worse' when the BCa interval of rule - baseline excludes 0, else 'no clear difference'."""
-    if not np.isfinite(row["bca_low_m"]):
-        return "undetermined"
-    if row["bca_high_m"] < 0:
-        return "better"
-    if row["bca_low_m"] > 0:
-        return "worse"
-    return "no clear difference"
-
-
 def apart(row: dict) -> str:
     """The check's two questions apart, in words: lost runs (failed or diverged; exact McNemar on the
     pairs where one rule alone lost track) and accuracy on the pairs neither lost; empty for a check.csv
@@ -104,7 +93,7 @@ def _arm_rows(runs: pd.DataFrame, study: dict) -> pd.DataFrame:
 
 
 def headline(data: dict) -> Section:
-    from jsve.tuning._race import RESOLUTION_M
+    from jsve.tuning._race import RESOLUTION_M, check_verdict
 
     state, study = data["state"], data["state"]["study"]
     tuned = state["tuned"]
@@ -130,9 +119,9 @@ def headline(data: dict) -> Section:
             f"vs `{row['baseline']}` on {row['pairs']} held-out runs: "
             f"{cm_ci(row['mean_diff_m'], row['bca_low_m'], row['bca_high_m'], sign=True)} cm "
             f"(95 % BCa; t {cm(row['t_low_m'], sign=True)} to {cm(row['t_high_m'], sign=True)} cm; "
-            "half-width "
-            f"{cm(half)} cm), Wilcoxon p = {number(row['wilcoxon_p'], 3)}: **{verdict(row)}**; better on "
-            f"{row['better']}, worse on {row['worse']}; failed runs {row['rule_failed']} against "
+            f"half-width {cm(half)} cm), Wilcoxon p = {number(row['wilcoxon_p'], 3)}: "
+            f"**{check_verdict(row)}**; better on {row['better']}, worse on {row['worse']}; "
+            f"failed runs {row['rule_failed']} against "
             f"{row['baseline_failed']}; at this spread a half-width of {cm(RESOLUTION_M)} cm takes about "
             f"{row['pairs_for_resolution']} pairs. {apart(row)}"
         )
@@ -172,6 +161,7 @@ def cost_line(data: dict) -> str:
 
 def check_section(data: dict, fig_dir: Path) -> Section:
     from jsve.report._tune_figures import figure_check
+    from jsve.tuning._race import check_verdict
 
     check = data["check"].copy()
     table = pd.DataFrame(
@@ -206,7 +196,7 @@ def check_section(data: dict, fig_dir: Path) -> Section:
                 if "lost_p" in check
                 else {}
             ),
-            "verdict": [verdict(r) for r in check.to_dict("records")],
+            "verdict": [check_verdict(r) for r in check.to_dict("records")],
         }
     )
     blocks = [
@@ -399,4 +389,4 @@ def tune_sections(folder: Path, fig_dir: Path) -> list[Section]:
     ]
 
 
-__all__ = ["TUNE_TITLE", "read_tune", "tune_sections", "verdict"]
+__all__ = ["TUNE_TITLE", "read_tune", "tune_sections"]

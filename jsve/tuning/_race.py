@@ -9,6 +9,7 @@
     lost_runs          which runs lost track: failed, or diverged past the loss's cap
     failure_test       paired losses of track: the discordant pairs and the exact McNemar p
     paired_difference  a - b on the bounded loss, its lost runs and its tracked pairs apart (the check)
+    check_verdict      the word for a check's row: better or worse only where BCa and t agree
 
 The tests are scipy.stats.wilcoxon (signed ranks, zero differences dropped; every difference zero
 gives p = 1), scipy.stats.ttest_1samp and scipy.stats.bootstrap for the intervals, and scipy.stats.
@@ -224,6 +225,25 @@ def paired_difference(rows: pd.DataFrame, a: str, b: str, *, n_resamples: int = 
     }
 
 
+def check_verdict(row) -> str:
+    """The word for a row of paired_difference (rule - baseline): "better" or "worse" when both its 95 %
+    intervals of the mean, BCa and t, exclude 0 on that side (BCa alone where the t interval is
+    undefined), "unsettled (BCa and t disagree)" when only one excludes 0 (a heavy tail: the bootstrap
+    of a few outlying pairs and the normal approximation tell different stories), "no clear difference"
+    when neither does, "undetermined" without pairs."""
+    bca = (row["bca_low_m"], row["bca_high_m"])
+    if not np.isfinite(bca).all():
+        return "undetermined"
+    t = (row["t_low_m"], row["t_high_m"])
+    t = t if np.isfinite(t).all() else bca
+    sides = {("better" if high < 0 else "worse" if low > 0 else "") for low, high in (bca, t)}
+    if sides == {""}:
+        return "no clear difference"
+    if len(sides) == 1:
+        return sides.pop()
+    return "unsettled (BCa and t disagree)"
+
+
 __all__ = [
     "KEY",
     "RESOLUTION_M",
@@ -235,6 +255,7 @@ __all__ = [
     "lost_runs",
     "failure_test",
     "paired_difference",
+    "check_verdict",
     "paired_losses",
     "worse_p",
 ]
