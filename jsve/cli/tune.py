@@ -60,10 +60,15 @@ def run(args) -> int:
     print(f"jsve tune: {state['tuned']} ({role}), {state['runs_used']} runs; stopped: {state['stopped']}")
     for row in state["check"]:
         if row["scope"] == "all held-out":
+            cm = {k: 100 * row[k] for k in ("mean_diff_m", "bca_low_m", "bca_high_m")}
+            tracked = {k: 100 * row[f"tracked_{k}"] for k in ("mean_diff_m", "bca_low_m", "bca_high_m")}
             print(
-                f"  vs {row['baseline']}: {100 * row['mean_diff_m']:+.2f} cm "
-                f"[{100 * row['bca_low_m']:+.2f}, {100 * row['bca_high_m']:+.2f}] (95 % BCa, "
-                f"{row['pairs']} held-out pairs, Wilcoxon p = {row['wilcoxon_p']:.3g})"
+                f"  vs {row['baseline']}: {cm['mean_diff_m']:+.2f} cm [{cm['bca_low_m']:+.2f}, "
+                f"{cm['bca_high_m']:+.2f}] (95 % BCa, {row['pairs']} held-out pairs, Wilcoxon p = "
+                f"{row['wilcoxon_p']:.3g}); lost alone {row['rule_only_lost']} / {row['baseline_only_lost']} "
+                f"(McNemar p = {row['lost_p']:.3g}); on the {row['tracked_pairs']} pairs neither lost "
+                f"{tracked['mean_diff_m']:+.2f} cm [{tracked['bca_low_m']:+.2f}, "
+                f"{tracked['bca_high_m']:+.2f}]"
             )
     print(f"  report: jsve report {args.output}", file=sys.stderr)
     return 0
