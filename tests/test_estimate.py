@@ -1,5 +1,6 @@
-"""jsve.fitting._estimate: the cost model's arithmetic on known sizes, its pricing, and the probe-based
-estimate of a real (small) `jsve fit` against its measured wall time."""
+"""jsve.fitting._estimate and jsve.fitting._counting: the search's cost on known sizes, the study's
+stages counted against a scorer that computes nothing (each stage's work by hand), the pricing, and the
+probe-based estimate of a real (small) `jsve fit` against its measured wall time."""
 
 from __future__ import annotations
 
@@ -7,21 +8,22 @@ import json
 import re
 from dataclasses import replace
 
+import jax
 import knownanswer as ka
 import numpy as np
+import pandas as pd
 import pytest
 
+from jsve.core._rules import PRESETS, preset
 from jsve.fitting._config import StudyConfig
+from jsve.fitting._counting import flat_results, plan
 from jsve.fitting._estimate import (
-    NM_MOVED_SHARE,
     Plan,
     Rates,
     StudySize,
     Work,
     backend_caveat,
     duration,
-    halving_rectangles,
-    plan,
     price,
     search_cost,
 )
@@ -31,7 +33,6 @@ R, F = 64, 100  # one part of 64 runs x 100 frames
 
 
 def _size(**kw) -> StudySize:
-    folds = (np.arange(R) < R // 2, np.arange(R) >= R // 2)
     base = dict(
         n_runs=R,
         n_frames=R * F,
@@ -39,13 +40,8 @@ def _size(**kw) -> StudySize:
         parts=((F, R),),
         chunks=((1, R, F),),
         n_devices=2,
-        designs={"inliers": 1000},
-        dims={"inliers": 4},
-        heatmap={"inliers": True},
-        presets=(("orbslam3", "I", "inliers"), ("sve-eq1", "E", "")),
-        structures={"inliers": "I"},
-        folds=folds,
-        order=np.arange(R),
+        designs={"inliers": 1001},
+        meta=pd.DataFrame({"run_id": [f"r{k}" for k in range(R)]}),
     )
     return StudySize(**{**base, **kw})
 
@@ -79,32 +75,36 @@ def test_search_cost_is_rounds_of_calls_times_lanes_and_frames():
 
 
 def test_plan_counts_every_stage_of_the_study():
-    """The units of each stage by hand (module docstring of jsve.fitting._estimate)."""
+    """The units of each stage by hand: the study's stages against the counting scorer's flat
+    objective, on which Nelder-Mead takes every (tying) reflection and no second point."""
     work = plan(_size(), CONFIG)
-    assert 0 < NM_MOVED_SHARE <= 0.25  # below: the moved points of 2 and of 4 simplexes are 1 (rounded up)
+    n_rules = len(PRESETS) + 1  # the presets and the fitted rule
     expected = {
-        # the design in 4 rounds of 128; Nelder-Mead from 2 starts in lockstep on every run (64 are
-        # fewer than polish_runs): the initial simplexes (2 x 5 points, a call of 16), then 10 steps of
-        # a call of 2 (reflections) and one of 1; the verdict: the search's best and 2 polishes (4)
-        ("fit", "search", "inliers"): (4 * 128 + 16 + 10 * (2 + 1) + 4) * R * F,
-        # the presets (two rule structures) and the fitted rule in one pass, one chunk each; it also gives
-        # the cross-validation its presets' held-out rows, so that stage replays none
-        ("evaluate", "evaluate", ""): 3 * R * F,
-        # 2 folds x 2 starts: simplexes of 20 points (a call of 24, a multiple of 8), steps of 4 and 1
-        # points; both folds' verdicts (and held-out rows) in one search of 2 x 3 candidates: a call of 8
-        ("cross_validation", "search", "inliers"): (24 + 10 * (4 + 1) + 8) * R * F,
+        # the design (1000 Sobol points and the family's preset) in 4 rounds of 128; Nelder-Mead from 2
+        # starts in lockstep on every run (64 are fewer than polish_runs): the initial simplexes (2 x 5
+        # points, a call of 16), then 9 more of its 10 steps of 2 reflections; the verdict of the
+        # search's best and the 2 polishes (3 settings, a call of 4)
+        ("fit", "search", "inliers"): (4 * 128 + 16 + 9 * 2 + 4) * R * F,
+        # the presets and the fitted rule in one pass, one chunk each; it also gives the cross-validation
+        # its presets' held-out rows, so that stage replays none
+        ("evaluate", "evaluate", ""): n_rules * R * F,
+        # the folds reuse the full fit's search (exhaustive); 2 folds x 2 starts: simplexes of 20 points
+        # (a call of 24), 9 steps of 4; both folds' verdicts in one search of their distinct candidates
+        # (on a flat objective the folds' coincide: 3, a call of 4)
+        ("cross_validation", "search", "inliers"): (24 + 9 * 4 + 4) * R * F,
         ("parameter_bootstrap", "search", "inliers"): 16 * R * F,  # n_local + 1 settings, one call
-        ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1000 + 16),
+        ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1001 + 16),
         ("heatmap", "search", "inliers"): 16 * R * F,  # 4 x 4
     }
     got = {(w.stage, w.kind, w.family): w.units for w in work.work}
     assert got == pytest.approx(expected)
+    assert work.nelder_mead_steps == (10, 10)
     assert work.compiles["search", "inliers"] == {
-        (F, R, 128, 0), (F, R, 128, 1), (F, R, 1, 0), (F, R, 2, 0), (F, R, 16, 0), (F, R, 24, 0),
-        (F, R, 4, 0), (F, R, 8, 0)
+        (F, R, 128, 0), (F, R, 128, 1), (F, R, 2, 0), (F, R, 4, 0), (F, R, 16, 0), (F, R, 24, 0)
     }  # fmt: skip
-    assert work.compiles["evaluate", ""] == {("I", R, F), ("E", R, F)}
-    assert ("nelder_mead", "inliers") not in work.compiles  # no computation of its own
+    # one evaluate computation per rule structure: the fitted inlier rule shares orbslam3's
+    structures = {str(jax.tree_util.tree_structure(preset(name))) for name in PRESETS}
+    assert work.compiles["evaluate", ""] == {(s, R, F) for s in structures}
     # stages done already are left out; with all of them done there is nothing to do
     fewer = plan(_size(), CONFIG, done={"evaluate", "fit_inliers"})
     assert not fewer.units("search", "inliers", stage="fit") and not fewer.units("evaluate", stage="evaluate")
@@ -121,38 +121,43 @@ def test_plan_counts_every_stage_of_the_study():
             {
                 **expected,
                 ("parameter_bootstrap", "search", "inliers"): 1 * R * F,
-                ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1000 + 1),
+                ("parameter_bootstrap", "flops", ""): 2 * 100 * R * (1001 + 1),
             }
         )
 
 
 def test_halving_scores_each_rung_on_its_new_runs():
-    """1000 settings, 64 runs, eta 3, f0 1/9: rungs of (1000, 8), (334, 22), (112, 64) runs; each rung
-    scores its settings on the runs the previous rungs did not (a prefix of the order)."""
+    """1001 settings, 64 runs, eta 3, f0 1/9: rungs of (1001, 8), (334, 22), (112, 64) runs; each rung
+    scores its settings on the runs the previous rungs did not (8, 14, 42 of the single part: sub-batches
+    of 8, 16 and the part). A fold halves on the full fit's cache: only its prefixes' runs the fit's
+    rungs did not reach are new; a resumed study (the fit done, its cache gone) scores every pair."""
     config = StudyConfig(
         families=("inliers",),
         kfold=2,
         leave_one_out=(),
         heatmap=(),
+        n_local=0,
         fit=FitConfig(n_search=1000, search="halving", n_starts=0),
     )
-    size = _size(order=np.random.default_rng(0).permutation(R))
-    fit, folds = halving_rectangles(size, "inliers", 3.0, 1 / 9)
-    assert [(n, len(runs)) for n, runs in fit] == [(1000, 8), (334, 14), (112, 42)]
-    assert np.array_equal(np.sort(np.concatenate([r for _, r in fit])), np.arange(R))  # each run once
-    # A fold's prefixes skip its held-out runs, so the folds' union reaches further into the order; with
-    # the full fit's cache only those runs are new, without it every pair the folds need.
-    assert all(n in (1000, 334) for n, _ in folds)
-    _, uncached = halving_rectangles(size, "inliers", 3.0, 1 / 9, cached=False)
-    assert sum(n * len(r) for n, r in uncached) > sum(n * len(r) for n, r in folds)
+    size = _size()
     work = plan(size, config)
-    # then the verdict: the search's best on every run (no polish: n_starts 0), per fold in the folds'
-    expected = sum(search_cost(size, n, runs)[0] for n, runs in fit) + search_cost(size, 1)[0]
-    assert work.units("search", "inliers", stage="fit") == expected
-    assert (
-        work.units("search", "inliers", stage="cross_validation")
-        == sum(search_cost(size, n, runs)[0] for n, runs in folds) + search_cost(size, 2)[0]
-    )
+    runs = lambda n: np.arange(n)  # noqa: E731 (one part: the cost depends on how many runs alone)
+    rungs = sum(search_cost(size, n, runs(k))[0] for n, k in ((1001, 8), (334, 14), (112, 42)))
+    verdict = search_cost(size, 1)[0]  # the search's best (no polish: n_starts 0) on every run
+    assert work.units("search", "inliers", stage="fit") == rungs + verdict
+    cached = work.units("search", "inliers", stage="cross_validation")
+    resumed = plan(size, config, done={"fit_inliers"}).units("search", "inliers", stage="cross_validation")
+    # the folds' verdict (their 2 bests) at least; without the cache each fold's rungs again, at least
+    # its 1001 settings on the 8 first runs of its prefix
+    assert search_cost(size, 1)[0] <= cached < resumed
+    assert resumed >= cached + 2 * search_cost(size, 1001, runs(8))[0]
+
+
+def test_the_flat_objective_answers_in_the_requested_shape():
+    values = np.ones((3, 2))
+    res = flat_results(values, 5)
+    assert res.loss.shape == res.included.shape == (3, 5) and not res.failed.any()
+    assert np.allclose(res.objective(np.ones(5)), res.loss[0, 0]) and res.coverage.min() == 1.0
 
 
 def test_price_is_units_times_rates_and_the_compilations_left():
@@ -247,24 +252,13 @@ def test_jsve_fit_states_its_expected_time_and_meets_it(tmp_path, capsys):
 
 
 def test_the_bootstrap_race_is_counted_rung_by_rung():
-    """bootstrap_screen_runs 8 of 64 runs: rungs of 8 and 24 runs (RACE_ETA 3), each keeping
-    BOOTSTRAP_KEPT_SHARE of the settings left, then the survivors on the other 40 runs."""
-    from dataclasses import replace
-
+    """bootstrap_screen_runs 8 of 64 runs: rungs of 8 and 24 runs (RACE_ETA 3); on a flat objective
+    every setting could win a resample, so the race keeps all 100 (its most work): 8, then 16 new runs,
+    then the other 40."""
     from jsve.fitting._crossval import RACE_ETA
-    from jsve.fitting._estimate import BOOTSTRAP_KEPT_SHARE
 
     assert RACE_ETA == 3
-    size = _size(order=np.random.default_rng(1).permutation(R))
     config = replace(CONFIG, bootstrap_screen_runs=8, n_local=99, heatmap=(), kfold=0)
-    n1 = 100
-    n2 = int(np.ceil(BOOTSTRAP_KEPT_SHARE * n1))
-    n3 = int(np.ceil(BOOTSTRAP_KEPT_SHARE * n2))
-    order = np.asarray(size.order)
-    expected = (
-        search_cost(size, n1, np.sort(order[:8]))[0]
-        + search_cost(size, n2, np.sort(order[8:24]))[0]
-        + search_cost(size, n3, np.sort(order[24:]))[0]
-    )
-    work = plan(size, config)
+    expected = sum(search_cost(_size(), 100, np.arange(k))[0] for k in (8, 16, 40))
+    work = plan(_size(), config)
     assert work.units("search", "inliers", stage="parameter_bootstrap") == expected

@@ -316,7 +316,10 @@ def bootstrap_stage(study: Study) -> None:
 
 
 def heatmap_stage(study: Study) -> None:
-    """The objective over config.heatmap's two thresholds for every family that has both: heatmap."""
+    """The objective over config.heatmap's two thresholds for every family that has both: heatmap (none
+    without config.heatmap)."""
+    if not study.config.heatmap:
+        return
     x, y, n = study.config.heatmap
     tables = [
         heatmap_table(

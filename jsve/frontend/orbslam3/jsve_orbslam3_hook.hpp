@@ -69,6 +69,10 @@ struct HookState {
     long pose_invalid_frames = 0;  // frames whose pose was NaN, logged without one (see log_frame)
     long keyframes = 0;  // keyframes in the active map after the last logged frame
     std::atomic<std::uint32_t> pending_events{0};  // jsve::Event bits since the last logged frame
+    // A reset or a new map sets Tracking::mLastFrame to a default Frame, whose mTimeStamp Frame's default
+    // constructor leaves uninitialised; the next frame constructed preintegrates from that stamp.
+    std::atomic<bool> last_frame_cleared{false};  // set by those events, taken by the next frame
+    bool previous_frame_cleared = false;  // this frame was constructed after such an event
     std::size_t entries_before = 0;  // length of Tracking::mlRelativeFramePoses before this frame's Track()
     std::vector<std::int64_t> entry_rows;  // the log row of each entry of Tracking::mlRelativeFramePoses
     std::string trailer_error;  // why the trailer was not written (empty: it was, or not yet asked)
@@ -155,7 +159,11 @@ bool write_masks_trailer(const std::string& source, std::string* error);
 HookState& state();
 
 // An event of ORB-SLAM3 (any thread): set on the next logged frame's `events`.
-inline void event(std::uint32_t bit) { state().pending_events.fetch_or(bit); }
+inline void event(std::uint32_t bit) {
+    constexpr std::uint32_t clears_last_frame = jsve::kEventReset | jsve::kEventResetAll | jsve::kEventNewMap;
+    state().pending_events.fetch_or(bit);
+    if (bit & clears_last_frame) state().last_frame_cleared = true;
+}
 
 // Opens `path` (format v3, via jsve::LogWriter; refuses an existing file unless `overwrite`).
 // Returns false with `*error` set on failure.
@@ -365,7 +373,8 @@ inline std::int64_t stamp_ns(const std::string& name, double t_s) {
 #define JSVE_HOOK_BEGIN_FRAME()                                                                    \
     (::jsve_hook::state().n_inliers = ::jsve_hook::state().n_frustum = 0,                          \
      ::jsve_hook::state().inlier_flags.clear(),                                                    \
-     ::jsve_hook::state().entries_before = mlRelativeFramePoses.size())
+     ::jsve_hook::state().entries_before = mlRelativeFramePoses.size(),                              \
+     ::jsve_hook::state().previous_frame_cleared = ::jsve_hook::state().last_frame_cleared.exchange(false))
 // Expands inside Frame's monocular constructor, after ExtractORB.
 #define JSVE_HOOK_MASK_KEYPOINTS() ::jsve_hook::mask_keypoints(mvKeys, mDescriptors, imGray.cols, imGray.rows)
 #define JSVE_HOOK_EVENT(bit) ::jsve_hook::event(::jsve::bit)
@@ -857,15 +866,16 @@ inline void log_frame(ORB_SLAM3::Frame& frame, int tracking_state, ORB_SLAM3::At
     for (int i = 0; i < 4; ++i) f.world_q[i] = world.q[i];
     for (int i = 0; i < 3; ++i) f.world_t[i] = world.t[i];
     f.world_s = world.s;
-    // The log's first frame carries no preintegration (the format's rule); later frames the one
-    // from the previous frame, corrected to this frame's bias estimate.
+    // The log's first frame carries no preintegration (the format's rule), nor does the first frame
+    // after a reset or a new map (integrated from an uninitialised stamp: see HookState); later
+    // frames the one from the previous frame, corrected to this frame's bias estimate.
     // A failed IMU initialisation leaves NaN in the bias estimate or in the preintegration itself
     // (LocalMapping then flags it and ORB-SLAM3 resets the map): correcting to a NaN bias makes Sophus
     // abort the process (SO3::exp of NaN), so such a frame carries the preintegration at the bias it
     // was integrated with, and a preintegration that is NaN itself is logged as none (imu_dt 0,
     // identity), counted in `imu_invalid_frames` (the driver's summary): never a crash of the hook's.
     ORB_SLAM3::IMU::Preintegrated* pre = frame.mpImuPreintegratedFrame;
-    if (s.log->frames() > 0 && pre != nullptr) {
+    if (s.log->frames() > 0 && pre != nullptr && !s.previous_frame_cleared) {
         const ORB_SLAM3::IMU::Bias& b = frame.mImuBias;
         const ORB_SLAM3::IMU::Bias o = pre->GetOriginalBias();
         const float bias[12] = {b.bax, b.bay, b.baz, b.bwx, b.bwy, b.bwz, o.bax, o.bay, o.baz, o.bwx, o.bwy, o.bwz};
