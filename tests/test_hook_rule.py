@@ -149,3 +149,14 @@ def test_the_hook_logs_the_stamp_of_the_image_name(hook_rule):
     assert stamp("9223372036854775808.png", "1.5") == 1_500_000_000  # beyond int64: the double
     assert stamp("frame_0042.png", "2.25") == 2_250_000_000
     assert stamp("42.png", "2.25") == 42
+
+
+def test_the_first_frame_after_a_reset_or_a_new_map_logs_no_preintegration(hook_rule):
+    """ORB-SLAM3 v1.0's ResetActiveMap, Reset and CreateMapInAtlas set Tracking::mLastFrame to a default
+    Frame, whose mTimeStamp Frame's default constructor leaves uninitialised (Frame.cc, Tracking.cc), and
+    the next frame constructed integrates the IMU from it: that frame, and that frame alone, is marked
+    so that log_frame writes no preintegration; a loop closure clears nothing."""
+    out = subprocess.run([str(hook_rule), "--cleared", "ffrffnflfaffrrff"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    # frames:          f f | r f f | n f | l f | a f f | r r f f
+    assert out.stdout.strip() == "00" + "10" + "1" + "0" + "10" + "10"

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <iostream>
 #include <string>
+#include <vector>
 
 #include "jsve_orbslam3_hook.hpp"
 
@@ -23,8 +24,38 @@ int parse(const std::string& flag, const std::string& text) {
     return 0;
 }
 
+// The hook's state, which ORB-SLAM3's Tracking.cc defines in the real build.
+jsve_hook::HookState& jsve_hook::state() {
+    static HookState s;
+    return s;
+}
+
+// `hook_rule --cleared STEPS`: STEPS a string of f (a frame begins, as Tracking::GrabImageMonocular
+// begins it), r (ResetActiveMap), a (Reset), n (CreateMapInAtlas), l (a loop closure); prints per frame
+// whether it was constructed after ORB-SLAM3 cleared its last frame (1: its preintegration is not logged).
+int cleared(const std::string& steps) {
+    const std::vector<int> mlRelativeFramePoses;  // what JSVE_HOOK_BEGIN_FRAME reads of Tracking
+    for (char step : steps) {
+        if (step == 'f') {
+            JSVE_HOOK_BEGIN_FRAME();
+            std::printf("%d", jsve_hook::state().previous_frame_cleared ? 1 : 0);
+        } else if (step == 'r') {
+            JSVE_HOOK_EVENT(kEventReset);
+        } else if (step == 'a') {
+            JSVE_HOOK_EVENT(kEventResetAll);
+        } else if (step == 'n') {
+            JSVE_HOOK_EVENT(kEventNewMap);
+        } else if (step == 'l') {
+            JSVE_HOOK_EVENT(kEventLoop);
+        }
+    }
+    std::printf("\n");
+    return 0;
+}
+
 int main(int argc, char** argv) {
     if (argc == 4 && std::string(argv[1]) == "--parse") return parse(argv[2], argv[3]);
+    if (argc == 3 && std::string(argv[1]) == "--cleared") return cleared(argv[2]);
     // `hook_rule --stamp NAME SECONDS`: the stamp the hook logs for an image of that name (jsve_hook::stamp_ns).
     if (argc == 4 && std::string(argv[1]) == "--stamp") {
         std::printf("%lld\n", static_cast<long long>(jsve_hook::stamp_ns(argv[2], std::stod(argv[3]))));
