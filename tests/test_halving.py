@@ -401,3 +401,43 @@ def test_auto_search_halves_from_300_runs_with_a_first_rung_of_at_least_40_runs(
     for given in ("halving", "exhaustive"):
         config = FitConfig(search=given, initial_fraction=0.5)
         assert resolve_search(config, n_runs) == config
+
+
+class _KnownLosses:
+    """A scorer whose loss of setting s on run r is values[s, 0] x (1 + 10 r / R): on the first runs
+    small settings win, everywhere else as well, so survivors show which runs a rung screened on."""
+
+    def __init__(self, n_runs: int):
+        from jsve.fitting._scorer import Meter
+
+        self.n_runs, self.meter = n_runs, Meter()
+
+    def score(self, space, values, runs=None, **_):
+        from jsve.fitting._search import SearchResult
+
+        runs = np.arange(self.n_runs) if runs is None else np.asarray(runs)
+        loss = np.asarray(values)[:, :1] * (1 + 10 * runs[None] / self.n_runs)
+        flag = np.zeros(loss.shape, bool)
+        return SearchResult(np.asarray(values), loss, flag, loss, np.ones(loss.shape), flag, ~flag)
+
+
+def test_a_fold_holding_out_a_rungs_whole_prefix_screens_on_its_own_first_runs():
+    """A fold whose weight is 0 on all of the first rung's runs screens that rung on its own first
+    weighted runs of the order (a finite objective), not on none; its survivors are then the best there
+    by hand, and the other fold's are unchanged."""
+    n_runs, values = 81, np.linspace(1.0, 0.1, 27)[:, None]
+    cache = RunLossCache(_KnownLosses(n_runs), None, values)
+    order = np.arange(n_runs)
+    held_first = np.ones(n_runs)
+    held_first[:9] = 0  # the first rung's 9 runs (81 / 9)
+    (fold, other) = halving_searches(cache, [held_first, np.ones(n_runs)], eta=3.0, initial_fraction=1 / 9,
+                                     order=order)  # fmt: skip
+    assert np.isfinite([r.best for r in fold.rungs]).all()
+    assert fold.rungs[0].runs == 9  # runs 9..17, its own first 9 weighted runs of the order
+    first = np.mean(0.1 * (1 + 10 * np.arange(9, 18) / n_runs))  # the smallest value's mean there
+    assert fold.rungs[0].best == pytest.approx(first)
+    assert other.rungs[0].best == pytest.approx(np.mean(0.1 * (1 + 10 * np.arange(9) / n_runs)))
+    # the loss grows with the value on every run: the 9 smallest values survive the first rung in both
+    assert np.array_equal(fold.scored[1], np.arange(18, 27)) and np.array_equal(
+        other.scored[1], np.arange(18, 27)
+    )

@@ -249,6 +249,17 @@ def halving_search(
     )[0]
 
 
+def _rung_runs(prefix: np.ndarray, weights: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The runs a search with run weights `weights` screens a rung on: the rung's prefix of the order
+    less its runs of weight 0; where that leaves none (a fold holding out the whole prefix), its own
+    first len(prefix) weighted runs of the order, so that no rung selects on an empty mean."""
+    own = prefix[weights[prefix] > 0]
+    if len(own):
+        return own
+    weighted = order[weights[order] > 0]
+    return np.sort(weighted[: len(prefix)])
+
+
 def halving_searches(
     cache: RunLossCache,
     weights: Sequence,
@@ -287,7 +298,8 @@ def halving_searches(
     for k in range(n_rungs):
         active = list(range(len(ws)))
         prefix = np.sort(order[: sizes[k][1]])
-        runs = {i: np.arange(cache.n_runs) if k == n_rungs - 1 else prefix[ws[i][prefix] > 0] for i in active}
+        last = k == n_rungs - 1
+        runs = {i: np.arange(cache.n_runs) if last else _rung_runs(prefix, ws[i], order) for i in active}
         need = np.zeros((n_settings, cache.n_runs), bool)
         for i in active:
             need[np.ix_(alive[i], runs[i])] = True
