@@ -20,7 +20,6 @@ import pytest
 
 from jsve.io._resume import StaleOutputError
 from jsve.tuning import TuneStudy, paired_difference, tune
-from jsve.tuning._tune import check_runs
 
 STUDY = """
 [tune]
@@ -95,7 +94,7 @@ def test_every_rule_raced_or_chosen_is_kept_and_every_run_has_one_row(tuned):
         (out / "rules" / f"{state['tuned']}.json").read_text()
     )
     check = runs[runs.seed >= study.verify_seed_base]
-    assert len(check) == check_runs(study)  # the tuned rule and both baselines on every held-out run
+    assert len(check) == study.check_runs  # the tuned rule and both baselines on every held-out run
     assert json.loads((out / "progress.json").read_text())["phase"] == "done"
 
 
@@ -241,3 +240,26 @@ def test_the_pooled_summary_counts_each_run_once_and_finds_no_bias_where_a_run_i
         assert pooled["spearman"] == pytest.approx(1.0)
     else:
         assert np.isnan(pooled["spearman"])  # undefined for a constant prediction, never 0
+
+
+def test_a_finished_tuning_given_more_check_seeds_runs_those_alone(tuned, tmp_path):
+    """--verify-seeds on a finished tuning: its rounds replay from its runs (the same race, the same
+    tuned rule), the budget moves by the check's new runs, and only those are made: every arm on every
+    held-out dataset for each new seed; the check then holds the pairs of every seed."""
+    root, study, state = tuned
+    shutil.copytree(root / "out", tmp_path / "out")
+    wider = study.with_check_seeds(study.verify_seeds + 2)
+    assert wider.budget - wider.check_runs == study.budget - study.check_runs
+    again = tune(wider, tmp_path / "out", progress=False)
+    assert again["rounds"] == state["rounds"] and again["tuned"] == state["tuned"]
+    arms = 1 + len(study.baseline_pairs)
+    assert again["runs_used"] == state["runs_used"] + 2 * arms * len(study.heldout)
+    runs = pd.read_csv(tmp_path / "out" / "runs.csv")
+    before = pd.read_csv(root / "out" / "runs.csv")
+    keys = ["candidate", "switch_model", "dataset", "seed"]
+    new = runs.merge(before[keys], on=keys, how="left", indicator=True).query("_merge == 'left_only'")
+    assert set(new.seed) == set(wider.check_seeds) - set(study.check_seeds)
+    row = next(r for r in again["check"] if r["scope"] == "all held-out")
+    assert row["pairs"] == len(study.heldout) * wider.verify_seeds
+    with pytest.raises(ValueError, match="verify_seeds must be >= 1"):
+        study.with_check_seeds(0)

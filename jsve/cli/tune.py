@@ -33,6 +33,13 @@ def register(sub) -> None:
     )
     p.add_argument("--workers", type=int, metavar="N", help="runs at once (default: the study's, else 2)")
     p.add_argument("--budget", type=int, metavar="N", help="front-end runs in all (default: the study's)")
+    p.add_argument(
+        "--verify-seeds",
+        type=int,
+        metavar="N",
+        help="seeds of the held-out check, the budget moved by the runs that adds: a finished tuning "
+        "resumed with more runs its new check seeds alone (default: the study's)",
+    )
     add_scheduler_option(
         p,
         shared="BUILD, the vocabulary, the datasets, DIR and the pool",
@@ -53,6 +60,8 @@ def run(args) -> int:
         study = TuneStudy.from_toml(
             args.study, root=args.root, workers=args.workers, budget=args.budget, scheduler=scheduler
         )
+        if args.verify_seeds is not None:
+            study = study.with_check_seeds(args.verify_seeds)
         state = tune(study, args.output, pool=args.pool, force=args.force, progress=not args.no_progress)
     except (ValueError, FileNotFoundError) as err:
         return common.fail("tune", err)

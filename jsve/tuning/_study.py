@@ -157,6 +157,21 @@ class TuneStudy:
     def check_seeds(self) -> list[int]:
         return list(range(self.verify_seed_base, self.verify_seed_base + self.verify_seeds))
 
+    @property
+    def check_runs(self) -> int:
+        """Runs the held-out check takes (reserved from the budget before any round): every arm (the
+        tuned rule and each baseline) on every held-out dataset and check seed."""
+        return (1 + len(self.baseline_pairs)) * len(self.heldout) * self.verify_seeds
+
+    def with_check_seeds(self, verify_seeds: int) -> TuneStudy:
+        """This study with a held-out check of `verify_seeds` seeds and the budget moved by the runs that
+        adds, so its rounds keep the runs they had (budget less the check's) and a finished tuning
+        resumed with it runs the new check seeds alone."""
+        if verify_seeds < 1:
+            raise ValueError(f"{self.source}: verify_seeds must be >= 1, got {verify_seeds}")
+        wider = dataclasses.replace(self, verify_seeds=verify_seeds)
+        return dataclasses.replace(wider, budget=self.budget + wider.check_runs - self.check_runs)
+
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)
         out.pop("source")

@@ -390,11 +390,6 @@ def agreement(ledger: Ledger, out: Path, study: TuneStudy) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def check_runs(study: TuneStudy) -> int:
-    """Runs the held-out check takes (reserved from the budget before any round)."""
-    return (1 + len(study.baseline_pairs)) * len(study.heldout) * study.verify_seeds
-
-
 def tune(study: TuneStudy, out, *, pool=None, force: bool = False, progress: bool = True) -> dict:
     """Run (or resume) a tuning into the folder `out`; every run goes to `pool` (default out/runs).
 
@@ -412,7 +407,7 @@ def tune(study: TuneStudy, out, *, pool=None, force: bool = False, progress: boo
         raise ValueError(f"{study.source}: held-out sequence {leaked[0]} is also trained on")
     state = _start(out, study, force)
     ledger = Ledger(out, study.budget, study.workers, show=progress)
-    reserve = check_runs(study)
+    reserve = study.check_runs
     incumbent = Candidate.preset(study.incumbent, "incumbent")
     _keep_rule(out, incumbent)
     history: list = []
@@ -458,4 +453,4 @@ def _candidate(out: Path, name: str) -> Candidate:
     )
 
 
-__all__ = ["agreement", "check", "check_runs", "check_table", "make_frontend", "run_round", "tune"]
+__all__ = ["agreement", "check", "check_table", "make_frontend", "run_round", "tune"]
