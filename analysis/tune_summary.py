@@ -99,7 +99,9 @@ def main(argv=None) -> int:
     print("\npooled:", json.dumps(pooled_agreement(agreement), default=float))
     print("\nruns per tuning:", runs.groupby("tuning", sort=False).size().to_dict())
     # Tunings share a pool: a run one tuning made, another finds. The machine's cost counts each once.
-    distinct = runs.drop_duplicates("log")
+    # A run is the same run where its log and its recorded wall time are (tunings of other machines'
+    # builds write logs of the same paths, with other contents).
+    distinct = runs.drop_duplicates(["log", "wall_s"])
     wall, cpu = distinct["wall_s"].dropna(), distinct["cpu_s"].dropna()
     print(f"runs: {len(distinct)} distinct over {len(folders)} tunings ({len(runs)} uses), "
           f"{wall.sum() / 3600:.2f} h of run wall time, {wall.mean():.1f} s wall and {cpu.mean():.1f} s CPU "
