@@ -232,13 +232,20 @@ def run(args) -> int:
 
 def _estimate(data, config, args, description: dict):
     """The expected wall time of the study (jsve.fitting._estimate), stated on stderr in one line before
-    the study starts; None where every stage is done already (nothing to time). A folder of another
-    study stops here (StaleOutputError), before the probe, as run_study would."""
+    the study starts; None where every stage is done already (nothing to time), or where the count's
+    scratch files cannot be written (said on stderr; the study then meets the same disk itself). A
+    folder of another study stops here (StaleOutputError), before the probe, as run_study would."""
     from jsve.fitting._estimate import estimate
     from jsve.fitting._study import finished_stages
 
     done = finished_stages(args.output, config, data, data_description=description, force=args.force)
-    expected = estimate(data, config, done=done, progress=not args.no_progress)
+    try:  # the count runs the stages on scratch files of a temporary folder
+        expected = estimate(data, config, done=done, progress=not args.no_progress)
+    except OSError as err:
+        if args.estimate_only:
+            raise
+        print(f"jsve fit: no estimate of the wall time ({err})", file=sys.stderr, flush=True)
+        return None
     if expected is None:
         return None
     resumed = f" ({len(done)} stages done already)" if done else ""
