@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from jsve.fitting._estimate import BFGS_EVALS_PER_STEP, Plan, StudySize, Work, search_cost
-from jsve.fitting._scorer import Meter
+from jsve.fitting._scorer import Meter, picked_runs
 from jsve.fitting._search import SearchResult
 
 FLAT_LOSS = 0.05
@@ -99,9 +99,7 @@ class CountingScorer:
 
     def score(self, space, values, runs=None, *, progress: bool = False, desc: str = "score") -> SearchResult:
         values = np.asarray(values, np.float64)
-        picked = None if runs is None else np.unique(np.asarray(runs, np.int64))
-        if picked is not None and len(picked) == self.n_runs:
-            picked = None
+        picked = picked_runs(runs, self.n_runs)
         n_runs = self.n_runs if picked is None else len(picked)
         self.meter.add(len(values), n_runs)
         if self.columns is None:  # the whole study, or its runs `picked` packed by length class

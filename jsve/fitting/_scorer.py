@@ -108,9 +108,7 @@ class ReplayScorer:
         progress: bool = False, desc: str = "score",
     ) -> SearchResult:  # fmt: skip
         values = np.asarray(values, np.float64)
-        picked = None if runs is None else np.unique(np.asarray(runs, np.int64))
-        if picked is not None and len(picked) == self.n_runs:
-            picked = None
+        picked = picked_runs(runs, self.n_runs)
         n_runs = self.n_runs if picked is None else len(picked)
         self.meter.add(len(values), n_runs)
         if self._to_workers(len(values) * n_runs):
@@ -137,6 +135,13 @@ class ReplayScorer:
         devices = jax.local_devices()
         placed = [jax.device_put(part, devices[p % len(devices)]) for p, part in enumerate(packed)]
         return ReplayScorer(placed, counts, self.config, None, self.runs[scanned], self.meter)
+
+
+def picked_runs(runs, n_runs: int) -> np.ndarray | None:
+    """A request's runs (a scorer's indices) sorted and without repeats; None where they are all of
+    its n_runs runs (or none were named)."""
+    picked = None if runs is None else np.unique(np.asarray(runs, np.int64))
+    return None if picked is not None and len(picked) == n_runs else picked
 
 
 def _in_run_order(result: SearchResult, index: np.ndarray) -> SearchResult:
