@@ -159,7 +159,7 @@ class Work:
 @dataclass(frozen=True)
 class Plan:
     """A study's work, and the computations it compiles: (kind, family) -> keys of distinct
-    computations (kinds "search", "objective", "nelder_mead", "evaluate", "relaxed", "bfgs")."""
+    computations (kinds "search", "objective", "evaluate", "relaxed", "bfgs")."""
 
     work: tuple[Work, ...]
     compiles: dict[tuple[str, str], frozenset]
