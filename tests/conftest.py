@@ -6,12 +6,46 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
+import warnings
 from pathlib import Path
 
-import jax
-import jaxtyping
-import pytest
+SUITE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+"""XLA's CPU compiler set for programs that run once: its classic fusion emitter (half the compile time of
+the MLIR fusion emitters on this suite's programs) and no LLVM optimisation. Most of the suite's time is
+compiling small programs, and nothing a test asserts depends on how fast compiled code runs; the same
+programs' results are checked (docs/performance.md, "The test suite"). A flag the user's XLA_FLAGS
+already sets wins. XLA reads XLA_FLAGS when its backend starts, after this module is imported."""
+
+
+def _with_suite_xla_flags() -> None:
+    """Add SUITE_XLA_FLAGS to XLA_FLAGS once per pytest run (its xdist workers inherit the result), after a
+    child process shows that this jaxlib accepts them: XLA aborts on a flag it does not know, and a later
+    jaxlib may drop these."""
+    if os.environ.get("JSVE_TEST_XLA_FLAGS_SET"):
+        return
+    os.environ["JSVE_TEST_XLA_FLAGS_SET"] = "1"
+    present = os.environ.get("XLA_FLAGS", "")
+    added = [f for f in SUITE_XLA_FLAGS if f.split("=")[0] not in present]
+    flags = " ".join([present, *added]).strip()
+    probe = subprocess.run(
+        [sys.executable, "-c", "import jax; jax.jit(lambda x: x + 1)(1.0).block_until_ready()"],
+        env={**os.environ, "XLA_FLAGS": flags},
+        capture_output=True,
+    )
+    if probe.returncode == 0:
+        os.environ["XLA_FLAGS"] = flags
+    else:
+        warnings.warn(f"this jaxlib refuses {added}; the suite compiles with XLA's defaults", stacklevel=1)
+
+
+_with_suite_xla_flags()
+
+import jax  # noqa: E402
+import jaxtyping  # noqa: E402
+import pytest  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
