@@ -13,11 +13,11 @@ import warnings
 from pathlib import Path
 
 SUITE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
-"""XLA's CPU compiler set for programs that run once: its classic fusion emitter (half the compile time of
-the MLIR fusion emitters on this suite's programs) and no LLVM optimisation. Most of the suite's time is
-compiling small programs, and nothing a test asserts depends on how fast compiled code runs; the same
-programs' results are checked (docs/performance.md, "The test suite"). A flag the user's XLA_FLAGS
-already sets wins. XLA reads XLA_FLAGS when its backend starts, after this module is imported."""
+"""XLA's CPU compiler set for programs that run once: its classic fusion emitter, which compiles the
+suite's small programs faster than the MLIR fusion emitters, and no LLVM optimisation. Most of the
+suite's time is compiling, and nothing a test asserts depends on how fast compiled code runs (the
+figures: docs/performance.md, "The test suite"). A flag the user's XLA_FLAGS already sets wins. XLA
+reads XLA_FLAGS when its backend starts, after this module is imported."""
 
 
 def _with_suite_xla_flags() -> None:
@@ -29,6 +29,8 @@ def _with_suite_xla_flags() -> None:
     os.environ["JSVE_TEST_XLA_FLAGS_SET"] = "1"
     present = os.environ.get("XLA_FLAGS", "")
     added = [f for f in SUITE_XLA_FLAGS if f.split("=")[0] not in present]
+    if not added:
+        return
     flags = " ".join([present, *added]).strip()
     probe = subprocess.run(
         [sys.executable, "-c", "import jax; jax.jit(lambda x: x + 1)(1.0).block_until_ready()"],
