@@ -12,12 +12,18 @@ import tempfile
 import warnings
 from pathlib import Path
 
-SUITE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+SUITE_XLA_FLAGS = (
+    "--xla_cpu_use_fusion_emitters=false",
+    "--xla_backend_optimization_level=0",
+    "--xla_cpu_multi_thread_eigen=false",
+)
 """XLA's CPU compiler set for programs that run once: its classic fusion emitter, which compiles the
-suite's small programs faster than the MLIR fusion emitters, and no LLVM optimisation. Most of the
-suite's time is compiling, and nothing a test asserts depends on how fast compiled code runs (the
-figures: docs/performance.md, "The test suite"). A flag the user's XLA_FLAGS already sets wins. XLA
-reads XLA_FLAGS when its backend starts, after this module is imported."""
+suite's small programs faster than the MLIR fusion emitters, no LLVM optimisation, and Eigen's
+operations on the calling thread (each pytest-xdist worker has a core; a pool of threads per worker
+only contends with the other worker). Most of the suite's time is compiling, and nothing a test asserts
+depends on how fast compiled code runs (the figures: docs/performance.md, "The test suite"). A flag
+the user's XLA_FLAGS already sets wins. XLA reads XLA_FLAGS when its backend starts, after this module
+is imported."""
 
 
 def _with_suite_xla_flags() -> None:
