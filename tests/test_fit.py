@@ -71,7 +71,7 @@ def test_fitted_sve_beats_the_tuned_inlier_rule_on_held_out_occlusion():
     difference lies below 0."""
     train = FitData.from_runs(ka.make_study("occlusion", range(16), n_frames=500), COAST)
     test = FitData.from_runs(ka.make_study("occlusion", range(100, 116), n_frames=500), COAST)
-    config = FitConfig(n_search=1024, n_starts=1, nm_steps=80)
+    config = FitConfig(n_search=256, n_starts=1, nm_steps=80)
     per_run = {}
     for space in (sve_space(), inlier_space()):
         result = fit(train, space, config=config, progress=False)
