@@ -88,14 +88,14 @@ def test_a_screened_bootstrap_gives_the_unscreened_intervals():
     )
     space = inlier_space()
     result = fit(data, space, config=FitConfig(n_search=64, n_starts=0), progress=False)
-    kwargs = dict(n_local=255, fraction=0.3, n_boot=300, seed=3, progress=False)
+    kwargs = dict(n_local=127, fraction=0.3, n_boot=300, seed=3, progress=False)
     full = parameter_bootstrap(data, space, result, **kwargs)
     screened = parameter_bootstrap(data, space, result, screen_runs=60, **kwargs)
     raced = parameter_bootstrap(data, space, result, screen_runs=20, **kwargs)
-    assert set(full["local"]) == set(full["local_scored"]) == {256} and set(full["race"]) == {"256"}
-    assert screened["local_scored"].iloc[0] < 256
+    assert set(full["local"]) == set(full["local_scored"]) == {128} and set(full["race"]) == {"128"}
+    assert screened["local_scored"].iloc[0] < 128
     first, second, last = (int(k) for k in raced["race"].iloc[0].split(">"))
-    assert first == 256 and 256 > second > last == raced["local_scored"].iloc[0]
+    assert first == 128 and 128 > second > last == raced["local_scored"].iloc[0]
     for column in ("value", "ci_low", "ci_high", "boot_std"):
         np.testing.assert_allclose(screened[column], full[column], err_msg=column)
         np.testing.assert_allclose(raced[column], full[column], err_msg=column)
