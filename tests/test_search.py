@@ -8,6 +8,7 @@ alignment, itself checked against jsve.evaluation._evaluate) for the kernel, set
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 
 import jax
@@ -23,20 +24,43 @@ from jsve.core._rules import Thresholds
 from jsve.core._sve import feature_logs
 from jsve.fitting._data import FitData
 from jsve.fitting._designs import sobol
-from jsve.fitting._kernel import _scan, prepare, score_columns, search_chunk
+from jsve.fitting._kernel import prepare, scan_sums, score_columns, search_chunk
 from jsve.fitting._search import LANES_PER_CALL, call_size, lanes_per_call, search
 from jsve.fitting._space import inlier_space, sve_space
 from jsve.io._batching import from_runs
 
 # ---------------------------------------------------------------------------------------------------
 # The kernel
+#
+# Most of this module's time is XLA compiling one program per (static arguments, shape). Its tests share
+# one shape of logs (six runs of 300 frames, `_study`) and call the oracle as one compiled function of the
+# batch (`_run_losses`), so that a kernel or oracle compiled for one test serves the others with the same
+# settings: the same computations on other data, not fewer checks.
+
+
+@functools.cache
+def _study(kind: str = "occlusion") -> tuple:
+    """Six known-answer runs of 300 frames (read only: tests that edit a run copy its frames)."""
+    return tuple(ka.make_study(kind, range(6), n_frames=300))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def _run_losses(batch, rules, features, config):
+    """The oracle: run_losses of every setting of `rules` (leaves [S]; vmap = a loop over them). The batch
+    is an argument, not a constant of the computation: one compilation per shape and config."""
+    return jax.vmap(lambda rule: run_losses(batch, rule, features, config))(rules)
+
+
+@functools.partial(jax.jit, static_argnames="switch_model")
+def _has_estimate(batch, rules, features, switch_model):
+    """replay's has_estimate of every setting of `rules` ([S, R, F])."""
+    return jax.vmap(lambda rule: replay(batch, rule, features, switch_model=switch_model).has_estimate)(rules)
 
 
 def test_score_columns_match_the_rules_score(x64):
     """score_columns (the kernel's score from shared feature logs) is the rule's own score, for 8 Sobol
     settings: to 1e-12 (float64; the log-domain form rounds differently, a few ulp measured)."""
-    runs = ka.make_study("occlusion", range(2), n_frames=200)
-    batch = from_runs(runs, dtype=jnp.float64).batch
+    batch = from_runs(_study(), dtype=jnp.float64).batch
     f = batch_features(batch)
     space = sve_space()
     values = space.values_from_unit(jnp.asarray(sobol(8, space.dim, seed=2)))
@@ -70,8 +94,7 @@ def test_search_kernel_equals_replay_objective(x64, align, dtype):
     float64; in float32 to 1e-4 relative (the moment form's error budget, ~1e-5 measured) with the same
     failed flags. Both families, 24 Sobol settings each, failing and succeeding runs, under both switch
     models."""
-    runs = ka.make_study("occlusion", range(6), n_frames=300)
-    batch = from_runs(runs, dtype=dtype).batch
+    batch = from_runs(_study(), dtype=dtype).batch
     f = batch_features(batch)
     sb = prepare(batch, f)
     configs = [ObjectiveConfig(align=align, failure_penalty=3.0, switch_model=m) for m in SWITCH_MODELS]
@@ -81,7 +104,7 @@ def test_search_kernel_equals_replay_objective(x64, align, dtype):
         values[-3:, thresholds] = 2.0 * space.score_scale * 1e3  # thresholds no frame passes: runs fail
         rules = space.rule(jnp.asarray(values, dtype))
         got = search_chunk(sb, rules, config)
-        ref = jax.jit(jax.vmap(lambda r, c=config: run_losses(batch, r, f, c)))(rules)
+        ref = _run_losses(batch, rules, f, config)
         failed = np.asarray(ref.failed)
         assert np.array_equal(np.asarray(got.failed), failed)
         assert 0 < failed.mean() < 1  # both kinds of runs are checked
@@ -100,8 +123,7 @@ def test_inputs_without_imu_columns_score_the_same_and_refuse_imu_coast():
     columns: the orbslam3 kernel's results are bit for bit those with them, an imu-coast search on
     them raises a clear error, and the kernel's per-frame inputs are 70 bytes in float32 (142 with the
     IMU; 230 when every column was a float32)."""
-    runs = ka.make_study("occlusion", range(4), n_frames=200)
-    batch = from_runs(runs, dtype=jnp.float32).batch
+    batch = from_runs(_study(), dtype=jnp.float32).batch
     f = batch_features(batch)
     full, slim = prepare(batch, f), prepare(batch, f, imu=False)
     assert slim.imu is None and full.imu is not None
@@ -198,11 +220,11 @@ def test_lanes_per_call_default_and_override_change_call_size_not_results(occlus
 # Logs whose replay can leave the support
 
 
-def _lossy_runs(n_frames: int = 300) -> list:
-    """Occlusion runs whose recorded run lost its map: at the end (3 s without matches; 1 s with its
-    counts, where every tracking rule needs poses the log lacks), in the middle followed by a new map,
-    and two runs that never lost it."""
-    runs = ka.make_study("occlusion", range(6), n_frames=n_frames)
+def _lossy_runs() -> list:
+    """Occlusion runs (`_study`'s) whose recorded run lost its map: at the end (3 s without matches; 1 s
+    with its counts, where every tracking rule needs poses the log lacks), in the middle followed by a new
+    map, and two runs that never lost it."""
+    runs, n_frames = _study(), 300
     return [
         ka.lose_map(runs[0], n_frames - 60),
         ka.lose_map(runs[1], 150, 200),
@@ -233,7 +255,7 @@ def test_search_kernel_equals_replay_objective_out_of_support(x64, dtype):
         values[-3:, thresholds] = 2.0 * space.score_scale * 1e3  # LOST before the recorded run: supported
         rules = space.rule(jnp.asarray(values, dtype))
         got = search_chunk(sb, rules, config)
-        ref = jax.jit(jax.vmap(lambda r, c=config: run_losses(batch, r, f, c)))(rules)
+        ref = _run_losses(batch, rules, f, config)
         unsupported = np.asarray(ref.unsupported)
         assert 0 < unsupported.mean() < 1, (model, space.kind)
         assert np.array_equal(np.asarray(got.unsupported), unsupported)
@@ -249,9 +271,7 @@ def test_search_kernel_equals_replay_objective_out_of_support(x64, dtype):
             np.testing.assert_allclose(np.asarray(got.loss), np.asarray(ref.loss), rtol=1e-4, atol=2e-6)
         np.testing.assert_allclose(np.asarray(got.coverage), np.asarray(ref.coverage), rtol=0, atol=1e-6)
         if model == "imu-coast":
-            estimated = np.asarray(
-                jax.jit(jax.vmap(lambda r: replay(batch, r, f, switch_model="imu-coast").has_estimate))(rules)
-            )
+            estimated = np.asarray(_has_estimate(batch, rules, f, "imu-coast"))
             off_pose = (estimated & ~np.asarray(batch.has_pose)[None] & np.asarray(batch.gt_valid)[None]).any(
                 -1
             )
@@ -266,7 +286,7 @@ def test_search_kernel_reruns_exactly_where_lanes_miss_posed_frames(x64, switch_
     lost tracking with posed frames and no estimate: the kernel scans again with the corrections and
     equals run_losses to 1e-12 m."""
     runs = []
-    for run in ka.make_study("counts", range(6), n_frames=300):
+    for run in _study("counts"):
         frames = run.frames.copy()
         bad = np.flatnonzero(frames["n_inliers"].to_numpy() < 40)
         bad = bad[bad > 40]  # after the relocalisation window
@@ -280,11 +300,12 @@ def test_search_kernel_reruns_exactly_where_lanes_miss_posed_frames(x64, switch_
     values = np.array(space.values_from_unit(sobol(24, space.dim, seed=4)))
     values[0] = [39.5, 49.5, 49.5, 38.5]  # the known-answer rule: recovers from every bad episode
     rules = space.rule(jnp.asarray(values))
-    config = ObjectiveConfig(switch_model=switch_model)
+    # the penalty of test_search_kernel_equals_replay_objective: the same shapes and config, compiled once
+    config = ObjectiveConfig(failure_penalty=3.0, switch_model=switch_model)
     assert bool(jnp.all(batch.has_pose | ~batch.valid))
-    fast = _scan(sb, jax.tree.map(lambda x: x[:, None], rules), config, exact=False)
+    fast = scan_sums(sb, rules, config, exact=False)  # search_chunk's first scan
     got = search_chunk(sb, rules, config)
-    ref = jax.jit(jax.vmap(lambda r: run_losses(batch, r, f, config)))(rules)
+    ref = _run_losses(batch, rules, f, config)
     assert np.array_equal(np.asarray(got.failed), np.asarray(ref.failed))
     # scored runs that the first scan's fixed statistics do not cover: the rerun is needed
     inexact = (np.asarray(fast.lost) < 0.5) & (np.asarray(fast.n_off) > 0.5) & ~np.asarray(ref.failed)
@@ -306,17 +327,21 @@ def test_search_result_weighs_included_runs_only(x64):
     values = np.array(space.values_from_unit(sobol(8, space.dim, seed=5)))
     values[0] = [0.5, 0.5, 0.5, 0.0]  # keeps tracking wherever there is a match: unsupported on lossy runs
     w = np.arange(1.0, len(runs) + 1)
+    rules = space.rule(jnp.asarray(values))
     results = {}
     for support, d in data.items():
         res = search(d.parts, space, values, d.config, run_counts=d.run_counts, progress=False)
         results[support] = res
+        # run_losses of every setting on every part, the real runs of each part in order: [S, R] leaves
+        per_part = [_run_losses(b, rules, f, d.config) for b, f in zip(d.batches, d.features, strict=True)]
+        all_losses = jax.tree.map(
+            lambda *xs, c=d.run_counts: jnp.concatenate(
+                [x[:, :n] for x, n in zip(xs, c, strict=True)], axis=1
+            ),
+            *per_part,
+        )
         for i in range(len(values)):
-            rule = space.rule(jnp.asarray(values[i]))
-            losses = [run_losses(b, rule, f, d.config) for b, f in zip(d.batches, d.features, strict=True)]
-            losses = jax.tree.map(
-                lambda *xs, c=d.run_counts: jnp.concatenate([x[:n] for x, n in zip(xs, c, strict=True)]),
-                *losses,
-            )
+            losses = jax.tree.map(lambda x, i=i: x[i], all_losses)
             ref = weighted_objective(losses, jnp.asarray(w))
             np.testing.assert_allclose(res.objective(w)[i], float(ref.value), rtol=1e-12)
             np.testing.assert_allclose(res.failure_rate(w)[i], float(ref.failure_rate), rtol=1e-12)
