@@ -62,7 +62,7 @@ def test_bootstrap_weighted_mean_matches_aggregate_bootstrap_ci():
 def test_cross_validation_holds_every_run_out_once(counts_data):
     data = counts_data
     folds = kfold(data.n_runs, 4, seed=0) + leave_one_out(data.meta, "sequence")
-    config = FitConfig(n_search=128, n_starts=1, nm_steps=20)
+    config = FitConfig(n_search=32, n_starts=1, nm_steps=10)
     cv = cross_validate(
         data,
         {"inliers": inlier_space()},

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import jax
 import knownanswer as ka
 import numpy as np
 import pytest
@@ -36,7 +37,22 @@ def study(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def address():
+def worker_env():
+    """The environment the module's worker processes start with: this process's, plus the suite's
+    persistent compilation cache where it has one (tests/conftest.py), so that a worker loads what this
+    process or another worker compiled before it (a verdict's kernels, the next pool's) instead of
+    compiling it again. Results are the same either way: the same executables."""
+    folder = jax.config.jax_compilation_cache_dir
+    with pytest.MonkeyPatch.context() as patch:
+        if folder:
+            patch.setenv("JAX_COMPILATION_CACHE_DIR", str(folder))
+            patch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+            patch.setenv("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+        yield
+
+
+@pytest.fixture(scope="module")
+def address(worker_env):
     """A Dask cluster of two single-threaded worker processes reached through its scheduler's address
     on loopback, as `dask scheduler` + `dask worker` would make one."""
     distributed = pytest.importorskip("distributed")
@@ -48,6 +64,15 @@ def address():
         yield cluster.scheduler_address
     finally:
         cluster.close(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def pool(study, worker_env):
+    """The study's sharded search on a process pool of 2 workers, 16 settings a task, started by its
+    first search and kept for the module's tests (each worker imports jsve, loads the study and
+    compiles its kernels once)."""
+    with ShardedSearch.of(study, "processes", settings_per_task=16) as sharded:
+        yield sharded
 
 
 def _values(space, n: int, seed: int = 0) -> np.ndarray:
@@ -74,13 +99,13 @@ def test_shards_on_two_workers_equal_the_local_search(study, address):
     _equal(sharded(space, values, runs), on_subset)
 
 
-def test_a_fit_whose_searches_run_on_workers_fits_what_a_local_fit_fits(study):
+def test_a_fit_whose_searches_run_on_workers_fits_what_a_local_fit_fits(study, pool):
     """The halving search's rungs (all runs and subsets) and the polish on a process pool of 2 workers:
     the same rule, objective and search stage as in this process."""
     space = inlier_space()
     config = FitConfig(n_search=40, search="halving", initial_fraction=1 / 3, n_starts=1, nm_steps=10)
     local = fit(study, space, config=config, progress=False)
-    sharded, calls = ShardedSearch.of(study, "processes", settings_per_task=16), []
+    sharded, calls = pool, []
 
     def searcher(space, values, runs, **kwargs):
         calls.append((len(values), None if runs is None else len(runs)))
@@ -97,11 +122,13 @@ def test_a_fit_whose_searches_run_on_workers_fits_what_a_local_fit_fits(study):
     assert remote.stages[0]["rungs"] == local.stages[0]["rungs"]
 
 
-def test_a_worker_that_reads_other_content_fails_the_search(study):
-    space = sve_space()
-    wrong = dataclasses.replace(ShardedSearch.of(study, "processes"), digest="0" * 64)
+def test_a_worker_that_reads_other_content_fails_the_search(pool, monkeypatch):
+    """The driver's digest against the workers' (the workers of `pool`: a search of the fit's verdict's
+    size, whose kernels a worker compiled for the fit above when that test ran first)."""
+    monkeypatch.setattr(pool, "digest", "0" * 64)
+    space = inlier_space()
     with pytest.raises(RuntimeError, match="a worker read other content"):
-        wrong(space, _values(space, 3))
+        pool(space, _values(space, 2))
 
 
 def test_only_a_parquet_study_can_be_sharded():
