@@ -69,8 +69,9 @@ def release_memory(*, above_bytes: int | None = RELEASE_ABOVE_BYTES) -> dict:
     Nothing is done where $JSVE_RELEASE_MEMORY turns it off.
 
     Below `above_bytes` only the young generations are collected: a full collection walks every object
-    the interpreter tracks, JAX's cached jaxprs included (hundreds of thousands after a few fits: 0.1 to
-    0.4 s a call), and a process that small has nothing worth that to give back. Above it, a full
+    the interpreter tracks, JAX's cached jaxprs included (hundreds of thousands after a few fits; the
+    cost: docs/performance.md, "The test suite"), and a process that small has nothing worth that to give
+    back. Above it, a full
     collection before and after dropping the executables frees what they held.
 
     Returns:
