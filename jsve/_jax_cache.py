@@ -1,6 +1,6 @@
 """JAX's persistent compilation cache in a user cache folder, so a second `jsve` run compiles nothing.
 
-The commands that compute (evaluate, fit, demo, check) call `enable_compilation_cache()` before their
+The commands that compute (evaluate, fit, demo, check, tune) call `enable_compilation_cache()` before their
 first JAX computation. The folder is $JSVE_JAX_CACHE when set, else $XDG_CACHE_HOME/jsve/jax (default
 ~/.cache/jsve/jax); JSVE_JAX_CACHE=0 (or off, false, no, none, or empty) turns the cache off. Entries are
 keyed by JAX on the computation, shapes, flags, JAX version and device, so a stale entry is never used;

@@ -17,14 +17,19 @@ SUITE_XLA_FLAGS = (
     "--xla_cpu_use_fusion_emitters=false",
     "--xla_backend_optimization_level=0",
     "--xla_cpu_multi_thread_eigen=false",
+    "--xla_cpu_parallel_codegen_split_count=1",
+    "--xla_cpu_copy_insertion_use_region_analysis=false",
+    "--xla_cpu_enable_concurrency_optimized_scheduler=false",
 )
 """XLA's CPU compiler set for programs that run once: its classic fusion emitter, which compiles the
-suite's small programs faster than the MLIR fusion emitters, no LLVM optimisation, and Eigen's
-operations on the calling thread (each pytest-xdist worker has a core; a pool of threads per worker
-only contends with the other worker). Most of the suite's time is compiling, and nothing a test asserts
-depends on how fast compiled code runs (the figures: docs/performance.md, "The test suite"). A flag
-the user's XLA_FLAGS already sets wins. XLA reads XLA_FLAGS when its backend starts, after this module
-is imported."""
+suite's small programs faster than the MLIR fusion emitters, no LLVM optimisation, Eigen's operations
+on the calling thread (each pytest-xdist worker has a core; a pool of threads per worker only contends
+with the other worker), each program's machine code emitted as one LLVM module rather than parts for
+parallel code generation (one thread per worker gains nothing from the split), and the cheaper copy
+insertion and instruction scheduling. Most of the suite's time is compiling; none of these changes what
+a program computes, and nothing a test asserts depends on how fast compiled code runs (the figures:
+docs/performance.md, "The test suite"). A flag the user's XLA_FLAGS already sets wins. XLA reads
+XLA_FLAGS when its backend starts, after this module is imported."""
 
 
 def _with_suite_xla_flags() -> None:
@@ -58,16 +63,19 @@ import pytest  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
-# The commands' persistent compilation cache (jsve._jax_cache) off: the suite neither writes into the
-# user's cache folder nor reads executables compiled by another checkout. tests/test_jax_cache.py turns
-# it on in its own processes.
+# The commands' persistent compilation cache (jsve._jax_cache) is the suite's own (below), or off: the
+# suite neither writes into the user's cache folder nor reads executables compiled by another checkout.
+# tests/test_jax_cache.py points it at folders of its own.
 os.environ["JSVE_JAX_CACHE"] = "off"
 
 SUITE_CACHE_ENV = "JSVE_TEST_JAX_CACHE"
 """A JAX compilation cache folder of this test run alone (a fresh temporary folder, deleted at its end),
 shared by its pytest-xdist workers: a computation one worker compiled, the other loads, and a module that
 compiles what an earlier one did (the in-memory caches are dropped after every module, below) loads it
-too. Set it to a folder to keep one across runs, or to "off" to compile everything (as before)."""
+too. The processes a test starts read and write it as well: the commands (`python -m jsve.cli ...`) as
+their JSVE_JAX_CACHE, any other (a Dask worker, a process pool's worker) through JAX's own
+JAX_COMPILATION_CACHE_DIR. Results are the same either way: the same executables. Set it to a folder to
+keep one across runs, or to "off" to compile everything."""
 
 
 def pytest_configure(config):
@@ -76,6 +84,10 @@ def pytest_configure(config):
         config.suite_cache_made = os.environ[SUITE_CACHE_ENV] = tempfile.mkdtemp(prefix="jsve-tests-jax-")
     folder = os.environ.get(SUITE_CACHE_ENV, "off")
     if folder.strip().lower() not in ("", "0", "off", "false", "no", "none"):
+        os.environ["JSVE_JAX_CACHE"] = folder
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+        os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+        os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
         jax.config.update("jax_compilation_cache_dir", folder)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

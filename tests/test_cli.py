@@ -214,8 +214,9 @@ def _argv(command: str, tmp, out) -> list[str]:
     return {
         "ingest": lambda: ["ingest", logs, "-o", str(out / "study.parquet"), "--no-progress",
                            "--workers", "1"],
-        "simulate": lambda: ["simulate", "-o", str(out), "--procedural", "1", "--disturbances",
-                             "occlusion:450", "--runs", "1", "--workers", "1", "--no-progress"],
+        "simulate": lambda: ["simulate", "-o", str(out), "--procedural", "1", "--duration", "30",
+                             "--disturbances", "occlusion:450", "--runs", "1", "--workers", "1",
+                             "--no-progress"],
         "evaluate": lambda: ["evaluate", logs, "--rule", "orbslam3", "-o", str(out), "--no-progress"],
         "ape": lambda: ["ape", ref, est, "-o", str(out / "ape.csv")],
         "rpe": lambda: ["rpe", ref, est, "-o", str(out / "rpe.csv")],

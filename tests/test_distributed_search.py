@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-import jax
 import knownanswer as ka
 import numpy as np
 import pytest
@@ -37,22 +36,7 @@ def study(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def worker_env():
-    """The environment the module's worker processes start with: this process's, plus the suite's
-    persistent compilation cache where it has one (tests/conftest.py), so that a worker loads what this
-    process or another worker compiled before it (a verdict's kernels, the next pool's) instead of
-    compiling it again. Results are the same either way: the same executables."""
-    folder = jax.config.jax_compilation_cache_dir
-    with pytest.MonkeyPatch.context() as patch:
-        if folder:
-            patch.setenv("JAX_COMPILATION_CACHE_DIR", str(folder))
-            patch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-            patch.setenv("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
-        yield
-
-
-@pytest.fixture(scope="module")
-def address(worker_env):
+def address():
     """A Dask cluster of two single-threaded worker processes reached through its scheduler's address
     on loopback, as `dask scheduler` + `dask worker` would make one."""
     distributed = pytest.importorskip("distributed")
@@ -67,7 +51,7 @@ def address(worker_env):
 
 
 @pytest.fixture(scope="module")
-def pool(study, worker_env):
+def pool(study):
     """The study's sharded search on a process pool of 2 workers, 16 settings a task, started by its
     first search and kept for the module's tests (each worker imports jsve, loads the study and
     compiles its kernels once)."""

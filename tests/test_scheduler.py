@@ -229,7 +229,8 @@ def _tasks_run(cluster) -> dict[str, int]:
 def test_simulate_on_a_cluster_writes_what_the_process_pool_writes(cluster, tmp_path):
     address = cluster.scheduler_address
     assert address.startswith("tcp://127.0.0.1:")
-    sweep = ["--procedural", "2", "--disturbances", "blur=0", "--runs", "1", "--workers", "2"]
+    sweep = ["--procedural", "2", "--duration", "30", "--disturbances", "blur=0", "--runs", "1"]
+    sweep += ["--workers", "2"]
     _jsve("simulate", "-o", str(tmp_path / "pool"), *sweep, "--scheduler", "processes")
     _jsve("simulate", "-o", str(tmp_path / "cluster"), *sweep, "--scheduler", address)
     assert _tasks_run(cluster).get("jsve_run_job") == 2  # one task per sequence, on the cluster

@@ -24,7 +24,7 @@ from jsve.core._rules import Thresholds
 from jsve.core._sve import feature_logs
 from jsve.fitting._data import FitData
 from jsve.fitting._designs import sobol
-from jsve.fitting._kernel import prepare, scan_sums, score_columns, search_chunk
+from jsve.fitting._kernel import _compiled_scan_sums, prepare, scan_sums, score_columns, search_chunk
 from jsve.fitting._search import LANES_PER_CALL, call_size, lanes_per_call, search
 from jsve.fitting._space import inlier_space, sve_space
 from jsve.io._batching import from_runs
@@ -73,6 +73,30 @@ def test_score_columns_match_the_rules_score(x64):
             rtol=1e-12,
             atol=1e-14,
         )
+
+
+def test_objectives_that_score_the_sums_apart_share_one_compiled_scan():
+    """The scan reads only the switch model and RECENTLY_LOST's time (kernel.scan_config): objectives with
+    another penalty, alignment, loss or support run the scan compiled for the first, and still score
+    as their own (the penalty on every failed run); another time in RECENTLY_LOST compiles its own."""
+    batch = from_runs(_study(), dtype=jnp.float32).batch
+    sb = prepare(batch, batch_features(batch))
+    space = sve_space()
+    values = np.array(space.values_from_unit(sobol(24, space.dim, seed=4)))
+    thresholds = [space.names.index(field.name) for field in dataclasses.fields(Thresholds)]
+    values[-3:, thresholds] = 2.0 * space.score_scale * 1e3  # thresholds no frame passes: runs fail
+    rules = space.rule(jnp.asarray(values, jnp.float32))
+    compiled = _compiled_scan_sums._cache_size
+    first = search_chunk(sb, rules, ObjectiveConfig(failure_penalty=3.0))
+    n_first = compiled()
+    other = ObjectiveConfig(failure_penalty=5.0, align="sim3", loss="raw", support="exclude")
+    again = search_chunk(sb, rules, other)
+    assert compiled() == n_first
+    assert np.array_equal(np.asarray(again.failed), np.asarray(first.failed))
+    failed = np.asarray(again.failed)
+    assert 0 < failed.mean() < 1 and np.all(np.asarray(again.loss)[failed] == 5.0)
+    search_chunk(sb, rules, ObjectiveConfig(failure_penalty=3.0, time_recently_lost=1.0))
+    assert compiled() > n_first
 
 
 @pytest.fixture(scope="module")

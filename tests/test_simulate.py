@@ -231,6 +231,8 @@ def test_cli(tmp_path, capsys):
                 str(out),
                 "--procedural",
                 "1",
+                "--duration",
+                "30",
                 "--disturbances",
                 "occlusion:450",
                 "--runs",

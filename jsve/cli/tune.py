@@ -53,8 +53,10 @@ def register(sub) -> None:
 
 @common.guarded("tune")
 def run(args) -> int:
+    from jsve._jax_cache import enable_compilation_cache
     from jsve.tuning import TuneStudy, tune
 
+    enable_compilation_cache()  # the proposals' replays and fits: a resumed tuning compiles nothing again
     scheduler = None if args.scheduler == "local" else args.scheduler
     try:
         study = TuneStudy.from_toml(

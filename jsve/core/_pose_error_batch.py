@@ -174,7 +174,7 @@ def batched_pose_error(
 
 
 def _score_pairs(est, ref, valid, aligned, transforms, first, second, mask, relation) -> RelativeErrorBatch:
-    """Each run's pair errors, statistics and failure causes (inside `_rpe_kernel` / `_rpe_scores`)."""
+    """Each run's pair errors, statistics and failure causes (`_rpe_scores`)."""
     mask = mask & ~transforms.degenerate[:, None]
 
     def one(e, r, i, j, m):
@@ -206,19 +206,16 @@ def _align_runs(est, ref, valid, method, n_first):
     return jax.vmap(lambda e, r, m: align_poses(e, r, m, method=method, n_first=n_first))(est, ref, valid)
 
 
-@functools.partial(
-    jax.jit, static_argnames=("unit", "all_pairs", "from_reference", "relation", "method", "n_first")
-)
-def _rpe_kernel(
-    est, ref, valid, delta, rel_tol, *, unit, all_pairs, from_reference, relation, method, n_first
-):
-    """`batched_rpe` in one compiled program, for the pairs `rpe_pairs` chooses (a slot per pose)."""
+@functools.partial(jax.jit, static_argnames=("unit", "all_pairs", "from_reference", "method", "n_first"))
+def _rpe_pairs(est, ref, valid, delta, rel_tol, *, unit, all_pairs, from_reference, method, n_first):
+    """The aligned runs and the pairs `rpe_pairs` chooses (a slot per pose): one compiled program for
+    every relation, which `_rpe_scores` then scores."""
     aligned, transforms = _align_runs(est, ref, valid, method, n_first)
     source = ref if from_reference else aligned
     first, second, mask = jax.vmap(
         lambda p, m: rpe_pairs(p, m, delta, unit=unit, all_pairs=all_pairs, rel_tol=rel_tol)
     )(source, valid)
-    return _score_pairs(est, ref, valid, aligned, transforms, first, second, mask, relation)
+    return aligned, transforms, first, second, mask
 
 
 @functools.partial(jax.jit, static_argnames=("degrees", "from_reference", "method", "n_first"))
@@ -316,8 +313,9 @@ def batched_rpe(
             method=align, n_first=n_first,
         )  # fmt: skip
         first, second, mask = _compact(np.asarray(masks))
-        return _rpe_scores(est, ref, valid, aligned, transforms, first, second, mask, relation=relation)
-    return _rpe_kernel(
-        est, ref, valid, delta, rel_tol, unit=unit, all_pairs=all_pairs, from_reference=pairs_from_reference,
-        relation=relation, method=align, n_first=n_first,
-    )  # fmt: skip
+    else:
+        aligned, transforms, first, second, mask = _rpe_pairs(
+            est, ref, valid, delta, rel_tol, unit=unit, all_pairs=all_pairs,
+            from_reference=pairs_from_reference, method=align, n_first=n_first,
+        )  # fmt: skip
+    return _rpe_scores(est, ref, valid, aligned, transforms, first, second, mask, relation=relation)

@@ -446,9 +446,21 @@ def check_align(config: ObjectiveConfig) -> None:
         )
 
 
-@functools.partial(jax.jit, static_argnames=("config", "exact"))
 def scan_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig, exact: bool) -> _LaneSums:
-    """One compiled scan of search_chunk over settings `rules` (leaves [S]): per-lane sums ([S, R])."""
+    """One compiled scan of search_chunk over settings `rules` (leaves [S]): per-lane sums ([S, R]).
+    Objectives that differ only in how the sums are scored share it (scan_config)."""
+    return _compiled_scan_sums(sb, rules, scan_config(config), exact)
+
+
+def scan_config(config: ObjectiveConfig) -> ObjectiveConfig:
+    """The part of `config` the scan reads (the switch model and RECENTLY_LOST's time), the rest at its
+    defaults: the penalty, alignment, coverage, failure, loss and support act on the sums afterwards
+    (needs_corrections, chunk_result), so one compiled scan serves every such objective."""
+    return ObjectiveConfig(switch_model=config.switch_model, time_recently_lost=config.time_recently_lost)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "exact"))
+def _compiled_scan_sums(sb: SearchBatch, rules: Rule, config: ObjectiveConfig, exact: bool) -> _LaneSums:
     rule = jax.tree.map(lambda x: x.astype(sb.t.dtype)[:, None], rules)  # leaves [S, 1] broadcast over runs
     return _scan(sb, rule, config, exact=exact)
 
