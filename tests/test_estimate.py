@@ -18,6 +18,7 @@ from jsve.core._rules import PRESETS, preset
 from jsve.fitting._config import StudyConfig
 from jsve.fitting._counting import flat_results, plan
 from jsve.fitting._estimate import (
+    BFGS_COMPILE,
     Plan,
     Rates,
     StudySize,
@@ -162,22 +163,23 @@ def test_the_flat_objective_answers_in_the_requested_shape():
 
 def test_price_is_units_times_rates_and_the_compilations_left():
     work = Plan(
-        work=(Work("fit", "search", "sve", 1e9), Work("fit", "objective", "sve", 100.0)),
+        work=(Work("fit", "search", "sve", 1e9), Work("fit", "relaxed", "sve", 100.0)),
         compiles={
             ("search", "sve"): frozenset({1, 2, 3}),
-            ("objective", "sve"): frozenset({"sve"}),
             ("relaxed", "sve"): frozenset({"sve"}),
+            ("bfgs", "sve"): frozenset({"sve"}),
         },
     )
     rates = Rates(
-        seconds={("search", "sve"): 2e-8, ("objective", "sve"): 0.5},
-        compile={("search", "sve"): 4.0, ("objective", "sve"): 10.0, ("relaxed", "sve"): 30.0},
-        compiled={("search", "sve"): frozenset({1}), ("objective", "sve"): frozenset({"sve"})},
+        seconds={("search", "sve"): 2e-8, ("relaxed", "sve"): 0.5},
+        compile={("search", "sve"): 4.0, ("relaxed", "sve"): 10.0},
+        compiled={("search", "sve"): frozenset({1}), ("relaxed", "sve"): frozenset({"sve"})},
     )
     estimate = price(work, rates)
     assert estimate.stages == {"fit": pytest.approx(20.0 + 50.0)}
-    assert estimate.compile == pytest.approx(2 * 4.0 + 30.0)  # the objective was compiled by the probe
-    assert estimate.total == pytest.approx(70.0 + 8.0 + 30.0)
+    # the relaxed objective was compiled by the probe; the BFGS costs BFGS_COMPILE times its compile
+    assert estimate.compile == pytest.approx(2 * 4.0 + BFGS_COMPILE * 10.0)
+    assert estimate.total == pytest.approx(70.0 + 8.0 + BFGS_COMPILE * 10.0)
     assert [duration(s) for s in (40, 210, 7200)] == ["40 s", "3.5 min", "2.0 h"]
 
 

@@ -179,12 +179,13 @@ def counted_evaluate(study, size: StudySize, tally: Tally) -> None:
 def relaxed_work(size: StudySize, fit, family: str, n_fits: int, tally: Tally) -> None:
     """The relaxed fit of n_fits fits: its start (each fit's candidates judged on every run), then per
     temperature BFGS_EVALS_PER_STEP relaxed objectives a BFGS step (bfgs_steps) and one more, and the
-    hard objective."""
+    hard objective (a one-setting search on every run)."""
     units, keys = search_cost(size, 1 + max(fit.n_starts, 0))
     tally.add("search", family, n_fits * units, keys)
     temps = len(fit.temperatures)
     tally.add("relaxed", family, n_fits * temps * (BFGS_EVALS_PER_STEP * fit.bfgs_steps + 1), {family})
-    tally.add("objective", family, n_fits * temps, {family})
+    units, keys = search_cost(size, 1)
+    tally.add("search", family, n_fits * temps * units, keys)
     tally.compiles.setdefault(("bfgs", family), set()).add(family)
 
 

@@ -21,13 +21,14 @@ out, in five kinds of work, each costing time in proportion to what it scans:
 - **evaluate**: jsve.evaluation.evaluate of one rule over the study (run-frames of its chunks): the
   presets and the fitted rules, in one pass that also gives the cross-validation the presets' held-out
   rows.
-- **objective** and **relaxed** (`[fit] relaxed = true` only): the hard and the relaxed objective of one
-  setting on every run; a BFGS step costs BFGS_EVALS_PER_STEP relaxed ones.
+- **relaxed** (`[fit] relaxed = true` only): the relaxed objective of one setting on every run; a BFGS
+  step costs BFGS_EVALS_PER_STEP of them (its hard objective after each temperature is a one-setting
+  search).
 - **flops**: the parameter bootstrap's resample weights times the per-run losses, 2 x n_boot x R x S.
 
 Seconds = sum over (stage, kind) of units x the probe's seconds per unit. Compilation is counted apart:
 every distinct computation the study compiles (per family: the search kernel per part shape, call size
-and device; with the relaxed fit, the objective; per rule structure and chunk shape, evaluate) costs
+and device; with the relaxed fit, the relaxed objective; per rule structure and chunk shape, evaluate) costs
 what the probe's compile of its kind took; what the probe compiled is already paid. With JAX's
 persistent cache warm (a second `jsve fit` of the same shapes) the probe's compilations are cache
 loads, and so the estimate's. Left out: loading the logs and preparing
@@ -35,7 +36,7 @@ FitData (done before the probe), tables, summaries and the report (seconds).
 
 The probe (`probe`) runs, after compiling each, the same calls the study makes first: per family one
 round of search calls on the first part (one per device, the search's call size) (with the relaxed
-fit, one objective evaluation and one relaxed one); one evaluate chunk of the first bucket; a matrix
+fit, one relaxed objective); one evaluate chunk of the first bucket; a matrix
 product.
 Each is timed twice, the first call's extra time being its compilation; results are discarded, so the
 study's results do not change, and the compiled computations are those the study then reuses.
@@ -71,7 +72,6 @@ STAGES = (
 
 UNITS = {
     "search": "lane-frames per device",
-    "objective": "evaluations",
     "evaluate": "run-frames",
     "relaxed": "evaluations",
     "flops": "flops",
@@ -159,7 +159,7 @@ class Work:
 @dataclass(frozen=True)
 class Plan:
     """A study's work, and the computations it compiles: (kind, family) -> keys of distinct
-    computations (kinds "search", "objective", "evaluate", "relaxed", "bfgs")."""
+    computations (kinds "search", "evaluate", "relaxed", "bfgs")."""
 
     work: tuple[Work, ...]
     compiles: dict[tuple[str, str], frozenset]
@@ -366,8 +366,7 @@ def _twice(fn, spent: list[float]) -> tuple[float, float]:
 
 def probe(data, config, *, progress: bool = False) -> Rates:
     """Time the study's computations on its own data (module docstring): per family a round of search
-    calls, a one-setting search and an objective evaluation (and the relaxed objective where the fit
-    runs it); an evaluate chunk; a matrix product.
+    calls (and the relaxed objective where the fit runs it); an evaluate chunk; a matrix product.
 
     Arguments:
         data: FitData; config: StudyConfig (its objective must be data's).
@@ -383,7 +382,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     from jsve.core._rules import BASELINES, preset
     from jsve.evaluation._evaluate import evaluate_batch
     from jsve.fitting._fit import search_design
-    from jsve.fitting._optimise import _hard_jit, _relaxed_jit
+    from jsve.fitting._optimise import _relaxed_jit
     from jsve.fitting._search import call_size, search
 
     n_devices = len(jax.local_devices())
@@ -392,7 +391,7 @@ def probe(data, config, *, progress: bool = False) -> Rates:
     compiled: dict[tuple[str, str], set] = {}
     started, spent = time.perf_counter(), []
     families = list(config.families)
-    steps = (3 if config.fit.relaxed else 1) * len(families) + 2
+    steps = (2 if config.fit.relaxed else 1) * len(families) + 2
     weights = data.split_weights(np.ones(data.n_runs))
     part, n_real = data.parts[0], data.run_counts[0]
     with tqdm(total=steps, desc="timing probe", unit="step", disable=not progress) as bar:
@@ -413,12 +412,8 @@ def probe(data, config, *, progress: bool = False) -> Rates:
             compiled["search", family] = keys
             bar.update(1)
 
-            if config.fit.relaxed:  # the relaxed fit's objectives (jsve.fitting._optimise.relaxed_fit)
+            if config.fit.relaxed:  # the relaxed fit's objective (jsve.fitting._optimise.relaxed_fit)
                 z = space.z_from_values(jnp.asarray(values[0], part.t.dtype))
-                run = functools.partial(_hard_jit, z, data.parts, weights, space, data.config)
-                compile_s["objective", family], seconds["objective", family] = _twice(run, spent)
-                compiled["objective", family] = {family}
-                bar.update(1)
                 tau = jnp.asarray(config.fit.temperatures[0], z.dtype)
                 run = functools.partial(_relaxed_jit, z, *data.slim(), weights, tau, space, data.config)
                 compile_s["relaxed", family], seconds["relaxed", family] = _twice(run, spent)

@@ -21,7 +21,6 @@ import optimistix as optx
 from jsve.core._machine import SoftLogic
 from jsve.core._objective import ObjectiveConfig, run_losses
 from jsve.fitting._data import FitData, _default_weights
-from jsve.fitting._kernel import search_chunk
 from jsve.fitting._polish import polish_in_lockstep
 from jsve.fitting._space import ParamSpace
 
@@ -44,13 +43,6 @@ def _included_mean(parts):
     return jnp.where(den_in > 0, num_in / jnp.where(den_in > 0, den_in, 1.0), num_all / den_all)
 
 
-def _hard_value(z, parts, weights, space: ParamSpace, config: ObjectiveConfig):
-    """Weighted mean hard loss of the setting with unconstrained coordinates z (the search kernel, S = 1)."""
-    rule = space.rule(space.values_from_z(z)[None])
-    results = [(search_chunk(sb, rule, config), w) for sb, w in zip(parts, weights, strict=True)]
-    return _included_mean([(r.loss[0], r.included[0].astype(w.dtype), w) for r, w in results])
-
-
 def _relaxed_value(z, batches, features, weights, temperature, space: ParamSpace, config: ObjectiveConfig):
     """Weighted mean relaxed loss (SoftLogic(temperature x score scale)); differentiable in z."""
     rule = space.rule(space.values_from_z(z))
@@ -63,13 +55,12 @@ def _relaxed_value(z, batches, features, weights, temperature, space: ParamSpace
 
 
 def hard_objective(data: FitData, space: ParamSpace, values, weights=None) -> float:
-    """The hard objective (metres) of one setting's free values."""
-    w = data.split_weights(_default_weights(data, weights))
-    return float(
-        _hard_jit(
-            space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype)), data.parts, w, space, data.config
-        )
-    )
+    """The hard objective (metres) of one setting's free values `values` [d] under run weights [R]
+    (default: every run 1): the study's scorer scores the setting on every run, as the search scores
+    its settings (the same compiled scans), and its included runs are averaged with the weights."""
+    w = _default_weights(data, weights)
+    result = data.scorer.score(space, np.asarray(values, np.float64)[None], desc="objective")
+    return float(result.objective(w)[0])
 
 
 def relaxed_objective(data: FitData, space: ParamSpace, values, temperature: float, weights=None) -> float:
@@ -80,7 +71,6 @@ def relaxed_objective(data: FitData, space: ParamSpace, values, temperature: flo
     return float(_relaxed_jit(z, batches, features, w, jnp.asarray(temperature, z.dtype), space, data.config))
 
 
-_hard_jit = eqx.filter_jit(_hard_value)
 _relaxed_jit = eqx.filter_jit(_relaxed_value)
 _relaxed_grad = eqx.filter_jit(jax.value_and_grad(_relaxed_value))
 
@@ -140,9 +130,7 @@ def nelder_mead(
     )  # fmt: skip
     values = ended.values[0]
     # The objective on every run with weight: where the polish ran on a subset, the verdict is not its.
-    z = space.z_from_values(jnp.asarray(values, data.parts[0].t.dtype))
-    value = float(_hard_jit(z, data.parts, data.split_weights(w), space, data.config))
-    return values, value, int(ended.steps[0])
+    return values, hard_objective(data, space, values, w), int(ended.steps[0])
 
 
 def relaxed_fit(
@@ -182,7 +170,7 @@ def relaxed_fit(
             float(atol),
         )
         relaxed = float(_relaxed_jit(z, batches, features, w, tau, space, data.config))
-        hard = float(_hard_jit(z, data.parts, w, space, data.config))
+        hard = hard_objective(data, space, np.asarray(space.values_from_z(z), np.float64), weights)
         history.append(
             {"temperature": float(temperature), "relaxed": relaxed, "hard": hard, "steps": int(steps)}
         )
