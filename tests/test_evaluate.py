@@ -19,6 +19,9 @@ from logfactory import make_run
 
 import jsve
 from jsve.cli import main as jsve_main
+from jsve.evaluation import _evaluate
+from jsve.evaluation._evaluate import TABLE_COLUMNS
+from jsve.io._batching import meta_columns
 from jsve.io._logs import write_log
 
 
@@ -65,6 +68,8 @@ def test_evaluate_equals_per_run_composition(runs, rule_name):
         np.testing.assert_allclose(row["accepted_fraction"], accepted, rtol=1e-6)
         assert row["rule"] == rule_name
         assert row["n_frames"] == len(run.frames)
+    # the columns `jsve evaluate --by` is checked against before it replays anything
+    assert list(table.columns) == meta_columns([r.meta for r in runs]) + list(TABLE_COLUMNS)
 
 
 def test_chunk_size_does_not_change_results(runs):
@@ -79,7 +84,6 @@ def test_a_pass_gives_memory_back_where_the_frame_length_changes(runs, monkeypat
     """evaluate_rules drops JAX's executables (jsve._memory.release_memory) where the next bucket has
     another frame length and the process holds too much, never between two buckets of one length and
     never when it holds little; the results are those of a pass that keeps everything."""
-    from jsve.evaluation import _evaluate
 
     rules = [("orbslam3", jsve.preset("orbslam3")), ("sve-option2", jsve.preset("sve-option2"))]
     groups = jsve.buckets(runs)
@@ -233,11 +237,17 @@ def test_cli_evaluate_errors(log_dir, tmp_path, capsys):
     assert "lacks key 'not_init'" in capsys.readouterr().err
     assert jsve_main(["evaluate", str(log_dir), "--rule", "no-such-preset", "--no-progress"]) == 2
     assert "neither a preset" in capsys.readouterr().err
-    # (one rule: the --by keys are checked against the table, after evaluating it)
-    assert (
-        jsve_main(["evaluate", str(log_dir), "--rule", "orbslam3", "--by", "weather", "--no-progress"]) == 2
-    )
-    assert "'weather'" in capsys.readouterr().err
+
+
+def test_cli_evaluate_refuses_an_unknown_by_key_before_replaying(log_dir, monkeypatch, capsys):
+    """The --by keys are checked against the table's columns (the logs' metadata and what evaluate
+    writes) before any rule is replayed: a typo costs nothing."""
+    monkeypatch.setattr(_evaluate, "evaluate_rules", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    argv = ["evaluate", str(log_dir), "--rule", "orbslam3", "--by", "disturbance,weather", "--no-progress"]
+    assert jsve_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--by keys ['weather'] are not metadata of these logs" in err
+    assert "disturbance" in err.split("known:")[1] and "rule" in err.split("known:")[1]
 
 
 def test_cli_evaluate_refuses_logs_without_ground_truth(tmp_path, capsys):

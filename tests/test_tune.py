@@ -36,7 +36,7 @@ budget = 100
 design = 16
 shortlist = 4
 perturbations = 1
-flight_s = 20.0
+flight_s = 10.0
 """
 
 

@@ -85,10 +85,10 @@ def run(args) -> int:
 
     from jsve.core._objective import DEFAULT_FAILURE_PENALTY_M, DEFAULT_MIN_COVERAGE
     from jsve.evaluation._aggregate import aggregate, failure_counts
-    from jsve.evaluation._evaluate import evaluate_rules, in_run_order
+    from jsve.evaluation._evaluate import TABLE_COLUMNS, evaluate_rules, in_run_order
     from jsve.evaluation._record import write_evaluation_record
     from jsve.io import _atomic as atomic
-    from jsve.io._batching import buckets
+    from jsve.io._batching import buckets, meta_columns
 
     progress = not args.no_progress
     if args.min_coverage is None:
@@ -104,6 +104,7 @@ def run(args) -> int:
         switch_model=args.switch_model or "orbslam3",
         progress=progress,
     )
+    by = [k for k in args.by.split(",") if k]
     try:
         from jsve.io import load_rules
 
@@ -113,36 +114,36 @@ def run(args) -> int:
             # while in memory, so the peak follows the chunk size, not the study (jsve.io._stream).
             from jsve.io._stream import iter_buckets, open_study
 
-            study = open_study(args.logs)
+            study, runs = open_study(args.logs), None
+            n_runs, metas = study.n_runs, [e["meta"] for e in study.entries]
             missing_gt = [e["source"] for e in study.entries if not e["has_ground_truth"]]
-            if study.n_runs and not missing_gt:
-                per_run = evaluate_rules(
-                    iter_buckets(study, dtype=dtype), rules, n_runs=study.n_runs, **options
-                )
-                per_run = in_run_order(per_run, study.file_order(per_run["run_id"]))
         else:
             runs = common.load_runs(
                 "evaluate", args.logs, on_error=args.on_error, workers=args.workers, progress=progress
             )
-            study = None
+            study, n_runs, metas = None, len(runs), [r.meta for r in runs]
             missing_gt = [r.source for r in runs if not r.has_ground_truth]
-            if runs and not missing_gt:
-                per_run = evaluate_rules(buckets(runs, dtype=dtype), rules, **options)
+        if n_runs == 0:
+            return common.fail("evaluate", f"no valid logs in {args.logs}")
+        if missing_gt:
+            return common.fail(
+                "evaluate",
+                f"{len(missing_gt)} logs have no ground truth (first: {missing_gt[0]}); "
+                "associate it with `jsve ingest --gt`",
+            )
+        known = [*meta_columns(metas), *TABLE_COLUMNS]
+        unknown = [k for k in by if k not in known]
+        if unknown:  # before the replay: a typo costs no evaluation
+            return common.fail(
+                "evaluate", f"--by keys {unknown} are not metadata of these logs; known: {', '.join(known)}"
+            )
+        if study is not None:
+            per_run = evaluate_rules(iter_buckets(study, dtype=dtype), rules, n_runs=n_runs, **options)
+            per_run = in_run_order(per_run, study.file_order(per_run["run_id"]))
+        else:
+            per_run = evaluate_rules(buckets(runs, dtype=dtype), rules, **options)
     except (ValueError, OSError) as err:  # LogFormatError is a ValueError
         return common.fail("evaluate", err)
-    if (study.n_runs if study is not None else len(runs)) == 0:
-        return common.fail("evaluate", f"no valid logs in {args.logs}")
-    if missing_gt:
-        return common.fail(
-            "evaluate",
-            f"{len(missing_gt)} logs have no ground truth (first: {missing_gt[0]}); "
-            "associate it with `jsve ingest --gt`",
-        )
-    by = [k for k in args.by.split(",") if k]
-    unknown = [k for k in by if k not in per_run.columns]
-    if unknown:
-        known = ", ".join(map(str, per_run.columns))
-        return common.fail("evaluate", f"--by keys {unknown} are not metadata of these logs; known: {known}")
     penalty = DEFAULT_FAILURE_PENALTY_M if args.failure_penalty is None else args.failure_penalty
     try:
         summary = aggregate(

@@ -34,7 +34,7 @@ from jsve.core._replay import as_logged_mode, batch_features, replay
 from jsve.core._rules import Rule
 from jsve.core._sve import FrameFeatures
 from jsve.core._trajectory import RunError, batched_run_error
-from jsve.evaluation._aggregate import per_run_table
+from jsve.evaluation._aggregate import RUN_COLUMNS, per_run_table
 from jsve.io._batching import Bucket, recorded_mode
 
 LOST_REASON = "lost tracking (a reset, an expiry to LOST or a recorded map loss; failure='strict')"
@@ -295,6 +295,22 @@ def in_run_order(per_run: pd.DataFrame, position) -> pd.DataFrame:
     rule_rank = {name: k for k, name in enumerate(dict.fromkeys(per_run["rule"]))}
     order = np.lexsort((np.asarray(position), per_run["rule"].map(rule_rank).to_numpy()))
     return per_run.iloc[order].reset_index(drop=True)
+
+
+TABLE_COLUMNS: tuple[str, ...] = (
+    "rule",
+    "switch_model",
+    *RUN_COLUMNS,
+    "accepted_fraction",
+    "coasting_fraction",
+    "changed_fraction",
+    "unsupported_fraction",
+    "resets",
+    "new_maps",
+    "lost_any",
+)
+"""The columns `evaluate_rules` writes after the runs' metadata, in order (then OBJECTIVE_COLUMNS where
+it is given an objective)."""
 
 
 def _run_table(

@@ -51,6 +51,14 @@ def run_meta_table(runs: Sequence[RunLog]) -> pd.DataFrame:
     )
 
 
+def meta_columns(metas: Iterable[dict]) -> list[str]:
+    """The columns `meta_table` gives runs with these metadata dicts, in its order, without building it."""
+    columns = dict.fromkeys(("run_id", "source", "n_frames", "t0_ns"))
+    for meta in metas:
+        columns.update(dict.fromkeys(RECORDED_KEYS.get(key, key) for key in meta))
+    return list(columns)
+
+
 def meta_table(records: Iterable[tuple[str, str, int, int, dict]]) -> pd.DataFrame:
     """`run_meta_table` of (run_id, source, n_frames, t0_ns, meta) records, as the Parquet stream
     (jsve.io._stream) has them without parsed runs."""
