@@ -454,22 +454,30 @@ def _fake_study(out):
         )
 
 
+@pytest.fixture(scope="module")
+def fake(tmp_path_factory):
+    """The hand-made study with its report rendered once: (folder, markdown, html) for the tests that
+    only read them; a test that changes the study copies the folder first."""
+    out = tmp_path_factory.mktemp("fake")
+    _fake_study(out)
+    written = write_report(out, title="fake")
+    return out, written["markdown"].read_text(), written["html"].read_text()
+
+
 def _section(md: str, heading: str) -> str:
     return md.split(f"## {heading}\n")[1].split("\n## ")[0]
 
 
-def test_stage_seconds_of_simplexes_in_lockstep_are_marked_shared(tmp_path):
+def test_stage_seconds_of_simplexes_in_lockstep_are_marked_shared(fake):
     """Nelder-Mead runs moved in lockstep record the lockstep's wall time each: the stage table says the
     time is theirs together, so no reader adds it up twice."""
-    _fake_study(tmp_path)
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    _, md, _ = fake
     assert md.count("| 7.2 (all 2 simplexes) |") == 4  # two stages of each family's table
     assert "| 1.5 |" in md
 
 
-def test_headline_comes_first_and_says_what_the_tables_say(tmp_path):
-    _fake_study(tmp_path)
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+def test_headline_comes_first_and_says_what_the_tables_say(fake):
+    _, md, _ = fake
     assert md.startswith("# fake\n\n## Headline\n")
     head = _section(md, "Headline")
     assert (
@@ -489,10 +497,8 @@ def test_headline_comes_first_and_says_what_the_tables_say(tmp_path):
     assert "2 parameters of `fitted-sve` flagged (at a bound, not identified)" in head
 
 
-def test_tables_are_failure_aware_and_presets_appear_once(tmp_path):
-    _fake_study(tmp_path)
-    written = write_report(tmp_path, title="fake")
-    md, page = written["markdown"].read_text(), written["html"].read_text()
+def test_tables_are_failure_aware_and_presets_appear_once(fake):
+    _, md, page = fake
     held = _section(md, "Held-out comparison")
     assert held.count("| orbslam3 |") == 1 and held.count("| fitted-sve |") == 2
     assert "| orbslam3 | (not fitted) | 8 | 39.0 [38.0, 40.0] | 37.5 % |" in held
@@ -515,9 +521,8 @@ def test_tables_are_failure_aware_and_presets_appear_once(tmp_path):
     assert '<td class="w">orbslam3</td>' in page and '<td class="n">39.0</td>' in page
 
 
-def test_heat_maps_say_what_is_held_and_when_they_are_flat(tmp_path):
-    _fake_study(tmp_path)
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+def test_heat_maps_say_what_is_held_and_when_they_are_flat(fake):
+    _, md, _ = fake
     figs = _section(md, "Figures")
     sve = figs.split("### Objective over two thresholds: sve")[1].split("###")[0]
     inl = figs.split("### Objective over two thresholds: inliers")[1].split("###")[0]
@@ -530,9 +535,8 @@ def test_heat_maps_say_what_is_held_and_when_they_are_flat(tmp_path):
     assert "flat" not in inl
 
 
-def test_parameters_flag_what_the_data_cannot_say(tmp_path):
-    _fake_study(tmp_path)
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+def test_parameters_flag_what_the_data_cannot_say(fake):
+    _, md, _ = fake
     params = _section(md, "Fitted parameters")
     rows = {line.split(" | ")[0].strip("| "): line for line in params.splitlines() if line.startswith("| ")}
     assert "not identified: its 95 % interval spans 80 % of the search range" in rows["w_a"]
@@ -545,14 +549,14 @@ def test_parameters_flag_what_the_data_cannot_say(tmp_path):
     assert "| >= 4 inliers | outside its interval" in lines["recovery"]  # recovery: score > 3.4 from 4 on
 
 
-def test_parameter_intervals_say_what_the_refits_chose_from(tmp_path):
+def test_parameter_intervals_say_what_the_refits_chose_from(fake, tmp_path):
     """With a local design the refits chose from it and the search; without one (the default study's
     n_local 0: `local` is 1, the fit alone) the report says the intervals are only as fine as the search's
     settings, and how to get finer ones."""
     from jsve.fitting._stages import read_table, write_table
 
-    _fake_study(tmp_path)
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+    folder, md, _ = fake
+    shutil.copytree(folder, tmp_path, dirs_exist_ok=True)
     assert "the best setting of the search and a dense local design" in _section(md, "Fitted parameters")
     params = read_table(tmp_path, "params")
     write_table(params.assign(local=1, local_scored=1, race="1"), tmp_path, "params")
@@ -562,19 +566,17 @@ def test_parameter_intervals_say_what_the_refits_chose_from(tmp_path):
     assert "`jsve fit --thorough` adds 1,024 settings around the fit" in section
 
 
-def test_configuration_is_written_as_sentences(tmp_path):
-    _fake_study(tmp_path)
-    md = write_report(tmp_path, title="fake")["markdown"].read_text()
+def test_configuration_is_written_as_sentences(fake):
+    _, md, _ = fake
     method = _section(md, "Method")
     assert "coverage below 0" not in md and "there is no coverage floor" in method
     assert "a failed run charged 1 m" in method and "Switch model `orbslam3`: a tracked" in method
     assert "Cross-validation: 2-fold and leave-one-sequence-out" in method
 
 
-def test_report_is_deterministic_and_keeps_its_title(tmp_path):
-    _fake_study(tmp_path)
-    written = write_report(tmp_path, title="fake")
-    page = written["html"].read_text()
+def test_report_is_deterministic_and_keeps_its_title(fake, tmp_path):
+    folder, _, page = fake
+    shutil.copytree(folder, tmp_path, dirs_exist_ok=True)
     assert page.count("data:image/png;base64,") == 6 and not re.search(r'src="(?!data:)', page)
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     write_report(tmp_path)  # no title: the kept one
